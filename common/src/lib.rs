@@ -1,0 +1,30 @@
+//! # strata-common
+//!
+//! The I/O-free core of Strata, shared by the coordinator and the workers:
+//!
+//! * [`ids`]: unified page ids (data set, level, Morton index) and Morton codes.
+//! * [`pyramid`]: the level/brick arithmetic of the multi-resolution page trees
+//!   (octrees of bricks for volumes, quadtrees of tiles for horizons).
+//! * [`sample`]: on-disk sample types and their exact conversion to `f32`.
+//! * [`filter`]: the coarsening filters that build level `l+1` from level `l`.
+//! * [`store`]: the page-store file format (header, Z-order index, page codec)
+//!   and its reader. The reader is the one place in this crate that touches a
+//!   file, and only through positional reads (`pread`), so any number of
+//!   threads can fetch pages at once without locking.
+//! * [`digest`]: an order-independent digest of a data set's level-0 samples,
+//!   so two stores with the same data print the same digest whatever their
+//!   brick size, compression or source byte order.
+//! * [`geo`]: f64 affine transforms and the lateral survey grid.
+//! * [`scene`]: the scene description (TOML) with errors that name line and column.
+//!
+//! No async, no networking, no threads are spawned here.
+#![deny(missing_docs)]
+
+pub mod digest;
+pub mod filter;
+pub mod geo;
+pub mod ids;
+pub mod pyramid;
+pub mod sample;
+pub mod scene;
+pub mod store;

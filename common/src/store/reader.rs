@@ -1,0 +1,221 @@
+use super::format::{
+    decode_payload, IndexEntry, Preamble, StoreHeader, INDEX_ENTRY_LEN, MAX_HEADER_BYTES, PREAMBLE_LEN,
+};
+use super::StoreError;
+use crate::ids::PageId;
+use crate::pyramid::Pyramid;
+use std::fs::File;
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+
+/// A decoded page: `page_samples` values, `NaN` for no-data (volumes) or holes (horizons).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Page {
+    /// Which page.
+    pub id: PageId,
+    /// Samples, x fastest, border included.
+    pub samples: Vec<f32>,
+}
+
+/// An open page store. All reads are positional (`pread`), so `&PageStore` can be shared by
+/// any number of threads that read pages concurrently.
+#[derive(Debug)]
+pub struct PageStore {
+    path: PathBuf,
+    file: File,
+    file_len: u64,
+    header: StoreHeader,
+    pyramid: Pyramid,
+    index: Vec<IndexEntry>,
+}
+
+fn read_exact_at(file: &File, path: &Path, buf: &mut [u8], offset: u64) -> Result<(), StoreError> {
+    file.read_exact_at(buf, offset).map_err(|source| StoreError::Io { path: path.to_path_buf(), source })
+}
+
+impl PageStore {
+    /// Opens a store and validates its preamble, header and index. Every size read from the
+    /// file is checked against the file's length before anything is allocated.
+    pub fn open(path: impl AsRef<Path>) -> Result<Self, StoreError> {
+        let path = path.as_ref().to_path_buf();
+        let io = |source| StoreError::Io { path: path.clone(), source };
+        let file = File::open(&path).map_err(io)?;
+        let file_len = file.metadata().map_err(io)?.len();
+        let fmt = |offset: u64, expected: String, found: String| StoreError::Format {
+            path: path.clone(),
+            offset,
+            expected,
+            found,
+        };
+        let truncated = |what: &str, offset: u64, end: u64| StoreError::Truncated {
+            path: path.clone(),
+            what: what.into(),
+            offset,
+            end,
+            file_len,
+        };
+        if file_len < PREAMBLE_LEN {
+            return Err(truncated("the preamble", 0, PREAMBLE_LEN));
+        }
+        let mut pre = [0u8; PREAMBLE_LEN as usize];
+        read_exact_at(&file, &path, &mut pre, 0)?;
+        let pre = Preamble::decode(&path, &pre)?;
+
+        if pre.header_len > MAX_HEADER_BYTES {
+            return Err(fmt(24, format!("a header of at most {MAX_HEADER_BYTES} bytes"), format!("{} bytes", pre.header_len)));
+        }
+        let hend = pre.header_offset.checked_add(pre.header_len).unwrap_or(u64::MAX);
+        if hend > file_len {
+            return Err(truncated("the header", pre.header_offset, hend));
+        }
+        let mut hb = vec![0u8; pre.header_len as usize];
+        read_exact_at(&file, &path, &mut hb, pre.header_offset)?;
+        let crc = crc32c::crc32c(&hb);
+        if crc != pre.header_crc {
+            return Err(fmt(pre.header_offset, format!("header with crc32c {:08x}", pre.header_crc), format!("crc32c {crc:08x}")));
+        }
+        let (header, _): (StoreHeader, usize) =
+            bincode::serde::decode_from_slice(&hb, bincode::config::standard()).map_err(|e| {
+                fmt(pre.header_offset, "a bincode-encoded store header".into(), format!("undecodable bytes ({e})"))
+            })?;
+        let pyramid = header
+            .pyramid()
+            .map_err(|e| fmt(pre.header_offset, "a valid page layout".into(), e.to_string()))?;
+        if pyramid.level_count() != header.levels as usize {
+            return Err(fmt(
+                pre.header_offset,
+                format!("{} levels for these dimensions", pyramid.level_count()),
+                format!("{} levels", header.levels),
+            ));
+        }
+        if pre.index_count != pyramid.total_pages() {
+            return Err(fmt(
+                40,
+                format!("{} index entries for this layout", pyramid.total_pages()),
+                format!("{}", pre.index_count),
+            ));
+        }
+        let ilen = pre.index_count.checked_mul(INDEX_ENTRY_LEN).unwrap_or(u64::MAX);
+        let iend = pre.index_offset.checked_add(ilen).unwrap_or(u64::MAX);
+        if iend > file_len {
+            return Err(truncated("the index", pre.index_offset, iend));
+        }
+        let mut index = vec![IndexEntry::default(); pre.index_count as usize];
+        read_exact_at(&file, &path, bytemuck::cast_slice_mut(&mut index), pre.index_offset)?;
+        if cfg!(target_endian = "big") {
+            unreachable!("page stores are little-endian; big-endian hosts are not supported");
+        }
+        let crc = crc32c::crc32c(bytemuck::cast_slice(&index));
+        if crc != pre.index_crc {
+            return Err(fmt(pre.index_offset, format!("index with crc32c {:08x}", pre.index_crc), format!("crc32c {crc:08x}")));
+        }
+        // The index must list exactly the layout's pages, in Z-order, with payloads inside the data section.
+        let mut k = 0usize;
+        for l in 0..pyramid.level_count() {
+            for b in pyramid.bricks_in_z_order(l) {
+                let e = &index[k];
+                let at = pre.index_offset + k as u64 * INDEX_ENTRY_LEN;
+                let want = pyramid.id(l, b);
+                if e.id != want {
+                    return Err(fmt(at, format!("index entry for {want}"), format!("{}", e.id)));
+                }
+                if e.has_payload() {
+                    let end = e.offset + e.stored_len as u64;
+                    if e.offset < PREAMBLE_LEN || end > pre.header_offset.min(pre.index_offset) {
+                        return Err(fmt(
+                            at + 8,
+                            format!("payload inside the data section {PREAMBLE_LEN}..{}", pre.header_offset),
+                            format!("bytes {}..{end}", e.offset),
+                        ));
+                    }
+                    if e.stored_len as usize > header.page_raw_len() + header.page_raw_len() / 64 + 64 {
+                        return Err(fmt(
+                            at + 16,
+                            format!("a stored length of at most about {} bytes", header.page_raw_len()),
+                            format!("{}", e.stored_len),
+                        ));
+                    }
+                }
+                k += 1;
+            }
+        }
+        Ok(PageStore { path, file, file_len, header, pyramid, index })
+    }
+
+    /// The file this store was opened from.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+    /// File length in bytes.
+    pub fn file_len(&self) -> u64 {
+        self.file_len
+    }
+    /// The header.
+    pub fn header(&self) -> &StoreHeader {
+        &self.header
+    }
+    /// The tree layout.
+    pub fn pyramid(&self) -> &Pyramid {
+        &self.pyramid
+    }
+    /// The whole index, sorted by page id.
+    pub fn index(&self) -> &[IndexEntry] {
+        &self.index
+    }
+    /// The index entry of a page (data-set bits are ignored).
+    pub fn entry(&self, id: PageId) -> Option<&IndexEntry> {
+        let id = id.with_dataset(0);
+        self.index.binary_search_by_key(&id, |e| e.id).ok().map(|i| &self.index[i])
+    }
+
+    /// Reads a page's stored bytes and verifies their checksum.
+    pub fn read_stored(&self, entry: &IndexEntry) -> Result<Vec<u8>, StoreError> {
+        if !entry.has_payload() {
+            return Ok(Vec::new());
+        }
+        let mut buf = vec![0u8; entry.stored_len as usize];
+        read_exact_at(&self.file, &self.path, &mut buf, entry.offset)?;
+        let found = crc32c::crc32c(&buf);
+        if found != entry.checksum {
+            return Err(StoreError::Checksum {
+                path: self.path.clone(),
+                page: entry.id,
+                offset: entry.offset,
+                len: entry.stored_len,
+                expected: entry.checksum,
+                found,
+            });
+        }
+        Ok(buf)
+    }
+
+    /// Reads, verifies and decodes a page into `out` (`page_samples` long).
+    pub fn read_page_into(&self, id: PageId, out: &mut [f32]) -> Result<(), StoreError> {
+        let entry = *self.entry(id).ok_or_else(|| StoreError::NoSuchPage { path: self.path.clone(), page: id })?;
+        let stored = self.read_stored(&entry)?;
+        decode_payload(&self.header, &entry, &stored, out).map_err(|expected| StoreError::Format {
+            path: self.path.clone(),
+            offset: entry.offset,
+            expected,
+            found: format!("{} stored bytes that do not decode", entry.stored_len),
+        })
+    }
+
+    /// Reads, verifies and decodes a page.
+    pub fn read_page(&self, id: PageId) -> Result<Page, StoreError> {
+        let mut samples = vec![0.0; self.pyramid.page_samples()];
+        self.read_page_into(id, &mut samples)?;
+        Ok(Page { id, samples })
+    }
+
+    /// Level-0 sample at `(x, y, z)` read through its page (slow; for tests and tools).
+    pub fn sample_level(&self, level: usize, p: [u64; 3]) -> Result<f32, StoreError> {
+        let c = self.pyramid.core3();
+        let brick = [0, 1, 2].map(|a| (p[a] / c[a] as u64) as u32);
+        let page = self.read_page(self.pyramid.id(level, brick))?;
+        let o = self.pyramid.page_origin(brick);
+        let pd = self.pyramid.page_dims();
+        let l = [0, 1, 2].map(|a| (p[a] as i64 - o[a]) as usize);
+        Ok(page.samples[(l[2] * pd[1] as usize + l[1]) * pd[0] as usize + l[0]])
+    }
+}
