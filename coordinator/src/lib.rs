@@ -1,1 +1,18 @@
-pub fn _x(){}
+//! # strata-coordinator
+//!
+//! The user-facing side of Strata: ingest of real formats into page stores, synthetic
+//! seismic surveys, inspection, and (later) the distributed render driver.
+//!
+//! * [`source`]: the `GridSource` trait the builder reads through, raw files, memory grids.
+//! * [`builder`]: streams a source into a page store with bounded memory.
+//! * [`segy`]: SEG-Y rev 0/1/2 reading (and writing, for synthetic tests).
+//! * [`horizon_text`]: interpreted horizons from text exports.
+//! * [`synth`]: deterministic synthetic seismic surveys.
+//! * [`inspect`]: store summaries, verification and digests.
+
+pub mod builder;
+pub mod horizon_text;
+pub mod inspect;
+pub mod segy;
+pub mod source;
+// pub mod synth; (enabled once segy.rs provides SegyWriter)

@@ -1,0 +1,208 @@
+//! Round trips through the page store: level 0 equals the source, borders equal the
+//! neighbours' samples, coarse levels equal the filter applied to the finer level, and the
+//! index's per-page bounds are conservative.
+
+use indicatif::ProgressBar;
+use proptest::prelude::*;
+use strata_common::filter::CoarsenFilter;
+use strata_common::sample::SampleType;
+use strata_common::store::{Compression, PageStore};
+use strata_coordinator::builder::{build_store, BuildOptions};
+use strata_coordinator::source::{MemorySource, RawSource};
+use strata_tests::{check_borders, check_coarse_levels, level_grid, same};
+
+fn synthetic(dims: [u64; 3], t: SampleType, seed: u64) -> Vec<f32> {
+    let n = (dims[0] * dims[1] * dims[2]) as usize;
+    (0..n)
+        .map(|i| {
+            let h = strata_common::digest::fmix64(i as u64 ^ seed);
+            let (lo, hi) = match t {
+                SampleType::F32 => (-5000.0, 5000.0),
+                _ => t.range(),
+            };
+            // Smooth structure plus noise, and constant regions so constant pages appear.
+            let x = (i as u64 % dims[0]) as f32;
+            if x < 3.0 {
+                return t.quantize(lo.max(-100.0).max(lo));
+            }
+            let v = lo + (hi - lo) * ((h >> 40) as f32 / (1u64 << 24) as f32);
+            t.quantize(v)
+        })
+        .collect()
+}
+
+fn build(src: &MemorySource, t: SampleType, page: u32, border: u32, filter: CoarsenFilter, comp: Compression, budget: usize) -> (tempfile::TempDir, PageStore) {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("v.strata");
+    let mut o = BuildOptions::volume("t", t);
+    o.page_size = page;
+    o.border = border;
+    o.filter = filter;
+    o.compression = comp;
+    o.memory_budget = budget;
+    build_store(src, &out, &o, &ProgressBar::hidden()).unwrap();
+    // Nothing but the store is left in the folder.
+    let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+    assert_eq!(names, vec![std::ffi::OsString::from("v.strata")]);
+    let s = PageStore::open(&out).unwrap();
+    (dir, s)
+}
+
+fn assert_round_trip(dims: [u64; 3], t: SampleType, page: u32, border: u32, filter: CoarsenFilter, comp: Compression, budget: usize) {
+    let data = synthetic(dims, t, dims[0] * 31 + dims[2]);
+    let src = MemorySource { dims, data };
+    let (_d, store) = build(&src, t, page, border, filter, comp, budget);
+    let l0 = level_grid(&store, 0);
+    for (i, (a, b)) in l0.iter().zip(&src.data).enumerate() {
+        assert!(same(*a, *b), "level-0 sample {i}: store {a}, source {b}");
+    }
+    check_borders(&store).unwrap();
+    check_coarse_levels(&store).unwrap();
+    // Per-page bounds are conservative: they cover every sample the page holds and its children's bounds.
+    let pyr = store.pyramid();
+    for e in store.index() {
+        let p = store.read_page(e.id).unwrap();
+        for v in p.samples.iter().filter(|v| !v.is_nan()) {
+            assert!(*v >= e.min && *v <= e.max, "{}: {v} outside [{}, {}]", e.id, e.min, e.max);
+        }
+        let l = e.id.level() as usize;
+        if l > 0 {
+            for c in pyr.children(l, pyr.brick_of(e.id.morton())) {
+                let ce = store.entry(pyr.id(l - 1, c)).unwrap();
+                assert!(ce.min >= e.min && ce.max <= e.max);
+            }
+        }
+    }
+}
+
+#[test]
+fn non_power_of_two_i16_signed_rms_lz4_small_budget() {
+    assert_round_trip([37, 20, 45], SampleType::I16, 32, 1, CoarsenFilter::SignedRms, Compression::Lz4, 64 << 10);
+}
+
+#[test]
+fn u8_mean_border_2() {
+    assert_round_trip([70, 33, 31], SampleType::U8, 32, 2, CoarsenFilter::Mean, Compression::None, 1 << 20);
+}
+
+#[test]
+fn f32_max_abs_page_64() {
+    assert_round_trip([130, 65, 9], SampleType::F32, 64, 1, CoarsenFilter::MaxAbs, Compression::Lz4, 256 << 20);
+}
+
+#[test]
+fn single_sample_and_thin_volumes() {
+    assert_round_trip([1, 1, 1], SampleType::U16, 32, 1, CoarsenFilter::Mean, Compression::None, 1 << 20);
+    assert_round_trip([200, 1, 3], SampleType::I8, 32, 1, CoarsenFilter::SignedRms, Compression::None, 1 << 16);
+}
+
+#[test]
+fn nan_no_data_in_f32_volume() {
+    let dims = [40, 35, 33];
+    let mut data = synthetic(dims, SampleType::F32, 5);
+    // A whole region of no-data (a missing-trace column) and scattered NaN samples.
+    for z in 0..dims[2] {
+        for y in 0..10 {
+            for x in 0..12 {
+                data[((z * dims[1] + y) * dims[0] + x) as usize] = f32::NAN;
+            }
+        }
+    }
+    data[999] = f32::NAN;
+    let src = MemorySource { dims, data };
+    let (_d, store) = build(&src, SampleType::F32, 32, 1, CoarsenFilter::SignedRms, Compression::Lz4, 1 << 20);
+    let l0 = level_grid(&store, 0);
+    assert!(l0.iter().zip(&src.data).all(|(a, b)| same(*a, *b)));
+    check_borders(&store).unwrap();
+    check_coarse_levels(&store).unwrap();
+    let nan = src.data.iter().filter(|v| v.is_nan()).count() as u64;
+    assert_eq!(store.header().valid_samples, 40 * 35 * 33 - nan);
+}
+
+#[test]
+fn integer_store_without_sentinel_refuses_no_data() {
+    let dims = [10, 10, 10];
+    let mut data = vec![1.0f32; 1000];
+    data[5] = f32::NAN;
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("v.strata");
+    let err = build_store(&MemorySource { dims, data }, &out, &BuildOptions::volume("t", SampleType::I16), &ProgressBar::hidden()).unwrap_err();
+    assert!(format!("{err:#}").contains("no-data"), "{err:#}");
+    assert!(std::fs::read_dir(dir.path()).unwrap().next().is_none(), "nothing half-written may remain");
+}
+
+#[test]
+fn raw_file_big_endian_equals_little_endian() {
+    let dims = [33u64, 17, 29];
+    let data = synthetic(dims, SampleType::I16, 9);
+    let dir = tempfile::tempdir().unwrap();
+    let le: Vec<u8> = data.iter().flat_map(|&v| (v as i16).to_le_bytes()).collect();
+    let be: Vec<u8> = data.iter().flat_map(|&v| (v as i16).to_be_bytes()).collect();
+    std::fs::write(dir.path().join("le.raw"), le).unwrap();
+    std::fs::write(dir.path().join("be.raw"), be).unwrap();
+    let mut digests = Vec::new();
+    for (name, big) in [("le", false), ("be", true)] {
+        let src = RawSource::open(&dir.path().join(format!("{name}.raw")), dims, SampleType::I16, big).unwrap();
+        let out = dir.path().join(format!("{name}.strata"));
+        let r = build_store(&src, &out, &BuildOptions::volume(name, SampleType::I16), &ProgressBar::hidden()).unwrap();
+        let store = PageStore::open(&out).unwrap();
+        assert!(level_grid(&store, 0).iter().zip(&data).all(|(a, b)| same(*a, *b)));
+        digests.push(r.header.unwrap().digest);
+    }
+    assert_eq!(digests[0], digests[1]);
+}
+
+#[test]
+fn digest_is_independent_of_brick_size_and_compression() {
+    let dims = [50, 40, 30];
+    let src = MemorySource { dims, data: synthetic(dims, SampleType::U16, 3) };
+    let (_a, s1) = build(&src, SampleType::U16, 32, 1, CoarsenFilter::Mean, Compression::None, 1 << 20);
+    let (_b, s2) = build(&src, SampleType::U16, 64, 2, CoarsenFilter::Mean, Compression::Lz4, 1 << 20);
+    assert_eq!(s1.header().digest, s2.header().digest);
+    let mut other = src.data.clone();
+    other[77] += 1.0;
+    let (_c, s3) = build(&MemorySource { dims, data: other }, SampleType::U16, 32, 1, CoarsenFilter::Mean, Compression::None, 1 << 20);
+    assert_ne!(s1.header().digest, s3.header().digest);
+}
+
+#[test]
+fn horizon_tiles_keep_holes_and_never_invent_heights() {
+    let dims = [300u64, 170, 1];
+    let mut data: Vec<f32> = (0..dims[0] * dims[1]).map(|i| 1000.0 + (i % 300) as f32 * 0.5 + (i / 300) as f32 * 0.25).collect();
+    // A round hole and a one-node hole.
+    for j in 0..dims[1] {
+        for i in 0..dims[0] {
+            if (i as f64 - 100.0).powi(2) + (j as f64 - 80.0).powi(2) < 400.0 {
+                data[(j * dims[0] + i) as usize] = f32::NAN;
+            }
+        }
+    }
+    data[(150 * dims[0] + 250) as usize] = f32::NAN;
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("h.strata");
+    let mut o = BuildOptions::horizon("h");
+    o.page_size = 32;
+    let src = MemorySource { dims, data };
+    build_store(&src, &out, &o, &ProgressBar::hidden()).unwrap();
+    let store = PageStore::open(&out).unwrap();
+    let l0 = level_grid(&store, 0);
+    assert!(l0.iter().zip(&src.data).all(|(a, b)| same(*a, *b)));
+    check_borders(&store).unwrap();
+    check_coarse_levels(&store).unwrap();
+    // A coarse texel is a hole wherever any fine texel under it is: holes never shrink.
+    let l1 = level_grid(&store, 1);
+    let c = store.pyramid().level(1).dims;
+    assert!(l1[(75 * c[0] + 125) as usize].is_nan());
+    assert!(l1[(40 * c[0] + 50) as usize].is_nan());
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 12, .. ProptestConfig::default() })]
+    #[test]
+    fn round_trip_any_dims(nx in 1u64..80, ny in 1u64..50, nz in 1u64..70,
+                           t in prop::sample::select(vec![SampleType::U8, SampleType::I16, SampleType::F32]),
+                           border in 1u32..=2) {
+        let f = if t.is_signed() { CoarsenFilter::SignedRms } else { CoarsenFilter::Mean };
+        assert_round_trip([nx, ny, nz], t, 32, border, f, Compression::Lz4, 200 << 10);
+    }
+}
