@@ -52,7 +52,10 @@ impl DigestAcc {
     }
     /// Merges another partial digest.
     pub fn combine(self, o: DigestAcc) -> DigestAcc {
-        DigestAcc { sum: self.sum.wrapping_add(o.sum), count: self.count + o.count }
+        DigestAcc {
+            sum: self.sum.wrapping_add(o.sum),
+            count: self.count + o.count,
+        }
     }
     /// Number of samples added.
     pub fn count(&self) -> u64 {

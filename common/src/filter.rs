@@ -51,7 +51,9 @@ impl CoarsenFilter {
     }
     /// Parses a command-line name.
     pub fn parse(s: &str) -> Option<Self> {
-        [Self::Mean, Self::SignedRms, Self::MaxAbs, Self::HorizonMean].into_iter().find(|f| f.name() == s)
+        [Self::Mean, Self::SignedRms, Self::MaxAbs, Self::HorizonMean]
+            .into_iter()
+            .find(|f| f.name() == s)
     }
 
     /// Applies the filter to the children (2, 4 or 8 values; `NaN` = no-data).
@@ -139,7 +141,12 @@ mod tests {
 
     #[test]
     fn constant_is_fixed_point_of_every_filter() {
-        for f in [CoarsenFilter::Mean, CoarsenFilter::SignedRms, CoarsenFilter::MaxAbs, CoarsenFilter::HorizonMean] {
+        for f in [
+            CoarsenFilter::Mean,
+            CoarsenFilter::SignedRms,
+            CoarsenFilter::MaxAbs,
+            CoarsenFilter::HorizonMean,
+        ] {
             assert_eq!(f.apply(&[-7.5; 8]), -7.5, "{f:?}");
             assert_eq!(f.apply(&[3.0; 4]), 3.0, "{f:?}");
         }
@@ -157,7 +164,12 @@ mod tests {
 
     #[test]
     fn names_round_trip() {
-        for f in [CoarsenFilter::Mean, CoarsenFilter::SignedRms, CoarsenFilter::MaxAbs, CoarsenFilter::HorizonMean] {
+        for f in [
+            CoarsenFilter::Mean,
+            CoarsenFilter::SignedRms,
+            CoarsenFilter::MaxAbs,
+            CoarsenFilter::HorizonMean,
+        ] {
             assert_eq!(CoarsenFilter::parse(f.name()), Some(f));
         }
     }

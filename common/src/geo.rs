@@ -23,7 +23,13 @@ impl Default for Affine3 {
 
 impl Affine3 {
     /// The identity map.
-    pub const IDENTITY: Affine3 = Affine3 { rows: [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]] };
+    pub const IDENTITY: Affine3 = Affine3 {
+        rows: [
+            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+        ],
+    };
 
     /// Axis-aligned scale and offset.
     pub fn scale_offset(scale: [f64; 3], offset: [f64; 3]) -> Self {
@@ -36,7 +42,8 @@ impl Affine3 {
     }
     /// Applies the map.
     pub fn apply(&self, p: [f64; 3]) -> [f64; 3] {
-        self.rows.map(|r| r[0] * p[0] + r[1] * p[1] + r[2] * p[2] + r[3])
+        self.rows
+            .map(|r| r[0] * p[0] + r[1] * p[1] + r[2] * p[2] + r[3])
     }
     /// Whether every coefficient is finite.
     pub fn is_finite(&self) -> bool {
@@ -53,7 +60,9 @@ pub struct Affine2 {
 
 impl Affine2 {
     /// The identity map.
-    pub const IDENTITY: Affine2 = Affine2 { rows: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]] };
+    pub const IDENTITY: Affine2 = Affine2 {
+        rows: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]],
+    };
     /// Applies the map.
     pub fn apply(&self, p: [f64; 2]) -> [f64; 2] {
         self.rows.map(|r| r[0] * p[0] + r[1] * p[1] + r[2])
@@ -158,7 +167,11 @@ pub fn fit_affine2(points: &[([f64; 2], [f64; 2])]) -> Option<AffineFit> {
         s2 += d * d;
         mx = mx.max(d);
     }
-    Some(AffineFit { map, rms_residual: (s2 / n).sqrt(), max_residual: mx })
+    Some(AffineFit {
+        map,
+        rms_residual: (s2 / n).sqrt(),
+        max_residual: mx,
+    })
 }
 
 #[cfg(test)]
@@ -168,7 +181,12 @@ mod tests {
     #[test]
     fn fit_recovers_rotated_utm_grid_exactly() {
         let (c, s) = (30f64.to_radians().cos(), 30f64.to_radians().sin());
-        let truth = Affine2 { rows: [[25.0 * c, -12.5 * s, 612_345.6], [25.0 * s, 12.5 * c, 6_078_901.2]] };
+        let truth = Affine2 {
+            rows: [
+                [25.0 * c, -12.5 * s, 612_345.6],
+                [25.0 * s, 12.5 * c, 6_078_901.2],
+            ],
+        };
         let pts: Vec<_> = (0..50)
             .flat_map(|i| (0..40).map(move |j| [i as f64, j as f64]))
             .map(|g| (g, truth.apply(g)))
@@ -184,7 +202,9 @@ mod tests {
 
     #[test]
     fn fit_rejects_collinear_points() {
-        let pts: Vec<_> = (0..10).map(|i| ([i as f64, 0.0], [i as f64, 1.0])).collect();
+        let pts: Vec<_> = (0..10)
+            .map(|i| ([i as f64, 0.0], [i as f64, 1.0]))
+            .collect();
         assert!(fit_affine2(&pts).is_none());
     }
 

@@ -30,7 +30,19 @@ const LEVEL_MASK: u64 = (1 << LEVEL_BITS) - 1;
 /// A unified page id: data set, level and Morton index in one `u64`.
 #[repr(transparent)]
 #[derive(
-    Copy, Clone, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Hash, Pod, Zeroable, Serialize, Deserialize,
+    Copy,
+    Clone,
+    Debug,
+    Default,
+    PartialEq,
+    Eq,
+    PartialOrd,
+    Ord,
+    Hash,
+    Pod,
+    Zeroable,
+    Serialize,
+    Deserialize,
 )]
 pub struct PageId(pub u64);
 
@@ -66,7 +78,13 @@ impl PageId {
 
 impl std::fmt::Display for PageId {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "page {}/L{}/m{}", self.dataset(), self.level(), self.morton())
+        write!(
+            f,
+            "page {}/L{}/m{}",
+            self.dataset(),
+            self.level(),
+            self.morton()
+        )
     }
 }
 

@@ -128,7 +128,12 @@ impl Pyramid {
                 }
             }
         }
-        Ok(Pyramid { dim, page, border, levels })
+        Ok(Pyramid {
+            dim,
+            page,
+            border,
+            levels,
+        })
     }
 
     /// Octree or quadtree.
@@ -238,7 +243,15 @@ impl Pyramid {
         for &dz in zs {
             for dy in 0..2 {
                 for dx in 0..2 {
-                    let c = [brick[0] * 2 + dx, brick[1] * 2 + dy, if self.dim == Dim::Two { 0 } else { brick[2] * 2 + dz }];
+                    let c = [
+                        brick[0] * 2 + dx,
+                        brick[1] * 2 + dy,
+                        if self.dim == Dim::Two {
+                            0
+                        } else {
+                            brick[2] * 2 + dz
+                        },
+                    ];
                     if self.contains(level - 1, c) {
                         out.push(c);
                     }
@@ -250,7 +263,8 @@ impl Pyramid {
     /// All bricks of a level in Z-order (the order of the on-disk index).
     pub fn bricks_in_z_order(&self, level: usize) -> Vec<[u32; 3]> {
         let b = self.levels[level].bricks;
-        let mut v: Vec<(u64, [u32; 3])> = Vec::with_capacity(self.levels[level].page_count() as usize);
+        let mut v: Vec<(u64, [u32; 3])> =
+            Vec::with_capacity(self.levels[level].page_count() as usize);
         for z in 0..b[2] {
             for y in 0..b[1] {
                 for x in 0..b[0] {
@@ -302,9 +316,18 @@ mod tests {
 
     #[test]
     fn rejects_bad_layouts() {
-        assert!(matches!(Pyramid::new(Dim::Three, [0, 4, 4], 64, 1), Err(PyramidError::EmptyDims(_))));
-        assert!(matches!(Pyramid::new(Dim::Three, [4, 4, 4], 2, 1), Err(PyramidError::NoCore { .. })));
-        assert!(matches!(Pyramid::new(Dim::Two, [4, 4, 2], 64, 1), Err(PyramidError::FlatZ(2))));
+        assert!(matches!(
+            Pyramid::new(Dim::Three, [0, 4, 4], 64, 1),
+            Err(PyramidError::EmptyDims(_))
+        ));
+        assert!(matches!(
+            Pyramid::new(Dim::Three, [4, 4, 4], 2, 1),
+            Err(PyramidError::NoCore { .. })
+        ));
+        assert!(matches!(
+            Pyramid::new(Dim::Two, [4, 4, 2], 64, 1),
+            Err(PyramidError::FlatZ(2))
+        ));
         assert!(matches!(
             Pyramid::new(Dim::Three, [u32::MAX as u64, 4, 4], 64, 1),
             Err(PyramidError::TooManyBricks { .. })

@@ -82,7 +82,10 @@ impl SampleType {
         debug_assert_eq!(bytes.len(), out.len() * self.size());
         match self {
             SampleType::U8 => out.iter_mut().zip(bytes).for_each(|(o, &b)| *o = b as f32),
-            SampleType::I8 => out.iter_mut().zip(bytes).for_each(|(o, &b)| *o = b as i8 as f32),
+            SampleType::I8 => out
+                .iter_mut()
+                .zip(bytes)
+                .for_each(|(o, &b)| *o = b as i8 as f32),
             SampleType::U16 => out
                 .iter_mut()
                 .zip(bytes.chunks_exact(2))
@@ -98,7 +101,9 @@ impl SampleType {
         }
         if let Some(nd) = no_data {
             if self != SampleType::F32 {
-                out.iter_mut().filter(|v| **v == nd).for_each(|v| *v = f32::NAN);
+                out.iter_mut()
+                    .filter(|v| **v == nd)
+                    .for_each(|v| *v = f32::NAN);
             }
         }
     }
@@ -112,9 +117,15 @@ impl SampleType {
         match self {
             SampleType::U8 => out.extend(values.iter().map(|&v| fix(v) as u8)),
             SampleType::I8 => out.extend(values.iter().map(|&v| fix(v) as i8 as u8)),
-            SampleType::U16 => values.iter().for_each(|&v| out.extend_from_slice(&(fix(v) as u16).to_le_bytes())),
-            SampleType::I16 => values.iter().for_each(|&v| out.extend_from_slice(&(fix(v) as i16).to_le_bytes())),
-            SampleType::F32 => values.iter().for_each(|&v| out.extend_from_slice(&v.to_le_bytes())),
+            SampleType::U16 => values
+                .iter()
+                .for_each(|&v| out.extend_from_slice(&(fix(v) as u16).to_le_bytes())),
+            SampleType::I16 => values
+                .iter()
+                .for_each(|&v| out.extend_from_slice(&(fix(v) as i16).to_le_bytes())),
+            SampleType::F32 => values
+                .iter()
+                .for_each(|&v| out.extend_from_slice(&v.to_le_bytes())),
         }
     }
 }

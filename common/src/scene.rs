@@ -92,7 +92,12 @@ pub struct RenderSettings {
 
 impl Default for RenderSettings {
     fn default() -> Self {
-        RenderSettings { width: default_w(), height: default_h(), cache_mb: default_cache(), z_scale: 1.0 }
+        RenderSettings {
+            width: default_w(),
+            height: default_h(),
+            cache_mb: default_cache(),
+            z_scale: 1.0,
+        }
     }
 }
 
@@ -148,7 +153,12 @@ impl Scene {
                     (line, col)
                 })
                 .unwrap_or((1, 1));
-            SceneError { path: path.to_path_buf(), line, column, message: e.message().to_string() }
+            SceneError {
+                path: path.to_path_buf(),
+                line,
+                column,
+                message: e.message().to_string(),
+            }
         })?;
         let base = path.parent().unwrap_or(Path::new("."));
         for v in &mut scene.volumes {
@@ -181,7 +191,10 @@ mod tests {
             "[[volume]]\nstore = \"cube.strata\"\n[[horizon]]\nstore = \"/abs/h.strata\"\n[render]\nwidth = 64\n",
         )
         .unwrap();
-        assert_eq!(s.volumes[0].store, PathBuf::from("/data/survey/cube.strata"));
+        assert_eq!(
+            s.volumes[0].store,
+            PathBuf::from("/data/survey/cube.strata")
+        );
         assert_eq!(s.horizons[0].store, PathBuf::from("/abs/h.strata"));
         assert_eq!(s.render.width, 64);
         assert_eq!(s.render.height, 720);
@@ -189,7 +202,8 @@ mod tests {
 
     #[test]
     fn errors_point_at_line_and_column() {
-        let e = Scene::parse(Path::new("s.toml"), "[render]\nwidth = 64\nheigth = 3\n").unwrap_err();
+        let e =
+            Scene::parse(Path::new("s.toml"), "[render]\nwidth = 64\nheigth = 3\n").unwrap_err();
         assert_eq!((e.line, e.column), (3, 1), "{e}");
         assert!(e.to_string().starts_with("s.toml:3:1:"), "{e}");
         let e = Scene::parse(Path::new("s.toml"), "[render]\nwidth = \"wide\"\n").unwrap_err();
@@ -198,7 +212,11 @@ mod tests {
 
     #[test]
     fn round_trips_through_toml() {
-        let s = Scene::parse(Path::new("a.toml"), "[[volume]]\nstore = \"/c.strata\"\nwindow = [-1.0, 1.0]\n").unwrap();
+        let s = Scene::parse(
+            Path::new("a.toml"),
+            "[[volume]]\nstore = \"/c.strata\"\nwindow = [-1.0, 1.0]\n",
+        )
+        .unwrap();
         let again = Scene::parse(Path::new("a.toml"), &s.to_toml()).unwrap();
         assert_eq!(s, again);
     }

@@ -29,8 +29,8 @@ use strata_common::ids::PageId;
 use strata_common::pyramid::{Dim, Pyramid};
 use strata_common::sample::SampleType;
 use strata_common::store::{
-    decode_payload, encode_page, Compression, DataKind, IndexEntry, Preamble, StoreHeader, Units, FORMAT_VERSION,
-    PREAMBLE_LEN,
+    decode_payload, encode_page, Compression, DataKind, IndexEntry, Preamble, StoreHeader, Units,
+    FORMAT_VERSION, PREAMBLE_LEN,
 };
 
 /// What to build.
@@ -75,7 +75,11 @@ impl BuildOptions {
             no_data: None,
             page_size: 64,
             border: 1,
-            filter: if sample_type.is_signed() { CoarsenFilter::SignedRms } else { CoarsenFilter::Mean },
+            filter: if sample_type.is_signed() {
+                CoarsenFilter::SignedRms
+            } else {
+                CoarsenFilter::Mean
+            },
             compression: Compression::None,
             transform: Affine3::IDENTITY,
             units: Units::default(),
@@ -135,7 +139,10 @@ impl Drop for TempFile {
 
 /// The temporary name a build writes to before renaming: hidden, in the same folder, with the pid.
 pub fn temp_path_for(out: &Path) -> PathBuf {
-    let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "store".into());
+    let name = out
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "store".into());
     out.with_file_name(format!(".{name}.tmp{}", std::process::id()))
 }
 
@@ -145,7 +152,12 @@ struct Output {
 }
 
 /// Builds a page store at `out` from `src`. Nothing appears at `out` unless the build succeeds.
-pub fn build_store(src: &dyn GridSource, out: &Path, opts: &BuildOptions, progress: &ProgressBar) -> Result<BuildReport> {
+pub fn build_store(
+    src: &dyn GridSource,
+    out: &Path,
+    opts: &BuildOptions,
+    progress: &ProgressBar,
+) -> Result<BuildReport> {
     let dims = src.dims();
     let dim = match opts.kind {
         DataKind::Volume => Dim::Three,
@@ -158,9 +170,13 @@ pub fn build_store(src: &dyn GridSource, out: &Path, opts: &BuildOptions, progre
         bail!("brick size must be 32, 64 or 128, got {}", opts.page_size);
     }
     if !(1..=2).contains(&opts.border) {
-        bail!("border must be 1 (trilinear) or 2 (gradients), got {}", opts.border);
+        bail!(
+            "border must be 1 (trilinear) or 2 (gradients), got {}",
+            opts.border
+        );
     }
-    let pyr = Pyramid::new(dim, dims, opts.page_size, opts.border).with_context(|| format!("cannot lay out {dims:?}"))?;
+    let pyr = Pyramid::new(dim, dims, opts.page_size, opts.border)
+        .with_context(|| format!("cannot lay out {dims:?}"))?;
     let mut header = StoreHeader {
         kind: opts.kind,
         name: opts.name.clone(),
@@ -181,20 +197,45 @@ pub fn build_store(src: &dyn GridSource, out: &Path, opts: &BuildOptions, progre
         source: opts.source.clone(),
     };
 
-    let tmp = TempFile { path: temp_path_for(out), keep: false };
-    let file = File::create(&tmp.path).with_context(|| format!("{}: cannot create", tmp.path.display()))?;
-    let mut o = Output { w: BufWriter::with_capacity(8 << 20, file), offset: PREAMBLE_LEN };
+    let tmp = TempFile {
+        path: temp_path_for(out),
+        keep: false,
+    };
+    let file = File::create(&tmp.path)
+        .with_context(|| format!("{}: cannot create", tmp.path.display()))?;
+    let mut o = Output {
+        w: BufWriter::with_capacity(8 << 20, file),
+        offset: PREAMBLE_LEN,
+    };
     o.w.write_all(&[0u8; PREAMBLE_LEN as usize])?;
 
     progress.set_length(pyr.total_pages());
-    let mut report = BuildReport { pages: pyr.total_pages(), ..Default::default() };
+    let mut report = BuildReport {
+        pages: pyr.total_pages(),
+        ..Default::default()
+    };
     let mut entries: Vec<IndexEntry> = Vec::with_capacity(pyr.total_pages() as usize);
     let mut stats = Level0Stats::default();
 
     // Level 0 from the source.
-    let mut prev = build_level(src, 0, &pyr, &header, &mut o, &mut entries, Some(&mut stats), None, opts, progress, &mut report)
-        .with_context(|| format!("while building level 0 of {}", out.display()))?;
-    if opts.sample_type != SampleType::F32 && opts.no_data.is_none() && stats.acc.count() != stats.valid {
+    let mut prev = build_level(
+        src,
+        0,
+        &pyr,
+        &header,
+        &mut o,
+        &mut entries,
+        Some(&mut stats),
+        None,
+        opts,
+        progress,
+        &mut report,
+    )
+    .with_context(|| format!("while building level 0 of {}", out.display()))?;
+    if opts.sample_type != SampleType::F32
+        && opts.no_data.is_none()
+        && stats.acc.count() != stats.valid
+    {
         bail!(
             "the source has {} no-data samples but the {} store has no no-data sentinel",
             stats.acc.count() - stats.valid,
@@ -212,10 +253,34 @@ pub fn build_store(src: &dyn GridSource, out: &Path, opts: &BuildOptions, progre
     for l in 1..pyr.level_count() {
         o.w.flush()?;
         let reader = File::open(&tmp.path)?;
-        let fine = LevelSource::new(reader, &header, &pyr, l - 1, &entries, opts.memory_budget / 4);
-        let coarse = Downsample { fine: &fine, filter: opts.filter, dims: pyr.level(l).dims, dim };
-        prev = build_level(&coarse, l, &pyr, &header, &mut o, &mut entries, None, Some(&prev), opts, progress, &mut report)
-            .with_context(|| format!("while building level {l} of {}", out.display()))?;
+        let fine = LevelSource::new(
+            reader,
+            &header,
+            &pyr,
+            l - 1,
+            &entries,
+            opts.memory_budget / 4,
+        );
+        let coarse = Downsample {
+            fine: &fine,
+            filter: opts.filter,
+            dims: pyr.level(l).dims,
+            dim,
+        };
+        prev = build_level(
+            &coarse,
+            l,
+            &pyr,
+            &header,
+            &mut o,
+            &mut entries,
+            None,
+            Some(&prev),
+            opts,
+            progress,
+            &mut report,
+        )
+        .with_context(|| format!("while building level {l} of {}", out.display()))?;
     }
 
     // Header and index after the data; then the preamble that points at them.
@@ -238,10 +303,12 @@ pub fn build_store(src: &dyn GridSource, out: &Path, opts: &BuildOptions, progre
     let mut file = o.w.into_inner().map_err(|e| e.into_error())?;
     file.seek(SeekFrom::Start(0))?;
     file.write_all(&pre.encode())?;
-    file.sync_all().with_context(|| format!("{}: sync failed", tmp.path.display()))?;
+    file.sync_all()
+        .with_context(|| format!("{}: sync failed", tmp.path.display()))?;
     report.file_bytes = index_offset + ib.len() as u64;
     drop(file);
-    std::fs::rename(&tmp.path, out).with_context(|| format!("cannot rename {} to {}", tmp.path.display(), out.display()))?;
+    std::fs::rename(&tmp.path, out)
+        .with_context(|| format!("cannot rename {} to {}", tmp.path.display(), out.display()))?;
     let mut tmp = tmp;
     tmp.keep = true;
     report.header = Some(header);
@@ -302,7 +369,8 @@ fn build_level(
                 let mut bsz = [0u64; 3];
                 for ax in 0..3 {
                     let lo = (r0[ax] as i64 * core[ax] as i64 - border[ax] as i64).max(0) as u64;
-                    let hi = ((r1[ax] as i64 * core[ax] as i64 + border[ax] as i64) as u64).min(lev.dims[ax]);
+                    let hi = ((r1[ax] as i64 * core[ax] as i64 + border[ax] as i64) as u64)
+                        .min(lev.dims[ax]);
                     blo[ax] = lo;
                     bsz[ax] = hi - lo;
                 }
@@ -377,7 +445,15 @@ fn build_level(
 }
 
 /// Cuts one page (border included) out of a pencil buffer.
-fn cut_page(pyr: &Pyramid, level: usize, br: [u32; 3], buf: &[f32], blo: [u64; 3], bsz: [u64; 3], h: &StoreHeader) -> Vec<f32> {
+fn cut_page(
+    pyr: &Pyramid,
+    level: usize,
+    br: [u32; 3],
+    buf: &[f32],
+    blo: [u64; 3],
+    bsz: [u64; 3],
+    h: &StoreHeader,
+) -> Vec<f32> {
     let pd = pyr.page_dims();
     let dims = pyr.level(level).dims;
     let origin = pyr.page_origin(br);
@@ -422,10 +498,16 @@ fn core_stats(pyr: &Pyramid, br: [u32; 3], page: &[f32], dims: [u64; 3]) -> Leve
     let pd = pyr.page_dims();
     let origin = pyr.page_origin(br);
     let r = pyr.core_range(0, br);
-    let mut s = Level0Stats { min: f32::INFINITY, max: f32::NEG_INFINITY, ..Default::default() };
+    let mut s = Level0Stats {
+        min: f32::INFINITY,
+        max: f32::NEG_INFINITY,
+        ..Default::default()
+    };
     for z in r[2].0..r[2].1 {
         for y in r[1].0..r[1].1 {
-            let prow = (((z as i64 - origin[2]) as usize) * pd[1] as usize + (y as i64 - origin[1]) as usize) * pd[0] as usize;
+            let prow = (((z as i64 - origin[2]) as usize) * pd[1] as usize
+                + (y as i64 - origin[1]) as usize)
+                * pd[0] as usize;
             let grow = (z * dims[1] + y) * dims[0];
             for x in r[0].0..r[0].1 {
                 let v = page[prow + (x as i64 - origin[0]) as usize];
@@ -454,8 +536,19 @@ pub struct LevelSource {
 
 impl LevelSource {
     /// Reads `level` of the store in `file` whose pages are listed in `entries`.
-    pub fn new(file: File, header: &StoreHeader, pyr: &Pyramid, level: usize, entries: &[IndexEntry], cache_bytes: usize) -> Self {
-        let entries = entries.iter().filter(|e| e.id.level() as usize == level).map(|e| (e.id, *e)).collect();
+    pub fn new(
+        file: File,
+        header: &StoreHeader,
+        pyr: &Pyramid,
+        level: usize,
+        entries: &[IndexEntry],
+        cache_bytes: usize,
+    ) -> Self {
+        let entries = entries
+            .iter()
+            .filter(|e| e.id.level() as usize == level)
+            .map(|e| (e.id, *e))
+            .collect();
         LevelSource {
             file,
             header: header.clone(),
@@ -471,13 +564,17 @@ impl LevelSource {
         if let Some(p) = self.cache.lock().unwrap().0.get(&id) {
             return Ok(p.clone());
         }
-        let e = self.entries.get(&id).with_context(|| format!("{id} missing while building the next level"))?;
+        let e = self
+            .entries
+            .get(&id)
+            .with_context(|| format!("{id} missing while building the next level"))?;
         let mut stored = vec![0u8; e.stored_len as usize];
         if e.has_payload() {
             self.file.read_exact_at(&mut stored, e.offset)?;
         }
         let mut out = vec![0f32; self.pyr.page_samples()];
-        decode_payload(&self.header, e, &stored, &mut out).map_err(|m| anyhow::anyhow!("{id}: expected {m}"))?;
+        decode_payload(&self.header, e, &stored, &mut out)
+            .map_err(|m| anyhow::anyhow!("{id}: expected {m}"))?;
         let p = Arc::new(out);
         let mut c = self.cache.lock().unwrap();
         if c.0.insert(id, p.clone()).is_none() {
@@ -510,8 +607,10 @@ impl GridSource for LevelSource {
                 }
             }
         }
-        let pages: Vec<Result<Arc<Vec<f32>>>> =
-            bricks.par_iter().map(|&br| self.page(self.pyr.id(self.level, br))).collect();
+        let pages: Vec<Result<Arc<Vec<f32>>>> = bricks
+            .par_iter()
+            .map(|&br| self.page(self.pyr.id(self.level, br)))
+            .collect();
         let pd = self.pyr.page_dims().map(|v| v as usize);
         for (br, page) in bricks.iter().zip(pages) {
             let page = page?;
@@ -526,7 +625,8 @@ impl GridSource for LevelSource {
                     let px0 = (s[0] as i64 - origin[0]) as usize;
                     let n = (e[0] - s[0]) as usize;
                     let src = &page[(pz * pd[1] + py) * pd[0] + px0..][..n];
-                    let o = (((z - lo[2]) * size[1] + (y - lo[1])) * size[0] + (s[0] - lo[0])) as usize;
+                    let o =
+                        (((z - lo[2]) * size[1] + (y - lo[1])) * size[0] + (s[0] - lo[0])) as usize;
                     out[o..o + n].copy_from_slice(src);
                 }
             }
@@ -559,7 +659,13 @@ impl GridSource for Downsample<'_> {
         let fd = self.fine.dims();
         let flat = self.dim == Dim::Two;
         let flo = [0, 1, 2].map(|a| if flat && a == 2 { 0 } else { 2 * lo[a] });
-        let fhi = [0, 1, 2].map(|a| if flat && a == 2 { 1 } else { (2 * (lo[a] + size[a])).min(fd[a]) });
+        let fhi = [0, 1, 2].map(|a| {
+            if flat && a == 2 {
+                1
+            } else {
+                (2 * (lo[a] + size[a])).min(fd[a])
+            }
+        });
         let fsz = [0, 1, 2].map(|a| fhi[a] - flo[a]);
         let mut fine = vec![0f32; (fsz[0] * fsz[1] * fsz[2]) as usize];
         self.fine.read_box(flo, fsz, &mut fine)?;
@@ -571,29 +677,31 @@ impl GridSource for Downsample<'_> {
                 ((2 * c + d).min(fd[a] - 1) - flo[a]) as usize
             }
         };
-        out.par_chunks_mut((size[0] * size[1]) as usize).enumerate().for_each(|(zi, plane)| {
-            let cz = lo[2] + zi as u64;
-            let mut kids = [0f32; 8];
-            for yi in 0..size[1] {
-                let cy = lo[1] + yi;
-                for xi in 0..size[0] {
-                    let cx = lo[0] + xi;
-                    let mut n = 0;
-                    for &ddz in dz {
-                        let z = fidx(2, cz, ddz);
-                        for ddy in 0..2 {
-                            let y = fidx(1, cy, ddy);
-                            for ddx in 0..2 {
-                                let x = fidx(0, cx, ddx);
-                                kids[n] = fine[(z * fsz[1] as usize + y) * fsz[0] as usize + x];
-                                n += 1;
+        out.par_chunks_mut((size[0] * size[1]) as usize)
+            .enumerate()
+            .for_each(|(zi, plane)| {
+                let cz = lo[2] + zi as u64;
+                let mut kids = [0f32; 8];
+                for yi in 0..size[1] {
+                    let cy = lo[1] + yi;
+                    for xi in 0..size[0] {
+                        let cx = lo[0] + xi;
+                        let mut n = 0;
+                        for &ddz in dz {
+                            let z = fidx(2, cz, ddz);
+                            for ddy in 0..2 {
+                                let y = fidx(1, cy, ddy);
+                                for ddx in 0..2 {
+                                    let x = fidx(0, cx, ddx);
+                                    kids[n] = fine[(z * fsz[1] as usize + y) * fsz[0] as usize + x];
+                                    n += 1;
+                                }
                             }
                         }
+                        plane[(yi * size[0] + xi) as usize] = self.filter.apply(&kids[..n]);
                     }
-                    plane[(yi * size[0] + xi) as usize] = self.filter.apply(&kids[..n]);
                 }
-            }
-        });
+            });
         Ok(())
     }
 }

@@ -64,7 +64,13 @@ pub struct HorizonParseOptions {
 
 impl Default for HorizonParseOptions {
     fn default() -> Self {
-        Self { format: HorizonFormat::Auto, null_value: None, survey: None, grid_origin: (0.0, 0.0), grid_step: (1.0, 1.0) }
+        Self {
+            format: HorizonFormat::Auto,
+            null_value: None,
+            survey: None,
+            grid_origin: (0.0, 0.0),
+            grid_step: (1.0, 1.0),
+        }
     }
 }
 
@@ -149,12 +155,19 @@ enum Event<'a> {
 /// Streams `path` line by line, skipping blank lines and the single header line, and
 /// calls `f` for comments and data lines. `f` returns `Ok(false)` to stop early.
 /// Returns the number of data lines seen and the header line, if one was skipped.
-fn scan_file(path: &Path, file: &str, mut f: impl FnMut(Event<'_>) -> Result<bool>) -> Result<ScanEnd> {
+fn scan_file(
+    path: &Path,
+    file: &str,
+    mut f: impl FnMut(Event<'_>) -> Result<bool>,
+) -> Result<ScanEnd> {
     let handle = File::open(path).map_err(|e| anyhow!("{file}: cannot open: {e}"))?;
     let mut reader = BufReader::with_capacity(1 << 20, handle);
     let mut buf: Vec<u8> = Vec::with_capacity(4096);
     let mut line_no: u64 = 0;
-    let mut end = ScanEnd { data_lines: 0, header: None };
+    let mut end = ScanEnd {
+        data_lines: 0,
+        header: None,
+    };
     let mut header_decided = false;
     loop {
         if !read_line(&mut reader, &mut buf, file, line_no + 1)? {
@@ -184,7 +197,10 @@ fn scan_file(path: &Path, file: &str, mut f: impl FnMut(Event<'_>) -> Result<boo
             continue;
         }
         let text = std::str::from_utf8(bytes).map_err(|e| {
-            anyhow!("{file}:{line_no}: expected text, found a byte that is not UTF-8 at column {}", e.valid_up_to() + 1)
+            anyhow!(
+                "{file}:{line_no}: expected text, found a byte that is not UTF-8 at column {}",
+                e.valid_up_to() + 1
+            )
         })?;
         if !header_decided {
             header_decided = true;
@@ -208,7 +224,12 @@ struct ScanEnd {
 }
 
 /// Reads one line (without its `\n`) into `buf`; `false` at end of file.
-fn read_line(reader: &mut impl BufRead, buf: &mut Vec<u8>, file: &str, line_no: u64) -> Result<bool> {
+fn read_line(
+    reader: &mut impl BufRead,
+    buf: &mut Vec<u8>,
+    file: &str,
+    line_no: u64,
+) -> Result<bool> {
     buf.clear();
     let mut any = false;
     loop {
@@ -230,19 +251,25 @@ fn read_line(reader: &mut impl BufRead, buf: &mut Vec<u8>, file: &str, line_no: 
         buf.extend_from_slice(avail);
         reader.consume(n);
         if buf.len() > MAX_LINE_BYTES {
-            bail!("{file}:{line_no}: line longer than {} MiB; this does not look like a text horizon", MAX_LINE_BYTES >> 20);
+            bail!(
+                "{file}:{line_no}: line longer than {} MiB; this does not look like a text horizon",
+                MAX_LINE_BYTES >> 20
+            );
         }
     }
 }
 
 /// Fields of a data line: separated by whitespace, commas or semicolons.
 fn tokens(line: &str) -> impl Iterator<Item = &str> {
-    line.split(|c: char| c.is_whitespace() || c == ',' || c == ';').filter(|t| !t.is_empty())
+    line.split(|c: char| c.is_whitespace() || c == ',' || c == ';')
+        .filter(|t| !t.is_empty())
 }
 
 /// Whether a token spells a hole.
 fn is_hole_token(t: &str) -> bool {
-    ["nan", "-nan", "+nan", "null"].iter().any(|h| t.eq_ignore_ascii_case(h))
+    ["nan", "-nan", "+nan", "null"]
+        .iter()
+        .any(|h| t.eq_ignore_ascii_case(h))
 }
 
 /// A line of column names: at least half of its tokens are neither numbers nor holes.
@@ -279,8 +306,12 @@ fn detect_format(path: &Path, file: &str) -> Result<HorizonFormat> {
 
 fn no_data(file: &str, end: &ScanEnd) -> anyhow::Error {
     match end.header {
-        Some(h) => anyhow!("{file}: expected data lines, found none (only comments and the header at line {h})"),
-        None => anyhow!("{file}: expected data lines, found none (the file is empty or holds only comments)"),
+        Some(h) => anyhow!(
+            "{file}: expected data lines, found none (only comments and the header at line {h})"
+        ),
+        None => anyhow!(
+            "{file}: expected data lines, found none (the file is empty or holds only comments)"
+        ),
     }
 }
 
@@ -326,7 +357,13 @@ struct Point {
 }
 
 /// Splits and parses a point-list line with exactly `ncols` (3 or 5) fields.
-fn parse_point(line: &str, with_xy: bool, null: Option<f64>, file: &str, line_no: u64) -> Result<Point> {
+fn parse_point(
+    line: &str,
+    with_xy: bool,
+    null: Option<f64>,
+    file: &str,
+    line_no: u64,
+) -> Result<Point> {
     let ncols = if with_xy { 5 } else { 3 };
     let mut f = [""; 5];
     let mut n = 0usize;
@@ -337,12 +374,19 @@ fn parse_point(line: &str, with_xy: bool, null: Option<f64>, file: &str, line_no
         n += 1;
     }
     if n != ncols {
-        let layout = if with_xy { "X Y Inline Crossline Z" } else { "Inline Crossline Z" };
+        let layout = if with_xy {
+            "X Y Inline Crossline Z"
+        } else {
+            "Inline Crossline Z"
+        };
         bail!("{file}:{line_no}: expected {ncols} columns ({layout}), found {n}");
     }
     let base = if with_xy { 2 } else { 0 };
     let xy = if with_xy {
-        Some([parse_coord(f[0], "X", file, line_no, 1)?, parse_coord(f[1], "Y", file, line_no, 2)?])
+        Some([
+            parse_coord(f[0], "X", file, line_no, 1)?,
+            parse_coord(f[1], "Y", file, line_no, 2)?,
+        ])
     } else {
         None
     };
@@ -382,7 +426,10 @@ fn alloc_grid(file: &str, n_inline: u64, n_xline: u64) -> Result<Vec<f32>> {
         .ok_or_else(|| anyhow!("{file}: a grid of {n_inline} x {n_xline} nodes is too large"))?;
     let mut v = Vec::new();
     v.try_reserve_exact(n).map_err(|_| {
-        anyhow!("{file}: cannot allocate a grid of {n_inline} x {n_xline} nodes ({} MiB)", (n as u64 * 4) >> 20)
+        anyhow!(
+            "{file}: cannot allocate a grid of {n_inline} x {n_xline} nodes ({} MiB)",
+            (n as u64 * 4) >> 20
+        )
     })?;
     v.resize(n, f32::from_bits(UNSET_BITS));
     Ok(v)
@@ -409,7 +456,8 @@ fn node_of(g: &SurveyGrid, il: f64, xl: f64, tol: f64) -> Option<(u64, u64)> {
     let fj = (xl - g.xline0) / g.xline_step;
     let (i, j) = (fi.round(), fj.round());
     let on = (fi - i).abs() < tol && (fj - j).abs() < tol;
-    (on && i >= 0.0 && j >= 0.0 && i < g.n_inline as f64 && j < g.n_xline as f64).then_some((i as u64, j as u64))
+    (on && i >= 0.0 && j >= 0.0 && i < g.n_inline as f64 && j < g.n_xline as f64)
+        .then_some((i as u64, j as u64))
 }
 
 /// Largest integer below which every `f64` integer is exact.
@@ -453,7 +501,13 @@ struct AxisStats {
 
 impl AxisStats {
     fn new() -> Self {
-        Self { min: f64::INFINITY, max: f64::NEG_INFINITY, reference: 0.0, step: 0.0, seen: false }
+        Self {
+            min: f64::INFINITY,
+            max: f64::NEG_INFINITY,
+            reference: 0.0,
+            step: 0.0,
+            seen: false,
+        }
     }
     fn add(&mut self, v: f64) {
         if !self.seen {
@@ -491,14 +545,27 @@ struct FitSums {
 
 impl FitSums {
     fn new() -> Self {
-        Self { n: 0.0, r: [0.0; 4], s: [0.0; 4], sii: 0.0, sij: 0.0, sjj: 0.0, swi: [[0.0; 2]; 2] }
+        Self {
+            n: 0.0,
+            r: [0.0; 4],
+            s: [0.0; 4],
+            sii: 0.0,
+            sij: 0.0,
+            sjj: 0.0,
+            swi: [[0.0; 2]; 2],
+        }
     }
     fn add(&mut self, il: f64, xl: f64, w: [f64; 2]) {
         if self.n == 0.0 {
             self.r = [il, xl, w[0], w[1]];
         }
         self.n += 1.0;
-        let d = [il - self.r[0], xl - self.r[1], w[0] - self.r[2], w[1] - self.r[3]];
+        let d = [
+            il - self.r[0],
+            xl - self.r[1],
+            w[0] - self.r[2],
+            w[1] - self.r[3],
+        ];
         for k in 0..4 {
             self.s[k] += d[k];
         }
@@ -533,7 +600,11 @@ impl FitSums {
             a[k][1] = (ry * sii - rx * sij) / det;
             c[k] = m[2 + k] - a[k][0] * m[0] - a[k][1] * m[1];
         }
-        (a.iter().flatten().chain(&c).all(|v| v.is_finite())).then_some(FitSolution { r: self.r, a, c })
+        (a.iter().flatten().chain(&c).all(|v| v.is_finite())).then_some(FitSolution {
+            r: self.r,
+            a,
+            c,
+        })
     }
 }
 
@@ -560,7 +631,10 @@ impl FitSolution {
             rows[k] = [
                 a0 * g.inline_step,
                 a1 * g.xline_step,
-                self.r[2 + k] + self.c[k] + a0 * (g.inline0 - self.r[0]) + a1 * (g.xline0 - self.r[1]),
+                self.r[2 + k]
+                    + self.c[k]
+                    + a0 * (g.inline0 - self.r[0])
+                    + a1 * (g.xline0 - self.r[1]),
             ];
         }
         Affine2 { rows }
@@ -571,7 +645,12 @@ impl FitSolution {
 // Point lists
 // ---------------------------------------------------------------------------------------
 
-fn parse_points(path: &Path, file: &str, opts: &HorizonParseOptions, with_xy: bool) -> Result<HorizonGrid> {
+fn parse_points(
+    path: &Path,
+    file: &str,
+    opts: &HorizonParseOptions,
+    with_xy: bool,
+) -> Result<HorizonGrid> {
     let null = opts.null_value;
     let mut warnings = Vec::new();
 
@@ -641,7 +720,9 @@ fn parse_points(path: &Path, file: &str, opts: &HorizonParseOptions, with_xy: bo
             )),
         }
     } else if with_xy && solution.is_none() {
-        warnings.push(format!("{file}: the X/Y columns do not determine an affine placement; no fit reported"));
+        warnings.push(format!(
+            "{file}: the X/Y columns do not determine an affine placement; no fit reported"
+        ));
     }
     let mut heights = alloc_grid(file, grid.n_inline, grid.n_xline)?;
 
@@ -690,7 +771,11 @@ fn parse_points(path: &Path, file: &str, opts: &HorizonParseOptions, with_xy: bo
     }
     if dropped > 0 {
         let (l, il, xl) = first_drop.unwrap_or_default();
-        let why = if opts.survey.is_some() { "outside the survey grid" } else { "off the inferred grid" };
+        let why = if opts.survey.is_some() {
+            "outside the survey grid"
+        } else {
+            "off the inferred grid"
+        };
         warnings.push(format!(
             "{file}: dropped {dropped} of {points} point(s) {why} (first at line {l}: inline {il}, crossline {xl})"
         ));
@@ -701,7 +786,15 @@ fn parse_points(path: &Path, file: &str, opts: &HorizonParseOptions, with_xy: bo
         max_residual: res_max,
     });
     let holes = finish_grid(&mut heights);
-    Ok(HorizonGrid { survey: grid, heights, fit, nodes_read: points, holes, dropped, warnings })
+    Ok(HorizonGrid {
+        survey: grid,
+        heights,
+        fit,
+        nodes_read: points,
+        holes,
+        dropped,
+        warnings,
+    })
 }
 
 // ---------------------------------------------------------------------------------------
@@ -727,16 +820,22 @@ fn value_after_key(s: &str, key: char) -> Option<(f64, usize)> {
         }
         let after = &s[pos + ch.len_utf8()..];
         let t = after.trim_start();
-        let Some(t) = t.strip_prefix(':').or_else(|| t.strip_prefix('=')) else { continue };
+        let Some(t) = t.strip_prefix(':').or_else(|| t.strip_prefix('=')) else {
+            continue;
+        };
         let t2 = t.trim_start();
         let len = t2
             .char_indices()
-            .take_while(|&(k, c)| c.is_ascii_digit() || c == '.' || ((c == '-' || c == '+') && k == 0) || c == 'e')
+            .take_while(|&(k, c)| {
+                c.is_ascii_digit() || c == '.' || ((c == '-' || c == '+') && k == 0) || c == 'e'
+            })
             .map(|(k, c)| k + c.len_utf8())
             .last()
             .unwrap_or(0);
         // Accept the longest prefix that parses (so "25m" or "1e" stop at the number).
-        let v = (1..=len).rev().find_map(|l| t2.get(..l).and_then(|p| p.parse::<f64>().ok()));
+        let v = (1..=len)
+            .rev()
+            .find_map(|l| t2.get(..l).and_then(|p| p.parse::<f64>().ok()));
         if let Some(v) = v {
             let start = s.len() - t2.len();
             return Some((v, start + len));
@@ -748,7 +847,13 @@ fn value_after_key(s: &str, key: char) -> Option<(f64, usize)> {
 fn parse_grid(path: &Path, file: &str, opts: &HorizonParseOptions) -> Result<HorizonGrid> {
     let null = opts.null_value;
     let (o, st) = (opts.grid_origin, opts.grid_step);
-    if !(o.0.is_finite() && o.1.is_finite() && st.0.is_finite() && st.1.is_finite() && st.0 != 0.0 && st.1 != 0.0) {
+    if !(o.0.is_finite()
+        && o.1.is_finite()
+        && st.0.is_finite()
+        && st.1.is_finite()
+        && st.0 != 0.0
+        && st.1 != 0.0)
+    {
         bail!("{file}: grid origin {o:?} and step {st:?} must be finite, with non-zero steps");
     }
     let mut warnings = Vec::new();
@@ -778,7 +883,9 @@ fn parse_grid(path: &Path, file: &str, opts: &HorizonParseOptions) -> Result<Hor
         }
         Ok(true)
     })?;
-    let Some((ncols, _)) = cols else { return Err(no_data(file, &end)) };
+    let Some((ncols, _)) = cols else {
+        return Err(no_data(file, &end));
+    };
     let ncols = ncols as u64;
 
     let grid = match &opts.survey {
@@ -790,7 +897,9 @@ fn parse_grid(path: &Path, file: &str, opts: &HorizonParseOptions) -> Result<Hor
                         "{file}: placed with the spacing in its comment (x {a}, y {b}) but the origin and azimuth \
                          are unknown; world coordinates start at (0, 0)"
                     ));
-                    Affine2 { rows: [[a, 0.0, 0.0], [0.0, b, 0.0]] }
+                    Affine2 {
+                        rows: [[a, 0.0, 0.0], [0.0, b, 0.0]],
+                    }
                 }
                 None => {
                     warnings.push(format!(
@@ -850,7 +959,15 @@ fn parse_grid(path: &Path, file: &str, opts: &HorizonParseOptions) -> Result<Hor
         ));
     }
     let holes = finish_grid(&mut heights);
-    Ok(HorizonGrid { survey: grid, heights, fit: None, nodes_read, holes, dropped, warnings })
+    Ok(HorizonGrid {
+        survey: grid,
+        heights,
+        fit: None,
+        nodes_read,
+        holes,
+        dropped,
+        warnings,
+    })
 }
 
 // ---------------------------------------------------------------------------------------
@@ -863,10 +980,18 @@ mod tests {
     use std::path::PathBuf;
     use strata_common::geo::fit_affine2;
 
-    const FS4: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data/real/horizons/f3_fs4/F3_Demo_0_FS4.dat");
-    const HOR_B: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data/real/horizons/penobscot_hor_b/Hor_B.txt");
-    const SEABED: &str =
-        concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data/real/horizons/penobscot_seabed/Penobscot_Seabed.txt");
+    const FS4: &str = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../shared/data/real/horizons/f3_fs4/F3_Demo_0_FS4.dat"
+    );
+    const HOR_B: &str = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../shared/data/real/horizons/penobscot_hor_b/Hor_B.txt"
+    );
+    const SEABED: &str = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../shared/data/real/horizons/penobscot_seabed/Penobscot_Seabed.txt"
+    );
 
     /// Writes `text` to a per-process temporary file named after `name`.
     fn temp(name: &str, text: &str) -> PathBuf {
@@ -882,7 +1007,12 @@ mod tests {
     }
 
     fn z_range(h: &HorizonGrid) -> (f32, f32) {
-        h.heights.iter().filter(|v| v.is_finite()).fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)))
+        h.heights
+            .iter()
+            .filter(|v| v.is_finite())
+            .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| {
+                (a.min(v), b.max(v))
+            })
     }
 
     fn at(h: &HorizonGrid, i: u64, j: u64) -> f32 {
@@ -894,19 +1024,31 @@ mod tests {
         let h = parse(Path::new(FS4)).unwrap();
         let s = h.survey;
         assert_eq!((s.n_inline, s.n_xline), (225, 300));
-        assert_eq!((s.inline0, s.inline_step, s.xline0, s.xline_step), (110.0, 2.0, 550.0, 2.0));
+        assert_eq!(
+            (s.inline0, s.inline_step, s.xline0, s.xline_step),
+            (110.0, 2.0, 550.0, 2.0)
+        );
         assert_eq!(h.heights.len(), 225 * 300);
         assert_eq!((h.nodes_read, h.holes, h.dropped), (67_500, 0, 0));
         let (lo, hi) = z_range(&h);
-        assert!((lo - 820.536).abs() < 1e-3 && (hi - 1070.645).abs() < 1e-3, "{lo}..{hi}");
+        assert!(
+            (lo - 820.536).abs() < 1e-3 && (hi - 1070.645).abs() < 1e-3,
+            "{lo}..{hi}"
+        );
         // First data line: 612076.10 6073980.89 110 550 1069.591283798217773.
         assert!((at(&h, 0, 0) - 1069.5913).abs() < 1e-3);
         let fit = h.fit.expect("FS4 has X/Y columns");
-        println!("FS4 affine fit: rms {:.4} m, max {:.4} m, map {:?}", fit.rms_residual, fit.max_residual, fit.map);
+        println!(
+            "FS4 affine fit: rms {:.4} m, max {:.4} m, map {:?}",
+            fit.rms_residual, fit.max_residual, fit.map
+        );
         assert!(fit.rms_residual < 1.0, "rms {}", fit.rms_residual);
         assert_eq!(s.to_world, fit.map);
         let w = s.to_world.apply([0.0, 0.0]);
-        assert!((w[0] - 612076.10).abs() < 2.0 && (w[1] - 6073980.89).abs() < 2.0, "{w:?}");
+        assert!(
+            (w[0] - 612076.10).abs() < 2.0 && (w[1] - 6073980.89).abs() < 2.0,
+            "{w:?}"
+        );
         // Node spacing about 25 m along both axes (inline step 2, so per index ~25 m).
         let dx = s.to_world.apply([1.0, 0.0]);
         let di = ((dx[0] - w[0]).powi(2) + (dx[1] - w[1]).powi(2)).sqrt();
@@ -924,7 +1066,10 @@ mod tests {
             })
             .collect();
         let reference = fit_affine2(&pts).unwrap();
-        assert!((reference.rms_residual - fit.rms_residual).abs() < 1e-6, "{reference:?} vs {fit:?}");
+        assert!(
+            (reference.rms_residual - fit.rms_residual).abs() < 1e-6,
+            "{reference:?} vs {fit:?}"
+        );
         assert!((reference.max_residual - fit.max_residual).abs() < 1e-6);
         for r in 0..2 {
             for k in 0..3 {
@@ -942,7 +1087,11 @@ mod tests {
         assert_eq!((lo, hi), (8.0, 47.0));
         assert!(h.fit.is_none());
         assert_eq!(h.survey.to_world, Affine2::IDENTITY);
-        assert!(h.warnings.iter().any(|w| w.contains("grid indices")), "{:?}", h.warnings);
+        assert!(
+            h.warnings.iter().any(|w| w.contains("grid indices")),
+            "{:?}",
+            h.warnings
+        );
         // Compare with the text: row i, column j.
         let text = std::fs::read_to_string(HOR_B).unwrap();
         let rows: Vec<Vec<f32>> = text
@@ -951,7 +1100,15 @@ mod tests {
             .map(|l| l.split_whitespace().map(|t| t.parse().unwrap()).collect())
             .collect();
         assert_eq!(rows.len(), 250);
-        for &(i, j) in &[(0usize, 0usize), (0, 199), (249, 0), (249, 199), (17, 123), (200, 5), (123, 77)] {
+        for &(i, j) in &[
+            (0usize, 0usize),
+            (0, 199),
+            (249, 0),
+            (249, 199),
+            (17, 123),
+            (200, 5),
+            (123, 77),
+        ] {
             assert_eq!(at(&h, i as u64, j as u64), rows[i][j], "node ({i}, {j})");
         }
         // Every node, to be sure of the transpose.
@@ -965,7 +1122,10 @@ mod tests {
     #[test]
     fn penobscot_hor_b_with_origin_and_survey() {
         // The subset header: inline 1207.., crossline 1253.., step 1.
-        let opts = HorizonParseOptions { grid_origin: (1207.0, 1253.0), ..Default::default() };
+        let opts = HorizonParseOptions {
+            grid_origin: (1207.0, 1253.0),
+            ..Default::default()
+        };
         let h = parse_horizon(Path::new(HOR_B), &opts).unwrap();
         assert_eq!((h.survey.inline0, h.survey.xline0), (1207.0, 1253.0));
         // A survey that covers inlines 1300..1499 and crosslines 1253..1452 (step 1).
@@ -976,9 +1136,14 @@ mod tests {
             xline0: 1253.0,
             xline_step: 1.0,
             n_xline: 200,
-            to_world: Affine2 { rows: [[12.5, 0.0, 1000.0], [0.0, 12.5, 2000.0]] },
+            to_world: Affine2 {
+                rows: [[12.5, 0.0, 1000.0], [0.0, 12.5, 2000.0]],
+            },
         };
-        let opts = HorizonParseOptions { survey: Some(survey), ..opts };
+        let opts = HorizonParseOptions {
+            survey: Some(survey),
+            ..opts
+        };
         let g = parse_horizon(Path::new(HOR_B), &opts).unwrap();
         assert_eq!(g.survey, survey);
         // Rows 0..92 (inlines 1207..1299) fall off the survey: 93 rows x 200 columns.
@@ -986,7 +1151,11 @@ mod tests {
         // Survey inlines 1457..1499 (43) are not in the file: holes.
         assert_eq!(g.holes, 43 * 200);
         assert_eq!(at(&g, 0, 7), at(&h, 93, 7));
-        assert!(g.warnings.iter().any(|w| w.contains("dropped 18600")), "{:?}", g.warnings);
+        assert!(
+            g.warnings.iter().any(|w| w.contains("dropped 18600")),
+            "{:?}",
+            g.warnings
+        );
     }
 
     #[test]
@@ -997,9 +1166,21 @@ mod tests {
         assert_eq!(h.heights.iter().filter(|v| v.is_finite()).count(), 249_572);
         assert_eq!(h.nodes_read, 601 * 481);
         let (lo, hi) = z_range(&h);
-        assert!((lo - 38.39).abs() < 1e-4 && (hi - 85.27).abs() < 1e-4, "{lo}..{hi}");
-        assert_eq!(h.survey.to_world, Affine2 { rows: [[25.0, 0.0, 0.0], [0.0, 12.5, 0.0]] });
-        assert!(h.warnings.iter().any(|w| w.contains("origin")), "{:?}", h.warnings);
+        assert!(
+            (lo - 38.39).abs() < 1e-4 && (hi - 85.27).abs() < 1e-4,
+            "{lo}..{hi}"
+        );
+        assert_eq!(
+            h.survey.to_world,
+            Affine2 {
+                rows: [[25.0, 0.0, 0.0], [0.0, 12.5, 0.0]]
+            }
+        );
+        assert!(
+            h.warnings.iter().any(|w| w.contains("origin")),
+            "{:?}",
+            h.warnings
+        );
         // Finite values occupy rows 3..597 and columns 3..478 only.
         assert!(at(&h, 0, 240).is_nan() && at(&h, 300, 0).is_nan());
         assert!(at(&h, 300, 240).is_finite());
@@ -1007,7 +1188,10 @@ mod tests {
 
     #[test]
     fn spacing_phrase() {
-        assert_eq!(parse_spacing(" Sample spacing x: 25 m, y: 12.5 m"), Some((25.0, 12.5)));
+        assert_eq!(
+            parse_spacing(" Sample spacing x: 25 m, y: 12.5 m"),
+            Some((25.0, 12.5))
+        );
         assert_eq!(parse_spacing("SPACING X=30m Y = 15"), Some((30.0, 15.0)));
         assert_eq!(parse_spacing("spacing x: 0, y: 1"), None);
         assert_eq!(parse_spacing("units are z-indexes"), None);
@@ -1027,7 +1211,10 @@ mod tests {
              106\t24\t-999.25\n\
              102 22 nan\n",
         );
-        let opts = HorizonParseOptions { null_value: Some(-999.25), ..Default::default() };
+        let opts = HorizonParseOptions {
+            null_value: Some(-999.25),
+            ..Default::default()
+        };
         let h = parse_horizon(&p, &opts).unwrap();
         let s = h.survey;
         assert_eq!((s.inline0, s.inline_step, s.n_inline), (100.0, 2.0, 6));
@@ -1039,15 +1226,25 @@ mod tests {
         assert!(at(&h, 5, 0).is_nan() && at(&h, 1, 1).is_nan() && at(&h, 3, 2).is_nan());
         assert!(h.fit.is_none());
         assert_eq!(s.to_world, Affine2::IDENTITY);
-        assert!(h.warnings.iter().any(|w| w.contains("grid indices")), "{:?}", h.warnings);
+        assert!(
+            h.warnings.iter().any(|w| w.contains("grid indices")),
+            "{:?}",
+            h.warnings
+        );
     }
 
     #[test]
     fn non_integral_steps() {
         let p = temp("half.txt", "10.5 3 1\n11.0 3.25 2\n12.0 3.75 3\n");
         let h = parse(&p).unwrap();
-        assert_eq!((h.survey.inline0, h.survey.inline_step, h.survey.n_inline), (10.5, 0.5, 4));
-        assert_eq!((h.survey.xline0, h.survey.xline_step, h.survey.n_xline), (3.0, 0.25, 4));
+        assert_eq!(
+            (h.survey.inline0, h.survey.inline_step, h.survey.n_inline),
+            (10.5, 0.5, 4)
+        );
+        assert_eq!(
+            (h.survey.xline0, h.survey.xline_step, h.survey.n_xline),
+            (3.0, 0.25, 4)
+        );
         assert_eq!(h.holes, 13);
         assert_eq!(at(&h, 3, 3), 3.0);
         let p = temp("tenth.txt", "0.1 0 1\n0.3 0 2\n0.7 1 3\n");
@@ -1060,30 +1257,57 @@ mod tests {
     #[test]
     fn xy_fit_of_rotated_grid_is_exact_and_duplicates_keep_last() {
         let (c, s) = (30f64.to_radians().cos(), 30f64.to_radians().sin());
-        let truth = Affine2 { rows: [[25.0 * c, -12.5 * s, 612_345.6], [25.0 * s, 12.5 * c, 6_078_901.2]] };
+        let truth = Affine2 {
+            rows: [
+                [25.0 * c, -12.5 * s, 612_345.6],
+                [25.0 * s, 12.5 * c, 6_078_901.2],
+            ],
+        };
         let mut text = String::from("X Y Inline Crossline Z\n");
         // Reverse order, inline step 4 starting at 1000, crossline step 1 starting at 7.
         for j in (0..9u32).rev() {
             for i in (0..6u32).rev() {
                 let w = truth.apply([i as f64, j as f64]);
-                text += &format!("{:.6} {:.6} {} {} {}\n", w[0], w[1], 1000 + 4 * i, 7 + j, i * 100 + j);
+                text += &format!(
+                    "{:.6} {:.6} {} {} {}\n",
+                    w[0],
+                    w[1],
+                    1000 + 4 * i,
+                    7 + j,
+                    i * 100 + j
+                );
             }
         }
-        text += &format!("{} {} 1004 8 -1\n", truth.apply([1.0, 1.0])[0], truth.apply([1.0, 1.0])[1]);
+        text += &format!(
+            "{} {} 1004 8 -1\n",
+            truth.apply([1.0, 1.0])[0],
+            truth.apply([1.0, 1.0])[1]
+        );
         let p = temp("rotated.txt", &text);
         let h = parse(&p).unwrap();
-        assert_eq!((h.survey.n_inline, h.survey.n_xline, h.survey.inline_step), (6, 9, 4.0));
+        assert_eq!(
+            (h.survey.n_inline, h.survey.n_xline, h.survey.inline_step),
+            (6, 9, 4.0)
+        );
         let fit = h.fit.unwrap();
         assert!(fit.max_residual < 1e-5, "{fit:?}");
         for r in 0..2 {
             for k in 0..3 {
-                assert!((h.survey.to_world.rows[r][k] - truth.rows[r][k]).abs() < 1e-5, "{:?}", h.survey.to_world);
+                assert!(
+                    (h.survey.to_world.rows[r][k] - truth.rows[r][k]).abs() < 1e-5,
+                    "{:?}",
+                    h.survey.to_world
+                );
             }
         }
         assert_eq!(at(&h, 1, 1), -1.0);
         assert_eq!(at(&h, 5, 8), 508.0);
         assert_eq!(h.holes, 0);
-        assert!(h.warnings.iter().any(|w| w.contains("1 duplicate")), "{:?}", h.warnings);
+        assert!(
+            h.warnings.iter().any(|w| w.contains("1 duplicate")),
+            "{:?}",
+            h.warnings
+        );
     }
 
     #[test]
@@ -1095,15 +1319,26 @@ mod tests {
             xline0: 10.0,
             xline_step: 1.0,
             n_xline: 2,
-            to_world: Affine2 { rows: [[50.0, 0.0, 5.0], [0.0, 25.0, 7.0]] },
+            to_world: Affine2 {
+                rows: [[50.0, 0.0, 5.0], [0.0, 25.0, 7.0]],
+            },
         };
         let p = temp("survey.txt", "100 10 1\n104 11 2\n106 10 3\n102 10 4\n");
-        let opts = HorizonParseOptions { survey: Some(survey), ..Default::default() };
+        let opts = HorizonParseOptions {
+            survey: Some(survey),
+            ..Default::default()
+        };
         let h = parse_horizon(&p, &opts).unwrap();
         assert_eq!(h.survey, survey);
         assert_eq!((h.nodes_read, h.dropped, h.holes), (4, 1, 3));
         assert_eq!((at(&h, 0, 0), at(&h, 2, 1), at(&h, 1, 0)), (1.0, 2.0, 4.0));
-        assert!(h.warnings.iter().any(|w| w.contains("dropped 1 of 4") && w.contains("line 3")), "{:?}", h.warnings);
+        assert!(
+            h.warnings
+                .iter()
+                .any(|w| w.contains("dropped 1 of 4") && w.contains("line 3")),
+            "{:?}",
+            h.warnings
+        );
         // Off-node (between inlines) is dropped too.
         let p = temp("survey2.txt", "101 10 1\n100 10 2\n102 11 3\n");
         let h = parse_horizon(&p, &opts).unwrap();
@@ -1114,16 +1349,25 @@ mod tests {
     fn auto_detection_and_forced_formats() {
         let p = temp("grid3.txt", "1 2 3\n4 5 6\n");
         assert_eq!(parse(&p).unwrap().survey.n_xline, 2); // 3 columns → IlXlZ: xlines 2 and 5
-        let opts = HorizonParseOptions { format: HorizonFormat::Grid, ..Default::default() };
+        let opts = HorizonParseOptions {
+            format: HorizonFormat::Grid,
+            ..Default::default()
+        };
         let g = parse_horizon(&p, &opts).unwrap();
         assert_eq!((g.survey.n_inline, g.survey.n_xline), (2, 3));
         assert_eq!(at(&g, 1, 0), 4.0);
         let p = temp("grid4.txt", "1 2 3 4\n5 nan 7 8\n");
         let g = parse(&p).unwrap();
         assert_eq!((g.survey.n_inline, g.survey.n_xline, g.holes), (2, 4, 1));
-        let opts = HorizonParseOptions { format: HorizonFormat::XyIlXlZ, ..Default::default() };
+        let opts = HorizonParseOptions {
+            format: HorizonFormat::XyIlXlZ,
+            ..Default::default()
+        };
         let e = parse_horizon(&p, &opts).unwrap_err().to_string();
-        assert!(e.contains("grid4.txt:1:") && e.contains("expected 5 columns") && e.contains("found 4"), "{e}");
+        assert!(
+            e.contains("grid4.txt:1:") && e.contains("expected 5 columns") && e.contains("found 4"),
+            "{e}"
+        );
     }
 
     fn err_of(name: &str, text: &str) -> String {
@@ -1137,13 +1381,25 @@ mod tests {
     #[test]
     fn bad_inputs_are_errors_naming_file_and_line() {
         let e = err_of("bad_token.txt", "# c\n1 2 3\n1 3 abc\n");
-        assert!(e.contains("bad_token.txt:3:") && e.contains("column 3") && e.contains("\"abc\""), "{e}");
+        assert!(
+            e.contains("bad_token.txt:3:") && e.contains("column 3") && e.contains("\"abc\""),
+            "{e}"
+        );
         let e = err_of("bad_inline.txt", "1 2 3\nx1 3 4\n");
-        assert!(e.contains("bad_inline.txt:2:") && e.contains("column 1"), "{e}");
+        assert!(
+            e.contains("bad_inline.txt:2:") && e.contains("column 1"),
+            "{e}"
+        );
         let e = err_of("ragged.txt", "1 2 3 4\n1 2 3 4\n1 2 3\n");
-        assert!(e.contains("ragged.txt:3:") && e.contains("expected 4") && e.contains("found 3"), "{e}");
+        assert!(
+            e.contains("ragged.txt:3:") && e.contains("expected 4") && e.contains("found 3"),
+            "{e}"
+        );
         let e = err_of("ragged_points.txt", "1 2 3\n1 3 4 5\n");
-        assert!(e.contains("ragged_points.txt:2:") && e.contains("expected 3") && e.contains("found 4"), "{e}");
+        assert!(
+            e.contains("ragged_points.txt:2:") && e.contains("expected 3") && e.contains("found 4"),
+            "{e}"
+        );
         let e = err_of("empty.txt", "");
         assert!(e.contains("empty.txt:") && e.contains("no"), "{e}");
         let e = err_of("comments_only.txt", "# a\n\n// b\nX Y Z\n");
@@ -1151,9 +1407,15 @@ mod tests {
         let e = err_of("inf.txt", "1 2 3\n1 3 inf\n");
         assert!(e.contains("inf.txt:2:") && e.contains("finite"), "{e}");
         let e = err_of("inf_grid.txt", "1 2 3 4\n1 2 -Infinity 4\n");
-        assert!(e.contains("inf_grid.txt:2:") && e.contains("column 3"), "{e}");
+        assert!(
+            e.contains("inf_grid.txt:2:") && e.contains("column 3"),
+            "{e}"
+        );
         let e = err_of("nan_inline.txt", "1 2 3\nnan 3 4\n");
-        assert!(e.contains("nan_inline.txt:2:") && e.contains("inline"), "{e}");
+        assert!(
+            e.contains("nan_inline.txt:2:") && e.contains("inline"),
+            "{e}"
+        );
         let e = err_of("late_header.txt", "1 2 3\nInline Crossline Z\n");
         assert!(e.contains("late_header.txt:2:"), "{e}");
         let e = err_of("garbage_geometry.txt", "1 1 3\n2 2 3\n100000 3 3\n");
@@ -1166,13 +1428,18 @@ mod tests {
         let e = parse(&p).unwrap_err().to_string();
         assert!(e.contains("binary.txt:2:"), "{e}");
         // Missing file.
-        let e = parse(Path::new("/nonexistent/horizon.dat")).unwrap_err().to_string();
+        let e = parse(Path::new("/nonexistent/horizon.dat"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("horizon.dat"), "{e}");
     }
 
     #[test]
     fn crlf_bom_and_survey_validation() {
-        let p = temp("crlf.txt", "\u{feff}# c\r\nIL XL Z\r\n1 1 5\r\n1 2 6\r\n2 1 7\r\n");
+        let p = temp(
+            "crlf.txt",
+            "\u{feff}# c\r\nIL XL Z\r\n1 1 5\r\n1 2 6\r\n2 1 7\r\n",
+        );
         let h = parse(&p).unwrap();
         assert_eq!((h.survey.n_inline, h.survey.n_xline, h.holes), (2, 2, 1));
         let bad = SurveyGrid {
@@ -1184,9 +1451,16 @@ mod tests {
             n_xline: 1,
             to_world: Affine2::IDENTITY,
         };
-        let opts = HorizonParseOptions { survey: Some(bad), ..Default::default() };
+        let opts = HorizonParseOptions {
+            survey: Some(bad),
+            ..Default::default()
+        };
         assert!(parse_horizon(&p, &opts).is_err());
-        let opts = HorizonParseOptions { format: HorizonFormat::Grid, grid_step: (0.0, 1.0), ..Default::default() };
+        let opts = HorizonParseOptions {
+            format: HorizonFormat::Grid,
+            grid_step: (0.0, 1.0),
+            ..Default::default()
+        };
         assert!(parse_horizon(&p, &opts).is_err());
     }
 

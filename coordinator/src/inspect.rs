@@ -34,7 +34,8 @@ pub fn level0_digest(store: &PageStore, progress: &ProgressBar) -> Result<Digest
             let mut acc = DigestAcc::default();
             for z in r[2].0..r[2].1 {
                 for y in r[1].0..r[1].1 {
-                    let prow = (((z as i64 - o[2]) as usize) * pd[1] + (y as i64 - o[1]) as usize) * pd[0];
+                    let prow =
+                        (((z as i64 - o[2]) as usize) * pd[1] + (y as i64 - o[1]) as usize) * pd[0];
                     let grow = (z * dims[1] + y) * dims[0];
                     for x in r[0].0..r[0].1 {
                         acc.add(grow + x, page.samples[prow + (x as i64 - o[0]) as usize]);
@@ -59,17 +60,31 @@ pub fn inspect(path: &Path, verify: bool, progress: &ProgressBar) -> Result<Insp
     let _ = writeln!(t, "kind: {:?}", h.kind);
     let _ = writeln!(t, "dims: {} x {} x {}", h.dims[0], h.dims[1], h.dims[2]);
     let _ = writeln!(t, "sample type: {}", h.sample_type.name());
-    let _ = writeln!(t, "value range: {} .. {}", h.value_range[0], h.value_range[1]);
+    let _ = writeln!(
+        t,
+        "value range: {} .. {}",
+        h.value_range[0], h.value_range[1]
+    );
     if let Some(nd) = h.no_data {
         let _ = writeln!(t, "no-data sentinel: {nd}");
     }
     let total = h.dims.iter().product::<u64>();
-    let _ = writeln!(t, "valid samples: {} of {} ({} no-data)", h.valid_samples, total, total - h.valid_samples);
+    let _ = writeln!(
+        t,
+        "valid samples: {} of {} ({} no-data)",
+        h.valid_samples,
+        total,
+        total - h.valid_samples
+    );
     let _ = writeln!(
         t,
         "page: {}{} samples, border {}, core {} ({:.1}% border overhead)",
         h.page_size,
-        if pyr.dim() == strata_common::pyramid::Dim::Three { "³" } else { "²" },
+        if pyr.dim() == strata_common::pyramid::Dim::Three {
+            "³"
+        } else {
+            "²"
+        },
         h.border,
         pyr.core(),
         100.0 * pyr.border_overhead()
@@ -77,7 +92,11 @@ pub fn inspect(path: &Path, verify: bool, progress: &ProgressBar) -> Result<Insp
     let _ = writeln!(t, "coarsening filter: {}", h.filter.name());
     let _ = writeln!(t, "levels: {}", h.levels);
     for (l, lev) in pyr.levels().iter().enumerate() {
-        let es: Vec<_> = store.index().iter().filter(|e| e.id.level() as usize == l).collect();
+        let es: Vec<_> = store
+            .index()
+            .iter()
+            .filter(|e| e.id.level() as usize == l)
+            .collect();
         let cst = es.iter().filter(|e| e.flags & PAGE_CONSTANT != 0).count();
         let emp = es.iter().filter(|e| e.flags & PAGE_EMPTY != 0).count();
         let bytes: u64 = es.iter().map(|e| e.stored_len as u64).sum();
@@ -95,19 +114,39 @@ pub fn inspect(path: &Path, verify: bool, progress: &ProgressBar) -> Result<Insp
     }
     let stored: u64 = store.index().iter().map(|e| e.stored_len as u64).sum();
     let payload_pages = store.index().iter().filter(|e| e.has_payload()).count() as u64;
-    let compressed = store.index().iter().filter(|e| e.flags & PAGE_COMPRESSED != 0).count();
+    let compressed = store
+        .index()
+        .iter()
+        .filter(|e| e.flags & PAGE_COMPRESSED != 0)
+        .count();
     let raw = payload_pages * h.page_raw_len() as u64;
-    let _ = writeln!(t, "compression: {} ({compressed} of {payload_pages} stored pages compressed)", h.compression.name());
+    let _ = writeln!(
+        t,
+        "compression: {} ({compressed} of {payload_pages} stored pages compressed)",
+        h.compression.name()
+    );
     let _ = writeln!(
         t,
         "bytes: {} file, {stored} page payload, {raw} uncompressed payload, ratio {:.3}",
         store.file_len(),
-        if stored > 0 { raw as f64 / stored as f64 } else { 1.0 }
+        if stored > 0 {
+            raw as f64 / stored as f64
+        } else {
+            1.0
+        }
     );
     let source_bytes = total * h.sample_type.size() as u64;
-    let _ = writeln!(t, "size vs level-0 samples: {:.3}x", store.file_len() as f64 / source_bytes.max(1) as f64);
+    let _ = writeln!(
+        t,
+        "size vs level-0 samples: {:.3}x",
+        store.file_len() as f64 / source_bytes.max(1) as f64
+    );
     let _ = writeln!(t, "transform (index -> world): {:?}", h.transform.rows);
-    let _ = writeln!(t, "units: lateral {}, vertical {}", h.units.lateral, h.units.vertical);
+    let _ = writeln!(
+        t,
+        "units: lateral {}, vertical {}",
+        h.units.lateral, h.units.vertical
+    );
     if let Some(s) = &h.survey {
         let _ = writeln!(
             t,
@@ -153,10 +192,44 @@ pub fn inspect(path: &Path, verify: bool, progress: &ProgressBar) -> Result<Insp
             path.display(),
             h.digest
         );
-        let _ = writeln!(t, "verified: {verified} pages, all checksums match, digest matches ingest");
+        let _ = writeln!(
+            t,
+            "verified: {verified} pages, all checksums match, digest matches ingest"
+        );
     }
     let _ = writeln!(t, "digest: {digest:016x}");
-    Ok(Inspection { text: t, digest, verified_pages: verified })
+    Ok(Inspection {
+        text: t,
+        digest,
+        verified_pages: verified,
+    })
+}
+
+/// Reassembles one whole level of a store (for tests and tools; holds the level in memory) from its pages' cores (x fastest).
+pub fn level_grid(
+    store: &PageStore,
+    level: usize,
+) -> Result<Vec<f32>, strata_common::store::StoreError> {
+    let pyr = store.pyramid();
+    let dims = pyr.level(level).dims;
+    let pd = pyr.page_dims().map(|v| v as usize);
+    let mut out = vec![0f32; (dims[0] * dims[1] * dims[2]) as usize];
+    for br in pyr.bricks_in_z_order(level) {
+        let page = store.read_page(pyr.id(level, br))?;
+        let r = pyr.core_range(level, br);
+        let o = pyr.page_origin(br);
+        for z in r[2].0..r[2].1 {
+            for y in r[1].0..r[1].1 {
+                for x in r[0].0..r[0].1 {
+                    let p = (((z as i64 - o[2]) as usize) * pd[1] + (y as i64 - o[1]) as usize)
+                        * pd[0]
+                        + (x as i64 - o[0]) as usize;
+                    out[((z * dims[1] + y) * dims[0] + x) as usize] = page.samples[p];
+                }
+            }
+        }
+    }
+    Ok(out)
 }
 
 /// Opens a store with a message that names it.

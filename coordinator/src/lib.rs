@@ -15,4 +15,4 @@ pub mod horizon_text;
 pub mod inspect;
 pub mod segy;
 pub mod source;
-// pub mod synth; (enabled once segy.rs provides SegyWriter)
+pub mod synth;

@@ -1,1 +1,472 @@
-fn main(){}
+//! `coordinator`: Strata's command-line interface.
+
+use anyhow::{Context, Result};
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use strata_common::filter::CoarsenFilter;
+use strata_common::geo::Affine3;
+use strata_common::sample::SampleType;
+use strata_common::store::{Compression, Units};
+use strata_coordinator::builder::{build_store, BuildOptions, BuildReport};
+use strata_coordinator::{horizon_text, inspect, segy, source, synth};
+use tracing::{info, warn};
+
+/// Strata: distributed sort-last rendering of seismic volumes and horizons.
+#[derive(Parser)]
+#[command(name = "coordinator", version, about, long_about = None)]
+struct Cli {
+    /// More log output (-v: debug, -vv: trace). RUST_LOG overrides.
+    #[arg(short, long, action = clap::ArgAction::Count, global = true)]
+    verbose: u8,
+    /// No progress bars.
+    #[arg(short, long, global = true)]
+    quiet: bool,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Convert a source file into a multi-resolution page store.
+    #[command(subcommand)]
+    Ingest(Ingest),
+    /// Generate a deterministic synthetic seismic survey (cube, three horizons, scene).
+    Synth(SynthArgs),
+    /// Summarize a page store; --verify checks every page's checksum.
+    Inspect(InspectArgs),
+}
+
+#[derive(Subcommand)]
+enum Ingest {
+    /// SEG-Y rev 0/1/2 post-stack cube (sample formats 1, 2, 3, 5, 6, 8, 10, 11, 16).
+    Segy(SegyArgs),
+    /// Headerless raw volume, x fastest, then y, then z.
+    Raw(RawArgs),
+    /// Interpreted horizon from text: `inline crossline z`, `x y inline crossline z`, or a dense grid.
+    Horizon(HorizonArgs),
+}
+
+#[derive(Args, Clone)]
+struct StoreArgs {
+    /// Output page store.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Page size per axis including the border (32, 64 or 128 for volumes; horizons default to 128).
+    #[arg(long)]
+    brick: Option<u32>,
+    /// Border samples per side: 1 for trilinear sampling, 2 when gradients are wanted.
+    #[arg(long)]
+    border: Option<u32>,
+    /// Coarsening filter (default: signed-rms for signed data, mean for unsigned, horizon-mean for horizons).
+    #[arg(long, value_enum)]
+    filter: Option<FilterArg>,
+    /// Per-page compression.
+    #[arg(long, value_enum, default_value = "none")]
+    compression: CompressionArg,
+    /// Working memory for ingest in MiB (pencils and page cache; not counting the OS file cache).
+    #[arg(long, default_value_t = 256)]
+    memory_mb: usize,
+}
+
+#[derive(Copy, Clone, ValueEnum)]
+enum FilterArg {
+    Mean,
+    SignedRms,
+    MaxAbs,
+    HorizonMean,
+}
+
+#[derive(Copy, Clone, ValueEnum)]
+enum CompressionArg {
+    None,
+    Lz4,
+}
+
+#[derive(Copy, Clone, ValueEnum)]
+enum EndianArg {
+    Big,
+    Little,
+}
+
+#[derive(Args)]
+struct SegyArgs {
+    /// SEG-Y file.
+    file: PathBuf,
+    /// Byte order; detected from the binary header when absent.
+    #[arg(long, value_enum)]
+    endian: Option<EndianArg>,
+    /// 1-based byte of the inline number in the trace header (189 by the standard; 9 is common).
+    #[arg(long, default_value_t = 189)]
+    inline_byte: u32,
+    /// 1-based byte of the crossline number in the trace header (193 by the standard; 21 is common).
+    #[arg(long, default_value_t = 193)]
+    xline_byte: u32,
+    #[command(flatten)]
+    store: StoreArgs,
+}
+
+#[derive(Args)]
+struct RawArgs {
+    /// Raw file.
+    file: PathBuf,
+    /// Samples per axis.
+    #[arg(long, num_args = 3, value_names = ["NX", "NY", "NZ"], required = true)]
+    dims: Vec<u64>,
+    /// Sample type.
+    #[arg(long, value_parser = ["u8", "i8", "u16", "i16", "f32"])]
+    dtype: String,
+    /// Samples are big-endian.
+    #[arg(long)]
+    big_endian: bool,
+    /// Sample spacing per axis (world units per sample).
+    #[arg(long, num_args = 3, value_names = ["DX", "DY", "DZ"])]
+    spacing: Option<Vec<f64>>,
+    #[command(flatten)]
+    store: StoreArgs,
+}
+
+#[derive(Args)]
+struct HorizonArgs {
+    /// Horizon text file.
+    file: PathBuf,
+    /// Seismic store of the same survey: use its lateral grid instead of inferring one.
+    #[arg(long)]
+    survey: Option<PathBuf>,
+    /// Column layout; detected from the first data line when `auto`.
+    #[arg(long, value_enum, default_value = "auto")]
+    format: HorizonFormatArg,
+    /// A height value that marks a hole (e.g. -999.25); NaN always does.
+    #[arg(long)]
+    null: Option<f64>,
+    /// Grid format: inline and crossline numbers of the first row and column.
+    #[arg(long, num_args = 2, value_names = ["INLINE", "XLINE"])]
+    grid_origin: Option<Vec<f64>>,
+    /// Grid format: inline and crossline increments per row and column.
+    #[arg(long, num_args = 2, value_names = ["DI", "DX"])]
+    grid_step: Option<Vec<f64>>,
+    /// Unit of the heights (world z).
+    #[arg(long, default_value = "ms")]
+    z_unit: String,
+    #[command(flatten)]
+    store: StoreArgs,
+}
+
+#[derive(Copy, Clone, ValueEnum)]
+enum HorizonFormatArg {
+    Auto,
+    IlXlZ,
+    XyIlXlZ,
+    Grid,
+}
+
+#[derive(Args)]
+struct SynthArgs {
+    /// Output folder.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Samples per axis: inlines, crosslines, time samples.
+    #[arg(long, num_args = 3, value_names = ["NX", "NY", "NZ"], default_values_t = [400u64, 300, 250])]
+    size: Vec<u64>,
+    /// Random seed; the same seed and size always give the same survey.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Also write the cube as a SEG-Y file and the horizons as text (for ingest tests).
+    #[arg(long)]
+    segy: bool,
+}
+
+#[derive(Args)]
+struct InspectArgs {
+    /// Page store.
+    store: PathBuf,
+    /// Read every page of every level and check its checksum and the level-0 digest.
+    #[arg(long)]
+    verify: bool,
+}
+
+fn progress(quiet: bool, what: &str) -> ProgressBar {
+    if quiet || !std::io::stderr().is_terminal() {
+        return ProgressBar::hidden();
+    }
+    let pb = ProgressBar::new(0);
+    pb.set_style(
+        ProgressStyle::with_template(
+            "{msg:>14} [{elapsed_precise}] {wide_bar:.cyan/blue} {pos}/{len} pages ({eta})",
+        )
+        .unwrap(),
+    );
+    pb.set_message(what.to_string());
+    pb
+}
+
+fn options(kind_default: BuildOptions, a: &StoreArgs) -> BuildOptions {
+    let mut o = kind_default;
+    if let Some(b) = a.brick {
+        o.page_size = b;
+    }
+    if let Some(b) = a.border {
+        o.border = b;
+    }
+    if let Some(f) = a.filter {
+        o.filter = match f {
+            FilterArg::Mean => CoarsenFilter::Mean,
+            FilterArg::SignedRms => CoarsenFilter::SignedRms,
+            FilterArg::MaxAbs => CoarsenFilter::MaxAbs,
+            FilterArg::HorizonMean => CoarsenFilter::HorizonMean,
+        };
+    }
+    o.compression = match a.compression {
+        CompressionArg::None => Compression::None,
+        CompressionArg::Lz4 => Compression::Lz4,
+    };
+    o.memory_budget = a.memory_mb.max(16) << 20;
+    o
+}
+
+fn summarize(out: &Path, r: &BuildReport, secs: f64) {
+    let h = r.header.as_ref().expect("a finished build has a header");
+    info!(
+        store = %out.display(),
+        pages = r.pages,
+        constant = r.constant_pages,
+        empty = r.empty_pages,
+        bytes = r.file_bytes,
+        seconds = format!("{secs:.2}"),
+        "wrote store"
+    );
+    println!(
+        "wrote {}: {} x {} x {} {}, {} levels, {} pages ({} constant, {} empty), {} bytes, digest {:016x}, {:.2} s",
+        out.display(),
+        h.dims[0],
+        h.dims[1],
+        h.dims[2],
+        h.sample_type.name(),
+        h.levels,
+        r.pages,
+        r.constant_pages,
+        r.empty_pages,
+        r.file_bytes,
+        h.digest,
+        secs
+    );
+}
+
+fn file_name(p: &Path) -> String {
+    p.file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default()
+}
+
+fn run(cli: Cli) -> Result<()> {
+    let t0 = std::time::Instant::now();
+    match cli.command {
+        Command::Ingest(Ingest::Raw(a)) => {
+            let dtype = SampleType::parse(&a.dtype).expect("clap restricts --dtype");
+            let dims = [a.dims[0], a.dims[1], a.dims[2]];
+            let src = source::RawSource::open(&a.file, dims, dtype, a.big_endian)?;
+            let mut o = options(BuildOptions::volume(&file_name(&a.file), dtype), &a.store);
+            if let Some(s) = &a.spacing {
+                o.transform = Affine3::scale_offset([s[0], s[1], s[2]], [0.0; 3]);
+            }
+            o.source = format!(
+                "raw {} ({} {:?}, {})",
+                a.file.display(),
+                dtype.name(),
+                dims,
+                if a.big_endian {
+                    "big-endian"
+                } else {
+                    "little-endian"
+                }
+            );
+            let pb = progress(cli.quiet, "raw");
+            let r = build_store(&src, &a.store.output, &o, &pb)?;
+            pb.finish_and_clear();
+            summarize(&a.store.output, &r, t0.elapsed().as_secs_f64());
+        }
+        Command::Ingest(Ingest::Segy(a)) => {
+            let opts = segy::SegyOptions {
+                endian: a.endian.map(|e| match e {
+                    EndianArg::Big => segy::Endian::Big,
+                    EndianArg::Little => segy::Endian::Little,
+                }),
+                inline_byte: a.inline_byte,
+                xline_byte: a.xline_byte,
+            };
+            let vol = segy::open(&a.file, &opts)?;
+            let info = vol.info();
+            for w in &info.warnings {
+                warn!("{}: {w}", a.file.display());
+            }
+            let mut o = options(
+                BuildOptions::volume(&file_name(&a.file), info.sample_type),
+                &a.store,
+            );
+            if info.missing_traces > 0 && info.sample_type != SampleType::F32 {
+                o.no_data = Some(info.sample_type.range().0);
+            }
+            let (z0, dz) = vol.z_axis();
+            let w = info.survey.to_world.rows;
+            o.transform = Affine3 {
+                rows: [
+                    [w[0][0], w[0][1], 0.0, w[0][2]],
+                    [w[1][0], w[1][1], 0.0, w[1][2]],
+                    [0.0, 0.0, dz, z0],
+                ],
+            };
+            o.units = Units {
+                lateral: "m".into(),
+                vertical: "ms".into(),
+            };
+            o.survey = Some(info.survey);
+            let text: String = info
+                .text_header
+                .lines()
+                .filter(|l| !l.trim().is_empty())
+                .take(40)
+                .collect::<Vec<_>>()
+                .join("\n");
+            o.source = format!(
+                "SEG-Y {} (format {}, rev {}.{})\n{}",
+                a.file.display(),
+                info.format_code,
+                info.revision.0,
+                info.revision.1,
+                text
+            );
+            if let Some(f) = &info.fit {
+                info!(
+                    rms_m = f.rms_residual,
+                    max_m = f.max_residual,
+                    "fitted inline/crossline -> x/y transform"
+                );
+            }
+            let pb = progress(cli.quiet, "SEG-Y");
+            let r = build_store(&vol, &a.store.output, &o, &pb)?;
+            pb.finish_and_clear();
+            summarize(&a.store.output, &r, t0.elapsed().as_secs_f64());
+        }
+        Command::Ingest(Ingest::Horizon(a)) => {
+            let survey =
+                match &a.survey {
+                    Some(p) => {
+                        let s = inspect::open_store(p)?;
+                        Some(s.header().survey.with_context(|| {
+                            format!("{}: store has no survey grid", p.display())
+                        })?)
+                    }
+                    None => None,
+                };
+            let mut po = horizon_text::HorizonParseOptions {
+                format: match a.format {
+                    HorizonFormatArg::Auto => horizon_text::HorizonFormat::Auto,
+                    HorizonFormatArg::IlXlZ => horizon_text::HorizonFormat::IlXlZ,
+                    HorizonFormatArg::XyIlXlZ => horizon_text::HorizonFormat::XyIlXlZ,
+                    HorizonFormatArg::Grid => horizon_text::HorizonFormat::Grid,
+                },
+                null_value: a.null,
+                survey,
+                ..Default::default()
+            };
+            if let Some(g) = &a.grid_origin {
+                po.grid_origin = (g[0], g[1]);
+            }
+            if let Some(g) = &a.grid_step {
+                po.grid_step = (g[0], g[1]);
+            }
+            let grid = horizon_text::parse_horizon(&a.file, &po)?;
+            for w in &grid.warnings {
+                warn!("{}: {w}", a.file.display());
+            }
+            if let Some(f) = &grid.fit {
+                println!(
+                    "fitted inline/crossline -> x/y: rms residual {:.4} m, max {:.4} m",
+                    f.rms_residual, f.max_residual
+                );
+            }
+            println!(
+                "{} nodes read, {} holes, {} dropped outside the survey grid",
+                grid.nodes_read, grid.holes, grid.dropped
+            );
+            let s = grid.survey;
+            let w = s.to_world.rows;
+            let mut o = options(BuildOptions::horizon(&file_name(&a.file)), &a.store);
+            if a.store.brick.is_none() {
+                o.page_size = 128;
+            }
+            o.transform = Affine3 {
+                rows: [
+                    [w[0][0], w[0][1], 0.0, w[0][2]],
+                    [w[1][0], w[1][1], 0.0, w[1][2]],
+                    [0.0, 0.0, 1.0, 0.0],
+                ],
+            };
+            o.units = Units {
+                lateral: "m".into(),
+                vertical: a.z_unit.clone(),
+            };
+            o.survey = Some(s);
+            o.source = format!("horizon text {}", a.file.display());
+            let src = source::MemorySource {
+                dims: [s.n_inline, s.n_xline, 1],
+                data: grid.heights,
+            };
+            let pb = progress(cli.quiet, "horizon");
+            let r = build_store(&src, &a.store.output, &o, &pb)?;
+            pb.finish_and_clear();
+            summarize(&a.store.output, &r, t0.elapsed().as_secs_f64());
+        }
+        Command::Synth(a) => {
+            let pb = progress(cli.quiet, "synth");
+            let out = synth::synth(
+                &a.output,
+                [a.size[0], a.size[1], a.size[2]],
+                a.seed,
+                a.segy,
+                &pb,
+            )?;
+            pb.finish_and_clear();
+            summarize(&out.volume, &out.volume_report, t0.elapsed().as_secs_f64());
+            for h in &out.horizons {
+                println!("wrote {}", h.display());
+            }
+            if let Some(s) = &out.segy {
+                println!("wrote {}", s.display());
+            }
+            println!("wrote {}", out.scene.display());
+        }
+        Command::Inspect(a) => {
+            let pb = progress(cli.quiet, "inspect");
+            let r = inspect::inspect(&a.store, a.verify, &pb)?;
+            pb.finish_and_clear();
+            print!("{}", r.text);
+        }
+    }
+    Ok(())
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let level = match cli.verbose {
+        0 => "info",
+        1 => "debug",
+        _ => "trace",
+    };
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(level));
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_target(false)
+        .init();
+    match run(cli) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

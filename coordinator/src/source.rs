@@ -35,13 +35,20 @@ impl RawSource {
     /// Opens `path` and checks that its size matches `dims` and `dtype` exactly.
     pub fn open(path: &Path, dims: [u64; 3], dtype: SampleType, big_endian: bool) -> Result<Self> {
         let file = File::open(path).with_context(|| format!("{}: cannot open", path.display()))?;
-        let len = file.metadata().with_context(|| format!("{}: cannot stat", path.display()))?.len();
+        let len = file
+            .metadata()
+            .with_context(|| format!("{}: cannot stat", path.display()))?
+            .len();
         let want = dims
             .iter()
             .try_fold(dtype.size() as u64, |a, &d| a.checked_mul(d))
             .context("dimensions overflow")?;
         if dims.contains(&0) {
-            bail!("{}: dimensions must be at least 1, got {:?}", path.display(), dims);
+            bail!(
+                "{}: dimensions must be at least 1, got {:?}",
+                path.display(),
+                dims
+            );
         }
         if len != want {
             bail!(
@@ -54,7 +61,13 @@ impl RawSource {
                 dtype.name()
             );
         }
-        Ok(RawSource { path: path.to_path_buf(), file, dims, dtype, big_endian })
+        Ok(RawSource {
+            path: path.to_path_buf(),
+            file,
+            dims,
+            dtype,
+            big_endian,
+        })
     }
 }
 
@@ -73,9 +86,13 @@ impl GridSource for RawSource {
             for y in 0..size[1] {
                 let idx = ((lo[2] + z) * self.dims[1] + lo[1] + y) * self.dims[0] + lo[0];
                 let off = idx * es as u64;
-                self.file
-                    .read_exact_at(&mut buf, off)
-                    .with_context(|| format!("{}: read of {} bytes at byte {off} failed", self.path.display(), buf.len()))?;
+                self.file.read_exact_at(&mut buf, off).with_context(|| {
+                    format!(
+                        "{}: read of {} bytes at byte {off} failed",
+                        self.path.display(),
+                        buf.len()
+                    )
+                })?;
                 if self.big_endian && es > 1 {
                     buf.chunks_exact_mut(es).for_each(|c| c.reverse());
                 }

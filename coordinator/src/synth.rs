@@ -46,14 +46,21 @@ pub struct SynthModel {
 }
 
 fn unit(seed: u64, a: u64, b: u64) -> f64 {
-    (fmix64(seed ^ fmix64(a.wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ fmix64(b))) >> 11) as f64 / (1u64 << 53) as f64
+    (fmix64(seed ^ fmix64(a.wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ fmix64(b))) >> 11) as f64
+        / (1u64 << 53) as f64
 }
 
 impl SynthModel {
     /// Builds the model. `dims` must be at least 8 samples per axis.
     pub fn new(dims: [u64; 3], seed: u64) -> Result<Self> {
-        anyhow::ensure!(dims.iter().all(|&d| d >= 8), "synthetic surveys need at least 8 samples per axis, got {dims:?}");
-        anyhow::ensure!(dims[0] < (1 << 20) && dims[1] < (1 << 20), "at most 2^20 traces per axis");
+        anyhow::ensure!(
+            dims.iter().all(|&d| d >= 8),
+            "synthetic surveys need at least 8 samples per axis, got {dims:?}"
+        );
+        anyhow::ensure!(
+            dims[0] < (1 << 20) && dims[1] < (1 << 20),
+            "at most 2^20 traces per axis"
+        );
         let nz = dims[2] as f64;
         let spacing = (nz / 24.0).clamp(6.0, 40.0);
         let mut base = Vec::new();
@@ -64,7 +71,11 @@ impl SynthModel {
             base.push(z);
             let r = unit(seed, 1, n) * 2.0 - 1.0;
             // Every fourth interface is a strong reflector; the rest are weak.
-            refl.push(if n % 4 == 1 { r.signum() * (0.7 + 0.3 * r.abs()) } else { 0.35 * r });
+            refl.push(if n % 4 == 1 {
+                r.signum() * (0.7 + 0.3 * r.abs())
+            } else {
+                0.35 * r
+            });
             z += spacing * (0.6 + 0.8 * unit(seed, 2, n));
             n += 1;
         }
@@ -80,9 +91,21 @@ impl SynthModel {
             xline0: 2000.0,
             xline_step: 1.0,
             n_xline: dims[1],
-            to_world: Affine2 { rows: [[25.0 * c, -25.0 * s, 605_000.0], [25.0 * s, 25.0 * c, 6_075_000.0]] },
+            to_world: Affine2 {
+                rows: [
+                    [25.0 * c, -25.0 * s, 605_000.0],
+                    [25.0 * s, 25.0 * c, 6_075_000.0],
+                ],
+            },
         };
-        Ok(SynthModel { dims, seed, base, refl, horizon_layers, survey })
+        Ok(SynthModel {
+            dims,
+            seed,
+            base,
+            refl,
+            horizon_layers,
+            survey,
+        })
     }
 
     /// Depth (in samples, fractional) of every interface at trace `(i, j)`, and whether the
@@ -96,7 +119,11 @@ impl SynthModel {
             + 0.10 * nz * (-((u - 0.6).powi(2) + (v - 0.4).powi(2)) / 0.05).exp();
         // Vertical normal fault along a line across the survey; throw tapers out along strike.
         let side = (u - 0.45) * 0.9 + (v - 0.5) * 0.45;
-        let throw = if side > 0.0 { 0.05 * nz * (1.0 - (v - 0.1).clamp(0.0, 1.0)).clamp(0.0, 1.0) } else { 0.0 };
+        let throw = if side > 0.0 {
+            0.05 * nz * (1.0 - (v - 0.1).clamp(0.0, 1.0)).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
         out.clear();
         for &b in &self.base {
             let depth_gain = 0.3 + 0.7 * (b / nz).min(1.3);
@@ -148,12 +175,20 @@ impl SynthModel {
     /// Heights (ms) of the three horizons, inline index fastest; `NaN` = hole.
     pub fn horizon_grids(&self) -> [Vec<f32>; 3] {
         let [nx, ny, _] = self.dims;
-        let mut grids = [vec![0f32; (nx * ny) as usize], vec![0f32; (nx * ny) as usize], vec![0f32; (nx * ny) as usize]];
+        let mut grids = [
+            vec![0f32; (nx * ny) as usize],
+            vec![0f32; (nx * ny) as usize],
+            vec![0f32; (nx * ny) as usize],
+        ];
         let rows: Vec<[Vec<f32>; 3]> = (0..ny)
             .into_par_iter()
             .map(|j| {
                 let mut s = Vec::new();
-                let mut r = [Vec::with_capacity(nx as usize), Vec::with_capacity(nx as usize), Vec::with_capacity(nx as usize)];
+                let mut r = [
+                    Vec::with_capacity(nx as usize),
+                    Vec::with_capacity(nx as usize),
+                    Vec::with_capacity(nx as usize),
+                ];
                 for i in 0..nx {
                     self.interfaces(i as f64, j as f64, &mut s);
                     for (h, &l) in self.horizon_layers.iter().enumerate() {
@@ -163,7 +198,9 @@ impl SynthModel {
                     // sinuous channel that eroded it.
                     let (u, v) = (i as f64 / nx as f64, j as f64 / ny as f64);
                     let side = (u - 0.45) * 0.9 + (v - 0.5) * 0.45;
-                    let channel = (u - (0.2 + 0.08 * (std::f64::consts::TAU * 2.0 * v).sin())).abs() < 0.03 && v > 0.15;
+                    let channel =
+                        (u - (0.2 + 0.08 * (std::f64::consts::TAU * 2.0 * v).sin())).abs() < 0.03
+                            && v > 0.15;
                     if side.abs() < 1.5 / nx as f64 || channel {
                         *r[0].last_mut().unwrap() = f32::NAN;
                     }
@@ -182,7 +219,13 @@ impl SynthModel {
     /// Index → world transform of the cube: lateral from the survey grid, z = two-way time in ms.
     pub fn transform(&self) -> Affine3 {
         let w = self.survey.to_world.rows;
-        Affine3 { rows: [[w[0][0], w[0][1], 0.0, w[0][2]], [w[1][0], w[1][1], 0.0, w[1][2]], [0.0, 0.0, DT_MS, 0.0]] }
+        Affine3 {
+            rows: [
+                [w[0][0], w[0][1], 0.0, w[0][2]],
+                [w[1][0], w[1][1], 0.0, w[1][2]],
+                [0.0, 0.0, DT_MS, 0.0],
+            ],
+        }
     }
 }
 
@@ -199,7 +242,13 @@ impl GridSource for SynthModel {
             .into_par_iter()
             .map_init(Vec::new, |scratch, t| {
                 let mut tr = vec![0f32; sz];
-                self.trace(lo[0] + (t % sx) as u64, lo[1] + (t / sx) as u64, lo[2], &mut tr, scratch);
+                self.trace(
+                    lo[0] + (t % sx) as u64,
+                    lo[1] + (t / sx) as u64,
+                    lo[2],
+                    &mut tr,
+                    scratch,
+                );
                 tr
             })
             .collect();
@@ -229,16 +278,29 @@ pub struct SynthOutput {
 
 /// Writes a synthetic survey into `dir`: `seismic.strata`, `horizon1..3.strata`, `scene.toml`,
 /// and with `segy` also `seismic.sgy` and the horizons as `x y inline crossline z` text.
-pub fn synth(dir: &Path, dims: [u64; 3], seed: u64, segy: bool, progress: &ProgressBar) -> Result<SynthOutput> {
-    std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create folder", dir.display()))?;
+pub fn synth(
+    dir: &Path,
+    dims: [u64; 3],
+    seed: u64,
+    segy: bool,
+    progress: &ProgressBar,
+) -> Result<SynthOutput> {
+    std::fs::create_dir_all(dir)
+        .with_context(|| format!("{}: cannot create folder", dir.display()))?;
     let model = SynthModel::new(dims, seed)?;
-    let units = Units { lateral: "m".into(), vertical: "ms".into() };
+    let units = Units {
+        lateral: "m".into(),
+        vertical: "ms".into(),
+    };
     let volume = dir.join("seismic.strata");
     let mut vo = BuildOptions::volume("synthetic seismic", SampleType::F32);
     vo.transform = model.transform();
     vo.units = units.clone();
     vo.survey = Some(model.survey);
-    vo.source = format!("strata synth --seed {seed} --size {} {} {}", dims[0], dims[1], dims[2]);
+    vo.source = format!(
+        "strata synth --seed {seed} --size {} {} {}",
+        dims[0], dims[1], dims[2]
+    );
     progress.set_message("seismic cube");
     let volume_report = build_store(&model, &volume, &vo, progress)?;
 
@@ -248,11 +310,23 @@ pub fn synth(dir: &Path, dims: [u64; 3], seed: u64, segy: bool, progress: &Progr
         let path = dir.join(format!("horizon{}.strata", h + 1));
         let mut ho = BuildOptions::horizon(&format!("synthetic horizon {}", h + 1));
         let w = model.survey.to_world.rows;
-        ho.transform = Affine3 { rows: [[w[0][0], w[0][1], 0.0, w[0][2]], [w[1][0], w[1][1], 0.0, w[1][2]], [0.0, 0.0, 1.0, 0.0]] };
+        ho.transform = Affine3 {
+            rows: [
+                [w[0][0], w[0][1], 0.0, w[0][2]],
+                [w[1][0], w[1][1], 0.0, w[1][2]],
+                [0.0, 0.0, 1.0, 0.0],
+            ],
+        };
         ho.units = units.clone();
         ho.survey = Some(model.survey);
-        ho.source = format!("strata synth --seed {seed}, interface {}", model.horizon_layers[h]);
-        let src = MemorySource { dims: [dims[0], dims[1], 1], data: grid.clone() };
+        ho.source = format!(
+            "strata synth --seed {seed}, interface {}",
+            model.horizon_layers[h]
+        );
+        let src = MemorySource {
+            dims: [dims[0], dims[1], 1],
+            data: grid.clone(),
+        };
         progress.set_message(format!("horizon {}", h + 1));
         build_store(&src, &path, &ho, &ProgressBar::hidden())?;
         horizons.push(path);
@@ -270,11 +344,19 @@ pub fn synth(dir: &Path, dims: [u64; 3], seed: u64, segy: bool, progress: &Progr
         None
     };
 
-    let centre = model.survey.to_world.apply([dims[0] as f64 / 2.0, dims[1] as f64 / 2.0]);
+    let centre = model
+        .survey
+        .to_world
+        .apply([dims[0] as f64 / 2.0, dims[1] as f64 / 2.0]);
     let diag = 25.0 * ((dims[0] * dims[0] + dims[1] * dims[1]) as f64).sqrt();
     let zc = dims[2] as f64 * DT_MS / 2.0;
     let scene = Scene {
-        volumes: vec![VolumeLayer { store: "seismic.strata".into(), colormap: "seismic".into(), window: None, opacity: 1.0 }],
+        volumes: vec![VolumeLayer {
+            store: "seismic.strata".into(),
+            colormap: "seismic".into(),
+            window: None,
+            opacity: 1.0,
+        }],
         horizons: (1..=3)
             .map(|h| HorizonLayer {
                 store: format!("horizon{h}.strata").into(),
@@ -283,26 +365,50 @@ pub fn synth(dir: &Path, dims: [u64; 3], seed: u64, segy: bool, progress: &Progr
             })
             .collect(),
         camera: Some(Camera {
-            eye: [centre[0] - 0.9 * diag, centre[1] - 0.6 * diag, zc - 0.8 * diag],
+            eye: [
+                centre[0] - 0.9 * diag,
+                centre[1] - 0.6 * diag,
+                zc - 0.8 * diag,
+            ],
             target: [centre[0], centre[1], zc],
             up: [0.0, 0.0, -1.0],
             fov_deg: 35.0,
         }),
-        render: RenderSettings { width: 1280, height: 720, cache_mb: 1024, z_scale: 1.0 },
+        render: RenderSettings {
+            width: 1280,
+            height: 720,
+            cache_mb: 1024,
+            z_scale: 1.0,
+        },
     };
     let scene_path = dir.join("scene.toml");
-    write_atomically(&scene_path, format!("# Synthetic survey written by `coordinator synth` (seed {seed}).\n{}", scene.to_toml()).as_bytes())?;
-    Ok(SynthOutput { scene: scene_path, volume, horizons, segy: segy_path, volume_report })
+    write_atomically(
+        &scene_path,
+        format!(
+            "# Synthetic survey written by `coordinator synth` (seed {seed}).\n{}",
+            scene.to_toml()
+        )
+        .as_bytes(),
+    )?;
+    Ok(SynthOutput {
+        scene: scene_path,
+        volume,
+        horizons,
+        segy: segy_path,
+        volume_report,
+    })
 }
 
 /// Writes `bytes` under a temporary name and renames it into place.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
     let tmp = crate::builder::temp_path_for(path);
     std::fs::write(&tmp, bytes).with_context(|| format!("{}: cannot write", tmp.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("cannot rename {} to {}", tmp.display(), path.display()))
+    std::fs::rename(&tmp, path)
+        .with_context(|| format!("cannot rename {} to {}", tmp.display(), path.display()))
 }
 
-fn write_segy(model: &SynthModel, path: &Path) -> Result<()> {
+/// Writes the model as a big-endian IEEE-float SEG-Y file (inline-sorted), under a temporary name.
+pub fn write_segy(model: &SynthModel, path: &Path) -> Result<()> {
     use crate::segy::{Endian, SegyWriter};
     let [nx, ny, nz] = model.dims;
     let tmp = crate::builder::temp_path_for(path);
@@ -317,8 +423,15 @@ fn write_segy(model: &SynthModel, path: &Path) -> Result<()> {
             nz,
             DT_MS
         );
-        let mut w = SegyWriter::create(&tmp, &text, nz as u32, (DT_MS * 1000.0) as u32, 0, 5, Endian::Big)?;
-        let mut scratch = Vec::new();
+        let mut w = SegyWriter::create(
+            &tmp,
+            &text,
+            nz as u32,
+            (DT_MS * 1000.0) as u32,
+            0,
+            5,
+            Endian::Big,
+        )?;
         // Inline-sorted, crossline fastest; traces are computed a row at a time in parallel.
         for i in 0..nx {
             let row: Vec<Vec<f32>> = (0..ny)
@@ -331,9 +444,14 @@ fn write_segy(model: &SynthModel, path: &Path) -> Result<()> {
                 .collect();
             for (j, t) in row.iter().enumerate() {
                 let [x, y] = model.survey.to_world.apply([i as f64, j as f64]);
-                w.write_trace((model.survey.inline0 as i64 + i as i64) as i32, (model.survey.xline0 as i64 + j as i64) as i32, x, y, t)?;
+                w.write_trace(
+                    (model.survey.inline0 as i64 + i as i64) as i32,
+                    (model.survey.xline0 as i64 + j as i64) as i32,
+                    x,
+                    y,
+                    t,
+                )?;
             }
-            scratch.clear();
         }
         w.finish()
     })();
@@ -341,13 +459,16 @@ fn write_segy(model: &SynthModel, path: &Path) -> Result<()> {
         let _ = std::fs::remove_file(&tmp);
         return Err(e);
     }
-    std::fs::rename(&tmp, path).with_context(|| format!("cannot rename {} to {}", tmp.display(), path.display()))
+    std::fs::rename(&tmp, path)
+        .with_context(|| format!("cannot rename {} to {}", tmp.display(), path.display()))
 }
 
 fn write_horizon_text(model: &SynthModel, grid: &[f32], path: &Path) -> Result<()> {
     use std::fmt::Write as _;
     let [nx, ny, _] = model.dims;
-    let mut s = String::from("# Strata synthetic horizon\n# X Y Inline Crossline Z(ms); holes are left out\n");
+    let mut s = String::from(
+        "# Strata synthetic horizon\n# X Y Inline Crossline Z(ms); holes are left out\n",
+    );
     for i in 0..nx {
         for j in 0..ny {
             let z = grid[(j * nx + i) as usize];

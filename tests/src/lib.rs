@@ -6,30 +6,12 @@ use strata_common::store::{DataKind, PageStore};
 
 /// The shared real-data folder (`../shared/data/real` beside the checkout).
 pub fn real_data(rel: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/real").join(rel)
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/data/real")
+        .join(rel)
 }
 
-/// Reassembles one whole level of a store from its pages' cores (x fastest).
-pub fn level_grid(store: &PageStore, level: usize) -> Vec<f32> {
-    let pyr = store.pyramid();
-    let dims = pyr.level(level).dims;
-    let pd = pyr.page_dims().map(|v| v as usize);
-    let mut out = vec![0f32; (dims[0] * dims[1] * dims[2]) as usize];
-    for br in pyr.bricks_in_z_order(level) {
-        let page = store.read_page(pyr.id(level, br)).expect("page reads");
-        let r = pyr.core_range(level, br);
-        let o = pyr.page_origin(br);
-        for z in r[2].0..r[2].1 {
-            for y in r[1].0..r[1].1 {
-                for x in r[0].0..r[0].1 {
-                    let p = (((z as i64 - o[2]) as usize) * pd[1] + (y as i64 - o[1]) as usize) * pd[0] + (x as i64 - o[0]) as usize;
-                    out[((z * dims[1] + y) * dims[0] + x) as usize] = page.samples[p];
-                }
-            }
-        }
-    }
-    out
-}
+pub use strata_coordinator::inspect::level_grid;
 
 /// Bitwise equality that treats all NaNs as equal.
 pub fn same(a: f32, b: f32) -> bool {
@@ -44,7 +26,7 @@ pub fn check_borders(store: &PageStore) -> Result<(), String> {
     let horizon = store.header().kind == DataKind::Horizon;
     let pd = pyr.page_dims().map(|v| v as i64);
     for l in 0..pyr.level_count() {
-        let grid = level_grid(store, l);
+        let grid = level_grid(store, l).map_err(|e| e.to_string())?;
         let dims = pyr.level(l).dims.map(|d| d as i64);
         for br in pyr.bricks_in_z_order(l) {
             let page = store.read_page(pyr.id(l, br)).map_err(|e| e.to_string())?;
@@ -80,8 +62,8 @@ pub fn check_coarse_levels(store: &PageStore) -> Result<(), String> {
     let pyr = store.pyramid();
     let flat = pyr.dim() == Dim::Two;
     for l in 1..pyr.level_count() {
-        let fine = level_grid(store, l - 1);
-        let coarse = level_grid(store, l);
+        let fine = level_grid(store, l - 1).map_err(|e| e.to_string())?;
+        let coarse = level_grid(store, l).map_err(|e| e.to_string())?;
         let fd = pyr.level(l - 1).dims;
         let cd = pyr.level(l).dims;
         for z in 0..cd[2] {
@@ -91,7 +73,11 @@ pub fn check_coarse_levels(store: &PageStore) -> Result<(), String> {
                     for dz in if flat { 0..1 } else { 0..2 } {
                         for dy in 0..2 {
                             for dx in 0..2 {
-                                let f = [(2 * x + dx).min(fd[0] - 1), (2 * y + dy).min(fd[1] - 1), if flat { 0 } else { (2 * z + dz).min(fd[2] - 1) }];
+                                let f = [
+                                    (2 * x + dx).min(fd[0] - 1),
+                                    (2 * y + dy).min(fd[1] - 1),
+                                    if flat { 0 } else { (2 * z + dz).min(fd[2] - 1) },
+                                ];
                                 kids.push(fine[((f[2] * fd[1] + f[1]) * fd[0] + f[0]) as usize]);
                             }
                         }

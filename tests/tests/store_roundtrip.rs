@@ -31,7 +31,15 @@ fn synthetic(dims: [u64; 3], t: SampleType, seed: u64) -> Vec<f32> {
         .collect()
 }
 
-fn build(src: &MemorySource, t: SampleType, page: u32, border: u32, filter: CoarsenFilter, comp: Compression, budget: usize) -> (tempfile::TempDir, PageStore) {
+fn build(
+    src: &MemorySource,
+    t: SampleType,
+    page: u32,
+    border: u32,
+    filter: CoarsenFilter,
+    comp: Compression,
+    budget: usize,
+) -> (tempfile::TempDir, PageStore) {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("v.strata");
     let mut o = BuildOptions::volume("t", t);
@@ -42,17 +50,28 @@ fn build(src: &MemorySource, t: SampleType, page: u32, border: u32, filter: Coar
     o.memory_budget = budget;
     build_store(src, &out, &o, &ProgressBar::hidden()).unwrap();
     // Nothing but the store is left in the folder.
-    let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+    let names: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
     assert_eq!(names, vec![std::ffi::OsString::from("v.strata")]);
     let s = PageStore::open(&out).unwrap();
     (dir, s)
 }
 
-fn assert_round_trip(dims: [u64; 3], t: SampleType, page: u32, border: u32, filter: CoarsenFilter, comp: Compression, budget: usize) {
+fn assert_round_trip(
+    dims: [u64; 3],
+    t: SampleType,
+    page: u32,
+    border: u32,
+    filter: CoarsenFilter,
+    comp: Compression,
+    budget: usize,
+) {
     let data = synthetic(dims, t, dims[0] * 31 + dims[2]);
     let src = MemorySource { dims, data };
     let (_d, store) = build(&src, t, page, border, filter, comp, budget);
-    let l0 = level_grid(&store, 0);
+    let l0 = level_grid(&store, 0).unwrap();
     for (i, (a, b)) in l0.iter().zip(&src.data).enumerate() {
         assert!(same(*a, *b), "level-0 sample {i}: store {a}, source {b}");
     }
@@ -63,7 +82,13 @@ fn assert_round_trip(dims: [u64; 3], t: SampleType, page: u32, border: u32, filt
     for e in store.index() {
         let p = store.read_page(e.id).unwrap();
         for v in p.samples.iter().filter(|v| !v.is_nan()) {
-            assert!(*v >= e.min && *v <= e.max, "{}: {v} outside [{}, {}]", e.id, e.min, e.max);
+            assert!(
+                *v >= e.min && *v <= e.max,
+                "{}: {v} outside [{}, {}]",
+                e.id,
+                e.min,
+                e.max
+            );
         }
         let l = e.id.level() as usize;
         if l > 0 {
@@ -77,23 +102,63 @@ fn assert_round_trip(dims: [u64; 3], t: SampleType, page: u32, border: u32, filt
 
 #[test]
 fn non_power_of_two_i16_signed_rms_lz4_small_budget() {
-    assert_round_trip([37, 20, 45], SampleType::I16, 32, 1, CoarsenFilter::SignedRms, Compression::Lz4, 64 << 10);
+    assert_round_trip(
+        [37, 20, 45],
+        SampleType::I16,
+        32,
+        1,
+        CoarsenFilter::SignedRms,
+        Compression::Lz4,
+        64 << 10,
+    );
 }
 
 #[test]
 fn u8_mean_border_2() {
-    assert_round_trip([70, 33, 31], SampleType::U8, 32, 2, CoarsenFilter::Mean, Compression::None, 1 << 20);
+    assert_round_trip(
+        [70, 33, 31],
+        SampleType::U8,
+        32,
+        2,
+        CoarsenFilter::Mean,
+        Compression::None,
+        1 << 20,
+    );
 }
 
 #[test]
 fn f32_max_abs_page_64() {
-    assert_round_trip([130, 65, 9], SampleType::F32, 64, 1, CoarsenFilter::MaxAbs, Compression::Lz4, 256 << 20);
+    assert_round_trip(
+        [130, 65, 9],
+        SampleType::F32,
+        64,
+        1,
+        CoarsenFilter::MaxAbs,
+        Compression::Lz4,
+        256 << 20,
+    );
 }
 
 #[test]
 fn single_sample_and_thin_volumes() {
-    assert_round_trip([1, 1, 1], SampleType::U16, 32, 1, CoarsenFilter::Mean, Compression::None, 1 << 20);
-    assert_round_trip([200, 1, 3], SampleType::I8, 32, 1, CoarsenFilter::SignedRms, Compression::None, 1 << 16);
+    assert_round_trip(
+        [1, 1, 1],
+        SampleType::U16,
+        32,
+        1,
+        CoarsenFilter::Mean,
+        Compression::None,
+        1 << 20,
+    );
+    assert_round_trip(
+        [200, 1, 3],
+        SampleType::I8,
+        32,
+        1,
+        CoarsenFilter::SignedRms,
+        Compression::None,
+        1 << 16,
+    );
 }
 
 #[test]
@@ -110,8 +175,16 @@ fn nan_no_data_in_f32_volume() {
     }
     data[999] = f32::NAN;
     let src = MemorySource { dims, data };
-    let (_d, store) = build(&src, SampleType::F32, 32, 1, CoarsenFilter::SignedRms, Compression::Lz4, 1 << 20);
-    let l0 = level_grid(&store, 0);
+    let (_d, store) = build(
+        &src,
+        SampleType::F32,
+        32,
+        1,
+        CoarsenFilter::SignedRms,
+        Compression::Lz4,
+        1 << 20,
+    );
+    let l0 = level_grid(&store, 0).unwrap();
     assert!(l0.iter().zip(&src.data).all(|(a, b)| same(*a, *b)));
     check_borders(&store).unwrap();
     check_coarse_levels(&store).unwrap();
@@ -126,9 +199,18 @@ fn integer_store_without_sentinel_refuses_no_data() {
     data[5] = f32::NAN;
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("v.strata");
-    let err = build_store(&MemorySource { dims, data }, &out, &BuildOptions::volume("t", SampleType::I16), &ProgressBar::hidden()).unwrap_err();
+    let err = build_store(
+        &MemorySource { dims, data },
+        &out,
+        &BuildOptions::volume("t", SampleType::I16),
+        &ProgressBar::hidden(),
+    )
+    .unwrap_err();
     assert!(format!("{err:#}").contains("no-data"), "{err:#}");
-    assert!(std::fs::read_dir(dir.path()).unwrap().next().is_none(), "nothing half-written may remain");
+    assert!(
+        std::fs::read_dir(dir.path()).unwrap().next().is_none(),
+        "nothing half-written may remain"
+    );
 }
 
 #[test]
@@ -136,17 +218,39 @@ fn raw_file_big_endian_equals_little_endian() {
     let dims = [33u64, 17, 29];
     let data = synthetic(dims, SampleType::I16, 9);
     let dir = tempfile::tempdir().unwrap();
-    let le: Vec<u8> = data.iter().flat_map(|&v| (v as i16).to_le_bytes()).collect();
-    let be: Vec<u8> = data.iter().flat_map(|&v| (v as i16).to_be_bytes()).collect();
+    let le: Vec<u8> = data
+        .iter()
+        .flat_map(|&v| (v as i16).to_le_bytes())
+        .collect();
+    let be: Vec<u8> = data
+        .iter()
+        .flat_map(|&v| (v as i16).to_be_bytes())
+        .collect();
     std::fs::write(dir.path().join("le.raw"), le).unwrap();
     std::fs::write(dir.path().join("be.raw"), be).unwrap();
     let mut digests = Vec::new();
     for (name, big) in [("le", false), ("be", true)] {
-        let src = RawSource::open(&dir.path().join(format!("{name}.raw")), dims, SampleType::I16, big).unwrap();
+        let src = RawSource::open(
+            &dir.path().join(format!("{name}.raw")),
+            dims,
+            SampleType::I16,
+            big,
+        )
+        .unwrap();
         let out = dir.path().join(format!("{name}.strata"));
-        let r = build_store(&src, &out, &BuildOptions::volume(name, SampleType::I16), &ProgressBar::hidden()).unwrap();
+        let r = build_store(
+            &src,
+            &out,
+            &BuildOptions::volume(name, SampleType::I16),
+            &ProgressBar::hidden(),
+        )
+        .unwrap();
         let store = PageStore::open(&out).unwrap();
-        assert!(level_grid(&store, 0).iter().zip(&data).all(|(a, b)| same(*a, *b)));
+        assert!(level_grid(&store, 0)
+            .unwrap()
+            .iter()
+            .zip(&data)
+            .all(|(a, b)| same(*a, *b)));
         digests.push(r.header.unwrap().digest);
     }
     assert_eq!(digests[0], digests[1]);
@@ -155,20 +259,49 @@ fn raw_file_big_endian_equals_little_endian() {
 #[test]
 fn digest_is_independent_of_brick_size_and_compression() {
     let dims = [50, 40, 30];
-    let src = MemorySource { dims, data: synthetic(dims, SampleType::U16, 3) };
-    let (_a, s1) = build(&src, SampleType::U16, 32, 1, CoarsenFilter::Mean, Compression::None, 1 << 20);
-    let (_b, s2) = build(&src, SampleType::U16, 64, 2, CoarsenFilter::Mean, Compression::Lz4, 1 << 20);
+    let src = MemorySource {
+        dims,
+        data: synthetic(dims, SampleType::U16, 3),
+    };
+    let (_a, s1) = build(
+        &src,
+        SampleType::U16,
+        32,
+        1,
+        CoarsenFilter::Mean,
+        Compression::None,
+        1 << 20,
+    );
+    let (_b, s2) = build(
+        &src,
+        SampleType::U16,
+        64,
+        2,
+        CoarsenFilter::Mean,
+        Compression::Lz4,
+        1 << 20,
+    );
     assert_eq!(s1.header().digest, s2.header().digest);
     let mut other = src.data.clone();
     other[77] += 1.0;
-    let (_c, s3) = build(&MemorySource { dims, data: other }, SampleType::U16, 32, 1, CoarsenFilter::Mean, Compression::None, 1 << 20);
+    let (_c, s3) = build(
+        &MemorySource { dims, data: other },
+        SampleType::U16,
+        32,
+        1,
+        CoarsenFilter::Mean,
+        Compression::None,
+        1 << 20,
+    );
     assert_ne!(s1.header().digest, s3.header().digest);
 }
 
 #[test]
 fn horizon_tiles_keep_holes_and_never_invent_heights() {
     let dims = [300u64, 170, 1];
-    let mut data: Vec<f32> = (0..dims[0] * dims[1]).map(|i| 1000.0 + (i % 300) as f32 * 0.5 + (i / 300) as f32 * 0.25).collect();
+    let mut data: Vec<f32> = (0..dims[0] * dims[1])
+        .map(|i| 1000.0 + (i % 300) as f32 * 0.5 + (i / 300) as f32 * 0.25)
+        .collect();
     // A round hole and a one-node hole.
     for j in 0..dims[1] {
         for i in 0..dims[0] {
@@ -185,12 +318,12 @@ fn horizon_tiles_keep_holes_and_never_invent_heights() {
     let src = MemorySource { dims, data };
     build_store(&src, &out, &o, &ProgressBar::hidden()).unwrap();
     let store = PageStore::open(&out).unwrap();
-    let l0 = level_grid(&store, 0);
+    let l0 = level_grid(&store, 0).unwrap();
     assert!(l0.iter().zip(&src.data).all(|(a, b)| same(*a, *b)));
     check_borders(&store).unwrap();
     check_coarse_levels(&store).unwrap();
     // A coarse texel is a hole wherever any fine texel under it is: holes never shrink.
-    let l1 = level_grid(&store, 1);
+    let l1 = level_grid(&store, 1).unwrap();
     let c = store.pyramid().level(1).dims;
     assert!(l1[(75 * c[0] + 125) as usize].is_nan());
     assert!(l1[(40 * c[0] + 50) as usize].is_nan());

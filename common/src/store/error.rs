@@ -28,7 +28,9 @@ pub enum StoreError {
         found: String,
     },
     /// The file ends before a section it declares.
-    #[error("{path}: truncated: {what} needs bytes {offset}..{end} but the file has {file_len} bytes")]
+    #[error(
+        "{path}: truncated: {what} needs bytes {offset}..{end} but the file has {file_len} bytes"
+    )]
     Truncated {
         /// The store.
         path: PathBuf,

@@ -63,7 +63,10 @@ pub struct Units {
 
 impl Default for Units {
     fn default() -> Self {
-        Units { lateral: "m".into(), vertical: "m".into() }
+        Units {
+            lateral: "m".into(),
+            vertical: "m".into(),
+        }
     }
 }
 
@@ -205,20 +208,36 @@ impl Preamble {
             found,
         };
         if b.len() < PREAMBLE_LEN as usize {
-            return Err(err(0, "a 64-byte Strata page-store preamble", format!("{} bytes", b.len())));
+            return Err(err(
+                0,
+                "a 64-byte Strata page-store preamble",
+                format!("{} bytes", b.len()),
+            ));
         }
         if b[0..8] != MAGIC {
-            return Err(err(0, "magic \"STRATAPS\" (a Strata page store)", format!("{:02x?}", &b[0..8])));
+            return Err(err(
+                0,
+                "magic \"STRATAPS\" (a Strata page store)",
+                format!("{:02x?}", &b[0..8]),
+            ));
         }
         let u32_at = |o: usize| u32::from_le_bytes(b[o..o + 4].try_into().unwrap());
         let u64_at = |o: usize| u64::from_le_bytes(b[o..o + 8].try_into().unwrap());
         let version = u32_at(8);
         if version != FORMAT_VERSION {
-            return Err(err(8, &format!("format version {FORMAT_VERSION}"), format!("version {version}")));
+            return Err(err(
+                8,
+                &format!("format version {FORMAT_VERSION}"),
+                format!("version {version}"),
+            ));
         }
         let crc = crc32c::crc32c(&b[..60]);
         if crc != u32_at(60) {
-            return Err(err(60, &format!("preamble crc32c {crc:08x}"), format!("{:08x}", u32_at(60))));
+            return Err(err(
+                60,
+                &format!("preamble crc32c {crc:08x}"),
+                format!("{:08x}", u32_at(60)),
+            ));
         }
         Ok(Preamble {
             version,
@@ -275,7 +294,11 @@ pub fn encode_page(header: &StoreHeader, id: PageId, samples: &[f32]) -> (IndexE
             valid += 1;
         }
     }
-    let mut e = IndexEntry { id, valid, ..Default::default() };
+    let mut e = IndexEntry {
+        id,
+        valid,
+        ..Default::default()
+    };
     if valid == 0 {
         e.flags = PAGE_EMPTY;
         e.min = f32::NAN;
@@ -291,7 +314,9 @@ pub fn encode_page(header: &StoreHeader, id: PageId, samples: &[f32]) -> (IndexE
     let mut raw = Vec::with_capacity(header.page_raw_len());
     let elem = match header.kind {
         DataKind::Volume => {
-            header.sample_type.encode_le(samples, header.no_data, &mut raw);
+            header
+                .sample_type
+                .encode_le(samples, header.no_data, &mut raw);
             header.sample_type.size()
         }
         DataKind::Horizon => {
@@ -350,7 +375,10 @@ pub fn decode_payload(
         stored
     };
     if bytes.len() != raw_len {
-        return Err(format!("a {raw_len}-byte payload, got {} bytes", bytes.len()));
+        return Err(format!(
+            "a {raw_len}-byte payload, got {} bytes",
+            bytes.len()
+        ));
     }
     match header.kind {
         DataKind::Volume => header.sample_type.decode_le(bytes, header.no_data, out),
@@ -397,11 +425,16 @@ mod tests {
         assert_eq!(Preamble::decode(Path::new("x"), &b).unwrap(), p);
         let mut c = b;
         c[30] ^= 1;
-        let e = Preamble::decode(Path::new("x"), &c).unwrap_err().to_string();
+        let e = Preamble::decode(Path::new("x"), &c)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("at byte 60"), "{e}");
         let mut c = b;
         c[0] = b'X';
-        assert!(Preamble::decode(Path::new("x"), &c).unwrap_err().to_string().contains("magic"));
+        assert!(Preamble::decode(Path::new("x"), &c)
+            .unwrap_err()
+            .to_string()
+            .contains("magic"));
     }
 
     fn header(kind: DataKind, t: SampleType, comp: Compression) -> StoreHeader {

@@ -27,6 +27,7 @@ mod reader;
 pub use error::StoreError;
 pub use format::{
     decode_payload, encode_page, Compression, DataKind, IndexEntry, Preamble, StoreHeader, Units,
-    FORMAT_VERSION, MAGIC, MAX_HEADER_BYTES, PAGE_COMPRESSED, PAGE_CONSTANT, PAGE_EMPTY, PREAMBLE_LEN,
+    FORMAT_VERSION, MAGIC, MAX_HEADER_BYTES, PAGE_COMPRESSED, PAGE_CONSTANT, PAGE_EMPTY,
+    PREAMBLE_LEN,
 };
 pub use reader::{Page, PageStore};

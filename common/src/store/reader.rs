@@ -1,5 +1,6 @@
 use super::format::{
-    decode_payload, IndexEntry, Preamble, StoreHeader, INDEX_ENTRY_LEN, MAX_HEADER_BYTES, PREAMBLE_LEN,
+    decode_payload, IndexEntry, Preamble, StoreHeader, INDEX_ENTRY_LEN, MAX_HEADER_BYTES,
+    PREAMBLE_LEN,
 };
 use super::StoreError;
 use crate::ids::PageId;
@@ -30,7 +31,11 @@ pub struct PageStore {
 }
 
 fn read_exact_at(file: &File, path: &Path, buf: &mut [u8], offset: u64) -> Result<(), StoreError> {
-    file.read_exact_at(buf, offset).map_err(|source| StoreError::Io { path: path.to_path_buf(), source })
+    file.read_exact_at(buf, offset)
+        .map_err(|source| StoreError::Io {
+            path: path.to_path_buf(),
+            source,
+        })
 }
 
 impl PageStore {
@@ -38,7 +43,10 @@ impl PageStore {
     /// file is checked against the file's length before anything is allocated.
     pub fn open(path: impl AsRef<Path>) -> Result<Self, StoreError> {
         let path = path.as_ref().to_path_buf();
-        let io = |source| StoreError::Io { path: path.clone(), source };
+        let io = |source| StoreError::Io {
+            path: path.clone(),
+            source,
+        };
         let file = File::open(&path).map_err(io)?;
         let file_len = file.metadata().map_err(io)?.len();
         let fmt = |offset: u64, expected: String, found: String| StoreError::Format {
@@ -62,9 +70,16 @@ impl PageStore {
         let pre = Preamble::decode(&path, &pre)?;
 
         if pre.header_len > MAX_HEADER_BYTES {
-            return Err(fmt(24, format!("a header of at most {MAX_HEADER_BYTES} bytes"), format!("{} bytes", pre.header_len)));
+            return Err(fmt(
+                24,
+                format!("a header of at most {MAX_HEADER_BYTES} bytes"),
+                format!("{} bytes", pre.header_len),
+            ));
         }
-        let hend = pre.header_offset.checked_add(pre.header_len).unwrap_or(u64::MAX);
+        let hend = pre
+            .header_offset
+            .checked_add(pre.header_len)
+            .unwrap_or(u64::MAX);
         if hend > file_len {
             return Err(truncated("the header", pre.header_offset, hend));
         }
@@ -72,15 +87,27 @@ impl PageStore {
         read_exact_at(&file, &path, &mut hb, pre.header_offset)?;
         let crc = crc32c::crc32c(&hb);
         if crc != pre.header_crc {
-            return Err(fmt(pre.header_offset, format!("header with crc32c {:08x}", pre.header_crc), format!("crc32c {crc:08x}")));
+            return Err(fmt(
+                pre.header_offset,
+                format!("header with crc32c {:08x}", pre.header_crc),
+                format!("crc32c {crc:08x}"),
+            ));
         }
         let (header, _): (StoreHeader, usize) =
             bincode::serde::decode_from_slice(&hb, bincode::config::standard()).map_err(|e| {
-                fmt(pre.header_offset, "a bincode-encoded store header".into(), format!("undecodable bytes ({e})"))
+                fmt(
+                    pre.header_offset,
+                    "a bincode-encoded store header".into(),
+                    format!("undecodable bytes ({e})"),
+                )
             })?;
-        let pyramid = header
-            .pyramid()
-            .map_err(|e| fmt(pre.header_offset, "a valid page layout".into(), e.to_string()))?;
+        let pyramid = header.pyramid().map_err(|e| {
+            fmt(
+                pre.header_offset,
+                "a valid page layout".into(),
+                e.to_string(),
+            )
+        })?;
         if pyramid.level_count() != header.levels as usize {
             return Err(fmt(
                 pre.header_offset,
@@ -95,19 +122,31 @@ impl PageStore {
                 format!("{}", pre.index_count),
             ));
         }
-        let ilen = pre.index_count.checked_mul(INDEX_ENTRY_LEN).unwrap_or(u64::MAX);
+        let ilen = pre
+            .index_count
+            .checked_mul(INDEX_ENTRY_LEN)
+            .unwrap_or(u64::MAX);
         let iend = pre.index_offset.checked_add(ilen).unwrap_or(u64::MAX);
         if iend > file_len {
             return Err(truncated("the index", pre.index_offset, iend));
         }
         let mut index = vec![IndexEntry::default(); pre.index_count as usize];
-        read_exact_at(&file, &path, bytemuck::cast_slice_mut(&mut index), pre.index_offset)?;
+        read_exact_at(
+            &file,
+            &path,
+            bytemuck::cast_slice_mut(&mut index),
+            pre.index_offset,
+        )?;
         if cfg!(target_endian = "big") {
             unreachable!("page stores are little-endian; big-endian hosts are not supported");
         }
         let crc = crc32c::crc32c(bytemuck::cast_slice(&index));
         if crc != pre.index_crc {
-            return Err(fmt(pre.index_offset, format!("index with crc32c {:08x}", pre.index_crc), format!("crc32c {crc:08x}")));
+            return Err(fmt(
+                pre.index_offset,
+                format!("index with crc32c {:08x}", pre.index_crc),
+                format!("crc32c {crc:08x}"),
+            ));
         }
         // The index must list exactly the layout's pages, in Z-order, with payloads inside the data section.
         let mut k = 0usize;
@@ -117,21 +156,33 @@ impl PageStore {
                 let at = pre.index_offset + k as u64 * INDEX_ENTRY_LEN;
                 let want = pyramid.id(l, b);
                 if e.id != want {
-                    return Err(fmt(at, format!("index entry for {want}"), format!("{}", e.id)));
+                    return Err(fmt(
+                        at,
+                        format!("index entry for {want}"),
+                        format!("{}", e.id),
+                    ));
                 }
                 if e.has_payload() {
                     let end = e.offset + e.stored_len as u64;
                     if e.offset < PREAMBLE_LEN || end > pre.header_offset.min(pre.index_offset) {
                         return Err(fmt(
                             at + 8,
-                            format!("payload inside the data section {PREAMBLE_LEN}..{}", pre.header_offset),
+                            format!(
+                                "payload inside the data section {PREAMBLE_LEN}..{}",
+                                pre.header_offset
+                            ),
                             format!("bytes {}..{end}", e.offset),
                         ));
                     }
-                    if e.stored_len as usize > header.page_raw_len() + header.page_raw_len() / 64 + 64 {
+                    if e.stored_len as usize
+                        > header.page_raw_len() + header.page_raw_len() / 64 + 64
+                    {
                         return Err(fmt(
                             at + 16,
-                            format!("a stored length of at most about {} bytes", header.page_raw_len()),
+                            format!(
+                                "a stored length of at most about {} bytes",
+                                header.page_raw_len()
+                            ),
                             format!("{}", e.stored_len),
                         ));
                     }
@@ -139,7 +190,14 @@ impl PageStore {
                 k += 1;
             }
         }
-        Ok(PageStore { path, file, file_len, header, pyramid, index })
+        Ok(PageStore {
+            path,
+            file,
+            file_len,
+            header,
+            pyramid,
+            index,
+        })
     }
 
     /// The file this store was opened from.
@@ -165,7 +223,10 @@ impl PageStore {
     /// The index entry of a page (data-set bits are ignored).
     pub fn entry(&self, id: PageId) -> Option<&IndexEntry> {
         let id = id.with_dataset(0);
-        self.index.binary_search_by_key(&id, |e| e.id).ok().map(|i| &self.index[i])
+        self.index
+            .binary_search_by_key(&id, |e| e.id)
+            .ok()
+            .map(|i| &self.index[i])
     }
 
     /// Reads a page's stored bytes and verifies their checksum.
@@ -191,7 +252,10 @@ impl PageStore {
 
     /// Reads, verifies and decodes a page into `out` (`page_samples` long).
     pub fn read_page_into(&self, id: PageId, out: &mut [f32]) -> Result<(), StoreError> {
-        let entry = *self.entry(id).ok_or_else(|| StoreError::NoSuchPage { path: self.path.clone(), page: id })?;
+        let entry = *self.entry(id).ok_or_else(|| StoreError::NoSuchPage {
+            path: self.path.clone(),
+            page: id,
+        })?;
         let stored = self.read_stored(&entry)?;
         decode_payload(&self.header, &entry, &stored, out).map_err(|expected| StoreError::Format {
             path: self.path.clone(),
