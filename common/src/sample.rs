@@ -73,7 +73,8 @@ impl SampleType {
             return v;
         }
         let (lo, hi) = self.range();
-        v.round().clamp(lo, hi)
+        // `+ 0.0` turns -0.0 into 0.0: integers have no negative zero.
+        v.round().clamp(lo, hi) + 0.0
     }
 
     /// Decodes little-endian samples into `out` (which has `bytes.len() / size` elements),
@@ -142,6 +143,7 @@ mod tests {
         assert_eq!(SampleType::I16.quantize(-2.5), -3.0);
         assert_eq!(SampleType::I8.quantize(-1000.0), -128.0);
         assert!(SampleType::U16.quantize(f32::NAN).is_nan());
+        assert_eq!(SampleType::I16.quantize(-0.4).to_bits(), 0.0f32.to_bits());
     }
 
     proptest! {

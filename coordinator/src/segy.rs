@@ -206,13 +206,22 @@ pub fn open(path: &Path, opts: &SegyOptions) -> Result<SegyVolume> {
     if endian == Endian::Little && revision.0 == 0 && matches!(revision.1, 1 | 2) {
         revision = (revision.1, 0);
     }
+    // Bytes 3503.. are only defined from rev 1 on; older files may hold anything there.
+    let rev_defined = matches!(revision.0, 1 | 2);
+    if revision.0 > 2 {
+        warnings.push(format!(
+            "binary header bytes 3501-3502 hold revision {}.{}, which does not exist; read as rev 0 (bytes 3503-3510 \
+             ignored)",
+            revision.0, revision.1
+        ));
+    }
     let fixed_length = rd_i16(bin, 303, endian) != 0;
-    if revision.0 >= 1 && !fixed_length {
+    if rev_defined && !fixed_length {
         warnings.push(
             "binary header (byte 3503) says trace lengths may vary; reading every trace with the same length".into(),
         );
     }
-    if revision.0 >= 2 {
+    if revision.0 == 2 {
         let extra = rd_u32(bin, 307, endian);
         if extra != 0 {
             bail!(
@@ -226,10 +235,10 @@ pub fn open(path: &Path, opts: &SegyOptions) -> Result<SegyVolume> {
     let n_ext_raw = rd_i16(bin, 305, endian);
     let (n_ext, data_start) = match n_ext_raw {
         0 => (0u64, HEADERS_END),
-        _ if revision.0 == 0 => {
+        _ if !rev_defined => {
             warnings.push(format!(
-                "binary header byte 3505 holds {n_ext_raw} but the file is SEG-Y rev 0, which has no extended \
-                 textual headers; ignored"
+                "binary header byte 3505 holds {n_ext_raw} but the file is not SEG-Y rev 1 or 2, so it has no \
+                 extended textual headers; ignored"
             ));
             (0, HEADERS_END)
         }
@@ -1173,13 +1182,13 @@ fn scan_headers(
             for (k, out) in chunk.iter_mut().enumerate() {
                 let t = (c * CHUNK + k) as u64;
                 let off = data_start + t * trace_bytes;
-                read_at(
-                    file,
-                    &mut h,
-                    off,
-                    path,
-                    &format!("trace {}'s header", t + 1),
-                )?;
+                file.read_exact_at(&mut h, off).map_err(|e| {
+                    let p = path.display();
+                    anyhow!(
+                        "{p}: reading trace {}'s header (240 bytes at byte {off}) failed: {e}",
+                        t + 1
+                    )
+                })?;
                 *out = TraceHdr {
                     il: rd_i32(&h, ib, e),
                     xl: rd_i32(&h, xb, e),
@@ -1911,6 +1920,75 @@ mod tests {
         assert!(
             e.contains("garbage-il.sgy") && e.contains("grid") && e.contains("189"),
             "{e}"
+        );
+    }
+
+    #[test]
+    fn degenerate_geometry_falls_back_to_index_grid() {
+        let write = |name: &str, ni: i32, nx: i32, coords: bool| {
+            let t = tmp(name);
+            let mut w = SegyWriter::create(&t.0, "C 1 x", 4, 4000, 0, 5, Endian::Big).unwrap();
+            for i in 0..ni {
+                for j in 0..nx {
+                    let (x, y) = if coords {
+                        (500_000.0 + 25.0 * j as f64, 6_000_000.0 + 10.0 * i as f64)
+                    } else {
+                        (0.0, 0.0)
+                    };
+                    w.write_trace(10 + i, 20 + j, x, y, &[1.0, 2.0, 3.0, 4.0])
+                        .unwrap();
+                }
+            }
+            w.finish().unwrap();
+            t
+        };
+        // A single inline: no 2D fit.
+        let t = write("one-line.sgy", 1, 5, true);
+        let v = open(&t.0, &SegyOptions::default()).unwrap();
+        assert_eq!(v.dims(), [1, 5, 4]);
+        assert!(v.info().fit.is_none());
+        assert_eq!(v.info().survey.to_world, Affine2::IDENTITY);
+        assert!(
+            v.info().warnings.iter().any(|w| w.contains("cannot place")),
+            "{:?}",
+            v.info().warnings
+        );
+        // All-zero coordinates.
+        let t = write("zero-xy.sgy", 3, 3, false);
+        let v = open(&t.0, &SegyOptions::default()).unwrap();
+        assert_eq!(v.dims(), [3, 3, 4]);
+        assert_eq!(v.info().coordinates, "none");
+        assert!(v.info().fit.is_none());
+        assert_eq!(v.info().survey.to_world, Affine2::IDENTITY);
+        assert!(
+            v.info().warnings.iter().any(|w| w.contains("all zero")),
+            "{:?}",
+            v.info().warnings
+        );
+        // A regular grid in source X/Y only (CDP zeroed): placed from source coordinates.
+        let t = write("src-xy.sgy", 3, 4, true);
+        let mut f = std::fs::read(&t.0).unwrap();
+        for k in 0..12 {
+            let h = 3600 + k * (240 + 16);
+            f[h + 180..h + 188].fill(0);
+        }
+        std::fs::write(&t.0, &f).unwrap();
+        let v = open(&t.0, &SegyOptions::default()).unwrap();
+        assert_eq!(v.info().coordinates, "source");
+        assert!(v.info().fit.unwrap().max_residual < 1e-6);
+        assert_eq!(
+            v.info().survey.to_world.apply([2.0, 3.0]),
+            [500_075.0, 6_000_020.0]
+        );
+        // A rev 0 file with garbage where rev 1 keeps the extended-header count.
+        let mut g = f.clone();
+        g[3500] = 0;
+        put_i16(&mut g, 3505, 77, Endian::Big);
+        std::fs::write(&t.0, &g).unwrap();
+        let v = open(&t.0, &SegyOptions::default()).unwrap();
+        assert_eq!(
+            (v.info().revision, v.info().extended_text_headers, v.dims()),
+            ((0, 0), 0, [3, 4, 4])
         );
     }
 

@@ -1,0 +1,235 @@
+//! The `coordinator` binary end to end: help, errors and exit codes, no half-written output.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn coordinator(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_coordinator"))
+        .arg("-q")
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+fn real(rel: &str) -> String {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/data/real")
+        .join(rel)
+        .display()
+        .to_string()
+}
+
+fn only_files(dir: &Path) -> Vec<String> {
+    let mut v: Vec<_> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    v.sort();
+    v
+}
+
+#[test]
+fn help_everywhere() {
+    for args in [
+        &["--help"][..],
+        &["ingest", "--help"],
+        &["ingest", "segy", "--help"],
+        &["ingest", "raw", "--help"],
+        &["ingest", "horizon", "--help"],
+        &["synth", "--help"],
+        &["inspect", "--help"],
+    ] {
+        let o = coordinator(args);
+        assert!(o.status.success(), "{args:?}");
+        assert!(
+            String::from_utf8_lossy(&o.stdout).contains("Usage"),
+            "{args:?}"
+        );
+    }
+}
+
+#[test]
+fn bad_inputs_fail_cleanly_and_leave_nothing_behind() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    // Truncated SEG-Y.
+    let bytes = std::fs::read(real("seismic/f3_segyio/f3.sgy")).unwrap();
+    std::fs::write(d.join("cut.sgy"), &bytes[..bytes.len() - 100]).unwrap();
+    // Unknown sample format code (bytes 3225-3226, big-endian) = 4.
+    let mut bad = bytes.clone();
+    bad[3224] = 0;
+    bad[3225] = 99;
+    std::fs::write(d.join("fmt.sgy"), &bad).unwrap();
+    std::fs::write(d.join("garbage.sgy"), vec![0xA5u8; 5000]).unwrap();
+    std::fs::write(d.join("v.raw"), vec![1u8; 999]).unwrap();
+    std::fs::write(d.join("h.txt"), "# horizon\n100 200 1.5\n101 200 abc\n").unwrap();
+    let out = d.join("out.strata").display().to_string();
+    let p = |n: &str| d.join(n).display().to_string();
+    let cases: Vec<(Vec<String>, &str)> = vec![
+        (
+            vec![
+                "ingest".into(),
+                "segy".into(),
+                p("cut.sgy"),
+                "-o".into(),
+                out.clone(),
+            ],
+            "cut.sgy",
+        ),
+        (
+            vec![
+                "ingest".into(),
+                "segy".into(),
+                p("fmt.sgy"),
+                "-o".into(),
+                out.clone(),
+            ],
+            "fmt.sgy",
+        ),
+        (
+            vec![
+                "ingest".into(),
+                "segy".into(),
+                p("garbage.sgy"),
+                "-o".into(),
+                out.clone(),
+            ],
+            "garbage.sgy",
+        ),
+        (
+            vec![
+                "ingest".into(),
+                "raw".into(),
+                p("v.raw"),
+                "--dims".into(),
+                "10".into(),
+                "10".into(),
+                "10".into(),
+                "--dtype".into(),
+                "u8".into(),
+                "-o".into(),
+                out.clone(),
+            ],
+            "v.raw",
+        ),
+        (
+            vec![
+                "ingest".into(),
+                "horizon".into(),
+                p("h.txt"),
+                "-o".into(),
+                out.clone(),
+            ],
+            "h.txt:3",
+        ),
+        (vec!["inspect".into(), p("v.raw")], "v.raw"),
+        (
+            vec![
+                "ingest".into(),
+                "segy".into(),
+                p("missing.sgy"),
+                "-o".into(),
+                out.clone(),
+            ],
+            "missing.sgy",
+        ),
+    ];
+    let before = only_files(d);
+    for (args, names) in cases {
+        let a: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
+        let o = coordinator(&a);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{a:?}: {err}");
+        assert!(
+            err.contains("error:") && err.contains(names),
+            "{a:?}: {err}"
+        );
+        assert!(!err.contains("panicked"), "{a:?}: {err}");
+        assert_eq!(
+            err.trim()
+                .lines()
+                .filter(|l| l.starts_with("error:"))
+                .count(),
+            1,
+            "{err}"
+        );
+        assert_eq!(only_files(d), before, "{a:?} left files behind");
+    }
+    // Usage errors are clap's (exit 2).
+    assert_eq!(coordinator(&["ingest", "raw", "x"]).status.code(), Some(2));
+}
+
+#[test]
+fn synth_is_deterministic_and_round_trips_through_segy_and_text() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let s1 = d.join("a").display().to_string();
+    let s2 = d.join("b").display().to_string();
+    for s in [&s1, &s2] {
+        let o = coordinator(&[
+            "synth", "-o", s, "--size", "70", "50", "60", "--seed", "5", "--segy",
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    let digest = |store: &str| -> String {
+        let o = coordinator(&["inspect", store, "--verify"]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        String::from_utf8_lossy(&o.stdout)
+            .lines()
+            .find(|l| l.starts_with("digest: "))
+            .unwrap()
+            .to_string()
+    };
+    let a = digest(&format!("{s1}/seismic.strata"));
+    assert_eq!(a, digest(&format!("{s2}/seismic.strata")));
+    // The SEG-Y copy ingests to the same samples (IEEE float is exact).
+    let o = coordinator(&[
+        "ingest",
+        "segy",
+        &format!("{s1}/seismic.sgy"),
+        "-o",
+        &format!("{s1}/again.strata"),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(a, digest(&format!("{s1}/again.strata")));
+    // Horizon text with holes left out, placed on the survey of the cube: same heights as the synth's store.
+    for h in 1..=3 {
+        let o = coordinator(&[
+            "ingest",
+            "horizon",
+            &format!("{s1}/horizon{h}.txt"),
+            "--survey",
+            &format!("{s1}/again.strata"),
+            "-o",
+            &format!("{s1}/h{h}.strata"),
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        // Text keeps 3 decimals, so compare the stores' value ranges loosely and the hole count exactly.
+        let info =
+            |p: &str| String::from_utf8_lossy(&coordinator(&["inspect", p]).stdout).to_string();
+        let valid = |t: &str| {
+            t.lines()
+                .find(|l| l.starts_with("valid samples"))
+                .unwrap()
+                .to_string()
+        };
+        assert_eq!(
+            valid(&info(&format!("{s1}/h{h}.strata"))),
+            valid(&info(&format!("{s1}/horizon{h}.strata")))
+        );
+    }
+    let scene = std::fs::read_to_string(format!("{s1}/scene.toml")).unwrap();
+    let parsed =
+        strata_common::scene::Scene::parse(Path::new(&format!("{s1}/scene.toml")), &scene).unwrap();
+    assert_eq!(parsed.volumes.len(), 1);
+    assert_eq!(parsed.horizons.len(), 3);
+    assert!(parsed.volumes[0].store.exists());
+}
+
+#[test]
+fn example_scene_parses() {
+    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs/example.toml");
+    let s = strata_common::scene::Scene::parse(&p, &std::fs::read_to_string(&p).unwrap()).unwrap();
+    assert_eq!((s.volumes.len(), s.horizons.len()), (1, 3));
+    assert_eq!(s.render.cache_mb, 1024);
+}

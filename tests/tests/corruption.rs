@@ -1,0 +1,133 @@
+//! Damaged and hostile inputs give clear errors naming the file and position, never a panic.
+
+use indicatif::ProgressBar;
+use std::os::unix::fs::FileExt;
+use strata_common::sample::SampleType;
+use strata_common::store::{PageStore, StoreError};
+use strata_coordinator::builder::{build_store, BuildOptions};
+use strata_coordinator::inspect::inspect;
+use strata_coordinator::source::{MemorySource, RawSource};
+
+fn store(dir: &std::path::Path) -> std::path::PathBuf {
+    let dims = [40, 40, 40];
+    let data: Vec<f32> = (0..64000).map(|i| ((i * 7919) % 251) as f32).collect();
+    let out = dir.join("s.strata");
+    let mut o = BuildOptions::volume("c", SampleType::U8);
+    o.page_size = 32;
+    build_store(
+        &MemorySource { dims, data },
+        &out,
+        &o,
+        &ProgressBar::hidden(),
+    )
+    .unwrap();
+    out
+}
+
+fn flip(path: &std::path::Path, at: u64) {
+    let f = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(path)
+        .unwrap();
+    let mut b = [0u8];
+    f.read_exact_at(&mut b, at).unwrap();
+    b[0] ^= 0x40;
+    f.write_all_at(&b, at).unwrap();
+}
+
+#[test]
+fn flipped_byte_in_a_page_is_caught_by_its_checksum() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = store(dir.path());
+    let s = PageStore::open(&p).unwrap();
+    let e = *s.index().iter().find(|e| e.has_payload()).unwrap();
+    drop(s);
+    flip(&p, e.offset + 100);
+    let s = PageStore::open(&p).unwrap();
+    let err = s.read_page(e.id).unwrap_err();
+    assert!(matches!(err, StoreError::Checksum { .. }), "{err}");
+    let msg = err.to_string();
+    assert!(
+        msg.contains("s.strata")
+            && msg.contains(&format!("at byte {}", e.offset))
+            && msg.contains("checksum"),
+        "{msg}"
+    );
+    let msg = format!(
+        "{:#}",
+        inspect(&p, true, &ProgressBar::hidden()).unwrap_err()
+    );
+    assert!(msg.contains("checksum mismatch"), "{msg}");
+}
+
+#[test]
+fn truncated_store_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = store(dir.path());
+    let len = std::fs::metadata(&p).unwrap().len();
+    for cut in [len - 1, len / 2, 63, 0] {
+        let f = std::fs::OpenOptions::new().write(true).open(&p).unwrap();
+        f.set_len(cut).unwrap();
+        let msg = PageStore::open(&p).unwrap_err().to_string();
+        assert!(
+            msg.contains("s.strata") && msg.contains("truncated"),
+            "cut at {cut}: {msg}"
+        );
+    }
+}
+
+#[test]
+fn garbage_in_preamble_header_or_index_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = store(dir.path());
+    let s = PageStore::open(&p).unwrap();
+    let len = s.file_len();
+    drop(s);
+    let cases = [
+        (0u64, "magic"),
+        (9, "version"),
+        (20, "crc32c"),
+        (len - 3, "index"),
+        (len - 40 * 9 - 5, "crc32c"),
+    ];
+    for (at, want) in cases {
+        let q = dir.path().join("c.strata");
+        std::fs::copy(&p, &q).unwrap();
+        flip(&q, at);
+        let msg = PageStore::open(&q).unwrap_err().to_string();
+        assert!(
+            msg.contains("c.strata") && msg.contains("at byte") && msg.contains(want),
+            "flip at {at}: {msg}"
+        );
+    }
+    // Not a store at all.
+    let q = dir.path().join("text.strata");
+    std::fs::write(
+        &q,
+        "hello, this is not a page store but long enough to have a preamble ........",
+    )
+    .unwrap();
+    assert!(PageStore::open(&q)
+        .unwrap_err()
+        .to_string()
+        .contains("magic"));
+}
+
+#[test]
+fn raw_with_wrong_dims_names_file_and_sizes() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("v.raw");
+    std::fs::write(&p, vec![0u8; 1000]).unwrap();
+    let msg = format!(
+        "{:#}",
+        RawSource::open(&p, [10, 10, 11], SampleType::U8, false)
+            .err()
+            .unwrap()
+    );
+    assert!(
+        msg.contains("v.raw") && msg.contains("1000 bytes") && msg.contains("expected 1100"),
+        "{msg}"
+    );
+    assert!(RawSource::open(&p, [10, 10, 5], SampleType::U16, false).is_ok());
+}
