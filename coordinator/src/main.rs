@@ -309,14 +309,7 @@ fn run(cli: Cli) -> Result<()> {
                 o.no_data = Some(info.sample_type.range().0);
             }
             let (z0, dz) = vol.z_axis();
-            let w = info.survey.to_world.rows;
-            o.transform = Affine3 {
-                rows: [
-                    [w[0][0], w[0][1], 0.0, w[0][2]],
-                    [w[1][0], w[1][1], 0.0, w[1][2]],
-                    [0.0, 0.0, dz, z0],
-                ],
-            };
+            o.transform = Affine3::from_lateral(&info.survey.to_world, dz, z0);
             o.units = Units {
                 lateral: "m".into(),
                 vertical: "ms".into(),
@@ -392,18 +385,11 @@ fn run(cli: Cli) -> Result<()> {
                 grid.nodes_read, grid.holes, grid.dropped
             );
             let s = grid.survey;
-            let w = s.to_world.rows;
             let mut o = options(BuildOptions::horizon(&file_name(&a.file)), &a.store);
             if a.store.brick.is_none() {
                 o.page_size = 128;
             }
-            o.transform = Affine3 {
-                rows: [
-                    [w[0][0], w[0][1], 0.0, w[0][2]],
-                    [w[1][0], w[1][1], 0.0, w[1][2]],
-                    [0.0, 0.0, 1.0, 0.0],
-                ],
-            };
+            o.transform = Affine3::from_lateral(&s.to_world, 1.0, 0.0);
             o.units = Units {
                 lateral: "m".into(),
                 vertical: a.z_unit.clone(),

@@ -218,14 +218,7 @@ impl SynthModel {
 
     /// Index → world transform of the cube: lateral from the survey grid, z = two-way time in ms.
     pub fn transform(&self) -> Affine3 {
-        let w = self.survey.to_world.rows;
-        Affine3 {
-            rows: [
-                [w[0][0], w[0][1], 0.0, w[0][2]],
-                [w[1][0], w[1][1], 0.0, w[1][2]],
-                [0.0, 0.0, DT_MS, 0.0],
-            ],
-        }
+        Affine3::from_lateral(&self.survey.to_world, DT_MS, 0.0)
     }
 }
 
@@ -309,14 +302,7 @@ pub fn synth(
     for (h, grid) in grids.iter().enumerate() {
         let path = dir.join(format!("horizon{}.strata", h + 1));
         let mut ho = BuildOptions::horizon(&format!("synthetic horizon {}", h + 1));
-        let w = model.survey.to_world.rows;
-        ho.transform = Affine3 {
-            rows: [
-                [w[0][0], w[0][1], 0.0, w[0][2]],
-                [w[1][0], w[1][1], 0.0, w[1][2]],
-                [0.0, 0.0, 1.0, 0.0],
-            ],
-        };
+        ho.transform = Affine3::from_lateral(&model.survey.to_world, 1.0, 0.0);
         ho.units = units.clone();
         ho.survey = Some(model.survey);
         ho.source = format!(
