@@ -43,7 +43,13 @@ impl Affine3 {
     /// Lateral placement from a survey grid's `(i, j) → (x, y)` map, and `z = dz·k + z0`.
     pub fn from_lateral(lateral: &Affine2, dz: f64, z0: f64) -> Self {
         let w = lateral.rows;
-        Affine3 { rows: [[w[0][0], w[0][1], 0.0, w[0][2]], [w[1][0], w[1][1], 0.0, w[1][2]], [0.0, 0.0, dz, z0]] }
+        Affine3 {
+            rows: [
+                [w[0][0], w[0][1], 0.0, w[0][2]],
+                [w[1][0], w[1][1], 0.0, w[1][2]],
+                [0.0, 0.0, dz, z0],
+            ],
+        }
     }
     /// Applies the map.
     pub fn apply(&self, p: [f64; 3]) -> [f64; 3] {

@@ -355,6 +355,8 @@ fn build_level(
     let chunk = (budget_samples / per_brick).clamp(1, lev.bricks[a] as usize) as u32;
     let mut bounds = LevelBounds::new();
 
+    // The pencils of this level, in write order.
+    let mut pencils: Vec<Pencil> = Vec::new();
     for jc in 0..lev.bricks[c] {
         for jb in 0..lev.bricks[b] {
             let mut k0 = 0;
@@ -374,20 +376,53 @@ fn build_level(
                     blo[ax] = lo;
                     bsz[ax] = hi - lo;
                 }
-                let mut buf = vec![0f32; (bsz[0] * bsz[1] * bsz[2]) as usize];
-                src.read_box(blo, bsz, &mut buf)?;
-
-                let bricks: Vec<[u32; 3]> = (k0..k1)
+                let bricks = (k0..k1)
                     .map(|k| {
                         let mut br = [0u32; 3];
                         (br[a], br[b], br[c]) = (k, jb, jc);
                         br
                     })
                     .collect();
-                let encoded: Vec<(IndexEntry, Vec<u8>, Option<Level0Stats>)> = bricks
+                pencils.push(Pencil { blo, bsz, bricks });
+                k0 = k1;
+            }
+        }
+    }
+
+    // Three stages that overlap: a reader thread fills the next pencil while rayon encodes
+    // this one and a writer thread appends the previous one's pages. Channels of depth 1
+    // keep at most three pencils in memory.
+    let (read_tx, read_rx) = std::sync::mpsc::sync_channel::<(usize, Vec<f32>)>(1);
+    let (write_tx, write_rx) = std::sync::mpsc::sync_channel::<Vec<Vec<u8>>>(1);
+    let Output { w, offset } = o;
+    std::thread::scope(|scope| -> Result<()> {
+        let pencils = &pencils;
+        let reader = scope.spawn(move || -> Result<()> {
+            for (i, p) in pencils.iter().enumerate() {
+                let mut buf = vec![0f32; (p.bsz[0] * p.bsz[1] * p.bsz[2]) as usize];
+                src.read_box(p.blo, p.bsz, &mut buf)?;
+                if read_tx.send((i, buf)).is_err() {
+                    break; // the encoder stopped on an error of its own
+                }
+            }
+            Ok(())
+        });
+        let writer = scope.spawn(move || -> Result<()> {
+            for pages in write_rx {
+                for bytes in pages {
+                    w.write_all(&bytes)?;
+                }
+            }
+            Ok(())
+        });
+        let encode = || -> Result<()> {
+            for (i, buf) in read_rx {
+                let p = &pencils[i];
+                let encoded: Vec<(IndexEntry, Vec<u8>, Option<Level0Stats>)> = p
+                    .bricks
                     .par_iter()
                     .map(|&br| {
-                        let page = cut_page(pyr, level, br, &buf, blo, bsz, header);
+                        let page = cut_page(pyr, level, br, &buf, p.blo, p.bsz, header);
                         let id = pyr.id(level, br);
                         let st = (level == 0).then(|| core_stats(pyr, br, &page, lev.dims));
                         let (mut e, bytes) = encode_page(header, id, &page);
@@ -406,16 +441,18 @@ fn build_level(
                         (e, bytes, st)
                     })
                     .collect();
+                drop(buf);
+                let mut out = Vec::with_capacity(encoded.len());
                 for (mut e, bytes, st) in encoded {
                     if e.has_payload() {
-                        e.offset = o.offset;
-                        o.w.write_all(&bytes)?;
-                        o.offset += bytes.len() as u64;
+                        e.offset = *offset;
+                        *offset += bytes.len() as u64;
                         report.raw_bytes += header.page_raw_len() as u64;
                         report.stored_bytes += bytes.len() as u64;
                         if e.flags & strata_common::store::PAGE_COMPRESSED != 0 {
                             report.compressed_pages += 1;
                         }
+                        out.push(bytes);
                     } else if e.flags & strata_common::store::PAGE_EMPTY != 0 {
                         report.empty_pages += 1;
                     } else {
@@ -437,11 +474,29 @@ fn build_level(
                     entries.push(e);
                     progress.inc(1);
                 }
-                k0 = k1;
+                if write_tx.send(out).is_err() {
+                    break; // the writer failed; its error is reported below
+                }
             }
-        }
-    }
+            Ok(())
+        };
+        let encoded = encode();
+        drop(write_tx);
+        let written = writer.join().expect("writer thread panicked");
+        let read = reader.join().expect("reader thread panicked");
+        // The first failure in pipeline order is the cause; later ones are consequences.
+        read?;
+        encoded?;
+        written
+    })?;
     Ok(bounds)
+}
+
+/// One row of bricks along the source's contiguous axis and the sample box it needs.
+struct Pencil {
+    blo: [u64; 3],
+    bsz: [u64; 3],
+    bricks: Vec<[u32; 3]>,
 }
 
 /// Cuts one page (border included) out of a pencil buffer.
