@@ -254,6 +254,22 @@ fn summarize(out: &Path, r: &BuildReport, secs: f64) {
     );
 }
 
+/// Builds a store with a progress bar and prints the one-line summary.
+fn build_and_report(
+    src: &dyn source::GridSource,
+    out: &Path,
+    o: &BuildOptions,
+    quiet: bool,
+    what: &str,
+    t0: std::time::Instant,
+) -> Result<()> {
+    let pb = progress(quiet, what);
+    let r = build_store(src, out, o, &pb)?;
+    pb.finish_and_clear();
+    summarize(out, &r, t0.elapsed().as_secs_f64());
+    Ok(())
+}
+
 fn file_name(p: &Path) -> String {
     p.file_name()
         .map(|n| n.to_string_lossy().into_owned())
@@ -282,10 +298,7 @@ fn run(cli: Cli) -> Result<()> {
                     "little-endian"
                 }
             );
-            let pb = progress(cli.quiet, "raw");
-            let r = build_store(&src, &a.store.output, &o, &pb)?;
-            pb.finish_and_clear();
-            summarize(&a.store.output, &r, t0.elapsed().as_secs_f64());
+            build_and_report(&src, &a.store.output, &o, cli.quiet, "raw", t0)?;
         }
         Command::Ingest(Ingest::Segy(a)) => {
             let opts = segy::SegyOptions {
@@ -337,10 +350,7 @@ fn run(cli: Cli) -> Result<()> {
                     "fitted inline/crossline -> x/y transform"
                 );
             }
-            let pb = progress(cli.quiet, "SEG-Y");
-            let r = build_store(&vol, &a.store.output, &o, &pb)?;
-            pb.finish_and_clear();
-            summarize(&a.store.output, &r, t0.elapsed().as_secs_f64());
+            build_and_report(&vol, &a.store.output, &o, cli.quiet, "SEG-Y", t0)?;
         }
         Command::Ingest(Ingest::Horizon(a)) => {
             let survey =
@@ -400,10 +410,7 @@ fn run(cli: Cli) -> Result<()> {
                 dims: [s.n_inline, s.n_xline, 1],
                 data: grid.heights,
             };
-            let pb = progress(cli.quiet, "horizon");
-            let r = build_store(&src, &a.store.output, &o, &pb)?;
-            pb.finish_and_clear();
-            summarize(&a.store.output, &r, t0.elapsed().as_secs_f64());
+            build_and_report(&src, &a.store.output, &o, cli.quiet, "horizon", t0)?;
         }
         Command::Synth(a) => {
             let pb = progress(cli.quiet, "synth");
