@@ -15,6 +15,8 @@
 //!   so two stores with the same data print the same digest whatever their
 //!   brick size, compression or source byte order.
 //! * [`geo`]: f64 affine transforms and the lateral survey grid.
+//! * [`image`]: premultiplied RGBA partial images and the OVER operator.
+//! * [`kd`]: half-open regions, k-d trees and their visibility order.
 //! * [`scene`]: the scene description (TOML) with errors that name line and column.
 //!
 //! No async, no networking, no threads are spawned here.
@@ -24,6 +26,8 @@ pub mod digest;
 pub mod filter;
 pub mod geo;
 pub mod ids;
+pub mod image;
+pub mod kd;
 pub mod pyramid;
 pub mod sample;
 pub mod scene;

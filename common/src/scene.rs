@@ -23,6 +23,23 @@ pub struct Scene {
     /// Render settings.
     #[serde(default)]
     pub render: RenderSettings,
+    /// A built-in synthetic survey to generate (once) before rendering; the layers above
+    /// name its stores.
+    #[serde(default)]
+    pub synthetic: Option<SyntheticSpec>,
+}
+
+/// A synthetic survey that the first command needing it generates into a cache folder.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SyntheticSpec {
+    /// Cache folder, relative to the scene file (holds `seismic.strata`, `horizon1..3.strata`).
+    pub dir: PathBuf,
+    /// Samples per axis (inline, crossline, time).
+    pub size: [u64; 3],
+    /// Random seed of the earth model.
+    #[serde(default = "default_seed")]
+    pub seed: u64,
 }
 
 /// A volume to draw.
@@ -37,9 +54,14 @@ pub struct VolumeLayer {
     /// Value window mapped onto the colour map; the store's range if absent.
     #[serde(default)]
     pub window: Option<[f64; 2]>,
-    /// Opacity scale.
+    /// Opacity scale (multiplies the opacity curve).
     #[serde(default = "one")]
     pub opacity: f64,
+    /// Opacity curve: `[position, alpha]` points, position 0..1 across the window, linear
+    /// in between. Default: a V (|amplitude|) for the diverging "seismic" map, a ramp
+    /// from 0.1 otherwise.
+    #[serde(default)]
+    pub opacity_points: Option<Vec<[f64; 2]>>,
 }
 
 /// A horizon to draw.
@@ -54,6 +76,12 @@ pub struct HorizonLayer {
     /// Opacity in 0..1.
     #[serde(default = "one")]
     pub opacity: f64,
+    /// "constant" (the colour above) or "depth" (the colour map over the horizon's range).
+    #[serde(default = "default_color_by")]
+    pub color_by: String,
+    /// Colour map for `color_by = "depth"`.
+    #[serde(default = "default_depth_map")]
+    pub colormap: String,
 }
 
 /// A pinhole camera in world coordinates (f64).
@@ -88,6 +116,49 @@ pub struct RenderSettings {
     /// World units per unit of z (vertical exaggeration of time or depth axes).
     #[serde(default = "one")]
     pub z_scale: f64,
+    /// World z grows downward (time or depth, as in seismic surveys): the renderer flips it
+    /// so that the picture is not mirrored. Set false for data whose z points up (CT, MRI).
+    #[serde(default = "yes")]
+    pub z_down: bool,
+    /// Base sampling step in units of the finest voxel spacing of the scene's volumes.
+    #[serde(default = "default_step")]
+    pub step: f64,
+    /// LOD tolerance in pixels: a level is fine enough when its voxel covers at most `tau` pixels.
+    #[serde(default = "one")]
+    pub tau: f64,
+    /// Coarser levels step further (powers of two of the base step, opacity-corrected).
+    #[serde(default = "yes")]
+    pub adaptive_step: bool,
+    /// Early ray termination at this accumulated opacity (1.0 disables it).
+    #[serde(default = "default_ert")]
+    pub early_termination: f64,
+    /// Skip bricks whose value range maps to zero opacity.
+    #[serde(default = "yes")]
+    pub empty_space_skipping: bool,
+    /// Gradient (Blinn-Phong headlight) shading of volumes.
+    #[serde(default)]
+    pub volume_shading: bool,
+    /// Lambert headlight shading of horizons.
+    #[serde(default = "yes")]
+    pub lighting: bool,
+    /// Atlas budget for volume bricks in MiB.
+    #[serde(default = "default_atlas")]
+    pub atlas_mb: u64,
+    /// Atlas budget for horizon tiles in MiB.
+    #[serde(default = "default_hatlas")]
+    pub horizon_atlas_mb: u64,
+    /// Pages uploaded into the atlas per frame at most.
+    #[serde(default = "default_upload")]
+    pub upload_pages_per_frame: u32,
+    /// Batch rendering: frame -> feedback -> load rounds at most.
+    #[serde(default = "default_rounds")]
+    pub max_rounds: u32,
+    /// Page-loader threads.
+    #[serde(default = "default_loaders")]
+    pub loader_threads: u32,
+    /// Background colour (linear RGB) under the image when it is flattened to PNG.
+    #[serde(default)]
+    pub background: [f64; 3],
 }
 
 impl Default for RenderSettings {
@@ -97,6 +168,20 @@ impl Default for RenderSettings {
             height: default_h(),
             cache_mb: default_cache(),
             z_scale: 1.0,
+            z_down: true,
+            step: default_step(),
+            tau: 1.0,
+            adaptive_step: true,
+            early_termination: default_ert(),
+            empty_space_skipping: true,
+            volume_shading: false,
+            lighting: true,
+            atlas_mb: default_atlas(),
+            horizon_atlas_mb: default_hatlas(),
+            upload_pages_per_frame: default_upload(),
+            max_rounds: default_rounds(),
+            loader_threads: default_loaders(),
+            background: [0.0; 3],
         }
     }
 }
@@ -124,6 +209,39 @@ fn default_cache() -> u64 {
 }
 fn one() -> f64 {
     1.0
+}
+fn yes() -> bool {
+    true
+}
+fn default_seed() -> u64 {
+    1
+}
+fn default_color_by() -> String {
+    "constant".into()
+}
+fn default_depth_map() -> String {
+    "viridis".into()
+}
+fn default_step() -> f64 {
+    1.0
+}
+fn default_ert() -> f64 {
+    0.99
+}
+fn default_atlas() -> u64 {
+    512
+}
+fn default_hatlas() -> u64 {
+    64
+}
+fn default_upload() -> u32 {
+    512
+}
+fn default_rounds() -> u32 {
+    24
+}
+fn default_loaders() -> u32 {
+    2
 }
 
 /// A scene that failed to parse: the message names file, line and column.
@@ -169,6 +287,11 @@ impl Scene {
         for h in &mut scene.horizons {
             if h.store.is_relative() {
                 h.store = base.join(&h.store);
+            }
+        }
+        if let Some(s) = &mut scene.synthetic {
+            if s.dir.is_relative() {
+                s.dir = base.join(&s.dir);
             }
         }
         Ok(scene)

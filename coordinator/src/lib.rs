@@ -9,10 +9,17 @@
 //! * [`horizon_text`]: interpreted horizons from text exports.
 //! * [`synth`]: deterministic synthetic seismic surveys.
 //! * [`inspect`]: store summaries, verification and digests.
+//! * [`overrides`]: loading a scene with `--set KEY=VALUE` and `--size WxH` overrides.
+//! * [`demo`]: the scene's built-in synthetic survey, generated once into a cache folder.
+//! * [`image_out`]: PNG (sRGB, flattened) and OpenEXR (float RGBA) image writers.
 
 pub mod builder;
+pub mod demo;
 pub mod horizon_text;
+pub mod image_out;
 pub mod inspect;
+pub mod overrides;
+pub mod render;
 pub mod segy;
 pub mod source;
 pub mod synth;

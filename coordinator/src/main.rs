@@ -11,7 +11,7 @@ use strata_common::geo::Affine3;
 use strata_common::sample::SampleType;
 use strata_common::store::{Compression, Units};
 use strata_coordinator::builder::{build_store, BuildOptions, BuildReport};
-use strata_coordinator::{horizon_text, inspect, segy, source, synth};
+use strata_coordinator::{horizon_text, inspect, overrides, render, segy, source, synth};
 use tracing::{info, warn};
 
 /// Strata: distributed sort-last rendering of seismic volumes and horizons.
@@ -37,6 +37,33 @@ enum Command {
     Synth(SynthArgs),
     /// Summarize a page store; --verify checks every page's checksum.
     Inspect(InspectArgs),
+    /// Render a scene to a PNG (8-bit sRGB) and optionally a float RGBA EXR.
+    Render(RenderArgs),
+}
+
+#[derive(Args)]
+struct RenderArgs {
+    /// Scene TOML (e.g. configs/demo.toml).
+    scene: PathBuf,
+    /// Output PNG.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Render in this process through the worker engine (the reference image). Distributed
+    /// rendering over workers is not built yet, so this is also what happens without it.
+    #[arg(long)]
+    in_process: bool,
+    /// Override a scene setting, e.g. --set render.cache_mb=64 (repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    sets: Vec<String>,
+    /// Image size, e.g. --size 1920x1080 (overrides render.width and render.height).
+    #[arg(long, value_name = "WIDTHxHEIGHT")]
+    size: Option<String>,
+    /// Also write float RGBA (premultiplied) to this OpenEXR file.
+    #[arg(long, value_name = "FILE")]
+    exr: Option<PathBuf>,
+    /// Write the render summary as JSON to this file.
+    #[arg(long, value_name = "FILE")]
+    stats: Option<PathBuf>,
 }
 
 #[derive(Subcommand)]
@@ -430,6 +457,47 @@ fn run(cli: Cli) -> Result<()> {
                 println!("wrote {}", s.display());
             }
             println!("wrote {}", out.scene.display());
+        }
+        Command::Render(a) => {
+            let size = a.size.as_deref().map(overrides::parse_size).transpose()?;
+            let opts = render::RenderOptions {
+                scene: a.scene.clone(),
+                output: a.output.clone(),
+                exr: a.exr.clone(),
+                sets: a.sets.clone(),
+                size,
+            };
+            if !a.in_process {
+                info!("rendering in-process (distributed rendering over workers is not built yet)");
+            }
+            let pb = progress(cli.quiet, "synth");
+            let s = render::render_in_process(&opts, &pb)?;
+            pb.finish_and_clear();
+            println!(
+                "rendered {}x{} in {:.2} s: {} after {} round(s); last frame {:.3} s, {} samples ({:.1} M samples/s)",
+                s.width,
+                s.height,
+                s.seconds,
+                s.outcome,
+                s.rounds,
+                s.last_frame_seconds,
+                s.samples,
+                s.samples as f64 / s.last_frame_seconds.max(1e-9) / 1e6
+            );
+            println!(
+                "pages read {} ({:.1} MiB), cache hit rate {:.1}%",
+                s.pages_read,
+                s.bytes_read as f64 / (1 << 20) as f64,
+                100.0 * s.cache_hit_rate
+            );
+            println!("wrote {}", a.output.display());
+            if let Some(e) = &a.exr {
+                println!("wrote {}", e.display());
+            }
+            if let Some(p) = &a.stats {
+                let json = serde_json::to_string_pretty(&s)?;
+                synth::write_atomically(p, json.as_bytes())?;
+            }
         }
         Command::Inspect(a) => {
             let pb = progress(cli.quiet, "inspect");

@@ -29,6 +29,9 @@ pub const DT_MS: f64 = 4.0;
 /// Peak frequency of the Ricker wavelet in Hz.
 pub const RICKER_HZ: f64 = 25.0;
 
+/// Vertical exaggeration of the synthetic scene: 4 world units per ms of two-way time.
+pub const Z_SCALE: f64 = 4.0;
+
 /// The synthetic earth model for one seed and size.
 #[derive(Clone, Debug)]
 pub struct SynthModel {
@@ -341,31 +344,33 @@ pub fn synth(
             store: "seismic.strata".into(),
             colormap: "seismic".into(),
             window: None,
-            opacity: 1.0,
+            opacity: 0.6,
+            opacity_points: None,
         }],
         horizons: (1..=3)
             .map(|h| HorizonLayer {
                 store: format!("horizon{h}.strata").into(),
                 color: [[0.95, 0.75, 0.2], [0.3, 0.8, 0.4], [0.3, 0.5, 0.95]][h - 1],
                 opacity: 1.0,
+                color_by: "constant".into(),
+                colormap: "viridis".into(),
             })
             .collect(),
         camera: Some(Camera {
             eye: [
                 centre[0] - 0.9 * diag,
                 centre[1] - 0.6 * diag,
-                zc - 0.8 * diag,
+                zc - 0.8 * diag / Z_SCALE,
             ],
             target: [centre[0], centre[1], zc],
             up: [0.0, 0.0, -1.0],
             fov_deg: 35.0,
         }),
         render: RenderSettings {
-            width: 1280,
-            height: 720,
-            cache_mb: 1024,
-            z_scale: 1.0,
+            z_scale: Z_SCALE,
+            ..RenderSettings::default()
         },
+        synthetic: None,
     };
     let scene_path = dir.join("scene.toml");
     write_atomically(

@@ -93,3 +93,176 @@ pub fn check_coarse_levels(store: &PageStore) -> Result<(), String> {
     }
     Ok(())
 }
+
+/// Builders of small stores and scenes for rendering tests.
+pub mod scenes {
+    use indicatif::ProgressBar;
+    use std::path::{Path, PathBuf};
+    use strata_common::geo::Affine3;
+    use strata_common::image::{composite_front_to_back, PartialImage, Rgba};
+    use strata_common::kd::{KdTree, Region};
+    use strata_common::sample::SampleType;
+    use strata_common::scene::{Camera, HorizonLayer, RenderSettings, Scene, VolumeLayer};
+    use strata_coordinator::builder::{build_store, BuildOptions};
+    use strata_coordinator::source::MemorySource;
+    use strata_worker::engine::{Engine, Outcome};
+
+    /// Writes an f32 volume store (`data` x fastest).
+    pub fn volume_store(
+        dir: &Path,
+        name: &str,
+        dims: [u64; 3],
+        data: Vec<f32>,
+        transform: Affine3,
+        page: u32,
+    ) -> PathBuf {
+        let path = dir.join(format!("{name}.strata"));
+        let mut o = BuildOptions::volume(name, SampleType::F32);
+        o.page_size = page;
+        o.border = 1;
+        o.transform = transform;
+        build_store(
+            &MemorySource { dims, data },
+            &path,
+            &o,
+            &ProgressBar::hidden(),
+        )
+        .unwrap();
+        path
+    }
+
+    /// Writes a horizon store (`heights` i fastest, NaN = hole).
+    pub fn horizon_store(
+        dir: &Path,
+        name: &str,
+        dims: [u64; 2],
+        heights: Vec<f32>,
+        transform: Affine3,
+        page: u32,
+    ) -> PathBuf {
+        let path = dir.join(format!("{name}.strata"));
+        let mut o = BuildOptions::horizon(name);
+        o.page_size = page;
+        o.transform = transform;
+        build_store(
+            &MemorySource {
+                dims: [dims[0], dims[1], 1],
+                data: heights,
+            },
+            &path,
+            &o,
+            &ProgressBar::hidden(),
+        )
+        .unwrap();
+        path
+    }
+
+    /// A volume layer with a constant straight-RGBA transfer function over `window`.
+    pub fn volume_layer(
+        store: PathBuf,
+        colormap: &str,
+        window: [f64; 2],
+        points: Vec<[f64; 2]>,
+    ) -> VolumeLayer {
+        VolumeLayer {
+            store,
+            colormap: colormap.into(),
+            window: Some(window),
+            opacity: 1.0,
+            opacity_points: Some(points),
+        }
+    }
+
+    /// A horizon layer of a constant colour.
+    pub fn horizon_layer(store: PathBuf, color: [f64; 3], opacity: f64) -> HorizonLayer {
+        HorizonLayer {
+            store,
+            color,
+            opacity,
+            color_by: "constant".into(),
+            colormap: "viridis".into(),
+        }
+    }
+
+    /// Render settings for exact comparisons: z up, no early termination.
+    pub fn exact_settings(w: u32, h: u32) -> RenderSettings {
+        RenderSettings {
+            width: w,
+            height: h,
+            z_down: false,
+            early_termination: 1.0,
+            max_rounds: 64,
+            ..RenderSettings::default()
+        }
+    }
+
+    /// A scene.
+    pub fn scene(
+        volumes: Vec<VolumeLayer>,
+        horizons: Vec<HorizonLayer>,
+        camera: Camera,
+        render: RenderSettings,
+    ) -> Scene {
+        Scene {
+            volumes,
+            horizons,
+            camera: Some(camera),
+            render,
+            synthetic: None,
+        }
+    }
+
+    /// Renders the whole scene in batch mode (asserting convergence); full-frame pixels.
+    pub fn render_whole(scene: &Scene) -> Vec<Rgba> {
+        let mut e = Engine::new(scene).unwrap();
+        let view = e.view(scene.render.width, scene.render.height).unwrap();
+        let region = e.scene_region();
+        let r = e.render_batch(&view, &region).unwrap();
+        assert_eq!(r.outcome, Outcome::Converged, "after {} rounds", r.rounds);
+        r.image.to_full()
+    }
+
+    /// Renders each leaf of `tree` with its own engine (as separate workers would) and
+    /// composites the partial images front to back in the tree's visibility order.
+    pub fn render_split(scene: &Scene, tree: &KdTree) -> Vec<Rgba> {
+        let (w, h) = (scene.render.width, scene.render.height);
+        let mut parts = Vec::new();
+        let mut eye = [0.0; 3];
+        for leaf in &tree.leaves {
+            let mut e = Engine::new(scene).unwrap();
+            let view = e.view(w, h).unwrap();
+            eye = e.camera().eye;
+            let r = e.render_batch(&view, leaf).unwrap();
+            assert_eq!(r.outcome, Outcome::Converged);
+            parts.push(r.image);
+        }
+        let order = tree.visibility_order(eye);
+        let ordered: Vec<&PartialImage> = order.iter().map(|&i| &parts[i]).collect();
+        composite_front_to_back(w, h, &ordered)
+    }
+
+    /// The region of a scene (as the engine sees it).
+    pub fn scene_region(scene: &Scene) -> Region {
+        Engine::new(scene).unwrap().scene_region()
+    }
+
+    /// Largest absolute channel difference.
+    pub fn max_diff(a: &[Rgba], b: &[Rgba]) -> f32 {
+        assert_eq!(a.len(), b.len());
+        a.iter()
+            .zip(b)
+            .flat_map(|(p, q)| (0..4).map(move |c| (p[c] - q[c]).abs()))
+            .fold(0.0, f32::max)
+    }
+
+    /// Asserts that no pixel holds NaN/Inf and alpha stays within [0, 1].
+    pub fn assert_clean(px: &[Rgba]) {
+        for (i, p) in px.iter().enumerate() {
+            assert!(p.iter().all(|v| v.is_finite()), "pixel {i} = {p:?}");
+            assert!(p[3] >= 0.0 && p[3] <= 1.0, "pixel {i} alpha {}", p[3]);
+            for c in 0..3 {
+                assert!(p[c] >= 0.0 && p[c] <= 1.0 + 1e-5, "pixel {i} = {p:?}");
+            }
+        }
+    }
+}

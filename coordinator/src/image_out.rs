@@ -1,0 +1,257 @@
+//! Writing rendered images: 8-bit sRGB PNG (flattened over a background) and 32-bit float
+//! OpenEXR (premultiplied linear RGBA, as rendered).
+//!
+//! Images arrive as premultiplied linear RGBA, one `[f32; 4]` per pixel, row 0 at the top.
+//! Both writers go through a hidden temporary file beside the target (`.NAME.tmpPID`) that
+//! is synced and renamed into place, and removed on any error, so a failed write never
+//! leaves a half-written image under the final name (nor a stray temporary).
+
+use anyhow::{Context, Result};
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+/// Writes `rgba` (premultiplied linear RGBA, row 0 at the top) as an 8-bit RGB PNG.
+///
+/// Each pixel is flattened over `background` (linear RGB): `c + (1 - a) * bg`. Non-finite
+/// values become 0, results are clamped to [0, 1] and encoded with the exact piecewise sRGB
+/// curve; the file carries an sRGB chunk.
+pub fn write_png(
+    path: &Path,
+    width: u32,
+    height: u32,
+    rgba: &[[f32; 4]],
+    background: [f32; 3],
+) -> Result<()> {
+    check_size(path, width, height, rgba)?;
+    let bg = background.map(finite_or_zero);
+    let mut bytes = Vec::with_capacity(rgba.len() * 3);
+    for px in rgba {
+        let a = finite_or_zero(px[3]).clamp(0.0, 1.0);
+        for (c, b) in px[..3].iter().zip(bg) {
+            let flat = finite_or_zero(finite_or_zero(*c) + (1.0 - a) * b);
+            bytes.push(srgb8(flat));
+        }
+    }
+    write_via_temp(path, |file| {
+        let mut w = BufWriter::new(file);
+        let mut enc = png::Encoder::new(&mut w, width, height);
+        enc.set_color(png::ColorType::Rgb);
+        enc.set_depth(png::BitDepth::Eight);
+        enc.set_source_srgb(png::SrgbRenderingIntent::Perceptual);
+        let mut writer = enc.write_header().context("cannot write the PNG header")?;
+        writer
+            .write_image_data(&bytes)
+            .context("cannot write the PNG image data")?;
+        writer.finish().context("cannot finish the PNG")?;
+        w.flush().context("cannot write the PNG")?;
+        Ok(())
+    })
+}
+
+/// Writes `rgba` (premultiplied linear RGBA, row 0 at the top) as a 32-bit float RGBA
+/// OpenEXR file (ZIP-compressed scan lines). Values are written as they are: OpenEXR expects
+/// premultiplied colour, and non-finite values are kept.
+pub fn write_exr(path: &Path, width: u32, height: u32, rgba: &[[f32; 4]]) -> Result<()> {
+    use exr::prelude::*;
+    check_size(path, width, height, rgba)?;
+    let w = width as usize;
+    let channels = SpecificChannels::rgba(|Vec2(x, y): Vec2<usize>| {
+        let p = rgba[y * w + x];
+        (p[0], p[1], p[2], p[3])
+    });
+    let image = Image::from_encoded_channels(
+        (width as usize, height as usize),
+        Encoding::SMALL_LOSSLESS,
+        channels,
+    );
+    write_via_temp(path, |file| {
+        image
+            .write()
+            .to_unbuffered(file)
+            .map_err(|e| anyhow::anyhow!("cannot write the EXR image: {e}"))
+    })
+}
+
+/// Maps NaN and infinities to 0.
+fn finite_or_zero(v: f32) -> f32 {
+    if v.is_finite() {
+        v
+    } else {
+        0.0
+    }
+}
+
+/// Linear [0, 1] (clamped) → 8-bit sRGB with the exact piecewise curve.
+fn srgb8(linear: f32) -> u8 {
+    let c = f64::from(linear.clamp(0.0, 1.0));
+    let s = if c <= 0.003_130_8 {
+        12.92 * c
+    } else {
+        1.055 * c.powf(1.0 / 2.4) - 0.055
+    };
+    (s * 255.0).round().clamp(0.0, 255.0) as u8
+}
+
+fn check_size(path: &Path, width: u32, height: u32, rgba: &[[f32; 4]]) -> Result<()> {
+    anyhow::ensure!(
+        width > 0 && height > 0,
+        "{}: cannot write an empty image ({width}x{height})",
+        path.display()
+    );
+    let n = (width as usize).checked_mul(height as usize);
+    anyhow::ensure!(
+        n == Some(rgba.len()),
+        "{}: the image is {width}x{height} but {} pixels were given",
+        path.display(),
+        rgba.len()
+    );
+    Ok(())
+}
+
+/// The hidden temporary name beside `path`: `.NAME.tmpPID`.
+fn temp_path(path: &Path) -> Result<PathBuf> {
+    let name = path
+        .file_name()
+        .with_context(|| format!("{}: not a file name", path.display()))?;
+    Ok(path.with_file_name(format!(
+        ".{}.tmp{}",
+        name.to_string_lossy(),
+        std::process::id()
+    )))
+}
+
+/// Creates the temporary file, lets `write` fill it, syncs it and renames it to `path`;
+/// removes the temporary on any error.
+fn write_via_temp(path: &Path, write: impl FnOnce(&mut File) -> Result<()>) -> Result<()> {
+    let tmp = temp_path(path)?;
+    let mut file =
+        File::create(&tmp).with_context(|| format!("{}: cannot create", tmp.display()))?;
+    let result = write(&mut file)
+        .and_then(|()| file.sync_all().context("cannot sync"))
+        .with_context(|| format!("{}: cannot write", path.display()))
+        .and_then(|()| {
+            drop(file);
+            std::fs::rename(&tmp, path)
+                .with_context(|| format!("cannot rename {} to {}", tmp.display(), path.display()))
+        });
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn read_png(path: &Path) -> (u32, u32, png::ColorType, Vec<u8>) {
+        let file = std::io::BufReader::new(File::open(path).unwrap());
+        let mut reader = png::Decoder::new(file).read_info().unwrap();
+        let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+        let info = reader.next_frame(&mut buf).unwrap();
+        buf.truncate(info.buffer_size());
+        (info.width, info.height, info.color_type, buf)
+    }
+
+    fn names(dir: &Path) -> Vec<String> {
+        let mut v: Vec<String> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        v.sort();
+        v
+    }
+
+    #[test]
+    fn srgb_curve() {
+        assert_eq!(srgb8(0.0), 0);
+        assert_eq!(srgb8(1.0), 255);
+        assert_eq!(srgb8(0.5), 188);
+        assert_eq!(srgb8(0.002), 7); // linear segment: 12.92 * 0.002 * 255 = 6.6
+        assert_eq!(srgb8(-1.0), 0);
+        assert_eq!(srgb8(7.0), 255);
+    }
+
+    #[test]
+    fn png_round_trip() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("img.png");
+        // 3 x 2, row 0 at the top.
+        let rgba = [
+            [0.0, 0.0, 0.0, 1.0],
+            [1.0, 1.0, 1.0, 1.0],
+            [0.5, 0.5, 0.5, 1.0],
+            // Premultiplied half-transparent red over a blue background.
+            [0.25, 0.0, 0.0, 0.5],
+            // Fully transparent: the background itself.
+            [0.0, 0.0, 0.0, 0.0],
+            // Non-finite and out-of-range values.
+            [f32::NAN, f32::INFINITY, 2.0, f32::NAN],
+        ];
+        write_png(&path, 3, 2, &rgba, [0.0, 0.0, 1.0]).unwrap();
+        let (w, h, ct, px) = read_png(&path);
+        assert_eq!((w, h, ct), (3, 2, png::ColorType::Rgb));
+        assert_eq!(
+            px,
+            [
+                0, 0, 0, //
+                255, 255, 255, //
+                188, 188, 188, //
+                137, 0, 188, // 0.25 -> 137, 0 + 0.5 * 1 -> 188
+                0, 0, 255, //
+                0, 0, 255, // NaN -> 0, inf -> 0, 2 + (1 - 0) * 1 clamped
+            ]
+        );
+        assert_eq!(names(dir.path()), ["img.png"]);
+    }
+
+    #[test]
+    fn exr_round_trip() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("img.exr");
+        let (w, h) = (5usize, 3usize);
+        let rgba: Vec<[f32; 4]> = (0..w * h)
+            .map(|i| {
+                let v = i as f32 / 7.0;
+                [v, -v, 1e6 * v, 0.5]
+            })
+            .collect();
+        write_exr(&path, w as u32, h as u32, &rgba).unwrap();
+        let image = exr::prelude::read_first_rgba_layer_from_file(
+            &path,
+            |res, _| vec![[0f32; 4]; res.width() * res.height()],
+            move |px: &mut Vec<[f32; 4]>, pos, (r, g, b, a): (f32, f32, f32, f32)| {
+                px[pos.y() * w + pos.x()] = [r, g, b, a];
+            },
+        )
+        .unwrap();
+        assert_eq!(image.layer_data.size.width(), w);
+        assert_eq!(image.layer_data.size.height(), h);
+        assert_eq!(image.layer_data.channel_data.pixels, rgba);
+        assert_eq!(names(dir.path()), ["img.exr"]);
+    }
+
+    #[test]
+    fn bad_input_leaves_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let missing = dir.path().join("missing");
+        let px = vec![[0.5f32; 4]; 4];
+        let e = write_png(&missing.join("a.png"), 2, 2, &px, [0.0; 3]).unwrap_err();
+        assert!(format!("{e:#}").contains("a.png"), "{e:#}");
+        let e = write_exr(&missing.join("a.exr"), 2, 2, &px).unwrap_err();
+        assert!(format!("{e:#}").contains("a.exr"), "{e:#}");
+        assert!(!missing.exists());
+
+        let e = write_png(&dir.path().join("b.png"), 3, 2, &px, [0.0; 3]).unwrap_err();
+        assert!(e.to_string().contains("3x2 but 4 pixels"), "{e}");
+        let e = write_exr(&dir.path().join("b.exr"), 0, 0, &[]).unwrap_err();
+        assert!(e.to_string().contains("empty image"), "{e}");
+        assert!(names(dir.path()).is_empty());
+
+        // The target is a folder: the rename fails and the temporary is removed.
+        std::fs::create_dir(dir.path().join("c.png")).unwrap();
+        write_png(&dir.path().join("c.png"), 2, 2, &px, [0.0; 3]).unwrap_err();
+        assert_eq!(names(dir.path()), ["c.png"]);
+    }
+}

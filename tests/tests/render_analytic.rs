@@ -1,0 +1,520 @@
+//! The CPU ray caster against analytic references and hard cases.
+
+use strata_common::geo::Affine3;
+use strata_common::scene::Camera;
+use strata_tests::scenes::*;
+use tempfile::TempDir;
+
+const N: u64 = 32;
+const W: u32 = 65; // odd, so the centre pixel's ray is the optical axis
+
+fn constant_volume(dir: &std::path::Path, value: f32) -> std::path::PathBuf {
+    volume_store(
+        dir,
+        "const",
+        [N, N, N],
+        vec![value; (N * N * N) as usize],
+        Affine3::IDENTITY,
+        32,
+    )
+}
+
+fn axis_camera(eye: [f64; 3], target: [f64; 3]) -> Camera {
+    Camera {
+        eye,
+        target,
+        up: [0.0, 1.0, 0.0],
+        fov_deg: 35.0,
+    }
+}
+
+/// Lattice samples `k·dt` in `[t0, t1)`, counted with the caster's f32 arithmetic.
+fn lattice_count(t0: f32, t1: f32, dt: f32) -> u64 {
+    let mut n = 0;
+    let mut k = (t0 / dt).floor() as i64 - 2;
+    loop {
+        let t = k as f32 * dt;
+        if t >= t1 {
+            return n;
+        }
+        if t >= t0 {
+            n += 1;
+        }
+        k += 1;
+    }
+}
+
+fn centre(px: &[[f32; 4]]) -> [f32; 4] {
+    px[(W / 2 * W + W / 2) as usize]
+}
+
+/// grey colour map at the middle of its window (value 1 of [0, 2]). Colour maps are
+/// interpolated in linear light between their (sRGB-given) control points, and grey's are
+/// black and white.
+fn grey_mid() -> f32 {
+    0.5
+}
+
+#[test]
+fn homogeneous_slab_transmittance_for_many_steps() {
+    let dir = TempDir::new().unwrap();
+    let store = constant_volume(dir.path(), 1.0);
+    let a = 0.05f64;
+    for &step in &[0.01f64, 0.25, 1.0, 3.7, 50.0] {
+        let mut r = exact_settings(W, W);
+        r.adaptive_step = false;
+        r.step = step;
+        let s = scene(
+            vec![volume_layer(
+                store.clone(),
+                "grey",
+                [0.0, 2.0],
+                vec![[0.0, a], [1.0, a]],
+            )],
+            vec![],
+            axis_camera([15.5, 15.5, -50.0], [15.5, 15.5, 0.0]),
+            r,
+        );
+        let px = render_whole(&s);
+        assert_clean(&px);
+        let c = centre(&px);
+        // Box faces at -0.5 and 31.5: the ray is inside for t in [49.5, 81.5).
+        let n = lattice_count(49.5, 81.5, step as f32);
+        let want = 1.0 - (1.0 - a).powf(step * n as f64);
+        assert!(
+            (c[3] as f64 - want).abs() < 2e-5,
+            "step {step}: alpha {} want {want} ({n} samples)",
+            c[3]
+        );
+        // Constant colour: premultiplied colour = colour · alpha.
+        assert!((c[0] - grey_mid() * c[3]).abs() < 2e-5, "{c:?}");
+        // Opacity correction makes the result converge to the continuous slab 1-(1-a)^L.
+        let exact = 1.0 - (1.0 - a).powf(32.0);
+        let tol = if step < 1.0 { 0.01 } else { 1.0 };
+        assert!(
+            (c[3] as f64 - exact).abs() < tol * 0.05 + 1e-3 || step > 3.0,
+            "step {step}"
+        );
+    }
+}
+
+#[test]
+fn adaptive_bands_keep_the_optical_depth() {
+    // Far away and tiny image: the ray crosses coarse bands (step 2^b); the corrected
+    // opacity keeps transmittance near the continuous value.
+    let dir = TempDir::new().unwrap();
+    let store = constant_volume(dir.path(), 1.0);
+    let a = 0.05f64;
+    let mut r = exact_settings(9, 9);
+    r.adaptive_step = true;
+    let s = scene(
+        vec![volume_layer(
+            store,
+            "grey",
+            [0.0, 2.0],
+            vec![[0.0, a], [1.0, a]],
+        )],
+        vec![],
+        axis_camera([15.5, 15.5, -200.0], [15.5, 15.5, 0.0]),
+        r,
+    );
+    let px = render_whole(&s);
+    assert_clean(&px);
+    let c = px[(4 * 9 + 4) as usize];
+    let exact = 1.0 - (1.0 - a).powf(32.0);
+    // At t≈200 the band step is 8 voxels: at most one band step of optical depth off.
+    let lo = 1.0 - (1.0 - a).powf(32.0 - 8.0);
+    let hi = 1.0 - (1.0 - a).powf(32.0 + 8.0);
+    assert!(
+        c[3] as f64 > lo && (c[3] as f64) < hi,
+        "alpha {} vs {exact}",
+        c[3]
+    );
+}
+
+#[test]
+fn linear_ramp_is_sampled_exactly() {
+    // v = z (index), grey map over [0, 31]; tiny constant alpha, so the colour is the
+    // transmittance-weighted sum of the ramp values at the lattice points.
+    let dir = TempDir::new().unwrap();
+    let data: Vec<f32> = (0..N * N * N).map(|i| (i / (N * N)) as f32).collect();
+    let store = volume_store(dir.path(), "ramp", [N, N, N], data, Affine3::IDENTITY, 32);
+    let a = 0.01f64;
+    let mut r = exact_settings(W, W);
+    r.adaptive_step = false;
+    r.step = 0.5;
+    let s = scene(
+        vec![volume_layer(
+            store,
+            "grey",
+            [0.0, 31.0],
+            vec![[0.0, a], [1.0, a]],
+        )],
+        vec![],
+        axis_camera([16.0, 16.0, -40.0], [16.0, 16.0, 0.0]),
+        r,
+    );
+    let px = render_whole(&s);
+    let c = centre(&px);
+    // Reference: z = t - 40, clamped to the data range [0, 31] by edge replication.
+    let (mut acc, mut al) = (0.0f64, 0.0f64);
+    let mut k = 0i64;
+    loop {
+        let t = k as f32 * 0.5;
+        k += 1;
+        if t < 39.5 {
+            continue;
+        }
+        if t >= 71.5 {
+            break;
+        }
+        let z = (t as f64 - 40.0).clamp(0.0, 31.0);
+        // The grey map is linear (in linear light) between black and white.
+        let col = z / 31.0;
+        // Opacity corrected for a step of half the reference voxel.
+        let ac = 1.0 - (1.0 - a).powf(0.5);
+        acc += (1.0 - al) * ac * col;
+        al += (1.0 - al) * ac;
+    }
+    assert!((c[3] as f64 - al).abs() < 1e-5, "{} vs {al}", c[3]);
+    assert!((c[0] as f64 - acc).abs() < 1e-5, "{} vs {acc}", c[0]);
+}
+
+fn plane(
+    dir: &std::path::Path,
+    name: &str,
+    n: u64,
+    f: impl Fn(u64, u64) -> f32,
+) -> std::path::PathBuf {
+    let h: Vec<f32> = (0..n * n).map(|i| f(i % n, i / n)).collect();
+    horizon_store(dir, name, [n, n], h, Affine3::IDENTITY, 16)
+}
+
+#[test]
+fn opaque_plane_behind_translucent_fog() {
+    let dir = TempDir::new().unwrap();
+    let fog = constant_volume(dir.path(), 1.0);
+    let p = plane(dir.path(), "plane", N, |_, _| 20.3);
+    let a = 0.03f64;
+    let mut r = exact_settings(W, W);
+    r.adaptive_step = false;
+    r.lighting = false;
+    let s = scene(
+        vec![volume_layer(
+            fog,
+            "grey",
+            [0.0, 2.0],
+            vec![[0.0, a], [1.0, a]],
+        )],
+        vec![horizon_layer(p, [1.0, 0.0, 0.0], 1.0)],
+        axis_camera([15.5, 15.5, 100.0], [15.5, 15.5, 0.0]),
+        r,
+    );
+    let px = render_whole(&s);
+    assert_clean(&px);
+    let c = centre(&px);
+    // Enters the fog at z = 31.5 (t = 68.5), hits the plane at z = 20.3 (t = 79.7).
+    let n = lattice_count(68.5, 79.7, 1.0);
+    let af = 1.0 - (1.0 - a).powi(n as i32);
+    let g = grey_mid() as f64;
+    let want = [g * af + (1.0 - af), g * af, g * af, 1.0];
+    for k in 0..4 {
+        assert!((c[k] as f64 - want[k]).abs() < 2e-5, "{c:?} vs {want:?}");
+    }
+}
+
+#[test]
+fn camera_inside_a_volume_and_saturating_alpha() {
+    let dir = TempDir::new().unwrap();
+    let store = constant_volume(dir.path(), 1.0);
+    let a = 0.1f64;
+    let mut r = exact_settings(W, W);
+    r.adaptive_step = false;
+    let s = scene(
+        vec![volume_layer(
+            store.clone(),
+            "grey",
+            [0.0, 2.0],
+            vec![[0.0, a], [1.0, a]],
+        )],
+        vec![],
+        axis_camera([15.5, 15.5, 10.0], [15.5, 15.5, 40.0]),
+        r.clone(),
+    );
+    let px = render_whole(&s);
+    assert_clean(&px);
+    let n = lattice_count(0.0, 21.5, 1.0);
+    assert_eq!(n, 22);
+    let want = 1.0 - (1.0 - a).powi(22);
+    assert!((centre(&px)[3] as f64 - want).abs() < 2e-5);
+
+    // Alpha 1 per sample: exactly opaque, colour exactly the map colour, nothing above 1.
+    let s = scene(
+        vec![volume_layer(
+            store,
+            "grey",
+            [0.0, 2.0],
+            vec![[0.0, 1.0], [1.0, 1.0]],
+        )],
+        vec![],
+        axis_camera([15.5, 15.5, -50.0], [15.5, 15.5, 0.0]),
+        r,
+    );
+    let px = render_whole(&s);
+    assert_clean(&px);
+    let c = centre(&px);
+    assert_eq!(c[3], 1.0);
+    assert!((c[0] - grey_mid()).abs() < 1e-6);
+}
+
+#[test]
+fn nan_samples_are_transparent() {
+    let dir = TempDir::new().unwrap();
+    let data: Vec<f32> = (0..N * N * N)
+        .map(|i| if i / (N * N) < 16 { f32::NAN } else { 1.0 })
+        .collect();
+    let store = volume_store(dir.path(), "nan", [N, N, N], data, Affine3::IDENTITY, 32);
+    let a = 0.05f64;
+    let mut r = exact_settings(W, W);
+    r.adaptive_step = false;
+    let s = scene(
+        vec![volume_layer(
+            store,
+            "grey",
+            [0.0, 2.0],
+            vec![[0.0, a], [1.0, a]],
+        )],
+        vec![],
+        axis_camera([15.5, 15.5, -50.0], [15.5, 15.5, 0.0]),
+        r,
+    );
+    let px = render_whole(&s);
+    assert_clean(&px);
+    // Samples whose trilinear footprint touches z < 16 are NaN and skipped: z in [16, 31.5).
+    let n = lattice_count(66.0, 81.5, 1.0);
+    let want = 1.0 - (1.0 - a).powi(n as i32);
+    assert!(
+        (centre(&px)[3] as f64 - want).abs() < 2e-5,
+        "{:?} {want}",
+        centre(&px)
+    );
+}
+
+/// Top-down view of horizons over a 32×32 grid.
+fn top_down(w: u32) -> Camera {
+    let _ = w;
+    axis_camera([15.5, 15.5, 60.0], [15.5, 15.5, 0.0])
+}
+
+/// Where the ray of pixel (x, y) of a top-down `W`×`W` view meets the plane z = h.
+fn hit_xy(px: u32, py: u32, h: f64) -> [f64; 2] {
+    let tan = (35.0f64.to_radians() / 2.0).tan();
+    let sx = (2.0 * (px as f64 + 0.5) / W as f64 - 1.0) * tan;
+    let sy = (1.0 - 2.0 * (py as f64 + 0.5) / W as f64) * tan;
+    // Looking down -z with up = +y: right = forward × up = (0,0,-1)×(0,1,0) = (1,0,0).
+    let d = 60.0 - h;
+    [15.5 + sx * d, 15.5 + sy * d]
+}
+
+#[test]
+fn holes_never_hit_and_leave_no_cracks() {
+    let dir = TempDir::new().unwrap();
+    // A wavy surface with a rectangular hole; tiles of 16 (12 core) put tile borders at 12, 24.
+    let p = plane(dir.path(), "holey", N, |i, j| {
+        if (8..14).contains(&i) && (18..25).contains(&j) {
+            f32::NAN
+        } else {
+            10.0 + 0.7 * (i as f32 * 0.4).sin() + 0.5 * (j as f32 * 0.3).cos()
+        }
+    });
+    let mut r = exact_settings(W, W);
+    r.lighting = false;
+    let s = scene(
+        vec![],
+        vec![horizon_layer(p, [0.0, 1.0, 0.0], 1.0)],
+        top_down(W),
+        r,
+    );
+    let px = render_whole(&s);
+    assert_clean(&px);
+    let mut checked_in = 0;
+    let mut checked_hole = 0;
+    for y in 0..W {
+        for x in 0..W {
+            let q = hit_xy(x, y, 10.0);
+            let a = px[(y * W + x) as usize][3];
+            // Cells [i, i+1]: a cell is valid if all four nodes are; allow a margin of one
+            // cell (the surface is not exactly at 10).
+            let inside = q[0] > 1.5 && q[0] < 29.5 && q[1] > 1.5 && q[1] < 29.5;
+            let near_hole = q[0] > 5.5 && q[0] < 15.5 && q[1] > 15.5 && q[1] < 26.5;
+            let in_hole = q[0] > 9.0 && q[0] < 12.0 && q[1] > 19.0 && q[1] < 23.0;
+            if inside && !near_hole {
+                assert_eq!(a, 1.0, "crack at pixel ({x}, {y}) over {q:?}");
+                checked_in += 1;
+            }
+            if in_hole {
+                assert_eq!(a, 0.0, "hit inside the hole at pixel ({x}, {y}) over {q:?}");
+                checked_hole += 1;
+            }
+        }
+    }
+    assert!(
+        checked_in > 1000 && checked_hole > 10,
+        "{checked_in} {checked_hole}"
+    );
+}
+
+#[test]
+fn crossing_horizons_show_the_nearer_surface() {
+    let dir = TempDir::new().unwrap();
+    let a = plane(dir.path(), "flat", N, |_, _| 10.0);
+    let b = plane(dir.path(), "tilted", N, |i, _| 5.0 + 0.5 * i as f32); // crosses at i = 10
+    let touch = plane(dir.path(), "touch", N, |_, _| 10.0); // coincides with `flat`
+    let mut r = exact_settings(W, W);
+    r.lighting = false;
+    let s = scene(
+        vec![],
+        vec![
+            horizon_layer(a, [1.0, 0.0, 0.0], 1.0),
+            horizon_layer(b, [0.0, 0.0, 1.0], 1.0),
+            horizon_layer(touch, [1.0, 0.0, 0.0], 1.0),
+        ],
+        top_down(W),
+        r,
+    );
+    let px = render_whole(&s);
+    assert_clean(&px);
+    let mut n = 0;
+    for y in 0..W {
+        for x in 0..W {
+            let q = hit_xy(x, y, 10.0);
+            if !(q[0] > 1.0 && q[0] < 30.0 && q[1] > 1.0 && q[1] < 30.0)
+                || (q[0] - 10.0).abs() < 2.0
+            {
+                continue;
+            }
+            let p = px[(y * W + x) as usize];
+            // Seen from above the higher surface is nearer: flat (red) where i < 10.
+            let want = if q[0] < 10.0 {
+                [1.0, 0.0, 0.0, 1.0]
+            } else {
+                [0.0, 0.0, 1.0, 1.0]
+            };
+            assert_eq!(p, want, "pixel ({x}, {y}) over {q:?}");
+            n += 1;
+        }
+    }
+    assert!(n > 1000);
+}
+
+#[test]
+fn grazing_rays_on_a_plane() {
+    let dir = TempDir::new().unwrap();
+    let n = 128u64;
+    let p = plane(dir.path(), "flat", n, |_, _| 10.0);
+    let mut r = exact_settings(97, 33);
+    r.lighting = false;
+    // Eye half a unit above the plane, looking along it: rays meet it at grazing angles.
+    let cam = Camera {
+        eye: [-5.0, 63.5, 10.5],
+        target: [200.0, 63.5, 10.0],
+        up: [0.0, 0.0, 1.0],
+        fov_deg: 30.0,
+    };
+    let s = scene(
+        vec![],
+        vec![horizon_layer(p, [0.0, 1.0, 0.0], 1.0)],
+        cam.clone(),
+        r,
+    );
+    let px = render_whole(&s);
+    assert_clean(&px);
+    // Analytic: the ray hits z = 10 at distance 0.5/(-dz); it counts if that lands on the grid.
+    let view = strata_worker::camera::View::new(&cam, &s.render, 97, 33).unwrap();
+    let mut hits = 0;
+    for y in 0..33 {
+        for x in 0..97 {
+            let d = view.ray_dir(x, y);
+            let a = px[(y * 97 + x) as usize][3];
+            if d[2] >= -1e-6 {
+                assert_eq!(a, 0.0, "pixel ({x},{y}) looks up but hit");
+                continue;
+            }
+            let t = 0.5 / -(d[2] as f64);
+            let q = [-5.0 + t * d[0] as f64, 63.5 + t * d[1] as f64];
+            let inside = q[0] > 0.5 && q[0] < 126.5 && q[1] > 0.5 && q[1] < 126.5;
+            let outside = q[0] < -0.5 || q[0] > 127.5 || q[1] < -0.5 || q[1] > 127.5;
+            if inside {
+                assert_eq!(a, 1.0, "pixel ({x},{y}) missed the plane at {q:?}");
+                hits += 1;
+            } else if outside {
+                assert_eq!(a, 0.0, "pixel ({x},{y}) hit outside the grid at {q:?}");
+            }
+        }
+    }
+    assert!(hits > 300, "{hits}");
+}
+
+#[test]
+fn utm_survey_renders_like_the_same_survey_at_the_origin() {
+    let dir = TempDir::new().unwrap();
+    let data: Vec<f32> = (0..N * N * N)
+        .map(|i| {
+            let (x, y, z) = (i % N, i / N % N, i / (N * N));
+            ((x as f32 * 0.3).sin() + (y as f32 * 0.2).cos()) * (z as f32 * 0.25).sin()
+        })
+        .collect();
+    let off = [605_000.25, 6_075_000.75, 1500.0];
+    let make = |name: &str, o: [f64; 3]| {
+        let t = Affine3 {
+            rows: [
+                [25.0 * 0.956, -25.0 * 0.292, 0.0, o[0]],
+                [25.0 * 0.292, 25.0 * 0.956, 0.0, o[1]],
+                [0.0, 0.0, 4.0, o[2]],
+            ],
+        };
+        let v = volume_store(dir.path(), name, [N, N, N], data.clone(), t, 32);
+        let h = horizon_store(
+            dir.path(),
+            &format!("{name}_h"),
+            [N, N],
+            (0..N * N).map(|i| 40.0 + (i % N) as f32 * 0.5).collect(),
+            Affine3 {
+                rows: [
+                    [25.0 * 0.956, -25.0 * 0.292, 0.0, o[0]],
+                    [25.0 * 0.292, 25.0 * 0.956, 0.0, o[1]],
+                    [0.0, 0.0, 4.0, o[2]],
+                ],
+            },
+            16,
+        );
+        let cam = Camera {
+            eye: [o[0] - 500.0, o[1] - 700.0, o[2] + 400.0],
+            target: [o[0] + 400.0, o[1] + 400.0, o[2] + 64.0],
+            up: [0.0, 0.0, 1.0],
+            fov_deg: 40.0,
+        };
+        let mut r = exact_settings(48, 32);
+        r.z_down = true;
+        scene(
+            vec![volume_layer(
+                v,
+                "seismic",
+                [-2.0, 2.0],
+                vec![[0.0, 0.3], [0.5, 0.0], [1.0, 0.3]],
+            )],
+            vec![horizon_layer(h, [0.9, 0.8, 0.3], 0.7)],
+            cam,
+            r,
+        )
+    };
+    let utm = render_whole(&make("utm", off));
+    let origin = render_whole(&make("origin", [0.0; 3]));
+    assert_clean(&utm);
+    let d = max_diff(&utm, &origin);
+    assert!(d < 1e-3, "max difference {d}");
+    assert!(
+        utm.iter().filter(|p| p[3] > 0.1).count() > 200,
+        "the view shows the data"
+    );
+}

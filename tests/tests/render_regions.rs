@@ -1,0 +1,178 @@
+//! Sort-last invariants of the worker engine: a scene rendered as one region equals the
+//! same scene rendered as any set of k-d regions (each by its own engine, as separate
+//! workers would) composited front to back; and out-of-core batch rendering converges to
+//! the image of an unlimited budget.
+
+use proptest::prelude::*;
+use std::path::PathBuf;
+use strata_common::kd::KdTree;
+use strata_common::scene::Scene;
+use strata_tests::scenes::*;
+use tempfile::TempDir;
+
+/// A small synthetic survey (UTM coordinates, z down, three horizons with holes and a
+/// pinch-out), as `coordinator synth` writes it.
+fn survey(dir: &std::path::Path, size: [u64; 3]) -> PathBuf {
+    let out = strata_coordinator::synth::synth(dir, size, 5, false, &indicatif::ProgressBar::hidden())
+        .unwrap();
+    out.scene
+}
+
+fn load(path: &std::path::Path, w: u32, h: u32) -> Scene {
+    let mut s = Scene::parse(path, &std::fs::read_to_string(path).unwrap()).unwrap();
+    s.render.width = w;
+    s.render.height = h;
+    s.render.early_termination = 1.0; // exact: a region cannot know what lies in front
+    s.render.max_rounds = 64;
+    s
+}
+
+#[test]
+fn region_split_equals_whole_for_2_4_and_7_regions() {
+    let dir = TempDir::new().unwrap();
+    let path = survey(dir.path(), [72, 56, 48]);
+    let mut s = load(&path, 96, 64);
+    s.volumes[0].opacity = 0.3;
+    s.horizons[1].opacity = 0.6; // a translucent horizon: hits behind it matter too
+    let whole = render_whole(&s);
+    assert_clean(&whole);
+    assert!(whole.iter().filter(|p| p[3] > 0.05).count() > 1000, "the view shows the data");
+    let root = scene_region(&s);
+    let splits: [&[(usize, usize, f64)]; 3] = [
+        &[(0, 0, 0.43)],
+        &[(0, 2, 0.5), (0, 0, 0.3), (1, 1, 0.61)],
+        &[
+            (0, 0, 0.37),
+            (0, 1, 0.6),
+            (1, 2, 0.45),
+            (2, 0, 0.5),
+            (3, 1, 0.3),
+            (1, 0, 0.71),
+        ],
+    ];
+    for sp in splits {
+        let tree = KdTree::from_splits(root, sp);
+        let split = render_split(&s, &tree);
+        let d = max_diff(&whole, &split);
+        assert!(d < 1e-5, "{} regions: max difference {d}", tree.leaves.len());
+    }
+}
+
+#[test]
+fn several_overlapping_volumes_split_seamlessly() {
+    // Two volumes of different resolution and orientation overlap: per-sample mixing must
+    // also be region-invariant.
+    let dir = TempDir::new().unwrap();
+    let n = 24u64;
+    let a: Vec<f32> = (0..n * n * n)
+        .map(|i| ((i % n) as f32 * 0.5).sin() * ((i / (n * n)) as f32 * 0.3).cos())
+        .collect();
+    let b: Vec<f32> = (0..n * n * n).map(|i| ((i / n % n) as f32 * 0.4).cos()).collect();
+    use strata_common::geo::Affine3;
+    let va = volume_store(dir.path(), "a", [n, n, n], a, Affine3::IDENTITY, 32);
+    let (c, s_) = (0.8f64, 0.6f64);
+    let vb = volume_store(
+        dir.path(),
+        "b",
+        [n, n, n],
+        b,
+        Affine3 {
+            rows: [
+                [0.7 * c, -0.7 * s_, 0.0, 8.0],
+                [0.7 * s_, 0.7 * c, 0.0, 2.0],
+                [0.0, 0.0, 0.9, 5.0],
+            ],
+        },
+        32,
+    );
+    let cam = strata_common::scene::Camera {
+        eye: [-30.0, -40.0, 50.0],
+        target: [12.0, 12.0, 12.0],
+        up: [0.0, 0.0, 1.0],
+        fov_deg: 40.0,
+    };
+    let s = scene(
+        vec![
+            volume_layer(va, "seismic", [-1.0, 1.0], vec![[0.0, 0.2], [0.5, 0.0], [1.0, 0.2]]),
+            volume_layer(vb, "viridis", [-1.0, 1.0], vec![[0.0, 0.0], [1.0, 0.15]]),
+        ],
+        vec![],
+        cam,
+        exact_settings(64, 48),
+    );
+    let whole = render_whole(&s);
+    assert_clean(&whole);
+    let tree = KdTree::from_splits(scene_region(&s), &[(0, 0, 0.5), (0, 2, 0.4), (1, 1, 0.55)]);
+    let d = max_diff(&whole, &render_split(&s, &tree));
+    assert!(d < 1e-5, "max difference {d}");
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 6, ..ProptestConfig::default() })]
+    #[test]
+    fn any_kd_split_composites_to_the_whole(
+        splits in proptest::collection::vec((0usize..8, 0usize..3, 0.05f64..0.95), 1..6),
+        eye_side in 0usize..4,
+    ) {
+        let dir = TempDir::new().unwrap();
+        let path = survey(dir.path(), [40, 32, 24]);
+        let mut s = load(&path, 40, 32);
+        s.volumes[0].opacity = 0.4;
+        s.horizons[0].opacity = 0.5;
+        // Vary the camera side so the visibility order changes.
+        if let Some(c) = &mut s.camera {
+            let (dx, dy) = [(1.0, 1.0), (-1.0, 1.0), (1.0, -1.0), (-1.0, -1.0)][eye_side];
+            for (k, d) in [(0, dx), (1, dy)] {
+                let off = c.eye[k] - c.target[k];
+                c.eye[k] = c.target[k] + d * off.abs();
+            }
+        }
+        let whole = render_whole(&s);
+        let mut tree = KdTree::single(scene_region(&s));
+        for (leaf, axis, frac) in splits {
+            let leaf = leaf % tree.leaves.len();
+            let r = tree.leaves[leaf];
+            tree.split_leaf(leaf, axis, r.lo[axis] + frac * (r.hi[axis] - r.lo[axis]));
+        }
+        let d = max_diff(&whole, &render_split(&s, &tree));
+        prop_assert!(d < 1e-5, "{} regions: max difference {}", tree.leaves.len(), d);
+    }
+}
+
+#[test]
+fn out_of_core_converges_to_the_unlimited_image() {
+    // 8 MiB of f32 in 32³ bricks (128 KiB each); a 1 MiB cache holds 1/8 of it.
+    let dir = TempDir::new().unwrap();
+    let path = survey(dir.path(), [128, 128, 128]);
+    let mut s = load(&path, 80, 60);
+    s.volumes[0].opacity = 0.25;
+    // Rebuild the cube with 32³ bricks so the budget is many pages.
+    let vol = dir.path().join("seismic32.strata");
+    {
+        use strata_coordinator::builder::{build_store, BuildOptions};
+        let model = strata_coordinator::synth::SynthModel::new([128, 128, 128], 5).unwrap();
+        let mut o = BuildOptions::volume("seismic32", strata_common::sample::SampleType::F32);
+        o.page_size = 32;
+        o.transform = model.transform();
+        build_store(&model, &vol, &o, &indicatif::ProgressBar::hidden()).unwrap();
+    }
+    s.volumes[0].store = vol;
+    s.render.upload_pages_per_frame = 64; // several rounds
+    let mut unlimited = s.clone();
+    unlimited.render.cache_mb = 4096;
+    let want = render_whole(&unlimited);
+
+    s.render.cache_mb = 1;
+    let mut e = strata_worker::engine::Engine::new(&s).unwrap();
+    let view = e.view(80, 60).unwrap();
+    let region = e.scene_region();
+    let r = e.render_batch(&view, &region).unwrap();
+    assert_eq!(r.outcome, strata_worker::engine::Outcome::Converged);
+    let got = r.image.to_full();
+    assert_eq!(max_diff(&want, &got), 0.0, "same pages, same samples, same image");
+    let st = e.cache_stats();
+    assert!(st.evictions > 0, "the budget forced evictions: {st:?}");
+    assert!(st.bytes_read > 1 << 20, "more than the budget was streamed: {st:?}");
+    // The view needs more pages than the cache holds (8 of 128 KiB).
+    assert!(r.reports[0].requested > 8, "{:?}", r.reports);
+}

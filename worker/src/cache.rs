@@ -1,0 +1,374 @@
+//! The host page cache: decoded pages of every data set of a worker under one byte budget.
+//!
+//! * Replacement is least-recently-used; pages the current cut still needs are *locked* and
+//!   never evicted.
+//! * Loader threads read and decode pages from a priority queue. Real requests (pages rays
+//!   asked for) always outrank prefetch; within a class, higher priority first.
+//! * Prefetched pages only fill free budget: they never evict anything.
+//!
+//! Pages are keyed by their [`PageId`] with the data-set field set to the worker's data-set
+//! number, so one key space covers all stores.
+
+use std::collections::{BTreeMap, BinaryHeap, HashMap, HashSet};
+use std::sync::{Arc, Condvar, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+use strata_common::ids::PageId;
+use strata_common::store::PageStore;
+
+/// Decoded samples of one page (border included; NaN = no data / hole).
+pub type PageData = Arc<Vec<f32>>;
+
+/// Request classes, in increasing precedence.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Class {
+    /// Speculative: only fills free budget.
+    Prefetch = 0,
+    /// A page rays asked for (or an ancestor of one).
+    Real = 1,
+}
+
+/// Counters of a cache.
+#[derive(Copy, Clone, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct CacheStats {
+    /// Lookups that found the page.
+    pub hits: u64,
+    /// Lookups that did not.
+    pub misses: u64,
+    /// Pages evicted.
+    pub evictions: u64,
+    /// Pages read from disk.
+    pub pages_read: u64,
+    /// Stored bytes read from disk.
+    pub bytes_read: u64,
+    /// Prefetched pages dropped for lack of free budget.
+    pub prefetch_dropped: u64,
+}
+
+#[derive(PartialEq)]
+struct Queued {
+    class: Class,
+    priority: f32,
+    seq: u64,
+    key: u64,
+}
+impl Eq for Queued {}
+impl Ord for Queued {
+    fn cmp(&self, o: &Self) -> std::cmp::Ordering {
+        self.class
+            .cmp(&o.class)
+            .then(self.priority.total_cmp(&o.priority))
+            // earlier requests first among equals
+            .then(o.seq.cmp(&self.seq))
+    }
+}
+impl PartialOrd for Queued {
+    fn partial_cmp(&self, o: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(o))
+    }
+}
+
+struct Entry {
+    data: PageData,
+    tick: u64,
+}
+
+#[derive(Default)]
+struct State {
+    map: HashMap<u64, Entry>,
+    lru: BTreeMap<u64, u64>, // tick -> key
+    locked: HashSet<u64>,
+    /// Queued or being loaded, with the best class asked for.
+    pending: HashMap<u64, Class>,
+    in_flight: usize,
+    real_outstanding: usize,
+    heap: BinaryHeap<Queued>,
+    bytes: u64,
+    tick: u64,
+    seq: u64,
+    stats: CacheStats,
+    errors: Vec<String>,
+    shutdown: bool,
+}
+
+struct Shared {
+    state: Mutex<State>,
+    /// Wakes loaders (work queued) and waiters (work finished).
+    work: Condvar,
+    done: Condvar,
+    stores: Vec<Arc<PageStore>>,
+    budget: u64,
+}
+
+/// The cache and its loader threads.
+pub struct PageCache {
+    shared: Arc<Shared>,
+    threads: Vec<JoinHandle<()>>,
+}
+
+fn page_bytes(store: &PageStore) -> u64 {
+    (store.pyramid().page_samples() * 4) as u64
+}
+
+impl PageCache {
+    /// A cache over `stores` (data set `i` is `stores[i]`) with `budget` bytes of decoded
+    /// pages and `threads` loader threads.
+    pub fn new(stores: Vec<Arc<PageStore>>, budget: u64, threads: usize) -> Self {
+        let shared = Arc::new(Shared {
+            state: Mutex::new(State::default()),
+            work: Condvar::new(),
+            done: Condvar::new(),
+            stores,
+            budget,
+        });
+        let threads = (0..threads.max(1))
+            .map(|i| {
+                let s = shared.clone();
+                std::thread::Builder::new()
+                    .name(format!("page-loader-{i}"))
+                    .spawn(move || loader(s))
+                    .expect("spawning a loader thread")
+            })
+            .collect();
+        PageCache { shared, threads }
+    }
+
+    /// The budget in bytes.
+    pub fn budget(&self) -> u64 {
+        self.shared.budget
+    }
+
+    /// Decoded bytes held now.
+    pub fn bytes(&self) -> u64 {
+        self.shared.state.lock().unwrap().bytes
+    }
+
+    /// Counters so far.
+    pub fn stats(&self) -> CacheStats {
+        self.shared.state.lock().unwrap().stats
+    }
+
+    /// Looks a page up (counts a hit or a miss and refreshes its age).
+    pub fn get(&self, key: u64) -> Option<PageData> {
+        let mut st = self.shared.state.lock().unwrap();
+        st.tick += 1;
+        let tick = st.tick;
+        let State {
+            map, lru, stats, ..
+        } = &mut *st;
+        match map.get_mut(&key) {
+            Some(e) => {
+                lru.remove(&e.tick);
+                e.tick = tick;
+                lru.insert(tick, key);
+                stats.hits += 1;
+                Some(e.data.clone())
+            }
+            None => {
+                stats.misses += 1;
+                None
+            }
+        }
+    }
+
+    /// Whether the page is held (no counters touched).
+    pub fn contains(&self, key: u64) -> bool {
+        self.shared.state.lock().unwrap().map.contains_key(&key)
+    }
+
+    /// Queues a page for loading unless it is held or already queued at this class or above.
+    pub fn request(&self, key: u64, class: Class, priority: f32) {
+        let mut st = self.shared.state.lock().unwrap();
+        if st.map.contains_key(&key) {
+            return;
+        }
+        if let Some(&c) = st.pending.get(&key) {
+            if c >= class {
+                return;
+            }
+        }
+        if class == Class::Real && st.pending.get(&key) != Some(&Class::Real) {
+            st.real_outstanding += 1;
+        }
+        st.pending.insert(key, class);
+        st.seq += 1;
+        let seq = st.seq;
+        st.heap.push(Queued {
+            class,
+            priority,
+            seq,
+            key,
+        });
+        drop(st);
+        self.shared.work.notify_one();
+    }
+
+    /// Replaces the set of locked pages (never evicted while locked).
+    pub fn set_locked(&self, keys: impl IntoIterator<Item = u64>) {
+        let mut st = self.shared.state.lock().unwrap();
+        st.locked = keys.into_iter().collect();
+    }
+
+    /// Drops queued prefetch requests (a new frame's feedback supersedes them).
+    pub fn cancel_prefetch(&self) {
+        let mut st = self.shared.state.lock().unwrap();
+        let heap = std::mem::take(&mut st.heap);
+        let mut keep = BinaryHeap::new();
+        for q in heap {
+            if q.class == Class::Prefetch && st.pending.get(&q.key) == Some(&Class::Prefetch) {
+                st.pending.remove(&q.key);
+            } else {
+                keep.push(q);
+            }
+        }
+        st.heap = keep;
+    }
+
+    /// Waits until no real request is queued or being loaded. Returns the load errors seen
+    /// since the last call (a page that fails to load is reported, not retried forever).
+    pub fn wait_real(&self, timeout: Duration) -> Result<(), String> {
+        let deadline = Instant::now() + timeout;
+        let mut st = self.shared.state.lock().unwrap();
+        while st.real_outstanding > 0 {
+            let now = Instant::now();
+            if now >= deadline {
+                return Err(format!(
+                    "page loads did not finish within {:?} ({} outstanding)",
+                    timeout, st.real_outstanding
+                ));
+            }
+            st = self.shared.done.wait_timeout(st, deadline - now).unwrap().0;
+        }
+        if st.errors.is_empty() {
+            Ok(())
+        } else {
+            Err(std::mem::take(&mut st.errors).join("; "))
+        }
+    }
+
+    /// Loads a page on the calling thread (used for the pinned roots), inserting it.
+    pub fn load_now(&self, key: u64) -> anyhow::Result<PageData> {
+        if let Some(d) = self.get(key) {
+            return Ok(d);
+        }
+        let (data, stored) = read(&self.shared.stores, key)?;
+        let mut st = self.shared.state.lock().unwrap();
+        st.stats.pages_read += 1;
+        st.stats.bytes_read += stored;
+        insert(&self.shared, &mut st, key, data.clone(), Class::Real);
+        Ok(data)
+    }
+}
+
+impl Drop for PageCache {
+    fn drop(&mut self) {
+        self.shared.state.lock().unwrap().shutdown = true;
+        self.shared.work.notify_all();
+        for t in self.threads.drain(..) {
+            let _ = t.join();
+        }
+    }
+}
+
+fn read(stores: &[Arc<PageStore>], key: u64) -> anyhow::Result<(PageData, u64)> {
+    let id = PageId(key);
+    let store = stores
+        .get(id.dataset() as usize)
+        .ok_or_else(|| anyhow::anyhow!("page {key:#x} names an unknown data set"))?;
+    let local = id.with_dataset(0);
+    let stored = store.entry(local).map(|e| e.stored_len as u64).unwrap_or(0);
+    let mut buf = vec![0.0f32; store.pyramid().page_samples()];
+    store.read_page_into(local, &mut buf)?;
+    Ok((Arc::new(buf), stored))
+}
+
+/// Inserts, evicting unlocked least-recently-used pages to stay within budget. Prefetched
+/// pages are dropped instead of evicting anything.
+fn insert(shared: &Shared, st: &mut State, key: u64, data: PageData, class: Class) {
+    let size = data.len() as u64 * 4;
+    if st.map.contains_key(&key) {
+        return;
+    }
+    if class == Class::Prefetch && st.bytes + size > shared.budget {
+        st.stats.prefetch_dropped += 1;
+        return;
+    }
+    if st.bytes + size > shared.budget {
+        // Oldest first; locked pages are skipped (collected, then removed).
+        let mut victims = Vec::new();
+        let mut freed = 0;
+        for (&tick, &k) in st.lru.iter() {
+            if st.bytes + size - freed <= shared.budget {
+                break;
+            }
+            if st.locked.contains(&k) {
+                continue;
+            }
+            victims.push((tick, k));
+            freed += st.map[&k].data.len() as u64 * 4;
+        }
+        for (tick, k) in victims {
+            st.lru.remove(&tick);
+            let e = st.map.remove(&k).unwrap();
+            st.bytes -= e.data.len() as u64 * 4;
+            st.stats.evictions += 1;
+        }
+        // If locked pages fill the budget the page is still inserted: the cut must be
+        // resident to make progress; the overshoot is bounded by the locked set.
+    }
+    st.tick += 1;
+    let tick = st.tick;
+    st.lru.insert(tick, key);
+    st.bytes += size;
+    st.map.insert(key, Entry { data, tick });
+}
+
+fn loader(shared: Arc<Shared>) {
+    loop {
+        let job = {
+            let mut st = shared.state.lock().unwrap();
+            loop {
+                if st.shutdown {
+                    return;
+                }
+                if let Some(q) = st.heap.pop() {
+                    // Skip stale heap entries (re-queued at a higher class, or cancelled).
+                    match st.pending.get(&q.key) {
+                        Some(&c) if c == q.class => {
+                            st.in_flight += 1;
+                            break q;
+                        }
+                        _ => continue,
+                    }
+                }
+                st = shared.work.wait(st).unwrap();
+            }
+        };
+        let result = read(&shared.stores, job.key);
+        let mut st = shared.state.lock().unwrap();
+        st.in_flight -= 1;
+        let class = st.pending.remove(&job.key).unwrap_or(job.class);
+        match result {
+            Ok((data, stored)) => {
+                st.stats.pages_read += 1;
+                st.stats.bytes_read += stored;
+                insert(&shared, &mut st, job.key, data, class);
+            }
+            Err(e) => {
+                if class == Class::Real {
+                    st.errors.push(format!("{e:#}"));
+                }
+            }
+        }
+        if class == Class::Real {
+            st.real_outstanding -= 1;
+        }
+        drop(st);
+        shared.done.notify_all();
+    }
+}
+
+/// Bytes of one decoded page of `store`.
+pub fn decoded_page_bytes(store: &PageStore) -> u64 {
+    page_bytes(store)
+}

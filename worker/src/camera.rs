@@ -1,0 +1,269 @@
+//! The view: camera and data transforms in f64, rays in camera-relative f32.
+//!
+//! World coordinates of a survey are UTM metres (about 6·10⁶), where f32 has a resolution
+//! of half a metre. Everything is therefore placed in *display space* in f64 (world with
+//! the vertical axis flipped for z-down data and exaggerated by `z_scale`), and then made
+//! relative to the eye before it is rounded to f32. A survey at UTM coordinates renders the
+//! same as the same survey moved to the origin.
+
+use anyhow::{ensure, Result};
+use strata_common::geo::Affine3;
+use strata_common::kd::Region;
+use strata_common::scene::{Camera, RenderSettings};
+
+/// Display-space transform of world points: `(x, y, ±z · z_scale)`.
+#[derive(Copy, Clone, Debug, PartialEq)]
+pub struct DisplayMap {
+    /// Multiplier of world z (negative when z grows downward).
+    pub zmul: f64,
+}
+
+impl DisplayMap {
+    /// From the render settings.
+    pub fn new(r: &RenderSettings) -> Self {
+        DisplayMap {
+            zmul: if r.z_down { -r.z_scale } else { r.z_scale },
+        }
+    }
+    /// World point to display space.
+    pub fn apply(&self, p: [f64; 3]) -> [f64; 3] {
+        [p[0], p[1], p[2] * self.zmul]
+    }
+    /// World direction to display space.
+    pub fn apply_dir(&self, d: [f64; 3]) -> [f64; 3] {
+        [d[0], d[1], d[2] * self.zmul]
+    }
+    /// An index→world affine composed with the display map.
+    pub fn affine(&self, a: &Affine3) -> Affine3 {
+        let mut r = *a;
+        for c in 0..4 {
+            r.rows[2][c] *= self.zmul;
+        }
+        r
+    }
+    /// A world region in display space (corners re-sorted when z is flipped).
+    pub fn region(&self, r: &Region) -> ([f64; 3], [f64; 3]) {
+        let a = self.apply(r.lo);
+        let b = self.apply(r.hi);
+        if self.zmul < 0.0 {
+            // Flipping z swaps the z corners. Sibling regions still share their split plane
+            // exactly, which is all the half-open t clipping needs (see `clip`).
+            ([a[0], a[1], b[2]], [b[0], b[1], a[2]])
+        } else {
+            (a, b)
+        }
+    }
+}
+
+/// A camera made ready for ray generation.
+#[derive(Clone, Debug)]
+pub struct View {
+    /// Eye in display space (f64).
+    pub eye: [f64; 3],
+    /// World → display map.
+    pub display: DisplayMap,
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+    /// Angle of one pixel (radians): the footprint of a pixel at distance t is `t·pixel_angle`.
+    pub pixel_angle: f32,
+    /// Ray direction (unnormalized) through the corner of pixel (0, 0).
+    pub dir00: [f32; 3],
+    /// Direction increment per column.
+    pub du: [f32; 3],
+    /// Direction increment per row.
+    pub dv: [f32; 3],
+    /// Unit forward vector (display space).
+    pub forward: [f32; 3],
+}
+
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+fn norm(a: [f64; 3]) -> Option<[f64; 3]> {
+    let l = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+    (l > 0.0 && l.is_finite()).then(|| a.map(|v| v / l))
+}
+
+impl View {
+    /// Builds the view of `camera` (world coordinates) at `width`×`height`.
+    pub fn new(camera: &Camera, render: &RenderSettings, width: u32, height: u32) -> Result<Self> {
+        ensure!(width > 0 && height > 0, "image size must be positive");
+        ensure!(
+            camera.fov_deg > 0.0 && camera.fov_deg < 179.0,
+            "camera.fov_deg must lie in (0, 179), got {}",
+            camera.fov_deg
+        );
+        ensure!(
+            render.z_scale > 0.0 && render.z_scale.is_finite(),
+            "render.z_scale must be positive, got {}",
+            render.z_scale
+        );
+        let display = DisplayMap::new(render);
+        let eye = display.apply(camera.eye);
+        let target = display.apply(camera.target);
+        let up = display.apply_dir(camera.up);
+        let f = norm(sub(target, eye))
+            .ok_or_else(|| anyhow::anyhow!("camera.eye and camera.target coincide"))?;
+        let r = norm(cross(f, up))
+            .ok_or_else(|| anyhow::anyhow!("camera.up is parallel to the viewing direction"))?;
+        let u = cross(r, f);
+        let tan = (camera.fov_deg.to_radians() / 2.0).tan();
+        let aspect = width as f64 / height as f64;
+        let dir00 = [0, 1, 2].map(|a| f[a] - tan * aspect * r[a] + tan * u[a]);
+        let du = [0, 1, 2].map(|a| 2.0 * tan * aspect / width as f64 * r[a]);
+        let dv = [0, 1, 2].map(|a| -2.0 * tan / height as f64 * u[a]);
+        Ok(View {
+            eye,
+            display,
+            width,
+            height,
+            pixel_angle: (2.0 * tan / height as f64) as f32,
+            dir00: dir00.map(|v| v as f32),
+            du: du.map(|v| v as f32),
+            dv: dv.map(|v| v as f32),
+            forward: f.map(|v| v as f32),
+        })
+    }
+
+    /// The unit ray direction through the centre of pixel (x, y), camera-relative.
+    #[inline]
+    pub fn ray_dir(&self, x: u32, y: u32) -> [f32; 3] {
+        let fx = x as f32 + 0.5;
+        let fy = y as f32 + 0.5;
+        let d = [0, 1, 2].map(|a| self.dir00[a] + fx * self.du[a] + fy * self.dv[a]);
+        let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        d.map(|v| v / l)
+    }
+
+    /// A world point relative to the eye, in display space (f64 subtraction, then f32).
+    pub fn relative(&self, world: [f64; 3]) -> [f32; 3] {
+        let p = self.display.apply(world);
+        [0, 1, 2].map(|a| (p[a] - self.eye[a]) as f32)
+    }
+
+    /// Index → camera-relative affine of a data set (f64 composition, then f32 use).
+    pub fn relative_affine(&self, index_to_world: &Affine3) -> Affine3 {
+        let mut a = self.display.affine(index_to_world);
+        for r in 0..3 {
+            a.rows[r][3] -= self.eye[r];
+        }
+        a
+    }
+}
+
+/// A camera that frames a world box: from the south-west, above, at 35°.
+pub fn default_camera(bounds: &Region, render: &RenderSettings) -> Camera {
+    let d = DisplayMap::new(render);
+    let lo = d.apply(bounds.lo);
+    let hi = d.apply(bounds.hi);
+    let c = [0, 1, 2].map(|a| 0.5 * (lo[a] + hi[a]));
+    let diag = (0..3)
+        .map(|a| (hi[a] - lo[a]).powi(2))
+        .sum::<f64>()
+        .sqrt()
+        .max(1e-9);
+    let dir = norm([-0.6, -0.75, 0.55]).unwrap();
+    let eye_d = [0, 1, 2].map(|a| c[a] + 1.5 * diag * dir[a]);
+    let inv = |p: [f64; 3]| [p[0], p[1], p[2] / d.zmul];
+    Camera {
+        eye: inv(eye_d),
+        target: inv(c),
+        up: [0.0, 0.0, d.zmul.signum()],
+        fov_deg: 35.0,
+    }
+}
+
+/// Inverse of an affine map (f64), or `None` if it is singular.
+pub fn invert_affine(a: &Affine3) -> Option<Affine3> {
+    let m = |r: usize, c: usize| a.rows[r][c];
+    let det = m(0, 0) * (m(1, 1) * m(2, 2) - m(1, 2) * m(2, 1))
+        - m(0, 1) * (m(1, 0) * m(2, 2) - m(1, 2) * m(2, 0))
+        + m(0, 2) * (m(1, 0) * m(2, 1) - m(1, 1) * m(2, 0));
+    if det.abs() < 1e-300 || !det.is_finite() {
+        return None;
+    }
+    let inv = [
+        [
+            (m(1, 1) * m(2, 2) - m(1, 2) * m(2, 1)) / det,
+            (m(0, 2) * m(2, 1) - m(0, 1) * m(2, 2)) / det,
+            (m(0, 1) * m(1, 2) - m(0, 2) * m(1, 1)) / det,
+        ],
+        [
+            (m(1, 2) * m(2, 0) - m(1, 0) * m(2, 2)) / det,
+            (m(0, 0) * m(2, 2) - m(0, 2) * m(2, 0)) / det,
+            (m(0, 2) * m(1, 0) - m(0, 0) * m(1, 2)) / det,
+        ],
+        [
+            (m(1, 0) * m(2, 1) - m(1, 1) * m(2, 0)) / det,
+            (m(0, 1) * m(2, 0) - m(0, 0) * m(2, 1)) / det,
+            (m(0, 0) * m(1, 1) - m(0, 1) * m(1, 0)) / det,
+        ],
+    ];
+    let t = [a.rows[0][3], a.rows[1][3], a.rows[2][3]];
+    let mut rows = [[0.0; 4]; 3];
+    for r in 0..3 {
+        rows[r][..3].copy_from_slice(&inv[r]);
+        rows[r][3] = -(inv[r][0] * t[0] + inv[r][1] * t[1] + inv[r][2] * t[2]);
+    }
+    Some(Affine3 { rows })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn inverse_round_trips() {
+        let a = Affine3 {
+            rows: [
+                [2.0, 0.3, 0.0, 605000.0],
+                [-0.3, 2.0, 0.0, 6075000.0],
+                [0.0, 0.0, 4.0, 12.0],
+            ],
+        };
+        let i = invert_affine(&a).unwrap();
+        let p = [3.0, 7.0, 11.0];
+        let q = i.apply(a.apply(p));
+        for k in 0..3 {
+            assert!((q[k] - p[k]).abs() < 1e-6, "{q:?}");
+        }
+    }
+
+    #[test]
+    fn centre_ray_is_forward_and_not_mirrored() {
+        let cam = Camera {
+            eye: [0.0, -10.0, 0.0],
+            target: [0.0, 0.0, 0.0],
+            up: [0.0, 0.0, 1.0],
+            fov_deg: 40.0,
+        };
+        let r = RenderSettings {
+            z_down: false,
+            ..RenderSettings::default()
+        };
+        let v = View::new(&cam, &r, 101, 51).unwrap();
+        let d = v.ray_dir(50, 25);
+        assert!((d[1] - 1.0).abs() < 1e-6, "{d:?}");
+        // Looking north with z up, east (+x) is on the right of the image.
+        assert!(v.ray_dir(100, 25)[0] > 0.0);
+        // and up (+z) at the top.
+        assert!(v.ray_dir(50, 0)[2] > 0.0);
+        // z-down data: the same camera in a z-down world still puts east on the right.
+        let r = RenderSettings::default();
+        let cam = Camera {
+            up: [0.0, 0.0, -1.0],
+            ..cam
+        };
+        let v = View::new(&cam, &r, 101, 51).unwrap();
+        assert!(v.ray_dir(100, 25)[0] > 0.0);
+    }
+}

@@ -1,0 +1,234 @@
+//! The worker's data sets: open stores with their transforms, and the per-page value
+//! bounds (from the store index, so known without loading a page) that drive empty-space
+//! skipping for volumes and the min-max quadtree for horizons.
+
+use crate::tf::{ColorMap, TransferFunction};
+use anyhow::{bail, Context, Result};
+use std::sync::Arc;
+use strata_common::geo::Affine3;
+use strata_common::kd::Region;
+use strata_common::pyramid::Pyramid;
+use strata_common::scene::{HorizonLayer, Scene, VolumeLayer};
+use strata_common::store::{DataKind, PageStore, PAGE_EMPTY};
+
+/// A volume to draw.
+pub struct Volume {
+    /// Data-set number (page keys carry it).
+    pub ds: u16,
+    /// The store.
+    pub store: Arc<PageStore>,
+    /// Its page tree.
+    pub pyramid: Pyramid,
+    /// Index → world.
+    pub to_world: Affine3,
+    /// Transfer function.
+    pub tf: TransferFunction,
+    /// `[min, max]` per page, in page-table order (NaN range for empty pages).
+    pub bounds: Vec<[f32; 2]>,
+}
+
+/// A horizon to draw.
+pub struct Horizon {
+    /// Data-set number.
+    pub ds: u16,
+    /// The store.
+    pub store: Arc<PageStore>,
+    /// Its tile tree.
+    pub pyramid: Pyramid,
+    /// Index (i, j, height) → world.
+    pub to_world: Affine3,
+    /// Straight RGB for `color_by = "constant"`.
+    pub color: [f32; 3],
+    /// Colour map over the height range for `color_by = "depth"`.
+    pub depth_map: Option<(ColorMap, [f32; 2])>,
+    /// Opacity.
+    pub opacity: f32,
+    /// `[min, max]` height per tile, in page-table order.
+    pub bounds: Vec<[f32; 2]>,
+}
+
+fn page_bounds(store: &PageStore) -> Vec<[f32; 2]> {
+    let p = store.pyramid();
+    let mut out = Vec::new();
+    for (l, lev) in p.levels().iter().enumerate() {
+        for z in 0..lev.bricks[2] {
+            for y in 0..lev.bricks[1] {
+                for x in 0..lev.bricks[0] {
+                    let b = match store.entry(p.id(l, [x, y, z])) {
+                        Some(e) if e.flags & PAGE_EMPTY == 0 && e.valid > 0 => [e.min, e.max],
+                        _ => [f32::NAN, f32::NAN],
+                    };
+                    out.push(b);
+                }
+            }
+        }
+    }
+    out
+}
+
+fn open(path: &std::path::Path, kind: DataKind) -> Result<Arc<PageStore>> {
+    let s = PageStore::open(path).with_context(|| format!("opening {}", path.display()))?;
+    if s.header().kind != kind {
+        bail!(
+            "{}: expected a {:?} store, found a {:?} store",
+            path.display(),
+            kind,
+            s.header().kind
+        );
+    }
+    if !s.header().transform.is_finite() {
+        bail!(
+            "{}: the index→world transform is not finite",
+            path.display()
+        );
+    }
+    Ok(Arc::new(s))
+}
+
+impl Volume {
+    /// Opens a volume layer as data set `ds`.
+    pub fn open(layer: &VolumeLayer, ds: u16) -> Result<Self> {
+        let store = open(&layer.store, DataKind::Volume)?;
+        let h = store.header();
+        let tf = TransferFunction::from_layer(layer, h.value_range)
+            .with_context(|| format!("volume {}", layer.store.display()))?;
+        Ok(Volume {
+            ds,
+            pyramid: store.pyramid().clone(),
+            to_world: h.transform,
+            tf,
+            bounds: page_bounds(&store),
+            store,
+        })
+    }
+
+    /// Level-0 dims.
+    pub fn dims(&self) -> [u64; 3] {
+        self.pyramid.level(0).dims
+    }
+}
+
+impl Horizon {
+    /// Opens a horizon layer as data set `ds`.
+    pub fn open(layer: &HorizonLayer, ds: u16) -> Result<Self> {
+        let store = open(&layer.store, DataKind::Horizon)?;
+        let h = store.header();
+        if !(0.0..=1.0).contains(&layer.opacity) {
+            bail!(
+                "horizon {}: opacity must lie in [0, 1], got {}",
+                layer.store.display(),
+                layer.opacity
+            );
+        }
+        let depth_map = match layer.color_by.as_str() {
+            "constant" => None,
+            "depth" => Some((
+                ColorMap::named(&layer.colormap)?,
+                [h.value_range[0] as f32, h.value_range[1] as f32],
+            )),
+            other => bail!(
+                "horizon {}: color_by must be \"constant\" or \"depth\", got {other:?}",
+                layer.store.display()
+            ),
+        };
+        Ok(Horizon {
+            ds,
+            pyramid: store.pyramid().clone(),
+            to_world: h.transform,
+            color: layer.color.map(|c| (c.clamp(0.0, 1.0) as f32).powf(2.2)),
+            depth_map,
+            opacity: layer.opacity as f32,
+            bounds: page_bounds(&store),
+            store,
+        })
+    }
+}
+
+/// All data sets of a scene (volumes first, then horizons, numbered in that order).
+pub struct SceneData {
+    /// Volumes.
+    pub volumes: Vec<Volume>,
+    /// Horizons.
+    pub horizons: Vec<Horizon>,
+}
+
+impl SceneData {
+    /// Opens every store of the scene.
+    pub fn open(scene: &Scene) -> Result<Self> {
+        let n = scene.volumes.len() + scene.horizons.len();
+        if n == 0 {
+            bail!("the scene has no [[volume]] and no [[horizon]]: nothing to render");
+        }
+        if n > u16::MAX as usize {
+            bail!("too many data sets ({n})");
+        }
+        let volumes = scene
+            .volumes
+            .iter()
+            .enumerate()
+            .map(|(i, v)| Volume::open(v, i as u16))
+            .collect::<Result<Vec<_>>>()?;
+        let nv = volumes.len();
+        let horizons = scene
+            .horizons
+            .iter()
+            .enumerate()
+            .map(|(i, h)| Horizon::open(h, (nv + i) as u16))
+            .collect::<Result<Vec<_>>>()?;
+        Ok(SceneData { volumes, horizons })
+    }
+
+    /// Stores by data-set number.
+    pub fn stores(&self) -> Vec<Arc<PageStore>> {
+        self.volumes
+            .iter()
+            .map(|v| v.store.clone())
+            .chain(self.horizons.iter().map(|h| h.store.clone()))
+            .collect()
+    }
+
+    /// The pyramid of data set `ds`.
+    pub fn pyramid(&self, ds: u16) -> &Pyramid {
+        let nv = self.volumes.len();
+        if (ds as usize) < nv {
+            &self.volumes[ds as usize].pyramid
+        } else {
+            &self.horizons[ds as usize - nv].pyramid
+        }
+    }
+
+    /// World bounds of every data set (volume boxes, horizon boxes over their height range).
+    pub fn bounds(&self) -> Region {
+        let mut r: Option<Region> = None;
+        let mut add = |a: &Affine3, lo: [f64; 3], hi: [f64; 3]| {
+            for c in 0..8 {
+                let p = [0, 1, 2].map(|k| if c >> k & 1 == 0 { lo[k] } else { hi[k] });
+                let w = a.apply(p);
+                let b = Region { lo: w, hi: w };
+                r = Some(match r {
+                    Some(r) => r.union(&b),
+                    None => b,
+                });
+            }
+        };
+        for v in &self.volumes {
+            let d = v.dims();
+            add(&v.to_world, [-0.5; 3], [0, 1, 2].map(|k| d[k] as f64 - 0.5));
+        }
+        for h in &self.horizons {
+            let d = h.pyramid.level(0).dims;
+            let root = h.bounds[h.bounds.len() - 1];
+            let (zlo, zhi) = if root[0].is_finite() {
+                (root[0] as f64, root[1] as f64)
+            } else {
+                (0.0, 0.0)
+            };
+            add(
+                &h.to_world,
+                [0.0, 0.0, zlo],
+                [d[0] as f64 - 1.0, d[1] as f64 - 1.0, zhi],
+            );
+        }
+        r.expect("at least one data set")
+    }
+}

@@ -1,0 +1,632 @@
+//! The worker engine: frames, feedback → loads → atlas updates, and batch convergence.
+
+use crate::atlas::{PageTable, PlaceError, Pool};
+use crate::cache::{CacheStats, Class, PageCache};
+use crate::camera::{default_camera, invert_affine, View};
+use crate::dataset::SceneData;
+use crate::feedback::Feedback;
+use crate::horizon::HorFrame;
+use crate::raycast::{Bands, CastStats, FrameSetup};
+use crate::volume::VolFrame;
+use anyhow::{bail, Context, Result};
+use std::collections::HashSet;
+use std::time::{Duration, Instant};
+use strata_common::geo::Affine3;
+use strata_common::image::{PartialImage, Rect};
+use strata_common::kd::Region;
+use strata_common::scene::{Camera, RenderSettings, Scene};
+
+/// How long a batch round waits for its page loads before failing.
+pub const LOAD_TIMEOUT: Duration = Duration::from_secs(300);
+
+/// A rendered frame.
+pub struct Frame {
+    /// The region's premultiplied image.
+    pub image: PartialImage,
+    /// What its rays asked for.
+    pub feedback: Feedback,
+    /// Casting counters.
+    pub stats: CastStats,
+    /// Wall time of the cast.
+    pub seconds: f64,
+}
+
+/// What one feedback round did.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct UpdateReport {
+    /// Pages requested (with ancestors).
+    pub requested: usize,
+    /// Requested pages not in the atlas at the start of the round.
+    pub missing: usize,
+    /// Pages copied into the atlas this round.
+    pub uploaded: usize,
+    /// Missing pages that found no atlas slot (pool full of needed pages).
+    pub no_slot: usize,
+}
+
+/// Why a batch render stopped.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub enum Outcome {
+    /// Every requested page was resident at its requested level in the last frame.
+    Converged,
+    /// The round limit was reached first.
+    RoundLimit,
+    /// The atlas cannot hold every page the view needs at the requested detail.
+    AtlasFull,
+}
+
+/// Result of a batch render.
+pub struct BatchResult {
+    /// The final frame's image.
+    pub image: PartialImage,
+    /// Frames rendered.
+    pub rounds: u32,
+    /// Why it stopped.
+    pub outcome: Outcome,
+    /// Casting counters of the final frame.
+    pub last: CastStats,
+    /// Casting counters summed over all rounds.
+    pub total: CastStats,
+    /// Time of the final frame's cast.
+    pub last_seconds: f64,
+    /// Time spent casting (all rounds).
+    pub cast_seconds: f64,
+    /// Time spent waiting for loads and updating the atlas.
+    pub load_seconds: f64,
+    /// Per-round reports.
+    pub reports: Vec<UpdateReport>,
+}
+
+/// A worker's renderer for one scene.
+pub struct Engine {
+    /// Render settings (from the scene).
+    pub settings: RenderSettings,
+    data: SceneData,
+    camera: Camera,
+    cache: PageCache,
+    vpool: Option<Pool>,
+    hpool: Option<Pool>,
+    tables: Vec<PageTable>,
+    frame_no: u32,
+}
+
+fn rows_f32(a: &Affine3) -> ([[f32; 3]; 3], [f32; 3]) {
+    let m = [0, 1, 2].map(|r| [0, 1, 2].map(|c| a.rows[r][c] as f32));
+    let c = [0, 1, 2].map(|r| a.rows[r][3] as f32);
+    (m, c)
+}
+
+fn col_len(a: &Affine3, c: usize) -> f64 {
+    (0..3).map(|r| a.rows[r][c].powi(2)).sum::<f64>().sqrt()
+}
+
+impl Engine {
+    /// Opens the scene's stores, sizes the cache and the atlas pools, and pins every data
+    /// set's root page so each page table always has a fallback.
+    pub fn new(scene: &Scene) -> Result<Self> {
+        let s = scene.render.clone();
+        validate(&s)?;
+        let data = SceneData::open(scene)?;
+        let cache = PageCache::new(
+            data.stores(),
+            s.cache_mb.saturating_mul(1 << 20),
+            s.loader_threads as usize,
+        );
+        let vps = data.volumes.first().map(|v| v.pyramid.page_samples());
+        for v in &data.volumes {
+            if v.pyramid.page_samples() != vps.unwrap() {
+                bail!(
+                    "{}: all volumes of a scene must share one brick size (the atlas has one slot size)",
+                    v.store.path().display()
+                );
+            }
+        }
+        let hps = data.horizons.first().map(|h| h.pyramid.page_samples());
+        for h in &data.horizons {
+            if h.pyramid.page_samples() != hps.unwrap() {
+                bail!(
+                    "{}: all horizons of a scene must share one tile size",
+                    h.store.path().display()
+                );
+            }
+        }
+        let vpool = vps.map(|n| Pool::new(n, s.atlas_mb << 20));
+        let hpool = hps.map(|n| Pool::new(n, s.horizon_atlas_mb << 20));
+        let tables = (0..data.volumes.len() + data.horizons.len())
+            .map(|ds| PageTable::new(data.pyramid(ds as u16)))
+            .collect();
+        let camera = match &scene.camera {
+            Some(c) => c.clone(),
+            None => default_camera(&data.bounds(), &s),
+        };
+        let mut e = Engine {
+            settings: s,
+            data,
+            camera,
+            cache,
+            vpool,
+            hpool,
+            tables,
+            frame_no: 0,
+        };
+        e.pin_roots()?;
+        Ok(e)
+    }
+
+    fn pin_roots(&mut self) -> Result<()> {
+        let none = HashSet::new();
+        let n = self.data.volumes.len() + self.data.horizons.len();
+        for ds in 0..n as u16 {
+            let p = self.data.pyramid(ds).clone();
+            let top = p.level_count() - 1;
+            let key = p.id(top, [0, 0, 0]).with_dataset(ds).0;
+            let page = self.cache.load_now(key)?;
+            let pool = self.pool_mut(ds);
+            pool.place(key, &page, 0, true, &none).map_err(|_| {
+                anyhow::anyhow!("the atlas has no slot for the root pages; raise render.atlas_mb")
+            })?;
+        }
+        self.rebuild_tables();
+        Ok(())
+    }
+
+    fn is_volume(&self, ds: u16) -> bool {
+        (ds as usize) < self.data.volumes.len()
+    }
+
+    fn pool_mut(&mut self, ds: u16) -> &mut Pool {
+        if self.is_volume(ds) {
+            self.vpool.as_mut().unwrap()
+        } else {
+            self.hpool.as_mut().unwrap()
+        }
+    }
+
+    fn pool(&self, ds: u16) -> &Pool {
+        if self.is_volume(ds) {
+            self.vpool.as_ref().unwrap()
+        } else {
+            self.hpool.as_ref().unwrap()
+        }
+    }
+
+    fn rebuild_tables(&mut self) {
+        for ds in 0..self.tables.len() as u16 {
+            let pyr = self.data.pyramid(ds).clone();
+            let pool = if (ds as usize) < self.data.volumes.len() {
+                self.vpool.as_ref().unwrap()
+            } else {
+                self.hpool.as_ref().unwrap()
+            };
+            let lookup = pool.resident_of(ds, &pyr);
+            self.tables[ds as usize].rebuild(lookup);
+        }
+    }
+
+    /// The camera (the scene's, or one that frames the data).
+    pub fn camera(&self) -> &Camera {
+        &self.camera
+    }
+
+    /// World bounds of the scene's data.
+    pub fn bounds(&self) -> Region {
+        self.data.bounds()
+    }
+
+    /// The region that holds the whole scene (bounds padded so no sample lies on its faces).
+    pub fn scene_region(&self) -> Region {
+        self.bounds().padded(1e-3)
+    }
+
+    /// The view of the scene camera at `width`×`height`.
+    pub fn view(&self, width: u32, height: u32) -> Result<View> {
+        View::new(&self.camera, &self.settings, width, height)
+    }
+
+    /// Page-cache counters.
+    pub fn cache_stats(&self) -> CacheStats {
+        self.cache.stats()
+    }
+
+    /// Atlas slots in use (volume pool, horizon pool).
+    pub fn atlas_usage(&self) -> (usize, usize) {
+        (
+            self.vpool.as_ref().map_or(0, |p| p.used()),
+            self.hpool.as_ref().map_or(0, |p| p.used()),
+        )
+    }
+
+    /// Prepares the per-frame structures for `region` seen through `view`.
+    fn setup<'a>(&'a self, view: &View, region: &Region) -> FrameSetup<'a> {
+        let s = &self.settings;
+        let pa = view.pixel_angle;
+        // Finest voxel spacing in display units (reference for step and opacity).
+        let mut vmin = f64::INFINITY;
+        let mut max_levels = 1;
+        let mut vols = Vec::new();
+        let tf_tables_for = |exps: &[f32], tf: &crate::tf::TransferFunction| {
+            exps.iter().map(|&e| tf.step_table(e)).collect::<Vec<_>>()
+        };
+        let rel: Vec<Affine3> = self
+            .data
+            .volumes
+            .iter()
+            .map(|v| view.relative_affine(&v.to_world))
+            .collect();
+        for a in &rel {
+            for c in 0..3 {
+                vmin = vmin.min(col_len(a, c));
+            }
+        }
+        for v in &self.data.volumes {
+            max_levels = max_levels.max(v.pyramid.level_count());
+        }
+        // Bands: the step doubles where the pixel footprint covers twice the finest voxel.
+        let nb = if s.adaptive_step && !self.data.volumes.is_empty() {
+            max_levels.min(8)
+        } else {
+            1
+        };
+        let base = (s.step * vmin) as f32;
+        let mut bands = Bands {
+            start: vec![0.0],
+            dt: vec![base],
+        };
+        for b in 1..nb {
+            bands
+                .start
+                .push((vmin * (1u64 << b) as f64 / (s.tau * pa as f64)) as f32);
+            bands.dt.push(base * (1u64 << b) as f32);
+        }
+        let exps: Vec<f32> = (0..nb)
+            .map(|b| (s.step as f32) * (1u64 << b) as f32)
+            .collect();
+        for (i, v) in self.data.volumes.iter().enumerate() {
+            let inv = invert_affine(&rel[i]).expect("validated invertible");
+            let (m, c) = rows_f32(&inv);
+            let vsize = (0..3).map(|k| col_len(&rel[i], k)).fold(0.0, f64::max);
+            let nl = v.pyramid.level_count();
+            let level_t = (0..nl)
+                .map(|l| {
+                    if l == 0 {
+                        0.0
+                    } else {
+                        (vsize * (1u64 << l) as f64 / (s.tau * pa as f64)) as f32
+                    }
+                })
+                .collect();
+            let transparent = if s.empty_space_skipping {
+                v.bounds
+                    .iter()
+                    .map(|b| v.tf.max_alpha(b[0], b[1]) <= 0.0)
+                    .collect()
+            } else {
+                v.bounds.iter().map(|b| !(b[0] <= b[1])).collect()
+            };
+            let d = v.dims();
+            vols.push(VolFrame {
+                ds: v.ds,
+                m,
+                c,
+                hi: [0, 1, 2].map(|k| d[k] as f32 - 0.5),
+                level_t,
+                core: v.pyramid.core() as f32,
+                border: v.pyramid.border() as f32,
+                page: v.pyramid.page() as usize,
+                table: &self.tables[v.ds as usize],
+                pool: self.vpool.as_ref().unwrap(),
+                transparent,
+                tables: tf_tables_for(&exps, &v.tf),
+                pyramid: &v.pyramid,
+            });
+        }
+        let mut hors = Vec::new();
+        for h in &self.data.horizons {
+            let rel = view.relative_affine(&h.to_world);
+            let inv = invert_affine(&rel).expect("validated invertible");
+            let (m, c) = rows_f32(&inv);
+            let cell = col_len(&rel, 0).max(col_len(&rel, 1));
+            let nl = h.pyramid.level_count();
+            let level_t = (0..nl)
+                .map(|l| {
+                    if l == 0 {
+                        0.0
+                    } else {
+                        (cell * (1u64 << l) as f64 / (s.tau * pa as f64)) as f32
+                    }
+                })
+                .collect();
+            let d = h.pyramid.level(0).dims;
+            hors.push(HorFrame {
+                ds: h.ds,
+                m,
+                c,
+                dims: [d[0] as u32, d[1] as u32],
+                level_t,
+                core: h.pyramid.core(),
+                border: h.pyramid.border(),
+                page: h.pyramid.page() as usize,
+                table: &self.tables[h.ds as usize],
+                pool: self.hpool.as_ref().unwrap(),
+                bounds: &h.bounds,
+                color: h.color,
+                depth_map: h.depth_map.as_ref().map(|(m, r)| (m, *r)),
+                opacity: h.opacity,
+                lighting: s.lighting,
+                pyramid: &h.pyramid,
+            });
+        }
+        // Region ∩ data bounds, camera-relative.
+        let data = self.bounds().padded(1e-3);
+        let clipped = Region {
+            lo: [0, 1, 2].map(|a| region.lo[a].max(data.lo[a])),
+            hi: [0, 1, 2].map(|a| region.hi[a].min(data.hi[a])),
+        };
+        let (rlo, rhi) = view.display.region(region);
+        let region_lo = [0, 1, 2].map(|a| (rlo[a] - view.eye[a]) as f32);
+        let region_hi = [0, 1, 2].map(|a| (rhi[a] - view.eye[a]) as f32);
+        let rect = screen_rect(view, &clipped);
+        FrameSetup {
+            width: view.width,
+            height: view.height,
+            dir00: view.dir00,
+            du: view.du,
+            dv: view.dv,
+            region_lo,
+            region_hi,
+            rect,
+            vols,
+            hors,
+            bands,
+            ert: (s.early_termination as f32).min(1.0),
+            volume_shading: s.volume_shading,
+            skipping: s.empty_space_skipping,
+        }
+    }
+
+    /// Renders one frame of `region` with what is resident now.
+    pub fn render_frame(&self, view: &View, region: &Region) -> Frame {
+        let t = Instant::now();
+        let setup = self.setup(view, region);
+        let out = setup.render();
+        let mut feedback = Feedback::default();
+        feedback.add(&out.feedback);
+        Frame {
+            image: out.image,
+            feedback,
+            stats: out.stats,
+            seconds: t.elapsed().as_secs_f64(),
+        }
+    }
+
+    fn parent_key(&self, key: u64) -> Option<u64> {
+        let id = strata_common::ids::PageId(key);
+        let ds = id.dataset();
+        let p = self.data.pyramid(ds);
+        let l = id.level() as usize;
+        let b = p.brick_of(id.morton());
+        p.parent(l, b).map(|pb| p.id(l + 1, pb).with_dataset(ds).0)
+    }
+
+    /// Turns a frame's feedback into loads and atlas updates. With `wait`, blocks until the
+    /// real requests are loaded (batch mode); otherwise uploads what is already cached
+    /// (interactive mode) and leaves the rest to the loader threads.
+    pub fn update(&mut self, fb: &Feedback, wait: bool) -> Result<UpdateReport> {
+        self.frame_no += 1;
+        let frame = self.frame_no;
+        let prio = fb.priorities(|k| self.parent_key(k));
+        let needed: HashSet<u64> = prio.iter().map(|e| e.0).collect();
+        let mut missing = Vec::new();
+        for &(k, c) in &prio {
+            let ds = strata_common::ids::PageId(k).dataset();
+            if self.pool(ds).slot_of(k).is_some() {
+                self.pool_mut(ds).touch(k, frame);
+            } else {
+                missing.push((k, c));
+            }
+        }
+        let mut report = UpdateReport {
+            requested: prio.len(),
+            missing: missing.len(),
+            ..UpdateReport::default()
+        };
+        if missing.is_empty() {
+            return Ok(report);
+        }
+        // Pages waiting for upload stay locked in the cache until they are in the atlas.
+        self.cache.set_locked(missing.iter().map(|e| e.0));
+        self.cache.cancel_prefetch();
+        let maxc = missing.iter().map(|e| e.1).max().unwrap_or(1).max(1) as f32;
+        for &(k, c) in &missing {
+            self.cache.request(k, Class::Real, c as f32 / maxc);
+        }
+        if wait {
+            self.cache
+                .wait_real(LOAD_TIMEOUT)
+                .map_err(|e| anyhow::anyhow!("loading pages: {e}"))?;
+        }
+        let budget = self.settings.upload_pages_per_frame.max(1) as usize;
+        for &(k, _) in &missing {
+            if report.uploaded >= budget {
+                break;
+            }
+            let Some(page) = self.cache.get(k) else {
+                continue;
+            };
+            let ds = strata_common::ids::PageId(k).dataset();
+            match self.pool_mut(ds).place(k, &page, frame, false, &needed) {
+                Ok(_) => report.uploaded += 1,
+                Err(PlaceError::Full) => report.no_slot += 1,
+            }
+        }
+        self.cache.set_locked(std::iter::empty());
+        // Prefetch: the children of the most-covered requested pages, into free cache space
+        // only (they never evict anything and never outrank a real request).
+        let free = self.cache.budget().saturating_sub(self.cache.bytes());
+        if free > 0 {
+            let mut n = 0;
+            for &(k, c) in prio.iter().take(64) {
+                let id = strata_common::ids::PageId(k);
+                let l = id.level() as usize;
+                if l == 0 || !fb.coverage.contains_key(&k) {
+                    continue;
+                }
+                let p = self.data.pyramid(id.dataset());
+                for ch in p.children(l, p.brick_of(id.morton())) {
+                    let ck = p.id(l - 1, ch).with_dataset(id.dataset()).0;
+                    self.cache
+                        .request(ck, Class::Prefetch, c as f32 / maxc * 0.5);
+                    n += 1;
+                }
+                if n > 256 {
+                    break;
+                }
+            }
+        }
+        self.rebuild_tables();
+        Ok(report)
+    }
+
+    /// Batch mode: frame → feedback → load, repeated until every page the last frame asked
+    /// for was resident at its requested level (converged) or `render.max_rounds` is hit.
+    pub fn render_batch(&mut self, view: &View, region: &Region) -> Result<BatchResult> {
+        let max_rounds = self.settings.max_rounds.max(1);
+        let mut reports = Vec::new();
+        let mut total = CastStats::default();
+        let (mut cast_s, mut load_s) = (0.0, 0.0);
+        let mut rounds = 0;
+        loop {
+            rounds += 1;
+            let f = self.render_frame(view, region);
+            cast_s += f.seconds;
+            total += f.stats;
+            let t = Instant::now();
+            let rep = self.update(&f.feedback, true).context("batch round")?;
+            load_s += t.elapsed().as_secs_f64();
+            let outcome = if rep.missing == 0 {
+                Some(Outcome::Converged)
+            } else if rep.uploaded == 0 && rep.no_slot > 0 {
+                Some(Outcome::AtlasFull)
+            } else if rounds >= max_rounds {
+                Some(Outcome::RoundLimit)
+            } else {
+                None
+            };
+            tracing::debug!(
+                round = rounds,
+                requested = rep.requested,
+                missing = rep.missing,
+                uploaded = rep.uploaded,
+                "feedback round"
+            );
+            reports.push(rep);
+            if let Some(outcome) = outcome {
+                return Ok(BatchResult {
+                    image: f.image,
+                    rounds,
+                    outcome,
+                    last: f.stats,
+                    total,
+                    last_seconds: f.seconds,
+                    cast_seconds: cast_s,
+                    load_seconds: load_s,
+                    reports,
+                });
+            }
+        }
+    }
+}
+
+fn validate(s: &RenderSettings) -> Result<()> {
+    let pos = |name: &str, v: f64| -> Result<()> {
+        if !(v > 0.0 && v.is_finite()) {
+            bail!("render.{name} must be a positive number, got {v}");
+        }
+        Ok(())
+    };
+    pos("step", s.step)?;
+    pos("tau", s.tau)?;
+    pos("z_scale", s.z_scale)?;
+    if s.step < 1e-3 || s.step > 1e3 {
+        bail!(
+            "render.step must lie in [0.001, 1000] voxels, got {}",
+            s.step
+        );
+    }
+    if !(s.early_termination > 0.0 && s.early_termination <= 1.0) {
+        bail!(
+            "render.early_termination must lie in (0, 1], got {}",
+            s.early_termination
+        );
+    }
+    if s.cache_mb == 0 {
+        bail!("render.cache_mb must be at least 1");
+    }
+    if s.atlas_mb == 0 || s.horizon_atlas_mb == 0 {
+        bail!("render.atlas_mb and render.horizon_atlas_mb must be at least 1");
+    }
+    if s.loader_threads == 0 || s.loader_threads > 256 {
+        bail!(
+            "render.loader_threads must lie in 1..=256, got {}",
+            s.loader_threads
+        );
+    }
+    Ok(())
+}
+
+/// Pixels that can see `region`: the bounding box of its projected corners, or the whole
+/// image when the eye is inside or behind a corner.
+fn screen_rect(view: &View, region: &Region) -> Rect {
+    let full = Rect {
+        x: 0,
+        y: 0,
+        w: view.width,
+        h: view.height,
+    };
+    if (0..3).any(|a| !(region.lo[a] < region.hi[a])) {
+        return Rect::EMPTY;
+    }
+    let f = view.forward;
+    let du2: f32 = view.du.iter().map(|v| v * v).sum();
+    let dv2: f32 = view.dv.iter().map(|v| v * v).sum();
+    let (mut x0, mut y0, mut x1, mut y1) = (f32::MAX, f32::MAX, f32::MIN, f32::MIN);
+    for c in 0..8 {
+        let w = [0, 1, 2].map(|k| {
+            if c >> k & 1 == 0 {
+                region.lo[k]
+            } else {
+                region.hi[k]
+            }
+        });
+        let p = view.relative(w);
+        let z = p[0] * f[0] + p[1] * f[1] + p[2] * f[2];
+        let len = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+        if z <= 1e-4 * len.max(1e-30) {
+            return full;
+        }
+        let px = (p[0] * view.du[0] + p[1] * view.du[1] + p[2] * view.du[2]) / (du2 * z);
+        let py = (p[0] * view.dv[0] + p[1] * view.dv[1] + p[2] * view.dv[2]) / (dv2 * z);
+        let x = view.width as f32 / 2.0 + px;
+        let y = view.height as f32 / 2.0 + py;
+        x0 = x0.min(x);
+        x1 = x1.max(x);
+        y0 = y0.min(y);
+        y1 = y1.max(y);
+    }
+    if !(x0.is_finite() && x1.is_finite() && y0.is_finite() && y1.is_finite()) {
+        return full;
+    }
+    let xa = (x0.floor() - 1.0).max(0.0) as u32;
+    let ya = (y0.floor() - 1.0).max(0.0) as u32;
+    let xb = ((x1.ceil() + 1.0).max(0.0) as u32).min(view.width);
+    let yb = ((y1.ceil() + 1.0).max(0.0) as u32).min(view.height);
+    if xa >= xb || ya >= yb {
+        return Rect::EMPTY;
+    }
+    Rect {
+        x: xa,
+        y: ya,
+        w: xb - xa,
+        h: yb - ya,
+    }
+}

@@ -1,0 +1,149 @@
+//! Feedback: which pages rays needed, at the level their footprint called for.
+//!
+//! While casting, each ray appends the key of every page it enters (at the requested
+//! level) to its tile's list; rays that stopped early append nothing more, so data hidden
+//! behind opaque content is never requested and stays coarse. A tile's list is reduced to
+//! `(page, rays)` pairs; the frame's lists are merged into [`Feedback`], whose counts are
+//! the pixel coverage of each page. [`Feedback::priorities`] then makes every ancestor of a
+//! requested page at least as important as the page (a child never outranks its parent),
+//! which keeps the fallback chain resident and loads coarse data first.
+
+use bytemuck::{Pod, Zeroable};
+use std::collections::HashMap;
+use strata_common::ids::PageId;
+
+/// One reduced feedback record (the layout a GPU feedback buffer reduces to).
+#[repr(C)]
+#[derive(Copy, Clone, Debug, Default, PartialEq, Eq, Pod, Zeroable)]
+pub struct FeedbackEntry {
+    /// Page key (data set, level, Morton index).
+    pub page: u64,
+    /// Rays (pixels) that requested the page.
+    pub coverage: u32,
+    /// Padding to 16 bytes.
+    pub _pad: u32,
+}
+
+/// Reduces a tile's raw request list into sorted `(page, count)` records.
+pub fn reduce_tile(raw: &mut [u64]) -> Vec<FeedbackEntry> {
+    raw.sort_unstable();
+    let mut out: Vec<FeedbackEntry> = Vec::new();
+    for &k in raw.iter() {
+        match out.last_mut() {
+            Some(e) if e.page == k => e.coverage += 1,
+            _ => out.push(FeedbackEntry {
+                page: k,
+                coverage: 1,
+                _pad: 0,
+            }),
+        }
+    }
+    out
+}
+
+/// A frame's feedback: requested pages and their pixel coverage.
+#[derive(Clone, Debug, Default)]
+pub struct Feedback {
+    /// Coverage by page key.
+    pub coverage: HashMap<u64, u32>,
+}
+
+impl Feedback {
+    /// Adds a tile's records.
+    pub fn add(&mut self, entries: &[FeedbackEntry]) {
+        for e in entries {
+            *self.coverage.entry(e.page).or_insert(0) += e.coverage;
+        }
+    }
+
+    /// Merges another frame part.
+    pub fn merge(&mut self, o: &Feedback) {
+        for (&k, &c) in &o.coverage {
+            *self.coverage.entry(k).or_insert(0) += c;
+        }
+    }
+
+    /// Number of distinct requested pages.
+    pub fn len(&self) -> usize {
+        self.coverage.len()
+    }
+
+    /// Whether nothing was requested.
+    pub fn is_empty(&self) -> bool {
+        self.coverage.is_empty()
+    }
+
+    /// Requested pages and all their ancestors with priorities, most important first.
+    /// `parent(key)` gives a page's parent key (None at a root). Each ancestor's priority is
+    /// the maximum over its requested descendants and itself; ties put coarser pages first.
+    pub fn priorities(&self, parent: impl Fn(u64) -> Option<u64>) -> Vec<(u64, u32)> {
+        let mut prio: HashMap<u64, u32> = self.coverage.clone();
+        for (&k, &c) in &self.coverage {
+            let mut p = parent(k);
+            while let Some(pk) = p {
+                let e = prio.entry(pk).or_insert(0);
+                // An ancestor already at >= c either got there by propagation (so its own
+                // ancestors are >= c too) or is itself requested (and its own walk raises
+                // them): either way the walk can stop.
+                if *e >= c {
+                    break;
+                }
+                *e = c;
+                p = parent(pk);
+            }
+        }
+        let mut v: Vec<(u64, u32)> = prio.into_iter().collect();
+        v.sort_by(|a, b| {
+            b.1.cmp(&a.1)
+                .then(PageId(b.0).level().cmp(&PageId(a.0).level()))
+                .then(a.0.cmp(&b.0))
+        });
+        v
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tiles_reduce_to_counts() {
+        let mut raw = vec![5, 3, 5, 5, 9, 3];
+        let r = reduce_tile(&mut raw);
+        assert_eq!(
+            r.iter().map(|e| (e.page, e.coverage)).collect::<Vec<_>>(),
+            vec![(3, 2), (5, 3), (9, 1)]
+        );
+    }
+
+    #[test]
+    fn child_never_above_parent() {
+        // Keys: level in PageId bits; build a little tree by hand.
+        let leaf = |m| PageId::new(0, 0, m).0;
+        let mid = |m| PageId::new(0, 1, m).0;
+        let root = PageId::new(0, 2, 0).0;
+        let parent = |k: u64| {
+            let id = PageId(k);
+            match id.level() {
+                0 => Some(mid(id.morton() / 8)),
+                1 => Some(root),
+                _ => None,
+            }
+        };
+        let mut f = Feedback::default();
+        f.coverage.insert(leaf(0), 10);
+        f.coverage.insert(leaf(9), 40);
+        f.coverage.insert(mid(0), 3);
+        let p = f.priorities(parent);
+        let get = |k| p.iter().find(|e| e.0 == k).unwrap().1;
+        assert_eq!(get(root), 40);
+        assert_eq!(get(mid(1)), 40);
+        assert_eq!(get(mid(0)), 10);
+        assert_eq!(p[0].0, root, "coarser first among equals");
+        for &(k, c) in &p {
+            if let Some(pk) = parent(k) {
+                assert!(get(pk) >= c);
+            }
+        }
+    }
+}

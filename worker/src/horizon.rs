@@ -1,0 +1,398 @@
+//! Stacked-horizon intersection: a min-max quadtree over tiles and exact ray/bilinear-patch
+//! intersection per cell.
+//!
+//! The quadtree is the horizon's own page tree: every tile's `[min, max]` in the store index
+//! bounds its heights, its border and all its descendants, so it is known for every tile
+//! without loading one. A ray descends front to back into tiles whose box (lateral footprint
+//! × height range) it crosses, down to the tile level its footprint calls for, and then
+//! walks that tile's cells (of the finest resident level) with a 2D DDA. In each cell the
+//! height is the bilinear patch through its four nodes, so `ray_z(t) − H(u(t), v(t))` is a
+//! quadratic in `t`: solving it exactly finds every crossing, even two within one cell
+//! (a grazing ray). A cell with any hole among its four nodes never produces a hit, so holes
+//! neither hit nor leave cracks between valid cells (valid neighbours share edge heights).
+
+use crate::atlas::{PageTable, Pool, NOT_RESIDENT, SLOT_MASK};
+use crate::tf::ColorMap;
+use strata_common::pyramid::Pyramid;
+
+/// A horizon prepared for one frame.
+pub struct HorFrame<'a> {
+    /// Data-set number.
+    pub ds: u16,
+    /// Camera-relative → index (i, j, height), linear part.
+    pub m: [[f32; 3]; 3],
+    /// Offset.
+    pub c: [f32; 3],
+    /// Level-0 node counts (i, j).
+    pub dims: [u32; 2],
+    /// `level_t[l]`: distance from which level `l` is fine enough.
+    pub level_t: Vec<f32>,
+    /// Core nodes per tile axis.
+    pub core: u32,
+    /// Border nodes.
+    pub border: u32,
+    /// Nodes per tile axis.
+    pub page: usize,
+    /// Page table.
+    pub table: &'a PageTable,
+    /// Atlas pool.
+    pub pool: &'a Pool,
+    /// `[min, max]` per tile (page-table order).
+    pub bounds: &'a [[f32; 2]],
+    /// Straight linear RGB.
+    pub color: [f32; 3],
+    /// Colour by height.
+    pub depth_map: Option<(&'a ColorMap, [f32; 2])>,
+    /// Opacity.
+    pub opacity: f32,
+    /// Lambert shading.
+    pub lighting: bool,
+    /// The pyramid (for page keys).
+    pub pyramid: &'a Pyramid,
+}
+
+/// A surface crossing.
+#[derive(Copy, Clone, Debug, PartialEq)]
+pub struct Hit {
+    /// Ray parameter.
+    pub t: f32,
+    /// Premultiplied shaded colour.
+    pub rgba: [f32; 4],
+}
+
+/// Hits kept per horizon and ray at most (a ray crossing a folded surface more often than
+/// this keeps the nearest ones).
+pub const MAX_HITS: usize = 32;
+
+fn slab(c: [f32; 3], d: [f32; 3], lo: [f32; 3], hi: [f32; 3]) -> (f32, f32) {
+    let mut t0 = f32::NEG_INFINITY;
+    let mut t1 = f32::INFINITY;
+    for a in 0..3 {
+        if d[a] == 0.0 {
+            if !(lo[a] <= c[a] && c[a] <= hi[a]) {
+                return (1.0, 0.0);
+            }
+        } else {
+            let ta = (lo[a] - c[a]) / d[a];
+            let tb = (hi[a] - c[a]) / d[a];
+            t0 = t0.max(ta.min(tb));
+            t1 = t1.min(ta.max(tb));
+        }
+    }
+    (t0, t1)
+}
+
+/// Real roots of `a s² + b s + c = 0` in `[lo, hi)`, ascending.
+fn roots_in(a: f32, b: f32, c: f32, lo: f32, hi: f32, out: &mut [f32; 2]) -> usize {
+    let mut n = 0;
+    let mut push = |s: f32, out: &mut [f32; 2]| {
+        if s.is_finite() && s >= lo && s < hi {
+            out[n] = s;
+            n += 1;
+        }
+    };
+    let scale = b.abs().max(c.abs()).max(1e-30);
+    if a.abs() <= 1e-7 * scale {
+        if b != 0.0 {
+            push(-c / b, out);
+        }
+    } else {
+        let disc = b * b - 4.0 * a * c;
+        if disc < 0.0 {
+            return 0;
+        }
+        // The numerically stable pair (no cancellation between b and the root).
+        let q = -0.5 * (b + b.signum() * disc.sqrt());
+        let (s1, s2) = if q != 0.0 { (q / a, c / q) } else { (0.0, 0.0) };
+        let (s1, s2) = if s1 <= s2 { (s1, s2) } else { (s2, s1) };
+        push(s1, out);
+        if s2 != s1 {
+            push(s2, out);
+        }
+    }
+    n
+}
+
+impl<'a> HorFrame<'a> {
+    /// Index-space direction of a camera-relative ray direction.
+    #[inline]
+    pub fn index_dir(&self, d: [f32; 3]) -> [f32; 3] {
+        let m = &self.m;
+        [0, 1, 2].map(|r| m[r][0] * d[0] + m[r][1] * d[1] + m[r][2] * d[2])
+    }
+
+    fn level_at(&self, t: f32) -> usize {
+        let mut l = 0;
+        while l + 1 < self.level_t.len() && t >= self.level_t[l + 1] {
+            l += 1;
+        }
+        l
+    }
+
+    /// Lateral footprint of tile `b` at `level` in level-0 node coordinates: the cells whose
+    /// lower node lies in the tile's core.
+    fn footprint(&self, level: usize, b: [u32; 3]) -> ([f32; 2], [f32; 2]) {
+        let s = (1u64 << level) as f32;
+        let lo = [0, 1].map(|a| (b[a] as f32 * self.core as f32 + 0.5) * s - 0.5);
+        let hi = [0, 1].map(|a| ((b[a] + 1) as f32 * self.core as f32 + 0.5) * s - 0.5);
+        (lo, hi)
+    }
+
+    /// All crossings of the ray `p(t) = t·d` with `t` in `[ta, tb)`, appended to `hits`
+    /// unsorted; requested tiles go to `feedback`. `stop_after` is the t beyond which
+    /// nothing is visible any more (an opaque hit already found).
+    pub fn intersect(
+        &self,
+        d: [f32; 3],
+        ta: f32,
+        tb: f32,
+        hits: &mut Vec<Hit>,
+        feedback: &mut Vec<u64>,
+    ) {
+        let md = self.index_dir(d);
+        let top = self.pyramid.level_count() - 1;
+        let mut limit = tb;
+        let start = hits.len();
+        self.visit(top, [0, 0, 0], d, md, ta, &mut limit, hits, feedback);
+        // Keep the nearest MAX_HITS.
+        if hits.len() - start > MAX_HITS {
+            hits[start..].sort_by(|a, b| a.t.total_cmp(&b.t));
+            hits.truncate(start + MAX_HITS);
+        }
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn visit(
+        &self,
+        level: usize,
+        b: [u32; 3],
+        d: [f32; 3],
+        md: [f32; 3],
+        ta: f32,
+        limit: &mut f32,
+        hits: &mut Vec<Hit>,
+        feedback: &mut Vec<u64>,
+    ) {
+        let idx = self.table.index(level, b);
+        let [zmin, zmax] = self.bounds[idx];
+        if !(zmin <= zmax) {
+            return; // all holes
+        }
+        let s = (1u64 << level) as f32;
+        let (flo, fhi) = self.footprint(level, b);
+        // Pad by one cell of this level: coarse and fine footprints do not nest exactly.
+        // A flat tile has zmin == zmax: give the box a little thickness so the slab test
+        // cannot lose it to rounding.
+        let eps = 1e-4 * (1.0 + zmin.abs().max(zmax.abs()));
+        let lo = [flo[0] - s, flo[1] - s, zmin - eps];
+        let hi = [fhi[0] + s, fhi[1] + s, zmax + eps];
+        let (e0, e1) = slab(self.c, md, lo, hi);
+        if e0.max(ta) >= e1.min(*limit) || e1 < 0.0 {
+            return;
+        }
+        // The LOD decision uses the unclipped entry, so it does not depend on the region.
+        let want = self.level_at(e0.max(0.0));
+        if level == 0 || level <= want {
+            feedback.push(self.pyramid.id(level, b).with_dataset(self.ds).0);
+            self.leaf(level, b, d, md, ta, limit, hits);
+            return;
+        }
+        // Children front to back by their entry.
+        let lb = &self.table.levels[level - 1].bricks;
+        let mut kids: [(f32, [u32; 3]); 4] = [(f32::INFINITY, [0; 3]); 4];
+        let mut n = 0;
+        for dy in 0..2 {
+            for dx in 0..2 {
+                let cb = [2 * b[0] + dx, 2 * b[1] + dy, 0];
+                if cb[0] < lb[0] && cb[1] < lb[1] {
+                    let (clo, chi) = self.footprint(level - 1, cb);
+                    let (c0, _) = slab(
+                        self.c,
+                        md,
+                        [clo[0], clo[1], f32::NEG_INFINITY],
+                        [chi[0], chi[1], f32::INFINITY],
+                    );
+                    kids[n] = (c0, cb);
+                    n += 1;
+                }
+            }
+        }
+        kids[..n].sort_by(|a, b| a.0.total_cmp(&b.0));
+        for &(_, cb) in &kids[..n] {
+            self.visit(level - 1, cb, d, md, ta, limit, hits, feedback);
+        }
+    }
+
+    /// Walks the cells of tile `b` at `level`, using the finest resident data.
+    #[allow(clippy::too_many_arguments)]
+    fn leaf(
+        &self,
+        level: usize,
+        b: [u32; 3],
+        d: [f32; 3],
+        md: [f32; 3],
+        ta: f32,
+        limit: &mut f32,
+        hits: &mut Vec<Hit>,
+    ) {
+        let e = self.table.entries[self.table.index(level, b)];
+        if e == NOT_RESIDENT {
+            return;
+        }
+        let r = (e >> 24) as usize;
+        let data = self.pool.slot_data(e & SLOT_MASK);
+        let k = (r - level) as u32;
+        let br = [b[0] >> k, b[1] >> k];
+        // Clip to this tile's own footprint (exact, not padded), within the data.
+        let (mut flo, mut fhi) = self.footprint(level, b);
+        for a in 0..2 {
+            flo[a] = flo[a].max(0.0);
+            fhi[a] = fhi[a].min(self.dims[a] as f32 - 1.0);
+        }
+        let (u0, u1) = slab(
+            self.c,
+            md,
+            [flo[0], flo[1], f32::NEG_INFINITY],
+            [fhi[0], fhi[1], f32::INFINITY],
+        );
+        let t_lo = u0.max(ta).max(0.0);
+        let t_hi = u1.min(*limit);
+        if t_lo >= t_hi {
+            return;
+        }
+        // Ray in level-r node coordinates.
+        let sr = (0.5f32).powi(r as i32);
+        let cr = [
+            (self.c[0] + 0.5) * sr - 0.5,
+            (self.c[1] + 0.5) * sr - 0.5,
+            self.c[2],
+        ];
+        let dr = [md[0] * sr, md[1] * sr, md[2]];
+        let dims_r = self.table.levels[r].bricks; // only for bounds of tiles
+        let _ = dims_r;
+        let nodes_r = [0, 1].map(|a| self.pyramid.level(r).dims[a] as i64);
+        let p = self.page as i64;
+        let off = [0, 1].map(|a| br[a] as i64 * self.core as i64 - self.border as i64);
+        let at = |i: i64, j: i64| -> f32 {
+            let (li, lj) = (i - off[0], j - off[1]);
+            if li < 0 || lj < 0 || li >= p || lj >= p {
+                return f32::NAN;
+            }
+            data[(lj * p + li) as usize]
+        };
+        // 2D DDA over level-r cells.
+        let pos = [cr[0] + t_lo * dr[0], cr[1] + t_lo * dr[1]];
+        let mut cell = [pos[0].floor() as i64, pos[1].floor() as i64];
+        let step = [0, 1].map(|a| if dr[a] > 0.0 { 1i64 } else { -1 });
+        let next_t = |a: usize, c: i64| -> f32 {
+            if dr[a] == 0.0 {
+                f32::INFINITY
+            } else {
+                let bound = if dr[a] > 0.0 { c + 1 } else { c } as f32;
+                (bound - cr[a]) / dr[a]
+            }
+        };
+        let mut t_cell = t_lo;
+        let mut guard = 0usize;
+        let lighting = self.lighting;
+        while t_cell < t_hi && guard < 1 << 20 {
+            guard += 1;
+            let tx = next_t(0, cell[0]);
+            let ty = next_t(1, cell[1]);
+            let t_next = tx.min(ty).min(t_hi);
+            let (i, j) = (cell[0], cell[1]);
+            if i >= 0 && j >= 0 && i + 1 < nodes_r[0] && j + 1 < nodes_r[1] && t_next > t_cell {
+                let h00 = at(i, j);
+                let h10 = at(i + 1, j);
+                let h01 = at(i, j + 1);
+                let h11 = at(i + 1, j + 1);
+                if !(h00.is_nan() || h10.is_nan() || h01.is_nan() || h11.is_nan()) {
+                    let z0 = cr[2] + t_cell * dr[2];
+                    let z1 = cr[2] + t_next * dr[2];
+                    let hmin = h00.min(h10).min(h01).min(h11);
+                    let hmax = h00.max(h10).max(h01).max(h11);
+                    if z0.min(z1) <= hmax && z0.max(z1) >= hmin {
+                        let u0 = cr[0] + t_cell * dr[0] - i as f32;
+                        let v0 = cr[1] + t_cell * dr[1] - j as f32;
+                        let a = h10 - h00;
+                        let bb = h01 - h00;
+                        let c = h00 - h10 - h01 + h11;
+                        let qa = -c * dr[0] * dr[1];
+                        let qb = dr[2] - a * dr[0] - bb * dr[1] - c * (u0 * dr[1] + v0 * dr[0]);
+                        let qc = z0 - h00 - a * u0 - bb * v0 - c * u0 * v0;
+                        let mut roots = [0.0f32; 2];
+                        let n = roots_in(qa, qb, qc, 0.0, t_next - t_cell, &mut roots);
+                        for &sroot in &roots[..n] {
+                            let t = t_cell + sroot;
+                            if t < ta || t >= *limit {
+                                continue;
+                            }
+                            let u = (u0 + sroot * dr[0]).clamp(0.0, 1.0);
+                            let v = (v0 + sroot * dr[1]).clamp(0.0, 1.0);
+                            let h = h00 + a * u + bb * v + c * u * v;
+                            let rgb = self.shade(d, a + c * v, bb + c * u, sr, h, lighting);
+                            let al = self.opacity;
+                            hits.push(Hit {
+                                t,
+                                rgba: [rgb[0] * al, rgb[1] * al, rgb[2] * al, al],
+                            });
+                            if al >= 1.0 {
+                                // Nothing behind an opaque surface is visible.
+                                *limit = limit.min(t);
+                            }
+                        }
+                    }
+                }
+            }
+            t_cell = t_next;
+            if tx <= ty {
+                cell[0] += step[0];
+            } else {
+                cell[1] += step[1];
+            }
+        }
+    }
+
+    fn shade(&self, d: [f32; 3], hu: f32, hv: f32, sr: f32, h: f32, lighting: bool) -> [f32; 3] {
+        let base = match &self.depth_map {
+            Some((map, [lo, hi])) => {
+                let x = if hi > lo { (h - lo) / (hi - lo) } else { 0.5 };
+                map.at(x)
+            }
+            None => self.color,
+        };
+        if !lighting {
+            return base;
+        }
+        // Normal in index space (per level-0 node), then to camera space by Mᵀ.
+        let ni = [-hu * sr, -hv * sr, 1.0];
+        let m = &self.m;
+        let n = [0, 1, 2].map(|c| m[0][c] * ni[0] + m[1][c] * ni[1] + m[2][c] * ni[2]);
+        let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+        let cosv = if len > 0.0 && len.is_finite() {
+            ((n[0] * d[0] + n[1] * d[1] + n[2] * d[2]) / len).abs()
+        } else {
+            1.0
+        };
+        let k = 0.25 + 0.75 * cosv;
+        base.map(|c| c * k)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quadratic_roots() {
+        let mut r = [0.0; 2];
+        // (s-1)(s-3) = s² - 4s + 3
+        assert_eq!(roots_in(1.0, -4.0, 3.0, 0.0, 10.0, &mut r), 2);
+        assert!((r[0] - 1.0).abs() < 1e-6 && (r[1] - 3.0).abs() < 1e-6);
+        assert_eq!(roots_in(1.0, -4.0, 3.0, 0.0, 2.0, &mut r), 1);
+        assert_eq!(roots_in(0.0, 2.0, -1.0, 0.0, 1.0, &mut r), 1);
+        assert!((r[0] - 0.5).abs() < 1e-7);
+        assert_eq!(roots_in(1.0, 0.0, 1.0, -5.0, 5.0, &mut r), 0);
+        assert_eq!(roots_in(0.0, 0.0, 1.0, -5.0, 5.0, &mut r), 0);
+    }
+}

@@ -1,0 +1,28 @@
+//! # strata-worker
+//!
+//! The worker engine: given a region of space (a half-open box of the k-d split), a camera
+//! and the scene, it produces the premultiplied RGBA partial image of everything inside the
+//! region, streaming its data out of core and refining the level of detail by feedback from
+//! the rays.
+//!
+//! * [`cache`]: the host page cache (byte budget, LRU, locked pages, loader threads with a
+//!   priority queue in which real requests outrank prefetch).
+//! * [`atlas`]: the virtualized atlas: fixed pools of page slots and per-data-set page
+//!   tables, as flat `#[repr(C)]` arrays the GPU path uploads unchanged.
+//! * [`feedback`]: per-ray page requests, reduced to priorities.
+//! * [`camera`]: f64 camera and data transforms, camera-relative f32 rays.
+//! * [`tf`]: colour maps and transfer functions (opacity-corrected step tables).
+//! * [`volume`], [`horizon`], [`raycast`]: the CPU ray caster.
+//! * [`engine`]: frames, feedback → loads → atlas updates, batch convergence.
+#![deny(missing_docs)]
+
+pub mod atlas;
+pub mod cache;
+pub mod camera;
+pub mod dataset;
+pub mod engine;
+pub mod feedback;
+pub mod horizon;
+pub mod raycast;
+pub mod tf;
+pub mod volume;

@@ -1,0 +1,509 @@
+//! One frame of ray casting over a region: volumes and horizons together.
+//!
+//! Per ray: clip to the region's half-open `t` interval, collect horizon crossings in it,
+//! then march the volumes front to back, compositing each surface when the march reaches
+//! it (seed 000 §4.3), until the ray leaves the region or is opaque. Where several volumes
+//! overlap, the ray is cut at their box boundaries into fragments (the 1D trace of the BSP
+//! over their boxes, seed 002); in a fragment every active volume is classified at each
+//! sample, the results are mixed, and the mix is composited once.
+//!
+//! Effects are chosen once per frame: with no horizons no intersection code runs, with one
+//! volume the mixing path never runs, gradient shading only when asked for.
+
+use crate::horizon::{Hit, HorFrame};
+use crate::volume::{first_k, Cursor, VolFrame};
+use rayon::prelude::*;
+use strata_common::image::{PartialImage, Rect, Rgba};
+
+/// Tile edge in pixels (rayon's unit of work; one feedback list per tile).
+pub const TILE: u32 = 16;
+
+/// Sampling bands: band `b` covers `t` in `[start[b], start[b+1])` with step `dt[b]`.
+#[derive(Clone, Debug)]
+pub struct Bands {
+    /// Start distance of each band (`start[0] = 0`).
+    pub start: Vec<f32>,
+    /// Step of each band (`base · 2^b`).
+    pub dt: Vec<f32>,
+}
+
+/// Everything a frame's rays read.
+pub struct FrameSetup<'a> {
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+    /// Ray direction through pixel corner (0, 0), per column, per row.
+    pub dir00: [f32; 3],
+    /// Per column.
+    pub du: [f32; 3],
+    /// Per row.
+    pub dv: [f32; 3],
+    /// Region box, camera-relative display space.
+    pub region_lo: [f32; 3],
+    /// Upper corner.
+    pub region_hi: [f32; 3],
+    /// Pixels that can see the region.
+    pub rect: Rect,
+    /// Volumes.
+    pub vols: Vec<VolFrame<'a>>,
+    /// Horizons.
+    pub hors: Vec<HorFrame<'a>>,
+    /// Sampling bands.
+    pub bands: Bands,
+    /// Early ray termination threshold.
+    pub ert: f32,
+    /// Gradient shading of volumes.
+    pub volume_shading: bool,
+    /// Volume-skipping enabled.
+    pub skipping: bool,
+}
+
+/// Counters of one frame.
+#[derive(Copy, Clone, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct CastStats {
+    /// Rays cast (pixels inside the region's screen rectangle).
+    pub rays: u64,
+    /// Trilinear samples taken.
+    pub samples: u64,
+    /// Lattice samples skipped as empty space.
+    pub skipped: u64,
+    /// Horizon hits composited.
+    pub hits: u64,
+    /// Rays ended by early termination.
+    pub terminated: u64,
+}
+
+impl std::ops::AddAssign for CastStats {
+    fn add_assign(&mut self, o: Self) {
+        self.rays += o.rays;
+        self.samples += o.samples;
+        self.skipped += o.skipped;
+        self.hits += o.hits;
+        self.terminated += o.terminated;
+    }
+}
+
+/// A rendered frame part.
+pub struct CastOutput {
+    /// The premultiplied image.
+    pub image: PartialImage,
+    /// Raw feedback per tile (reduced).
+    pub feedback: Vec<crate::feedback::FeedbackEntry>,
+    /// Counters.
+    pub stats: CastStats,
+}
+
+#[inline(always)]
+fn blend(acc: &mut Rgba, s: Rgba) {
+    let t = 1.0 - acc[3];
+    acc[0] += t * s[0];
+    acc[1] += t * s[1];
+    acc[2] += t * s[2];
+    acc[3] += t * s[3];
+}
+
+/// Half-open `[t0, t1)` of the ray inside the region box (origin is the eye at 0).
+pub fn clip_region(lo: [f32; 3], hi: [f32; 3], d: [f32; 3]) -> (f32, f32) {
+    let mut t0 = 0.0f32;
+    let mut t1 = f32::INFINITY;
+    for a in 0..3 {
+        if d[a] == 0.0 {
+            // Parallel to both planes: inside iff the eye is (half-open on the upper side).
+            if !(lo[a] <= 0.0 && 0.0 < hi[a]) {
+                return (0.0, 0.0);
+            }
+        } else {
+            let ta = lo[a] / d[a];
+            let tb = hi[a] / d[a];
+            t0 = t0.max(ta.min(tb));
+            t1 = t1.min(ta.max(tb));
+        }
+    }
+    (t0, t1)
+}
+
+struct RayCtx<'s, 'a> {
+    f: &'s FrameSetup<'a>,
+    d: [f32; 3],
+    acc: Rgba,
+    stats: CastStats,
+    done: bool,
+}
+
+impl<'s, 'a> RayCtx<'s, 'a> {
+    /// Marches one volume over `[ta, tb)` on the lattice.
+    fn march_one(
+        &mut self,
+        v: &VolFrame<'a>,
+        cur: &mut Cursor<'a>,
+        md: [f32; 3],
+        ta: f32,
+        tb: f32,
+        fb: &mut Vec<u64>,
+    ) {
+        let f = self.f;
+        let bands = &f.bands;
+        let mut band = 0;
+        while band + 1 < bands.start.len() && ta >= bands.start[band + 1] {
+            band += 1;
+        }
+        let mut t_start = ta;
+        while t_start < tb && !self.done {
+            let dt = bands.dt[band];
+            let band_end = bands.start.get(band + 1).copied().unwrap_or(f32::INFINITY);
+            let seg_end = tb.min(band_end);
+            let table = &v.tables[band];
+            let mut k = first_k(t_start, dt);
+            loop {
+                let t = k as f32 * dt;
+                if t >= seg_end {
+                    break;
+                }
+                if t >= cur.t_exit {
+                    let q = [0, 1, 2].map(|a| v.c[a] + t * md[a]);
+                    v.locate(cur, t, q, md, fb);
+                    if cur.transparent {
+                        let nk = first_k(cur.t_exit.min(seg_end), dt).max(k + 1);
+                        self.stats.skipped += (nk - k) as u64;
+                        k = nk;
+                        continue;
+                    }
+                }
+                let q = [v.c[0] + t * md[0], v.c[1] + t * md[1], v.c[2] + t * md[2]];
+                let s = v.sample(cur, q);
+                self.stats.samples += 1;
+                k += 1;
+                if s.is_nan() {
+                    continue; // no data: transparent
+                }
+                let mut rgba = table.lookup(s);
+                if rgba[3] <= 0.0 {
+                    continue;
+                }
+                if f.volume_shading {
+                    shade(v, cur, q, self.d, &mut rgba);
+                }
+                blend(&mut self.acc, rgba);
+                if self.acc[3] >= f.ert {
+                    self.done = true;
+                    self.stats.terminated += 1;
+                    return;
+                }
+            }
+            t_start = seg_end;
+            band += 1;
+        }
+    }
+
+    /// Marches several overlapping volumes over `[ta, tb)`: classify each, mix, composite.
+    #[allow(clippy::too_many_arguments)]
+    fn march_mixed(
+        &mut self,
+        active: &[usize],
+        curs: &mut [Cursor<'a>],
+        mds: &[[f32; 3]],
+        ta: f32,
+        tb: f32,
+        fb: &mut Vec<u64>,
+    ) {
+        let f = self.f;
+        let bands = &f.bands;
+        let mut band = 0;
+        while band + 1 < bands.start.len() && ta >= bands.start[band + 1] {
+            band += 1;
+        }
+        let mut t_start = ta;
+        while t_start < tb && !self.done {
+            let dt = bands.dt[band];
+            let band_end = bands.start.get(band + 1).copied().unwrap_or(f32::INFINITY);
+            let seg_end = tb.min(band_end);
+            let mut k = first_k(t_start, dt);
+            loop {
+                let t = k as f32 * dt;
+                if t >= seg_end {
+                    break;
+                }
+                k += 1;
+                let mut sum = [0.0f32; 3];
+                let mut alpha_sum = 0.0f32;
+                let mut transmit = 1.0f32;
+                for &vi in active {
+                    let v = &f.vols[vi];
+                    let md = mds[vi];
+                    let cur = &mut curs[vi];
+                    let q = [0, 1, 2].map(|a| v.c[a] + t * md[a]);
+                    if t >= cur.t_exit {
+                        v.locate(cur, t, q, md, fb);
+                    }
+                    if cur.transparent {
+                        continue;
+                    }
+                    let s = v.sample(cur, q);
+                    self.stats.samples += 1;
+                    if s.is_nan() {
+                        continue;
+                    }
+                    let mut rgba = v.tables[band].lookup(s);
+                    if rgba[3] <= 0.0 {
+                        continue;
+                    }
+                    if f.volume_shading {
+                        shade(v, cur, q, self.d, &mut rgba);
+                    }
+                    sum[0] += rgba[0];
+                    sum[1] += rgba[1];
+                    sum[2] += rgba[2];
+                    alpha_sum += rgba[3];
+                    transmit *= 1.0 - rgba[3];
+                }
+                if alpha_sum <= 0.0 {
+                    continue;
+                }
+                // Opacities combine as independent absorbers; colours mix weighted by
+                // opacity (the premultiplied sums, renormalised to the combined alpha).
+                let a = 1.0 - transmit;
+                let w = a / alpha_sum;
+                blend(&mut self.acc, [sum[0] * w, sum[1] * w, sum[2] * w, a]);
+                if self.acc[3] >= f.ert {
+                    self.done = true;
+                    self.stats.terminated += 1;
+                    return;
+                }
+            }
+            t_start = seg_end;
+            band += 1;
+        }
+    }
+}
+
+fn shade(v: &VolFrame<'_>, cur: &Cursor<'_>, q: [f32; 3], d: [f32; 3], rgba: &mut Rgba) {
+    let g = v.gradient(cur, q);
+    // Index-space gradient to camera space: ∇_world = Mᵀ ∇_index.
+    let m = &v.m;
+    let n = [0, 1, 2].map(|c| m[0][c] * g[0] + m[1][c] * g[1] + m[2][c] * g[2]);
+    let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+    if !(len > 1e-12) || !len.is_finite() {
+        return;
+    }
+    let cosv = ((n[0] * d[0] + n[1] * d[1] + n[2] * d[2]) / len).abs();
+    // Headlight Blinn-Phong: ambient + diffuse + a little specular.
+    let k = 0.3 + 0.6 * cosv;
+    let spec = 0.25 * cosv.powi(24) * rgba[3];
+    for c in rgba.iter_mut().take(3) {
+        *c = *c * k + spec;
+    }
+}
+
+impl<'a> FrameSetup<'a> {
+    /// Casts one ray; `fb` collects requested pages.
+    pub fn cast(&self, d: [f32; 3], fb: &mut Vec<u64>, hits: &mut Vec<Hit>) -> (Rgba, CastStats) {
+        let (t0, t1) = clip_region(self.region_lo, self.region_hi, d);
+        let mut ctx = RayCtx {
+            f: self,
+            d,
+            acc: [0.0; 4],
+            stats: CastStats {
+                rays: 1,
+                ..CastStats::default()
+            },
+            done: false,
+        };
+        if t0 >= t1 {
+            return (ctx.acc, ctx.stats);
+        }
+        hits.clear();
+        for h in &self.hors {
+            h.intersect(d, t0, t1, hits, fb);
+        }
+        if hits.len() > 1 {
+            hits.sort_by(|a, b| a.t.total_cmp(&b.t));
+        }
+        let nv = self.vols.len();
+        // Per-volume interval of this ray, clipped to the region.
+        let mut mds = [[0.0f32; 3]; 8];
+        let mut spans = [(0.0f32, 0.0f32); 8];
+        let mut big_mds = Vec::new();
+        let mut big_spans = Vec::new();
+        let (mds, spans): (&mut [[f32; 3]], &mut [(f32, f32)]) = if nv <= 8 {
+            (&mut mds[..nv], &mut spans[..nv])
+        } else {
+            big_mds.resize(nv, [0.0; 3]);
+            big_spans.resize(nv, (0.0, 0.0));
+            (&mut big_mds[..], &mut big_spans[..])
+        };
+        for (i, v) in self.vols.iter().enumerate() {
+            mds[i] = v.index_dir(d);
+            let (a, b) = v.interval(mds[i]);
+            spans[i] = (a.max(t0), b.min(t1));
+        }
+        let mut curs: Vec<Cursor<'_>> = Vec::new();
+        let mut single = Cursor::default();
+        if nv > 1 {
+            curs.resize_with(nv, Cursor::default);
+        }
+        let mut cur_t = t0;
+        let mut hi = 0;
+        loop {
+            let next_hit = hits.get(hi).map_or(t1, |h| h.t);
+            let seg_end = next_hit.min(t1);
+            if seg_end > cur_t {
+                match nv {
+                    0 => {}
+                    1 => {
+                        let (a, b) = spans[0];
+                        let (a, b) = (a.max(cur_t), b.min(seg_end));
+                        if a < b {
+                            ctx.march_one(&self.vols[0], &mut single, mds[0], a, b, fb);
+                        }
+                    }
+                    _ => self.march_fragments(&mut ctx, &mut curs, mds, spans, cur_t, seg_end, fb),
+                }
+            }
+            if ctx.done {
+                break;
+            }
+            match hits.get(hi) {
+                Some(h) if h.t < t1 => {
+                    blend(&mut ctx.acc, h.rgba);
+                    ctx.stats.hits += 1;
+                    if ctx.acc[3] >= self.ert {
+                        ctx.stats.terminated += 1;
+                        break;
+                    }
+                    cur_t = cur_t.max(h.t);
+                    hi += 1;
+                }
+                _ => break,
+            }
+        }
+        (ctx.acc, ctx.stats)
+    }
+
+    /// Cuts `[ta, tb)` at the volumes' box boundaries and marches each fragment with its
+    /// active set.
+    #[allow(clippy::too_many_arguments)]
+    fn march_fragments<'s>(
+        &'s self,
+        ctx: &mut RayCtx<'s, 'a>,
+        curs: &mut [Cursor<'a>],
+        mds: &[[f32; 3]],
+        spans: &[(f32, f32)],
+        ta: f32,
+        tb: f32,
+        fb: &mut Vec<u64>,
+    ) {
+        let mut cuts: Vec<f32> = vec![ta, tb];
+        for &(a, b) in spans {
+            if a < b {
+                for t in [a, b] {
+                    if t > ta && t < tb {
+                        cuts.push(t);
+                    }
+                }
+            }
+        }
+        cuts.sort_by(|a, b| a.total_cmp(b));
+        cuts.dedup();
+        let mut active = Vec::with_capacity(spans.len());
+        for w in cuts.windows(2) {
+            let (fa, fbnd) = (w[0], w[1]);
+            if ctx.done {
+                return;
+            }
+            active.clear();
+            for (i, &(a, b)) in spans.iter().enumerate() {
+                if a <= fa && fbnd <= b && a < b {
+                    active.push(i);
+                }
+            }
+            match active.len() {
+                0 => {}
+                1 => {
+                    let i = active[0];
+                    ctx.march_one(&self.vols[i], &mut curs[i], mds[i], fa, fbnd, fb);
+                }
+                _ => ctx.march_mixed(&active, curs, mds, fa, fbnd, fb),
+            }
+        }
+    }
+
+    /// Casts every pixel of the region's rectangle with rayon over tiles.
+    pub fn render(&self) -> CastOutput {
+        let r = self.rect;
+        let tiles_x = r.w.div_ceil(TILE);
+        let tiles_y = r.h.div_ceil(TILE);
+        let results: Vec<(Vec<Rgba>, Vec<crate::feedback::FeedbackEntry>, CastStats)> = (0
+            ..tiles_x * tiles_y)
+            .into_par_iter()
+            .map(|ti| {
+                let tx = r.x + (ti % tiles_x) * TILE;
+                let ty = r.y + (ti / tiles_x) * TILE;
+                let w = TILE.min(r.x + r.w - tx);
+                let h = TILE.min(r.y + r.h - ty);
+                let mut px = Vec::with_capacity((w * h) as usize);
+                let mut fb = Vec::new();
+                let mut hits = Vec::new();
+                let mut st = CastStats::default();
+                for y in ty..ty + h {
+                    for x in tx..tx + w {
+                        let d = ray_dir(self, x, y);
+                        let (c, s) = self.cast(d, &mut fb, &mut hits);
+                        st += s;
+                        px.push(sanitize(c));
+                    }
+                }
+                let red = crate::feedback::reduce_tile(&mut fb);
+                (px, red, st)
+            })
+            .collect();
+        let mut pixels = vec![[0.0f32; 4]; r.area()];
+        let mut feedback = Vec::new();
+        let mut stats = CastStats::default();
+        for (ti, (px, fb, st)) in results.into_iter().enumerate() {
+            let tx = (ti as u32 % tiles_x) * TILE;
+            let ty = (ti as u32 / tiles_x) * TILE;
+            let w = TILE.min(r.w - tx);
+            for (i, p) in px.into_iter().enumerate() {
+                let (x, y) = (tx + i as u32 % w, ty + i as u32 / w);
+                pixels[(y * r.w + x) as usize] = p;
+            }
+            feedback.extend(fb);
+            stats += st;
+        }
+        CastOutput {
+            image: PartialImage {
+                width: self.width,
+                height: self.height,
+                rect: r,
+                pixels,
+            },
+            feedback,
+            stats,
+        }
+    }
+}
+
+/// Keeps NaN and Inf out of every output pixel, and alpha within [0, 1].
+#[inline]
+fn sanitize(c: Rgba) -> Rgba {
+    if c.iter().all(|v| v.is_finite()) {
+        [
+            c[0].max(0.0),
+            c[1].max(0.0),
+            c[2].max(0.0),
+            c[3].clamp(0.0, 1.0),
+        ]
+    } else {
+        [0.0; 4]
+    }
+}
+
+#[inline]
+fn ray_dir(f: &FrameSetup<'_>, x: u32, y: u32) -> [f32; 3] {
+    let fx = x as f32 + 0.5;
+    let fy = y as f32 + 0.5;
+    let d = [0, 1, 2].map(|a| f.dir00[a] + fx * f.du[a] + fy * f.dv[a]);
+    let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+    d.map(|v| v / l)
+}

@@ -1,0 +1,341 @@
+//! Colour maps and 1D transfer functions.
+//!
+//! A transfer function maps a sample value to straight RGBA (colour from a named colour map,
+//! opacity from a piecewise-linear curve) with alpha defined per *reference step* (one
+//! finest voxel spacing). The caster uses per-step tables: premultiplied colour with the
+//! opacity already corrected for that step, α' = 1 − (1 − α)^(Δs/Δs₀), so no `powf` runs per
+//! sample. Empty-space skipping asks [`TransferFunction::max_alpha`] whether any value in a
+//! brick's [min, max] can be visible.
+
+use anyhow::{bail, Result};
+use strata_common::scene::VolumeLayer;
+
+/// Entries per table.
+pub const TF_SIZE: usize = 1024;
+
+/// sRGB-encoded control points of the built-in maps, converted to linear when sampled.
+fn map_points(name: &str) -> Option<&'static [[f32; 3]]> {
+    const SEISMIC: &[[f32; 3]] = &[
+        [0.0, 0.0, 0.3],
+        [0.0, 0.25, 1.0],
+        [0.95, 0.95, 0.95],
+        [1.0, 0.25, 0.0],
+        [0.5, 0.0, 0.0],
+    ];
+    const GREY: &[[f32; 3]] = &[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]];
+    const VIRIDIS: &[[f32; 3]] = &[
+        [0.267, 0.005, 0.329],
+        [0.283, 0.141, 0.458],
+        [0.254, 0.265, 0.530],
+        [0.207, 0.372, 0.553],
+        [0.164, 0.471, 0.558],
+        [0.128, 0.567, 0.551],
+        [0.135, 0.659, 0.518],
+        [0.267, 0.749, 0.441],
+        [0.478, 0.821, 0.318],
+        [0.741, 0.873, 0.150],
+        [0.993, 0.906, 0.144],
+    ];
+    const BONE: &[[f32; 3]] = &[
+        [0.0, 0.0, 0.0],
+        [0.32, 0.32, 0.44],
+        [0.65, 0.78, 0.78],
+        [1.0, 1.0, 1.0],
+    ];
+    const HOT: &[[f32; 3]] = &[
+        [0.04, 0.0, 0.0],
+        [1.0, 0.0, 0.0],
+        [1.0, 1.0, 0.0],
+        [1.0, 1.0, 1.0],
+    ];
+    Some(match name {
+        "seismic" => SEISMIC,
+        "grey" | "gray" => GREY,
+        "viridis" => VIRIDIS,
+        "bone" => BONE,
+        "hot" => HOT,
+        _ => return None,
+    })
+}
+
+/// Names of the built-in colour maps.
+pub const COLORMAPS: &[&str] = &["seismic", "grey", "viridis", "bone", "hot"];
+
+fn srgb_to_linear(c: f32) -> f32 {
+    if c <= 0.04045 {
+        c / 12.92
+    } else {
+        ((c + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+/// A colour map sampled at `x` in [0, 1] (linear RGB).
+#[derive(Clone, Debug)]
+pub struct ColorMap {
+    points: Vec<[f32; 3]>,
+}
+
+impl ColorMap {
+    /// A built-in map by name.
+    pub fn named(name: &str) -> Result<Self> {
+        match map_points(name) {
+            Some(p) => Ok(ColorMap {
+                points: p.iter().map(|c| c.map(srgb_to_linear)).collect(),
+            }),
+            None => bail!(
+                "unknown colour map {name:?} (expected one of {})",
+                COLORMAPS.join(", ")
+            ),
+        }
+    }
+
+    /// Linear RGB at `x` (clamped to [0, 1]).
+    pub fn at(&self, x: f32) -> [f32; 3] {
+        let n = self.points.len();
+        let s = x.clamp(0.0, 1.0) * (n - 1) as f32;
+        let i = (s as usize).min(n - 2);
+        let f = s - i as f32;
+        let (a, b) = (self.points[i], self.points[i + 1]);
+        [0, 1, 2].map(|k| a[k] + f * (b[k] - a[k]))
+    }
+}
+
+/// A volume's transfer function over its value window.
+#[derive(Clone, Debug)]
+pub struct TransferFunction {
+    /// Value at table entry 0.
+    pub lo: f32,
+    /// Value at the last entry.
+    pub hi: f32,
+    /// Straight RGBA, alpha per reference step.
+    pub table: Vec<[f32; 4]>,
+    /// `prefix_max[i]`: largest alpha among entries `i..` within a block (see `max_alpha`).
+    block_max: Vec<f32>,
+}
+
+const BLOCK: usize = 16;
+
+impl TransferFunction {
+    /// Builds the transfer function of a volume layer; `range` is the store's value range,
+    /// used when the layer has no window.
+    pub fn from_layer(layer: &VolumeLayer, range: [f64; 2]) -> Result<Self> {
+        let cmap = ColorMap::named(&layer.colormap)?;
+        let [lo, hi] = layer.window.unwrap_or(range);
+        if !(lo.is_finite() && hi.is_finite() && hi > lo) {
+            bail!("volume window must be two finite values lo < hi, got [{lo}, {hi}]");
+        }
+        if !(layer.opacity >= 0.0 && layer.opacity.is_finite()) {
+            bail!("volume opacity must be >= 0, got {}", layer.opacity);
+        }
+        let points: Vec<[f64; 2]> = match &layer.opacity_points {
+            Some(p) => {
+                if p.is_empty() {
+                    bail!("opacity_points must hold at least one [position, alpha] pair");
+                }
+                for w in p.windows(2) {
+                    if w[1][0] < w[0][0] {
+                        bail!(
+                            "opacity_points positions must not decrease ({} after {})",
+                            w[1][0],
+                            w[0][0]
+                        );
+                    }
+                }
+                if p.iter()
+                    .any(|q| !(0.0..=1.0).contains(&q[1]) || !q[0].is_finite())
+                {
+                    bail!("opacity_points alphas must lie in [0, 1]");
+                }
+                p.clone()
+            }
+            None if layer.colormap == "seismic" => {
+                vec![
+                    [0.0, 1.0],
+                    [0.35, 0.08],
+                    [0.45, 0.0],
+                    [0.55, 0.0],
+                    [0.65, 0.08],
+                    [1.0, 1.0],
+                ]
+            }
+            None => vec![[0.0, 0.0], [0.1, 0.0], [1.0, 0.5]],
+        };
+        let curve = |x: f64| -> f64 {
+            if x <= points[0][0] {
+                return points[0][1];
+            }
+            for w in points.windows(2) {
+                if x <= w[1][0] {
+                    let span = w[1][0] - w[0][0];
+                    let f = if span > 0.0 {
+                        (x - w[0][0]) / span
+                    } else {
+                        1.0
+                    };
+                    return w[0][1] + f * (w[1][1] - w[0][1]);
+                }
+            }
+            points[points.len() - 1][1]
+        };
+        let table: Vec<[f32; 4]> = (0..TF_SIZE)
+            .map(|i| {
+                let x = i as f64 / (TF_SIZE - 1) as f64;
+                let c = cmap.at(x as f32);
+                let a = (curve(x) * layer.opacity).clamp(0.0, 1.0) as f32;
+                [c[0], c[1], c[2], a]
+            })
+            .collect();
+        Ok(Self::from_table(lo as f32, hi as f32, table))
+    }
+
+    /// From an explicit straight-RGBA table (at least two entries).
+    pub fn from_table(lo: f32, hi: f32, table: Vec<[f32; 4]>) -> Self {
+        assert!(table.len() >= 2);
+        let block_max = table
+            .chunks(BLOCK)
+            .map(|c| c.iter().map(|e| e[3]).fold(0.0, f32::max))
+            .collect();
+        TransferFunction {
+            lo,
+            hi,
+            table,
+            block_max,
+        }
+    }
+
+    /// Table position of a value (clamped).
+    #[inline]
+    fn pos(&self, v: f32) -> f32 {
+        let n = (self.table.len() - 1) as f32;
+        ((v - self.lo) / (self.hi - self.lo)).clamp(0.0, 1.0) * n
+    }
+
+    /// Largest alpha any value in `[vmin, vmax]` can map to (interpolation included).
+    pub fn max_alpha(&self, vmin: f32, vmax: f32) -> f32 {
+        if !(vmin <= vmax) {
+            return 0.0; // empty or NaN range: no valid sample
+        }
+        let i0 = self.pos(vmin).floor() as usize;
+        let i1 = (self.pos(vmax).ceil() as usize).min(self.table.len() - 1);
+        let mut m = 0.0f32;
+        let mut i = i0;
+        while i <= i1 {
+            if i % BLOCK == 0 && i + BLOCK - 1 <= i1 {
+                m = m.max(self.block_max[i / BLOCK]);
+                i += BLOCK;
+            } else {
+                m = m.max(self.table[i][3]);
+                i += 1;
+            }
+        }
+        m
+    }
+
+    /// The lookup table for a step `exponent` = Δs/Δs₀: premultiplied colour with corrected
+    /// alpha, as `[r, g, b, a]` entries plus the scale/offset that maps values to positions.
+    pub fn step_table(&self, exponent: f32) -> StepTable {
+        let entries = self
+            .table
+            .iter()
+            .map(|e| {
+                let a = if exponent == 1.0 {
+                    e[3]
+                } else {
+                    1.0 - (1.0 - e[3]).max(0.0).powf(exponent)
+                };
+                [e[0] * a, e[1] * a, e[2] * a, a]
+            })
+            .collect();
+        let n = (self.table.len() - 1) as f32;
+        StepTable {
+            entries,
+            scale: n / (self.hi - self.lo),
+            offset: -self.lo * n / (self.hi - self.lo),
+            last: n,
+        }
+    }
+}
+
+/// A premultiplied, step-corrected lookup table.
+#[derive(Clone, Debug)]
+pub struct StepTable {
+    /// Premultiplied RGBA entries.
+    pub entries: Vec<[f32; 4]>,
+    /// Value → position scale.
+    pub scale: f32,
+    /// Value → position offset.
+    pub offset: f32,
+    /// Last position (entries − 1).
+    pub last: f32,
+}
+
+impl StepTable {
+    /// Premultiplied RGBA of a value (linear interpolation between entries).
+    #[inline(always)]
+    pub fn lookup(&self, v: f32) -> [f32; 4] {
+        let s = (v * self.scale + self.offset).clamp(0.0, self.last);
+        let i = (s as usize).min(self.entries.len() - 2);
+        let f = s - i as f32;
+        let a = self.entries[i];
+        let b = self.entries[i + 1];
+        [
+            a[0] + f * (b[0] - a[0]),
+            a[1] + f * (b[1] - a[1]),
+            a[2] + f * (b[2] - a[2]),
+            a[3] + f * (b[3] - a[3]),
+        ]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn layer(map: &str) -> VolumeLayer {
+        VolumeLayer {
+            store: "x".into(),
+            colormap: map.into(),
+            window: Some([-1.0, 1.0]),
+            opacity: 1.0,
+            opacity_points: None,
+        }
+    }
+
+    #[test]
+    fn seismic_is_transparent_near_zero_and_opaque_at_extremes() {
+        let tf = TransferFunction::from_layer(&layer("seismic"), [0.0, 1.0]).unwrap();
+        assert_eq!(tf.max_alpha(-0.05, 0.05), 0.0);
+        assert!(tf.max_alpha(-0.05, 0.5) > 0.0);
+        assert_eq!(tf.max_alpha(0.99, 5.0), 1.0);
+        assert_eq!(tf.max_alpha(f32::NAN, f32::NAN), 0.0);
+    }
+
+    #[test]
+    fn max_alpha_bounds_every_lookup() {
+        let tf = TransferFunction::from_layer(&layer("grey"), [0.0, 1.0]).unwrap();
+        let t = tf.step_table(1.0);
+        for k in 0..200 {
+            let a = -1.2 + k as f32 * 0.011;
+            let b = a + 0.37;
+            let m = tf.max_alpha(a, b);
+            for j in 0..=20 {
+                let v = a + (b - a) * j as f32 / 20.0;
+                assert!(t.lookup(v)[3] <= m + 1e-7, "{a} {b} {v}");
+            }
+        }
+    }
+
+    #[test]
+    fn step_correction_matches_formula() {
+        let tf = TransferFunction::from_table(0.0, 1.0, vec![[1.0, 1.0, 1.0, 0.3]; 4]);
+        let t = tf.step_table(2.5);
+        let want = 1.0 - 0.7f32.powf(2.5);
+        assert!((t.lookup(0.5)[3] - want).abs() < 1e-6);
+        assert!((t.lookup(0.5)[0] - want).abs() < 1e-6);
+    }
+
+    #[test]
+    fn unknown_map_is_an_error() {
+        assert!(TransferFunction::from_layer(&layer("rainbow"), [0.0, 1.0]).is_err());
+    }
+}

@@ -1,0 +1,259 @@
+//! Volume sampling through the atlas: the per-ray brick cursor and the lattice march.
+//!
+//! Samples sit at `t = k·Δt` for integer `k`, measured from the eye, with `Δt` a power of two
+//! times the base step (a *band*, chosen by distance). Every region that renders part of a
+//! ray therefore takes exactly the samples that rendering the ray whole would take.
+
+use crate::atlas::{PageTable, Pool, NOT_RESIDENT, SLOT_MASK};
+use crate::tf::StepTable;
+use strata_common::pyramid::Pyramid;
+
+/// A volume prepared for one frame.
+pub struct VolFrame<'a> {
+    /// Data-set number.
+    pub ds: u16,
+    /// Camera-relative → level-0 index, linear part (rows).
+    pub m: [[f32; 3]; 3],
+    /// Camera-relative → level-0 index, offset.
+    pub c: [f32; 3],
+    /// Upper bound of the index box (`dims − 0.5`); the lower bound is −0.5.
+    pub hi: [f32; 3],
+    /// `level_t[l]`: distance from which level `l` is fine enough (`level_t[0] = 0`).
+    pub level_t: Vec<f32>,
+    /// Core samples per page axis.
+    pub core: f32,
+    /// Border samples.
+    pub border: f32,
+    /// Samples per page axis (border included).
+    pub page: usize,
+    /// Page table.
+    pub table: &'a PageTable,
+    /// Atlas pool.
+    pub pool: &'a Pool,
+    /// Per page (page-table order): no value in it is visible under the transfer function.
+    pub transparent: Vec<bool>,
+    /// Per band: premultiplied, step-corrected lookup.
+    pub tables: Vec<StepTable>,
+    /// The pyramid (for page keys).
+    pub pyramid: &'a Pyramid,
+}
+
+/// A ray's position in one volume's brick structure.
+pub struct Cursor<'a> {
+    level: usize,
+    /// Samples at `t >= t_exit` need a new lookup (brick or level change).
+    pub t_exit: f32,
+    /// The current brick has nothing visible.
+    pub transparent: bool,
+    data: &'a [f32],
+    s: f32,
+    o: [f32; 3],
+}
+
+impl<'a> Default for Cursor<'a> {
+    fn default() -> Self {
+        Cursor {
+            level: 0,
+            t_exit: f32::NEG_INFINITY,
+            transparent: true,
+            data: &[],
+            s: 1.0,
+            o: [0.0; 3],
+        }
+    }
+}
+
+impl<'a> VolFrame<'a> {
+    /// The ray's direction in index space.
+    #[inline]
+    pub fn index_dir(&self, d: [f32; 3]) -> [f32; 3] {
+        let m = &self.m;
+        [0, 1, 2].map(|r| m[r][0] * d[0] + m[r][1] * d[1] + m[r][2] * d[2])
+    }
+
+    /// `[t0, t1)` of the ray inside the volume's box (empty if `t0 >= t1`).
+    pub fn interval(&self, md: [f32; 3]) -> (f32, f32) {
+        let mut t0 = f32::NEG_INFINITY;
+        let mut t1 = f32::INFINITY;
+        for a in 0..3 {
+            let (lo, hi) = (-0.5f32, self.hi[a]);
+            if md[a] == 0.0 {
+                if !(lo <= self.c[a] && self.c[a] < hi) {
+                    return (0.0, 0.0);
+                }
+            } else {
+                let ta = (lo - self.c[a]) / md[a];
+                let tb = (hi - self.c[a]) / md[a];
+                t0 = t0.max(ta.min(tb));
+                t1 = t1.min(ta.max(tb));
+            }
+        }
+        (t0, t1)
+    }
+
+    /// Moves the cursor to the brick holding the sample at `t` (index position `q`),
+    /// recording the page in `feedback` unless it is transparent.
+    #[inline(never)]
+    pub fn locate(
+        &self,
+        cur: &mut Cursor<'a>,
+        t: f32,
+        q: [f32; 3],
+        md: [f32; 3],
+        feedback: &mut Vec<u64>,
+    ) {
+        let nl = self.level_t.len();
+        let mut level = cur.level;
+        while level + 1 < nl && t >= self.level_t[level + 1] {
+            level += 1;
+        }
+        cur.level = level;
+        let scale = (0.5f32).powi(level as i32);
+        let li = &self.table.levels[level];
+        let mut b = [0u32; 3];
+        let mut t_exit = if level + 1 < nl {
+            self.level_t[level + 1]
+        } else {
+            f32::INFINITY
+        };
+        let span = self.core / scale; // brick size in level-0 samples
+        for a in 0..3 {
+            let f = ((q[a] + 0.5) * scale / self.core).floor();
+            let bi = (f.max(0.0) as u32).min(li.bricks[a] - 1);
+            b[a] = bi;
+            if md[a] != 0.0 {
+                let bound = if md[a] > 0.0 {
+                    (bi + 1) as f32 * span - 0.5
+                } else {
+                    bi as f32 * span - 0.5
+                };
+                t_exit = t_exit.min((bound - self.c[a]) / md[a]);
+            }
+        }
+        // Guard against a non-advancing exit from rounding: the next sample re-locates.
+        cur.t_exit = t_exit;
+        let idx = self.table.index(level, b);
+        cur.transparent = self.transparent[idx];
+        if cur.transparent {
+            return;
+        }
+        feedback.push(self.pyramid.id(level, b).with_dataset(self.ds).0);
+        let e = self.table.entries[idx];
+        if e == NOT_RESIDENT {
+            cur.transparent = true;
+            return;
+        }
+        let r = (e >> 24) as usize;
+        let slot = e & SLOT_MASK;
+        let sr = (0.5f32).powi(r as i32);
+        let k = (r - level) as u32;
+        let pool: &'a Pool = self.pool;
+        cur.data = pool.slot_data(slot);
+        cur.s = sr;
+        for a in 0..3 {
+            let br = (b[a] >> k) as f32;
+            cur.o[a] = 0.5 * sr - 0.5 - br * self.core + self.border;
+        }
+    }
+
+    /// Trilinear sample at index position `q` through the cursor's page.
+    #[inline(always)]
+    pub fn sample(&self, cur: &Cursor<'a>, q: [f32; 3]) -> f32 {
+        let p = self.page;
+        let maxc = (p - 1) as f32 - 1e-3;
+        let lx = (q[0] * cur.s + cur.o[0]).clamp(0.0, maxc);
+        let ly = (q[1] * cur.s + cur.o[1]).clamp(0.0, maxc);
+        let lz = (q[2] * cur.s + cur.o[2]).clamp(0.0, maxc);
+        trilinear(cur.data, p, lx, ly, lz)
+    }
+
+    /// Gradient (index units of the sampled level) by central differences.
+    pub fn gradient(&self, cur: &Cursor<'a>, q: [f32; 3]) -> [f32; 3] {
+        let p = self.page;
+        let maxc = (p - 1) as f32 - 1e-3;
+        let l = [0, 1, 2].map(|a| q[a] * cur.s + cur.o[a]);
+        let at = |dx: f32, dy: f32, dz: f32| {
+            trilinear(
+                cur.data,
+                p,
+                (l[0] + dx).clamp(0.0, maxc),
+                (l[1] + dy).clamp(0.0, maxc),
+                (l[2] + dz).clamp(0.0, maxc),
+            )
+        };
+        [
+            at(1.0, 0.0, 0.0) - at(-1.0, 0.0, 0.0),
+            at(0.0, 1.0, 0.0) - at(0.0, -1.0, 0.0),
+            at(0.0, 0.0, 1.0) - at(0.0, 0.0, -1.0),
+        ]
+    }
+}
+
+/// Trilinear interpolation in a `p³` page at local coordinates within `[0, p − 1)`.
+#[inline(always)]
+pub fn trilinear(data: &[f32], p: usize, x: f32, y: f32, z: f32) -> f32 {
+    let (xi, yi, zi) = (x as usize, y as usize, z as usize);
+    let (fx, fy, fz) = (x - xi as f32, y - yi as f32, z - zi as f32);
+    let i = (zi * p + yi) * p + xi;
+    let (sy, sz) = (p, p * p);
+    assert!(i + sz + sy + 1 < data.len());
+    // SAFETY: the coordinates are clamped to [0, p − 1) by the callers, so every tap index
+    // is at most i + sz + sy + 1, which the assertion above bounds (it is hoisted by the
+    // optimizer and never fails for a p³ page).
+    unsafe {
+        let g = |k: usize| *data.get_unchecked(k);
+        let c00 = g(i) + fx * (g(i + 1) - g(i));
+        let c10 = g(i + sy) + fx * (g(i + sy + 1) - g(i + sy));
+        let c01 = g(i + sz) + fx * (g(i + sz + 1) - g(i + sz));
+        let c11 = g(i + sz + sy) + fx * (g(i + sz + sy + 1) - g(i + sz + sy));
+        let c0 = c00 + fy * (c10 - c00);
+        let c1 = c01 + fy * (c11 - c01);
+        c0 + fz * (c1 - c0)
+    }
+}
+
+/// First lattice index `k` with `k·dt >= t` (as evaluated in f32).
+#[inline]
+pub fn first_k(t: f32, dt: f32) -> i64 {
+    let mut k = (t / dt).ceil() as i64;
+    while k > i64::MIN && ((k - 1) as f32) * dt >= t {
+        k -= 1;
+    }
+    while (k as f32) * dt < t {
+        k += 1;
+    }
+    k
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lattice_start_is_exact() {
+        for &(t, dt) in &[
+            (0.0f32, 0.5f32),
+            (1.0, 0.1),
+            (3.3, 0.7),
+            (1e5, 0.37),
+            (7.0, 7.0),
+        ] {
+            let k = first_k(t, dt);
+            assert!((k as f32) * dt >= t);
+            assert!(((k - 1) as f32) * dt < t);
+        }
+    }
+
+    #[test]
+    fn trilinear_reproduces_linear_fields() {
+        let p = 5;
+        let data: Vec<f32> = (0..p * p * p)
+            .map(|i| {
+                let (x, y, z) = (i % p, i / p % p, i / (p * p));
+                1.0 + 2.0 * x as f32 - 0.5 * y as f32 + 3.0 * z as f32
+            })
+            .collect();
+        let v = trilinear(&data, p, 1.25, 2.5, 3.75);
+        assert!((v - (1.0 + 2.5 - 1.25 + 11.25)).abs() < 1e-5);
+    }
+}
