@@ -13,8 +13,9 @@ use tempfile::TempDir;
 /// A small synthetic survey (UTM coordinates, z down, three horizons with holes and a
 /// pinch-out), as `coordinator synth` writes it.
 fn survey(dir: &std::path::Path, size: [u64; 3]) -> PathBuf {
-    let out = strata_coordinator::synth::synth(dir, size, 5, false, &indicatif::ProgressBar::hidden())
-        .unwrap();
+    let out =
+        strata_coordinator::synth::synth(dir, size, 5, false, &indicatif::ProgressBar::hidden())
+            .unwrap();
     out.scene
 }
 
@@ -36,7 +37,10 @@ fn region_split_equals_whole_for_2_4_and_7_regions() {
     s.horizons[1].opacity = 0.6; // a translucent horizon: hits behind it matter too
     let whole = render_whole(&s);
     assert_clean(&whole);
-    assert!(whole.iter().filter(|p| p[3] > 0.05).count() > 1000, "the view shows the data");
+    assert!(
+        whole.iter().filter(|p| p[3] > 0.05).count() > 1000,
+        "the view shows the data"
+    );
     let root = scene_region(&s);
     let splits: [&[(usize, usize, f64)]; 3] = [
         &[(0, 0, 0.43)],
@@ -54,7 +58,11 @@ fn region_split_equals_whole_for_2_4_and_7_regions() {
         let tree = KdTree::from_splits(root, sp);
         let split = render_split(&s, &tree);
         let d = max_diff(&whole, &split);
-        assert!(d < 1e-5, "{} regions: max difference {d}", tree.leaves.len());
+        assert!(
+            d < 1e-5,
+            "{} regions: max difference {d}",
+            tree.leaves.len()
+        );
     }
 }
 
@@ -67,7 +75,9 @@ fn several_overlapping_volumes_split_seamlessly() {
     let a: Vec<f32> = (0..n * n * n)
         .map(|i| ((i % n) as f32 * 0.5).sin() * ((i / (n * n)) as f32 * 0.3).cos())
         .collect();
-    let b: Vec<f32> = (0..n * n * n).map(|i| ((i / n % n) as f32 * 0.4).cos()).collect();
+    let b: Vec<f32> = (0..n * n * n)
+        .map(|i| ((i / n % n) as f32 * 0.4).cos())
+        .collect();
     use strata_common::geo::Affine3;
     let va = volume_store(dir.path(), "a", [n, n, n], a, Affine3::IDENTITY, 32);
     let (c, s_) = (0.8f64, 0.6f64);
@@ -93,7 +103,12 @@ fn several_overlapping_volumes_split_seamlessly() {
     };
     let s = scene(
         vec![
-            volume_layer(va, "seismic", [-1.0, 1.0], vec![[0.0, 0.2], [0.5, 0.0], [1.0, 0.2]]),
+            volume_layer(
+                va,
+                "seismic",
+                [-1.0, 1.0],
+                vec![[0.0, 0.2], [0.5, 0.0], [1.0, 0.2]],
+            ),
             volume_layer(vb, "viridis", [-1.0, 1.0], vec![[0.0, 0.0], [1.0, 0.15]]),
         ],
         vec![],
@@ -169,10 +184,17 @@ fn out_of_core_converges_to_the_unlimited_image() {
     let r = e.render_batch(&view, &region).unwrap();
     assert_eq!(r.outcome, strata_worker::engine::Outcome::Converged);
     let got = r.image.to_full();
-    assert_eq!(max_diff(&want, &got), 0.0, "same pages, same samples, same image");
+    assert_eq!(
+        max_diff(&want, &got),
+        0.0,
+        "same pages, same samples, same image"
+    );
     let st = e.cache_stats();
     assert!(st.evictions > 0, "the budget forced evictions: {st:?}");
-    assert!(st.bytes_read > 1 << 20, "more than the budget was streamed: {st:?}");
+    assert!(
+        st.bytes_read > 1 << 20,
+        "more than the budget was streamed: {st:?}"
+    );
     // The view needs more pages than the cache holds (8 of 128 KiB).
     assert!(r.reports[0].requested > 8, "{:?}", r.reports);
 }

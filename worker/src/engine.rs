@@ -381,6 +381,13 @@ impl Engine {
             ert: (s.early_termination as f32).min(1.0),
             volume_shading: s.volume_shading,
             skipping: s.empty_space_skipping,
+            // 32 base steps: deep enough to amortize, shallow enough that the bricks a
+            // tile's rays touch in one chunk stay in cache.
+            chunk: if base > 0.0 && base.is_finite() {
+                32.0 * base
+            } else {
+                f32::INFINITY
+            },
         }
     }
 

@@ -249,11 +249,17 @@ impl<'a> HorFrame<'a> {
             flo[a] = flo[a].max(0.0);
             fhi[a] = fhi[a].min(self.dims[a] as f32 - 1.0);
         }
+        // Also clip to the height range of the data used, so steep rays walk few cells.
+        let [zmin, zmax] = self.bounds[self.table.index(r, [br[0], br[1], 0])];
+        if !(zmin <= zmax) {
+            return;
+        }
+        let eps = 1e-4 * (1.0 + zmin.abs().max(zmax.abs()));
         let (u0, u1) = slab(
             self.c,
             md,
-            [flo[0], flo[1], f32::NEG_INFINITY],
-            [fhi[0], fhi[1], f32::INFINITY],
+            [flo[0], flo[1], zmin - eps],
+            [fhi[0], fhi[1], zmax + eps],
         );
         let t_lo = u0.max(ta).max(0.0);
         let t_hi = u1.min(*limit);

@@ -57,6 +57,8 @@ pub struct FrameSetup<'a> {
     pub volume_shading: bool,
     /// Volume-skipping enabled.
     pub skipping: bool,
+    /// Depth of the lockstep chunks a tile's rays are marched in (camera-relative units).
+    pub chunk: f32,
 }
 
 /// Counters of one frame.
@@ -155,6 +157,13 @@ impl<'s, 'a> RayCtx<'s, 'a> {
             let seg_end = tb.min(band_end);
             let table = &v.tables[band];
             let mut k = first_k(t_start, dt);
+            // Hot loop: accumulate in locals, write back once.
+            let mut acc = self.acc;
+            let mut samples = 0u64;
+            let mut skipped = 0u64;
+            let ert = f.ert;
+            let shading = f.volume_shading;
+            let mut terminated = false;
             loop {
                 let t = k as f32 * dt;
                 if t >= seg_end {
@@ -163,16 +172,18 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                 if t >= cur.t_exit {
                     let q = [0, 1, 2].map(|a| v.c[a] + t * md[a]);
                     v.locate(cur, t, q, md, fb);
-                    if cur.transparent {
-                        let nk = first_k(cur.t_exit.min(seg_end), dt).max(k + 1);
-                        self.stats.skipped += (nk - k) as u64;
-                        k = nk;
-                        continue;
-                    }
+                }
+                if cur.transparent {
+                    // Jump to the first lattice point past the brick (the cursor stays
+                    // valid across segments, so a later segment may start inside it).
+                    let nk = first_k(cur.t_exit.min(seg_end), dt).max(k + 1);
+                    skipped += (nk - k) as u64;
+                    k = nk;
+                    continue;
                 }
                 let q = [v.c[0] + t * md[0], v.c[1] + t * md[1], v.c[2] + t * md[2]];
                 let s = v.sample(cur, q);
-                self.stats.samples += 1;
+                samples += 1;
                 k += 1;
                 if s.is_nan() {
                     continue; // no data: transparent
@@ -181,15 +192,22 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                 if rgba[3] <= 0.0 {
                     continue;
                 }
-                if f.volume_shading {
+                if shading {
                     shade(v, cur, q, self.d, &mut rgba);
                 }
-                blend(&mut self.acc, rgba);
-                if self.acc[3] >= f.ert {
-                    self.done = true;
-                    self.stats.terminated += 1;
-                    return;
+                blend(&mut acc, rgba);
+                if acc[3] >= ert {
+                    terminated = true;
+                    break;
                 }
+            }
+            self.acc = acc;
+            self.stats.samples += samples;
+            self.stats.skipped += skipped;
+            if terminated {
+                self.done = true;
+                self.stats.terminated += 1;
+                return;
             }
             t_start = seg_end;
             band += 1;
@@ -295,89 +313,146 @@ fn shade(v: &VolFrame<'_>, cur: &Cursor<'_>, q: [f32; 3], d: [f32; 3], rgba: &mu
     }
 }
 
-impl<'a> FrameSetup<'a> {
-    /// Casts one ray; `fb` collects requested pages.
-    pub fn cast(&self, d: [f32; 3], fb: &mut Vec<u64>, hits: &mut Vec<Hit>) -> (Rgba, CastStats) {
-        let (t0, t1) = clip_region(self.region_lo, self.region_hi, d);
-        let mut ctx = RayCtx {
-            f: self,
-            d,
-            acc: [0.0; 4],
-            stats: CastStats {
-                rays: 1,
-                ..CastStats::default()
-            },
-            done: false,
-        };
-        if t0 >= t1 {
-            return (ctx.acc, ctx.stats);
-        }
-        hits.clear();
-        for h in &self.hors {
-            h.intersect(d, t0, t1, hits, fb);
-        }
-        if hits.len() > 1 {
-            hits.sort_by(|a, b| a.t.total_cmp(&b.t));
-        }
-        let nv = self.vols.len();
-        // Per-volume interval of this ray, clipped to the region.
-        let mut mds = [[0.0f32; 3]; 8];
-        let mut spans = [(0.0f32, 0.0f32); 8];
-        let mut big_mds = Vec::new();
-        let mut big_spans = Vec::new();
-        let (mds, spans): (&mut [[f32; 3]], &mut [(f32, f32)]) = if nv <= 8 {
-            (&mut mds[..nv], &mut spans[..nv])
-        } else {
-            big_mds.resize(nv, [0.0; 3]);
-            big_spans.resize(nv, (0.0, 0.0));
-            (&mut big_mds[..], &mut big_spans[..])
-        };
-        for (i, v) in self.vols.iter().enumerate() {
-            mds[i] = v.index_dir(d);
-            let (a, b) = v.interval(mds[i]);
-            spans[i] = (a.max(t0), b.min(t1));
-        }
-        let mut curs: Vec<Cursor<'_>> = Vec::new();
-        let mut single = Cursor::default();
-        if nv > 1 {
-            curs.resize_with(nv, Cursor::default);
-        }
-        let mut cur_t = t0;
-        let mut hi = 0;
+/// A ray in flight: everything needed to continue marching it later. Tiles march their
+/// rays in lockstep chunks of `t` so that neighbouring rays touch the same bricks while
+/// they are in cache; because samples sit on the global lattice, where a march is cut
+/// into chunks changes nothing.
+pub struct RayState<'s, 'a> {
+    ctx: RayCtx<'s, 'a>,
+    t1: f32,
+    cur_t: f32,
+    hits: Vec<Hit>,
+    hi: usize,
+    md0: [f32; 3],
+    span0: (f32, f32),
+    single: Cursor<'a>,
+    mds: Vec<[f32; 3]>,
+    spans: Vec<(f32, f32)>,
+    curs: Vec<Cursor<'a>>,
+}
+
+impl<'s, 'a> RayState<'s, 'a> {
+    /// Whether the ray needs more marching.
+    pub fn active(&self) -> bool {
+        !self.ctx.done && self.cur_t < self.t1
+    }
+
+    /// Marches (volumes and surfaces, front to back) up to `until` (exclusive).
+    pub fn advance(&mut self, until: f32, fb: &mut Vec<u64>) {
+        let f = self.ctx.f;
+        let nv = f.vols.len();
         loop {
-            let next_hit = hits.get(hi).map_or(t1, |h| h.t);
-            let seg_end = next_hit.min(t1);
-            if seg_end > cur_t {
+            if self.ctx.done {
+                return;
+            }
+            let next_hit = self.hits.get(self.hi).map_or(f32::INFINITY, |h| h.t);
+            let seg_end = next_hit.min(self.t1).min(until);
+            if seg_end > self.cur_t {
                 match nv {
                     0 => {}
                     1 => {
-                        let (a, b) = spans[0];
-                        let (a, b) = (a.max(cur_t), b.min(seg_end));
+                        let (a, b) = self.span0;
+                        let (a, b) = (a.max(self.cur_t), b.min(seg_end));
                         if a < b {
-                            ctx.march_one(&self.vols[0], &mut single, mds[0], a, b, fb);
+                            self.ctx
+                                .march_one(&f.vols[0], &mut self.single, self.md0, a, b, fb);
                         }
                     }
-                    _ => self.march_fragments(&mut ctx, &mut curs, mds, spans, cur_t, seg_end, fb),
+                    _ => f.march_fragments(
+                        &mut self.ctx,
+                        &mut self.curs,
+                        &self.mds,
+                        &self.spans,
+                        self.cur_t,
+                        seg_end,
+                        fb,
+                    ),
                 }
+                self.cur_t = seg_end;
             }
-            if ctx.done {
-                break;
+            if self.ctx.done {
+                return;
             }
-            match hits.get(hi) {
-                Some(h) if h.t < t1 => {
-                    blend(&mut ctx.acc, h.rgba);
-                    ctx.stats.hits += 1;
-                    if ctx.acc[3] >= self.ert {
-                        ctx.stats.terminated += 1;
-                        break;
-                    }
-                    cur_t = cur_t.max(h.t);
-                    hi += 1;
+            // The next surface is reached (it lies before `until` and inside the region).
+            if next_hit < self.t1 && next_hit <= until && seg_end >= next_hit {
+                let h = self.hits[self.hi];
+                blend(&mut self.ctx.acc, h.rgba);
+                self.ctx.stats.hits += 1;
+                self.hi += 1;
+                if self.ctx.acc[3] >= f.ert {
+                    self.ctx.done = true;
+                    self.ctx.stats.terminated += 1;
+                    return;
                 }
-                _ => break,
+                self.cur_t = self.cur_t.max(next_hit);
+                continue;
             }
+            if seg_end >= self.t1 {
+                self.cur_t = self.t1;
+            }
+            return;
         }
-        (ctx.acc, ctx.stats)
+    }
+}
+
+impl<'a> FrameSetup<'a> {
+    /// Starts a ray: clips it to the region, finds its surface crossings and volume spans.
+    pub fn start<'s>(&'s self, d: [f32; 3], fb: &mut Vec<u64>) -> RayState<'s, 'a> {
+        let (t0, t1) = clip_region(self.region_lo, self.region_hi, d);
+        let mut st = RayState {
+            ctx: RayCtx {
+                f: self,
+                d,
+                acc: [0.0; 4],
+                stats: CastStats {
+                    rays: 1,
+                    ..CastStats::default()
+                },
+                done: false,
+            },
+            t1,
+            cur_t: t0,
+            hits: Vec::new(),
+            hi: 0,
+            md0: [0.0; 3],
+            span0: (0.0, 0.0),
+            single: Cursor::default(),
+            mds: Vec::new(),
+            spans: Vec::new(),
+            curs: Vec::new(),
+        };
+        if t0 >= t1 {
+            st.ctx.done = true;
+            return st;
+        }
+        for h in &self.hors {
+            h.intersect(d, t0, t1, &mut st.hits, fb);
+        }
+        if st.hits.len() > 1 {
+            st.hits.sort_by(|a, b| a.t.total_cmp(&b.t));
+        }
+        let nv = self.vols.len();
+        if nv == 1 {
+            st.md0 = self.vols[0].index_dir(d);
+            let (a, b) = self.vols[0].interval(st.md0);
+            st.span0 = (a.max(t0), b.min(t1));
+        } else if nv > 1 {
+            for v in &self.vols {
+                let md = v.index_dir(d);
+                let (a, b) = v.interval(md);
+                st.mds.push(md);
+                st.spans.push((a.max(t0), b.min(t1)));
+            }
+            st.curs.resize_with(nv, Cursor::default);
+        }
+        st
+    }
+
+    /// Casts one ray whole; `fb` collects requested pages.
+    pub fn cast(&self, d: [f32; 3], fb: &mut Vec<u64>) -> (Rgba, CastStats) {
+        let mut st = self.start(d, fb);
+        st.advance(f32::INFINITY, fb);
+        (st.ctx.acc, st.ctx.stats)
     }
 
     /// Cuts `[ta, tb)` at the volumes' box boundaries and marches each fragment with its
@@ -441,18 +516,44 @@ impl<'a> FrameSetup<'a> {
                 let ty = r.y + (ti / tiles_x) * TILE;
                 let w = TILE.min(r.x + r.w - tx);
                 let h = TILE.min(r.y + r.h - ty);
-                let mut px = Vec::with_capacity((w * h) as usize);
                 let mut fb = Vec::new();
-                let mut hits = Vec::new();
                 let mut st = CastStats::default();
+                let mut rays: Vec<RayState<'_, '_>> = Vec::with_capacity((w * h) as usize);
                 for y in ty..ty + h {
                     for x in tx..tx + w {
-                        let d = ray_dir(self, x, y);
-                        let (c, s) = self.cast(d, &mut fb, &mut hits);
-                        st += s;
-                        px.push(sanitize(c));
+                        rays.push(self.start(ray_dir(self, x, y), &mut fb));
                     }
                 }
+                // March all rays of the tile chunk by chunk along t.
+                let mut c = rays
+                    .iter()
+                    .filter(|r| r.active())
+                    .map(|r| (r.cur_t / self.chunk).floor())
+                    .fold(f32::INFINITY, f32::min);
+                while c.is_finite() {
+                    let until = (c + 1.0) * self.chunk;
+                    let mut next = f32::INFINITY;
+                    for r in rays.iter_mut() {
+                        if r.active() && r.cur_t < until {
+                            r.advance(until, &mut fb);
+                        }
+                        if r.active() {
+                            next = next.min((r.cur_t / self.chunk).floor());
+                        }
+                    }
+                    c = if next.is_finite() {
+                        next.max(c + 1.0)
+                    } else {
+                        next
+                    };
+                }
+                let px: Vec<Rgba> = rays
+                    .iter()
+                    .map(|r| {
+                        st += r.ctx.stats;
+                        sanitize(r.ctx.acc)
+                    })
+                    .collect();
                 let red = crate::feedback::reduce_tile(&mut fb);
                 (px, red, st)
             })

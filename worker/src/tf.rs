@@ -276,8 +276,14 @@ impl StepTable {
         let s = (v * self.scale + self.offset).clamp(0.0, self.last);
         let i = (s as usize).min(self.entries.len() - 2);
         let f = s - i as f32;
-        let a = self.entries[i];
-        let b = self.entries[i + 1];
+        // SAFETY: tables have at least two entries (`from_table` asserts it) and
+        // i <= len − 2, so i and i + 1 are in bounds.
+        let (a, b) = unsafe {
+            (
+                *self.entries.get_unchecked(i),
+                *self.entries.get_unchecked(i + 1),
+            )
+        };
         [
             a[0] + f * (b[0] - a[0]),
             a[1] + f * (b[1] - a[1]),

@@ -149,6 +149,7 @@ impl<'a> VolFrame<'a> {
         let k = (r - level) as u32;
         let pool: &'a Pool = self.pool;
         cur.data = pool.slot_data(slot);
+        assert_eq!(cur.data.len(), self.page * self.page * self.page);
         cur.s = sr;
         for a in 0..3 {
             let br = (b[a] >> k) as f32;
@@ -196,10 +197,10 @@ pub fn trilinear(data: &[f32], p: usize, x: f32, y: f32, z: f32) -> f32 {
     let (fx, fy, fz) = (x - xi as f32, y - yi as f32, z - zi as f32);
     let i = (zi * p + yi) * p + xi;
     let (sy, sz) = (p, p * p);
-    assert!(i + sz + sy + 1 < data.len());
-    // SAFETY: the coordinates are clamped to [0, p − 1) by the callers, so every tap index
-    // is at most i + sz + sy + 1, which the assertion above bounds (it is hoisted by the
-    // optimizer and never fails for a p³ page).
+    debug_assert!(i + sz + sy + 1 < data.len());
+    // SAFETY: `data` is a whole p³ page (checked where a cursor takes it, in `locate`) and
+    // the coordinates are clamped to [0, p − 1) by the callers, so the largest tap index,
+    // i + sz + sy + 1, is at most p³ − 1.
     unsafe {
         let g = |k: usize| *data.get_unchecked(k);
         let c00 = g(i) + fx * (g(i + 1) - g(i));

@@ -1,0 +1,415 @@
+//! `bench-render`: frame times, samples/s and the cost of accuracy for the CPU ray caster.
+//!
+//! * the bonsai CT (256³ u8) with ParaView's baseline transfer function and camera
+//!   (`../shared/baselines/paraview_volume.py`), at 1024² and 1920×1080;
+//! * accuracy against time: step, early termination, adaptive step and LOD tolerance, each
+//!   compared with a high-accuracy reference image;
+//! * a large synthetic survey with three horizons under a 1 GiB cache: rounds to converge,
+//!   pages loaded, hit rate.
+//!
+//! Run in release mode; the exact command and the numbers live in docs/BENCHMARKS.md.
+
+use anyhow::{Context, Result};
+use clap::Parser;
+use indicatif::ProgressBar;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+use strata_common::image::Rgba;
+use strata_common::sample::SampleType;
+use strata_common::scene::{Camera, RenderSettings, Scene, SyntheticSpec, VolumeLayer};
+use strata_coordinator::builder::{build_store, BuildOptions};
+use strata_coordinator::source::RawSource;
+use strata_worker::engine::Engine;
+
+#[derive(Parser)]
+#[command(name = "bench-render", about)]
+struct Cli {
+    /// Scratch folder (stores are built here).
+    #[arg(long, default_value = "/tmp/strata-bench")]
+    dir: PathBuf,
+    /// Timed frames per configuration (median reported).
+    #[arg(long, default_value_t = 5)]
+    frames: usize,
+    /// Skip the large synthetic survey.
+    #[arg(long)]
+    no_survey: bool,
+    /// Samples per axis of the synthetic survey (default ≈ 4.5 GiB of f32).
+    #[arg(long, num_args = 3, default_values_t = [1120u64, 1000, 1000])]
+    survey_size: Vec<u64>,
+    /// Skip the WGSL (wgpu) comparison.
+    #[arg(long)]
+    no_gpu: bool,
+    /// The bonsai raw file.
+    #[arg(long)]
+    bonsai: Option<PathBuf>,
+}
+
+fn bonsai_path(cli: &Cli) -> PathBuf {
+    cli.bonsai.clone().unwrap_or_else(|| {
+        PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+            .join("../../shared/data/real/volumes/bonsai/bonsai_256x256x256_uint8.raw")
+    })
+}
+
+fn bonsai_store(cli: &Cli) -> Result<PathBuf> {
+    let out = cli.dir.join("bonsai.strata");
+    if !out.exists() {
+        let src = RawSource::open(&bonsai_path(cli), [256, 256, 256], SampleType::U8, false)?;
+        let o = BuildOptions::volume("bonsai", SampleType::U8);
+        build_store(&src, &out, &o, &ProgressBar::hidden())?;
+    }
+    Ok(out)
+}
+
+/// ParaView's baseline setup: viridis over [0, 255], opacity 0 up to 10 % then to 0.5,
+/// camera at centre + 1.8 × diagonal along (1, 0.6, 0.8), up +z, 30°.
+fn bonsai_scene(store: &Path, w: u32, h: u32) -> Scene {
+    let c = 127.5;
+    let diag = (3.0f64).sqrt() * 255.0;
+    let d = [1.0, 0.6, 0.8];
+    let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2] as f64).sqrt();
+    Scene {
+        volumes: vec![VolumeLayer {
+            store: store.to_path_buf(),
+            colormap: "viridis".into(),
+            window: Some([0.0, 255.0]),
+            opacity: 1.0,
+            opacity_points: Some(vec![[0.0, 0.0], [0.1, 0.0], [1.0, 0.5]]),
+        }],
+        horizons: vec![],
+        camera: Some(Camera {
+            eye: [0, 1, 2].map(|i| c + d[i] / n * 1.8 * diag),
+            target: [c; 3],
+            up: [0.0, 0.0, 1.0],
+            fov_deg: 30.0,
+        }),
+        render: RenderSettings {
+            width: w,
+            height: h,
+            z_down: false,
+            ..RenderSettings::default()
+        },
+        synthetic: None,
+    }
+}
+
+struct Timed {
+    median: f64,
+    samples: u64,
+    rays: u64,
+    image: Vec<Rgba>,
+}
+
+/// Converges once (batch), then times `frames` frames with everything resident.
+fn time_scene(scene: &Scene, frames: usize) -> Result<Timed> {
+    let mut e = Engine::new(scene)?;
+    let view = e.view(scene.render.width, scene.render.height)?;
+    let region = e.scene_region();
+    e.render_batch(&view, &region)?;
+    let mut times = Vec::new();
+    let mut last = None;
+    for _ in 0..frames.max(1) {
+        let f = e.render_frame(&view, &region);
+        times.push(f.seconds);
+        last = Some(f);
+    }
+    times.sort_by(|a, b| a.total_cmp(b));
+    let f = last.unwrap();
+    Ok(Timed {
+        median: times[times.len() / 2],
+        samples: f.stats.samples,
+        rays: f.stats.rays,
+        image: f.image.to_full(),
+    })
+}
+
+fn rmse(a: &[Rgba], b: &[Rgba]) -> (f64, f64) {
+    let mut s = 0.0f64;
+    let mut m = 0.0f64;
+    for (p, q) in a.iter().zip(b) {
+        for c in 0..4 {
+            let d = (p[c] - q[c]) as f64;
+            s += d * d;
+            m = m.max(d.abs());
+        }
+    }
+    ((s / (a.len() * 4) as f64).sqrt(), m)
+}
+
+fn peak_rss_mib() -> f64 {
+    let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: getrusage writes into the struct we own.
+    unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut ru) };
+    ru.ru_maxrss as f64 / 1024.0
+}
+
+fn bonsai(cli: &Cli) -> Result<()> {
+    let store = bonsai_store(cli)?;
+    println!("## Bonsai 256³ u8, ParaView's transfer function and camera, step 1 voxel");
+    println!();
+    println!("| image | frame (median of {}) | trilinear samples | samples/s | rays | vs ParaView 'Ray Cast Only' 1939 ms / 'Smart' 1539 ms (1024², 1 rank) |", cli.frames);
+    println!("|---|---|---|---|---|---|");
+    for (w, h) in [(1024, 1024), (1920, 1080)] {
+        let t = time_scene(&bonsai_scene(&store, w, h), cli.frames)?;
+        let vs = if w == 1024 {
+            format!("{:.1}× / {:.1}× faster", 1.939 / t.median, 1.539 / t.median)
+        } else {
+            "-".into()
+        };
+        println!(
+            "| {w}×{h} | {:.1} ms | {} | {:.0} M/s | {} | {vs} |",
+            t.median * 1e3,
+            t.samples,
+            t.samples as f64 / t.median / 1e6,
+            t.rays
+        );
+    }
+    println!();
+
+    // Accuracy against time.
+    println!("## What accuracy costs (bonsai, 1024²; error against step 0.25, no early termination, fixed step, τ = 0.5)");
+    println!();
+    let mut reference = bonsai_scene(&store, 1024, 1024);
+    reference.render.step = 0.25;
+    reference.render.early_termination = 1.0;
+    reference.render.adaptive_step = false;
+    reference.render.tau = 0.5;
+    let r = time_scene(&reference, 1)?;
+    println!("reference: {:.0} ms, {} samples", r.median * 1e3, r.samples);
+    println!();
+    println!("| setting | frame ms | samples | RMSE | max abs error |");
+    println!("|---|---|---|---|---|");
+    type Tweak = fn(&mut RenderSettings);
+    let variants: Vec<(&str, Tweak)> = vec![
+        ("default (step 1, ERT 0.99, adaptive, τ 1)", |_| {}),
+        ("step 0.5", |s| s.step = 0.5),
+        ("step 2", |s| s.step = 2.0),
+        ("ERT off (1.0)", |s| s.early_termination = 1.0),
+        ("ERT 0.95", |s| s.early_termination = 0.95),
+        ("fixed step (no adaptive)", |s| s.adaptive_step = false),
+        ("τ = 2 px", |s| s.tau = 2.0),
+        ("τ = 4 px", |s| s.tau = 4.0),
+        ("no empty-space skipping", |s| {
+            s.empty_space_skipping = false
+        }),
+        ("gradient shading on", |s| s.volume_shading = true),
+    ];
+    for (name, f) in variants {
+        let mut s = bonsai_scene(&store, 1024, 1024);
+        f(&mut s.render);
+        let t = time_scene(&s, cli.frames)?;
+        let (e, m) = rmse(&t.image, &r.image);
+        println!(
+            "| {name} | {:.1} | {} | {:.5} | {:.4} |",
+            t.median * 1e3,
+            t.samples,
+            e,
+            m
+        );
+    }
+    println!();
+    Ok(())
+}
+
+/// The CPU caster against the same ray march in WGSL (wgpu; Mesa's lavapipe when there is
+/// no GPU), same frame, same run: fixed step, early termination 0.99, skipping in both
+/// (64³ bricks on the CPU, 8³ cells on the GPU).
+fn cpu_vs_wgsl(cli: &Cli) -> Result<()> {
+    let store = bonsai_store(cli)?;
+    let (w, h) = (1920u32, 1080u32);
+    let mut scene = bonsai_scene(&store, w, h);
+    scene.render.adaptive_step = false;
+    let cpu = time_scene(&scene, cli.frames)?;
+
+    let mut gpu = match strata_gpu::GpuRayMarcher::new() {
+        Ok(g) => g,
+        Err(e) => {
+            println!("## CPU vs WGSL: skipped, no wgpu adapter ({e:#})");
+            return Ok(());
+        }
+    };
+    // The same inputs the CPU caster derives: dense level 0, rel→index affine, TF table.
+    let raw = std::fs::read(bonsai_path(cli))?;
+    let voxels: Vec<f32> = raw.iter().map(|&b| b as f32).collect();
+    let engine = Engine::new(&scene)?;
+    let view = engine.view(w, h)?;
+    let pstore = strata_common::store::PageStore::open(&store)?;
+    let rel = view.relative_affine(&pstore.header().transform);
+    let inv = strata_worker::camera::invert_affine(&rel).context("singular transform")?;
+    let world_to_index = [0, 1, 2].map(|r| [0, 1, 2, 3].map(|c| inv.rows[r][c] as f32));
+    let tf = strata_worker::tf::TransferFunction::from_layer(&scene.volumes[0], [0.0, 255.0])?;
+    let brick = 8u32;
+    let cells = 256 / brick;
+    let mut transparent = vec![0u32; (cells * cells * cells) as usize];
+    for cz in 0..cells {
+        for cy in 0..cells {
+            for cx in 0..cells {
+                // Conservative: the cell plus a one-voxel margin (trilinear footprint).
+                let (mut lo, mut hi) = (f32::MAX, f32::MIN);
+                let r = |c: u32| (c * brick).saturating_sub(1)..((c + 1) * brick + 1).min(256);
+                for z in r(cz) {
+                    for y in r(cy) {
+                        for x in r(cx) {
+                            let v = voxels[((z * 256 + y) * 256 + x) as usize];
+                            lo = lo.min(v);
+                            hi = hi.max(v);
+                        }
+                    }
+                }
+                transparent[((cz * cells + cy) * cells + cx) as usize] =
+                    (tf.max_alpha(lo, hi) <= 0.0) as u32;
+            }
+        }
+    }
+    let job = strata_gpu::VolumeJob {
+        dims: [256, 256, 256],
+        voxels: &voxels,
+        world_to_index,
+        tf: &tf.table,
+        tf_range: [tf.lo, tf.hi],
+        width: w,
+        height: h,
+        dir00: view.dir00,
+        du: view.du,
+        dv: view.dv,
+        step: scene.render.step as f32,
+        alpha_exponent: 1.0,
+        early_termination: scene.render.early_termination as f32,
+        brick,
+        transparent: &transparent,
+    };
+    gpu.render(&job)?; // warm-up (upload, pipeline)
+    let mut times = Vec::new();
+    let mut last = None;
+    for _ in 0..cli.frames.clamp(1, 3) {
+        let f = gpu.render(&job)?;
+        times.push(f.kernel_ms + f.readback_ms);
+        last = Some(f);
+    }
+    times.sort_by(|a, b| a.total_cmp(b));
+    let g = times[times.len() / 2] / 1e3;
+    let (e, m) = rmse(&cpu.image, &last.unwrap().rgba);
+    println!(
+        "## CPU caster vs WGSL compute ({}), bonsai 1920×1080, same run",
+        gpu.adapter_name()
+    );
+    println!();
+    println!("| path | frame | samples/s (CPU trilinear samples / frame time) |");
+    println!("|---|---|---|");
+    println!(
+        "| CPU (rayon, 2 threads) | {:.0} ms | {:.0} M/s |",
+        cpu.median * 1e3,
+        cpu.samples as f64 / cpu.median / 1e6
+    );
+    println!(
+        "| WGSL on {} | {:.0} ms | {:.0} M/s (same samples) |",
+        if gpu.is_software() {
+            "software Vulkan"
+        } else {
+            "GPU"
+        },
+        g * 1e3,
+        cpu.samples as f64 / g / 1e6
+    );
+    println!();
+    println!(
+        "CPU is {:.2}× the speed of WGSL; image difference RMSE {:.5}, max {:.4} (the CPU \
+         interpolates a premultiplied, pre-corrected table; the WGSL job interpolates straight \
+         RGBA).",
+        g / cpu.median,
+        e,
+        m
+    );
+    println!();
+    Ok(())
+}
+
+fn survey(cli: &Cli) -> Result<()> {
+    let size = [cli.survey_size[0], cli.survey_size[1], cli.survey_size[2]];
+    let dir = cli
+        .dir
+        .join(format!("survey-{}x{}x{}", size[0], size[1], size[2]));
+    let spec = SyntheticSpec {
+        dir: dir.clone(),
+        size,
+        seed: 11,
+    };
+    let t = Instant::now();
+    let generated = strata_coordinator::demo::ensure_synthetic(&spec, &ProgressBar::hidden())?;
+    let gen_s = t.elapsed().as_secs_f64();
+    let scene_path = dir.join("scene.toml");
+    let text = std::fs::read_to_string(&scene_path).context("survey scene")?;
+    let mut scene = Scene::parse(&scene_path, &text)?;
+    scene.render.width = 1920;
+    scene.render.height = 1080;
+    scene.render.cache_mb = 1024;
+    scene.render.atlas_mb = 1024;
+    scene.volumes[0].opacity = 0.25;
+    let bytes: u64 = size.iter().product::<u64>() * 4;
+    println!(
+        "## Synthetic survey {}×{}×{} f32 ({:.2} GiB level 0) + 3 horizons, 1920×1080, 1 GiB cache{}",
+        size[0],
+        size[1],
+        size[2],
+        bytes as f64 / (1u64 << 30) as f64,
+        if generated {
+            format!(" (generated in {gen_s:.0} s)")
+        } else {
+            String::new()
+        }
+    );
+    println!();
+    let mut e = Engine::new(&scene)?;
+    let view = e.view(1920, 1080)?;
+    let region = e.scene_region();
+    let t = Instant::now();
+    let b = e.render_batch(&view, &region)?;
+    let total = t.elapsed().as_secs_f64();
+    let cs = e.cache_stats();
+    println!("| rounds | outcome | batch time | cast time | load time | pages read | MiB read | cache hit rate | last frame | samples | samples/s | peak RSS |");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
+    println!(
+        "| {} | {:?} | {:.2} s | {:.2} s | {:.2} s | {} | {:.0} | {:.1}% | {:.0} ms | {} | {:.0} M/s | {:.0} MiB |",
+        b.rounds,
+        b.outcome,
+        total,
+        b.cast_seconds,
+        b.load_seconds,
+        cs.pages_read,
+        cs.bytes_read as f64 / (1 << 20) as f64,
+        100.0 * cs.hits as f64 / (cs.hits + cs.misses).max(1) as f64,
+        b.last_seconds * 1e3,
+        b.last.samples,
+        b.last.samples as f64 / b.last_seconds / 1e6,
+        peak_rss_mib()
+    );
+    println!();
+    println!(
+        "per round (requested / missing / uploaded): {}",
+        b.reports
+            .iter()
+            .map(|r| format!("{}/{}/{}", r.requested, r.missing, r.uploaded))
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    Ok(())
+}
+
+fn main() -> Result<()> {
+    let cli = Cli::parse();
+    std::fs::create_dir_all(&cli.dir)?;
+    println!(
+        "bench-render, {} threads",
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    );
+    println!();
+    bonsai(&cli)?;
+    if !cli.no_gpu {
+        cpu_vs_wgsl(&cli)?;
+    }
+    if !cli.no_survey {
+        survey(&cli)?;
+    }
+    println!("peak RSS {:.0} MiB", peak_rss_mib());
+    Ok(())
+}
