@@ -36,6 +36,9 @@ struct Cli {
     /// Samples per axis of the synthetic survey (default ≈ 4.5 GiB of f32).
     #[arg(long, num_args = 3, default_values_t = [1120u64, 1000, 1000])]
     survey_size: Vec<u64>,
+    /// Only the synthetic survey.
+    #[arg(long)]
+    only_survey: bool,
     /// Skip the WGSL (wgpu) comparison.
     #[arg(long)]
     no_gpu: bool,
@@ -343,7 +346,9 @@ fn survey(cli: &Cli) -> Result<()> {
     scene.render.width = 1920;
     scene.render.height = 1080;
     scene.render.cache_mb = 1024;
-    scene.render.atlas_mb = 1024;
+    // The atlas (the GPU-side pool, host memory here) must hold the view's cut; the 1 GiB
+    // cache is what streams.
+    scene.render.atlas_mb = 4096;
     scene.volumes[0].opacity = 0.25;
     let bytes: u64 = size.iter().product::<u64>() * 4;
     println!(
@@ -403,8 +408,10 @@ fn main() -> Result<()> {
         std::thread::available_parallelism().map_or(1, |n| n.get())
     );
     println!();
-    bonsai(&cli)?;
-    if !cli.no_gpu {
+    if !cli.only_survey {
+        bonsai(&cli)?;
+    }
+    if !cli.no_gpu && !cli.only_survey {
         cpu_vs_wgsl(&cli)?;
     }
     if !cli.no_survey {

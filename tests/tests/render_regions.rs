@@ -198,3 +198,50 @@ fn out_of_core_converges_to_the_unlimited_image() {
     // The view needs more pages than the cache holds (8 of 128 KiB).
     assert!(r.reports[0].requested > 8, "{:?}", r.reports);
 }
+
+#[test]
+fn real_ct_volume_splits_seamlessly() {
+    // The bonsai CT (256³ u8) from ../shared/data/real, as ParaView's baseline renders it.
+    let raw = strata_tests::real_data("volumes/bonsai/bonsai_256x256x256_uint8.raw");
+    let dir = TempDir::new().unwrap();
+    let store = dir.path().join("bonsai.strata");
+    let src = strata_coordinator::source::RawSource::open(
+        &raw,
+        [256, 256, 256],
+        strata_common::sample::SampleType::U8,
+        false,
+    )
+    .unwrap();
+    let o = strata_coordinator::builder::BuildOptions::volume(
+        "bonsai",
+        strata_common::sample::SampleType::U8,
+    );
+    strata_coordinator::builder::build_store(&src, &store, &o, &indicatif::ProgressBar::hidden())
+        .unwrap();
+    let cam = strata_common::scene::Camera {
+        eye: [892.4, 586.9, 713.4],
+        target: [127.5; 3],
+        up: [0.0, 0.0, 1.0],
+        fov_deg: 30.0,
+    };
+    let s = scene(
+        vec![volume_layer(
+            store,
+            "viridis",
+            [0.0, 255.0],
+            vec![[0.0, 0.0], [0.1, 0.0], [1.0, 0.5]],
+        )],
+        vec![],
+        cam,
+        exact_settings(72, 72),
+    );
+    let whole = render_whole(&s);
+    assert_clean(&whole);
+    assert!(
+        whole.iter().filter(|p| p[3] > 0.2).count() > 300,
+        "the bonsai is visible"
+    );
+    let tree = KdTree::from_splits(scene_region(&s), &[(0, 2, 0.5), (0, 0, 0.45), (1, 1, 0.6)]);
+    let d = max_diff(&whole, &render_split(&s, &tree));
+    assert!(d < 1e-5, "max difference {d}");
+}

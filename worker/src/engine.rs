@@ -440,11 +440,16 @@ impl Engine {
         if missing.is_empty() {
             return Ok(report);
         }
-        // Pages waiting for upload stay locked in the cache until they are in the atlas.
-        self.cache.set_locked(missing.iter().map(|e| e.0));
+        // This round loads and uploads at most the per-frame budget, most important first
+        // (the rest is asked for again by the next frame's feedback). Pages waiting for
+        // upload stay locked in the cache until they are in the atlas, so the locked set,
+        // and any overshoot of the cache budget, is bounded by the upload budget.
+        let budget = self.settings.upload_pages_per_frame.max(1) as usize;
+        let round: Vec<(u64, u32)> = missing.iter().copied().take(budget).collect();
+        self.cache.set_locked(round.iter().map(|e| e.0));
         self.cache.cancel_prefetch();
-        let maxc = missing.iter().map(|e| e.1).max().unwrap_or(1).max(1) as f32;
-        for &(k, c) in &missing {
+        let maxc = round.iter().map(|e| e.1).max().unwrap_or(1).max(1) as f32;
+        for &(k, c) in &round {
             self.cache.request(k, Class::Real, c as f32 / maxc);
         }
         if wait {
@@ -452,8 +457,7 @@ impl Engine {
                 .wait_real(LOAD_TIMEOUT)
                 .map_err(|e| anyhow::anyhow!("loading pages: {e}"))?;
         }
-        let budget = self.settings.upload_pages_per_frame.max(1) as usize;
-        for &(k, _) in &missing {
+        for &(k, _) in &round {
             if report.uploaded >= budget {
                 break;
             }

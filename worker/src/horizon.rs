@@ -318,8 +318,22 @@ impl<'a> HorFrame<'a> {
                     let hmin = h00.min(h10).min(h01).min(h11);
                     let hmax = h00.max(h10).max(h01).max(h11);
                     if z0.min(z1) <= hmax && z0.max(z1) >= hmin {
-                        let u0 = cr[0] + t_cell * dr[0] - i as f32;
-                        let v0 = cr[1] + t_cell * dr[1] - j as f32;
+                        // Solve relative to where the ray enters this cell, a value that
+                        // depends only on the cell and the ray, not on where the region
+                        // clipped it: the same crossing gets the same t in every region.
+                        let entry = |a: usize, c: i64| -> f32 {
+                            if dr[a] == 0.0 {
+                                f32::NEG_INFINITY
+                            } else {
+                                let bound = if dr[a] > 0.0 { c } else { c + 1 } as f32;
+                                (bound - cr[a]) / dr[a]
+                            }
+                        };
+                        let t_org = entry(0, i).max(entry(1, j));
+                        let t_org = if t_org.is_finite() { t_org } else { t_cell };
+                        let z0 = cr[2] + t_org * dr[2];
+                        let u0 = cr[0] + t_org * dr[0] - i as f32;
+                        let v0 = cr[1] + t_org * dr[1] - j as f32;
                         let a = h10 - h00;
                         let bb = h01 - h00;
                         let c = h00 - h10 - h01 + h11;
@@ -327,9 +341,12 @@ impl<'a> HorFrame<'a> {
                         let qb = dr[2] - a * dr[0] - bb * dr[1] - c * (u0 * dr[1] + v0 * dr[0]);
                         let qc = z0 - h00 - a * u0 - bb * v0 - c * u0 * v0;
                         let mut roots = [0.0f32; 2];
-                        let n = roots_in(qa, qb, qc, 0.0, t_next - t_cell, &mut roots);
+                        let n = roots_in(qa, qb, qc, t_cell - t_org, t_next - t_org, &mut roots);
                         for &sroot in &roots[..n] {
-                            let t = t_cell + sroot;
+                            let t = t_org + sroot;
+                            if t < t_cell || t >= t_next {
+                                continue;
+                            }
                             if t < ta || t >= *limit {
                                 continue;
                             }
