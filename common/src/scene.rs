@@ -244,6 +244,19 @@ fn default_loaders() -> u32 {
     2
 }
 
+/// 1-based line and column of byte `offset` in `text` (an offset inside a multi-byte
+/// character counts as that character).
+pub fn line_col(text: &str, offset: usize) -> (usize, usize) {
+    let mut end = offset.min(text.len());
+    while !text.is_char_boundary(end) {
+        end -= 1;
+    }
+    let before = &text[..end];
+    let line = before.matches('\n').count() + 1;
+    let col = before.len() - before.rfind('\n').map_or(0, |i| i + 1) + 1;
+    (line, col)
+}
+
 /// A scene that failed to parse: the message names file, line and column.
 #[derive(Debug, thiserror::Error)]
 #[error("{path}:{line}:{column}: {message}")]
@@ -262,15 +275,7 @@ impl Scene {
     /// Parses scene text; `path` names the file in errors and anchors relative store paths.
     pub fn parse(path: &Path, text: &str) -> Result<Scene, SceneError> {
         let mut scene: Scene = toml::from_str(text).map_err(|e| {
-            let (line, column) = e
-                .span()
-                .map(|s| {
-                    let before = &text[..s.start.min(text.len())];
-                    let line = before.matches('\n').count() + 1;
-                    let col = before.len() - before.rfind('\n').map_or(0, |i| i + 1) + 1;
-                    (line, col)
-                })
-                .unwrap_or((1, 1));
+            let (line, column) = e.span().map_or((1, 1), |s| line_col(text, s.start));
             SceneError {
                 path: path.to_path_buf(),
                 line,

@@ -9,7 +9,7 @@
 
 use anyhow::{bail, Context, Result};
 use std::path::Path;
-use strata_common::scene::{Scene, SceneError};
+use strata_common::scene::{line_col, Scene, SceneError};
 use toml::{Table, Value};
 
 /// Largest image side `parse_size` accepts.
@@ -226,18 +226,6 @@ fn push_seg(at: &mut String, seg: &str) {
         at.push('.');
     }
     at.push_str(seg);
-}
-
-/// 1-based line and column of byte `offset` in `text` (as `Scene::parse` reports them).
-fn line_col(text: &str, offset: usize) -> (usize, usize) {
-    let mut end = offset.min(text.len());
-    while !text.is_char_boundary(end) {
-        end -= 1;
-    }
-    let before = &text[..end];
-    let line = before.matches('\n').count() + 1;
-    let col = before.len() - before.rfind('\n').map_or(0, |i| i + 1) + 1;
-    (line, col)
 }
 
 /// The error for an overridden scene that does not parse: the last override that turned a

@@ -96,6 +96,20 @@ fn rows_f32(a: &Affine3) -> ([[f32; 3]; 3], [f32; 3]) {
     (m, c)
 }
 
+/// Distance from the eye at which level `l` becomes fine enough: where one pixel covers
+/// `2^l` samples of size `size` within the tolerance `tau` (level 0 from the eye on).
+fn level_distances(size: f64, levels: usize, tau: f64, pixel_angle: f32) -> Vec<f32> {
+    (0..levels)
+        .map(|l| {
+            if l == 0 {
+                0.0
+            } else {
+                (size * (1u64 << l) as f64 / (tau * pixel_angle as f64)) as f32
+            }
+        })
+        .collect()
+}
+
 fn col_len(a: &Affine3, c: usize) -> f64 {
     (0..3).map(|r| a.rows[r][c].powi(2)).sum::<f64>().sqrt()
 }
@@ -282,19 +296,12 @@ impl Engine {
             .map(|b| (s.step as f32) * (1u64 << b) as f32)
             .collect();
         for (i, v) in self.data.volumes.iter().enumerate() {
-            let inv = invert_affine(&rel[i]).expect("validated invertible");
+            let inv = invert_affine(&rel[i])
+                .expect("stores with singular transforms are refused at open, z_scale > 0");
             let (m, c) = rows_f32(&inv);
             let vsize = (0..3).map(|k| col_len(&rel[i], k)).fold(0.0, f64::max);
             let nl = v.pyramid.level_count();
-            let level_t = (0..nl)
-                .map(|l| {
-                    if l == 0 {
-                        0.0
-                    } else {
-                        (vsize * (1u64 << l) as f64 / (s.tau * pa as f64)) as f32
-                    }
-                })
-                .collect();
+            let level_t = level_distances(vsize, nl, s.tau, pa);
             let transparent = if s.empty_space_skipping {
                 v.bounds
                     .iter()
@@ -323,19 +330,12 @@ impl Engine {
         let mut hors = Vec::new();
         for h in &self.data.horizons {
             let rel = view.relative_affine(&h.to_world);
-            let inv = invert_affine(&rel).expect("validated invertible");
+            let inv = invert_affine(&rel)
+                .expect("stores with singular transforms are refused at open, z_scale > 0");
             let (m, c) = rows_f32(&inv);
             let cell = col_len(&rel, 0).max(col_len(&rel, 1));
             let nl = h.pyramid.level_count();
-            let level_t = (0..nl)
-                .map(|l| {
-                    if l == 0 {
-                        0.0
-                    } else {
-                        (cell * (1u64 << l) as f64 / (s.tau * pa as f64)) as f32
-                    }
-                })
-                .collect();
+            let level_t = level_distances(cell, nl, s.tau, pa);
             let d = h.pyramid.level(0).dims;
             hors.push(HorFrame {
                 ds: h.ds,
