@@ -93,6 +93,8 @@ fn bonsai_scene(store: &Path, w: u32, h: u32) -> Scene {
             ..RenderSettings::default()
         },
         synthetic: None,
+        composite: Default::default(),
+        cluster: Default::default(),
     }
 }
 

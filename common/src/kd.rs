@@ -156,6 +156,424 @@ impl KdTree {
     }
 }
 
+/// A box of work: its world region and its estimated cost (expected ray samples).
+///
+/// The cost is spread uniformly over the box: the part of a box inside a region costs its
+/// volume fraction of the whole. A box with zero extent on an axis (a flat horizon tile, a
+/// single plane of voxels) counts wholly on the side of a split that holds it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CostBox {
+    /// World region (half-open like every [`Region`]).
+    pub region: Region,
+    /// Estimated cost; NaN, infinite and negative costs count as 0.
+    pub cost: f64,
+}
+
+/// A k-d tree whose leaves are assigned to workers. Every worker owns one whole subtree, so
+/// its leaves are contiguous in every visibility order and the workers themselves have a
+/// well-defined front-to-back order for any eye (what sort-last compositing needs).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Decomposition {
+    /// The tree; its leaves are numbered in tree order (depth first, lower side first).
+    pub tree: KdTree,
+    /// Leaf → worker.
+    pub owner: Vec<usize>,
+    /// Leaf → estimated cost (the cost of the boxes inside it).
+    pub leaf_cost: Vec<f64>,
+    /// Number of workers (`0..workers`, numbered in tree order).
+    pub workers: usize,
+}
+
+/// Largest allowed deviation of a snapped split's cost fraction from its target, before the
+/// "one brick's share" term (see [`Decomposition::balanced`]).
+pub const SNAP_TOLERANCE: f64 = 0.02;
+
+/// A box clipped to a node, with the part of its cost that lies in the node.
+fn clip_box(b: &CostBox, r: &Region) -> Option<CostBox> {
+    let mut out = *b;
+    let mut frac = 1.0;
+    for a in 0..3 {
+        let (lo, hi) = (b.region.lo[a], b.region.hi[a]);
+        let ext = hi - lo;
+        if ext > 0.0 {
+            let clo = lo.max(r.lo[a]);
+            let chi = hi.min(r.hi[a]);
+            if chi <= clo {
+                return None;
+            }
+            frac *= ((chi - clo) / ext).min(1.0);
+            out.region.lo[a] = clo;
+            out.region.hi[a] = chi;
+        } else if !(r.lo[a] <= lo && lo < r.hi[a]) {
+            // Zero extent: wholly in the half-open node or not at all.
+            return None;
+        }
+    }
+    out.cost = b.cost * frac;
+    (out.cost > 0.0).then_some(out)
+}
+
+/// Cost of the boxes' parts below `x` on `axis` (all boxes lie inside the node).
+fn cost_below(boxes: &[CostBox], axis: usize, x: f64) -> f64 {
+    boxes
+        .iter()
+        .map(|b| {
+            let (lo, hi) = (b.region.lo[axis], b.region.hi[axis]);
+            let ext = hi - lo;
+            if ext > 0.0 {
+                b.cost * ((x - lo) / ext).clamp(0.0, 1.0)
+            } else if lo < x {
+                b.cost
+            } else {
+                0.0
+            }
+        })
+        .sum()
+}
+
+/// Smallest `x` in `[lo, hi]` (to float resolution) with `cost_below(x) >= want`, or the
+/// position just below it when that is closer to `want` (a jump from a zero-extent box).
+fn balanced_position(boxes: &[CostBox], axis: usize, lo: f64, hi: f64, want: f64) -> f64 {
+    let (mut a, mut b) = (lo, hi);
+    for _ in 0..200 {
+        let mid = 0.5 * (a + b);
+        if !(mid > a && mid < b) {
+            break;
+        }
+        if cost_below(boxes, axis, mid) >= want {
+            b = mid;
+        } else {
+            a = mid;
+        }
+    }
+    let (ca, cb) = (cost_below(boxes, axis, a), cost_below(boxes, axis, b));
+    if want - ca < cb - want {
+        a
+    } else {
+        b
+    }
+}
+
+/// Sorted, finite, deduplicated copies of the candidate planes.
+fn clean_planes(planes: &[Vec<f64>; 3]) -> [Vec<f64>; 3] {
+    [0, 1, 2].map(|a| {
+        let mut v: Vec<f64> = planes[a]
+            .iter()
+            .copied()
+            .filter(|p| p.is_finite())
+            .collect();
+        v.sort_by(f64::total_cmp);
+        v.dedup();
+        v
+    })
+}
+
+struct Builder {
+    planes: [Vec<f64>; 3],
+    leaves: Vec<Region>,
+    owner: Vec<usize>,
+    leaf_cost: Vec<f64>,
+}
+
+impl Builder {
+    /// Builds the subtree of `region` for workers `first..first + workers`, each with
+    /// `per_worker` leaves (`workers == 1`: `per_worker` is the leaves still to make).
+    fn node(
+        &mut self,
+        region: Region,
+        boxes: Vec<CostBox>,
+        first: usize,
+        workers: usize,
+        per_worker: usize,
+    ) -> KdNode {
+        let (n_lo, n) = if workers >= 2 {
+            (workers / 2, workers)
+        } else if per_worker >= 2 {
+            (per_worker / 2, per_worker)
+        } else {
+            let id = self.leaves.len();
+            self.leaves.push(region);
+            self.owner.push(first);
+            self.leaf_cost.push(boxes.iter().map(|b| b.cost).sum());
+            return KdNode::Leaf(id);
+        };
+        let (axis, pos) = self.split_of(&region, &boxes, n_lo as f64 / n as f64);
+        let (rlo, rhi) = region.split(axis, pos);
+        let blo: Vec<CostBox> = boxes.iter().filter_map(|b| clip_box(b, &rlo)).collect();
+        let bhi: Vec<CostBox> = boxes.iter().filter_map(|b| clip_box(b, &rhi)).collect();
+        drop(boxes);
+        let (lo, hi) = if workers >= 2 {
+            (
+                self.node(rlo, blo, first, n_lo, per_worker),
+                self.node(rhi, bhi, first + n_lo, n - n_lo, per_worker),
+            )
+        } else {
+            (
+                self.node(rlo, blo, first, 1, n_lo),
+                self.node(rhi, bhi, first, 1, n - n_lo),
+            )
+        };
+        KdNode::Split {
+            axis,
+            pos,
+            lo: Box::new(lo),
+            hi: Box::new(hi),
+        }
+    }
+
+    /// The split of a node: longest axis, cost-balanced position, snapped to a candidate
+    /// plane when that is close enough, and always strictly inside the node.
+    fn split_of(&self, r: &Region, boxes: &[CostBox], target: f64) -> (usize, f64) {
+        let ext = [0, 1, 2].map(|a| r.hi[a] - r.lo[a]);
+        let mut axis = 0;
+        for a in 1..3 {
+            if ext[a] > ext[axis] {
+                axis = a;
+            }
+        }
+        let (lo, hi) = (r.lo[axis], r.hi[axis]);
+        let mid = lo + 0.5 * (hi - lo);
+        let total: f64 = boxes.iter().map(|b| b.cost).sum();
+        if !(total > 0.0 && total.is_finite()) {
+            return (axis, mid);
+        }
+        let want = target * total;
+        let mut pos = balanced_position(boxes, axis, lo, hi, want);
+        // Snap to the nearest candidate plane strictly inside the node if its cost
+        // fraction is within max(SNAP_TOLERANCE, one brick's share) of the target.
+        let planes = &self.planes[axis];
+        let i = planes.partition_point(|&p| p < pos);
+        let nearest = [i.checked_sub(1), Some(i)]
+            .into_iter()
+            .flatten()
+            .filter_map(|k| planes.get(k).copied())
+            .filter(|&p| p > lo && p < hi)
+            .min_by(|a, b| (a - pos).abs().total_cmp(&(b - pos).abs()));
+        if let Some(p) = nearest {
+            let brick = boxes.iter().map(|b| b.cost).fold(0.0, f64::max) / total;
+            let frac = cost_below(boxes, axis, p) / total;
+            if (frac - target).abs() <= SNAP_TOLERANCE.max(brick) {
+                pos = p;
+            }
+        }
+        // Never an empty side: keep the plane strictly inside, a hair away from the faces.
+        let margin = 1e-6 * (hi - lo);
+        if !(pos > lo && pos < hi) {
+            pos = pos.clamp(lo + margin, hi - margin);
+        }
+        if !(pos > lo && pos < hi) {
+            pos = mid; // a node too thin to split (degenerate root only)
+        }
+        (axis, pos)
+    }
+}
+
+impl Decomposition {
+    /// Splits `root` into `workers × leaves_per_worker` leaves of about equal cost.
+    ///
+    /// Recursive bisection: a node with `w ≥ 2` workers is split into `w / 2` and
+    /// `w − w / 2` workers; a node with one worker and `L > 1` leaves is split the same way
+    /// by leaf count. The split axis is the node's longest; the position is where the cost
+    /// below the plane is `w_lo / w` of the node's (boxes partially inside a side count in
+    /// proportion to their overlapped volume; found by bisection to float resolution). If
+    /// the node costs nothing, it is split in the middle.
+    ///
+    /// **Snapping rule.** Among `planes[axis]` (brick boundaries in world coordinates)
+    /// strictly inside the node, the one nearest the balanced position is used instead if
+    /// the cost fraction below it differs from the target fraction by at most
+    /// `max(SNAP_TOLERANCE, b)`, where `b` is one brick's share: the largest cost of a
+    /// single box inside the node divided by the node's cost. Otherwise the unsnapped
+    /// position is kept. Snapped planes keep bricks whole, so fewer pages are loaded twice.
+    ///
+    /// Every split lies strictly inside its node, so no leaf has an empty extent unless
+    /// `root` itself has one. Degenerate inputs do not panic: `workers == 0` and
+    /// `leaves_per_worker == 0` count as 1; boxes with NaN, infinite or negative cost count
+    /// as costless; boxes with non-finite corners or outside `root` are ignored (a box
+    /// partly outside `root` keeps only the cost of its part inside).
+    pub fn balanced(
+        root: Region,
+        boxes: &[CostBox],
+        workers: usize,
+        leaves_per_worker: usize,
+        planes: &[Vec<f64>; 3],
+    ) -> Decomposition {
+        let workers = workers.max(1);
+        let per_worker = leaves_per_worker.max(1);
+        let boxes: Vec<CostBox> = boxes
+            .iter()
+            .filter(|b| {
+                (0..3).all(|a| {
+                    b.region.lo[a].is_finite()
+                        && b.region.hi[a].is_finite()
+                        && b.region.lo[a] <= b.region.hi[a]
+                })
+            })
+            .map(|b| CostBox {
+                region: b.region,
+                cost: if b.cost.is_finite() && b.cost > 0.0 {
+                    b.cost
+                } else {
+                    0.0
+                },
+            })
+            .filter_map(|b| clip_box(&b, &root))
+            .collect();
+        let mut builder = Builder {
+            planes: clean_planes(planes),
+            leaves: Vec::with_capacity(workers * per_worker),
+            owner: Vec::with_capacity(workers * per_worker),
+            leaf_cost: Vec::with_capacity(workers * per_worker),
+        };
+        let tree_root = builder.node(root, boxes, 0, workers, per_worker);
+        Decomposition {
+            tree: KdTree {
+                root_region: root,
+                root: tree_root,
+                leaves: builder.leaves,
+            },
+            owner: builder.owner,
+            leaf_cost: builder.leaf_cost,
+            workers,
+        }
+    }
+
+    /// The leaves of `worker`, in tree order.
+    pub fn worker_leaves(&self, worker: usize) -> Vec<usize> {
+        (0..self.owner.len())
+            .filter(|&l| self.owner[l] == worker)
+            .collect()
+    }
+
+    /// Estimated cost per worker (the sum of its leaves' costs).
+    pub fn worker_costs(&self) -> Vec<f64> {
+        let mut c = vec![0.0; self.workers];
+        for (l, &w) in self.owner.iter().enumerate() {
+            if let (Some(s), Some(v)) = (c.get_mut(w), self.leaf_cost.get(l)) {
+                *s += v;
+            }
+        }
+        c
+    }
+
+    /// Workers front to back as seen from `eye`: the order in which they first appear in
+    /// the tree's visibility order. Each worker's leaves are contiguous in that order (one
+    /// subtree per worker); debug builds check it.
+    pub fn worker_order(&self, eye: [f64; 3]) -> Vec<usize> {
+        let mut out = Vec::with_capacity(self.workers);
+        let mut seen = vec![false; self.workers];
+        for leaf in self.tree.visibility_order(eye) {
+            let Some(&w) = self.owner.get(leaf) else {
+                continue;
+            };
+            if out.last() == Some(&w) {
+                continue;
+            }
+            debug_assert!(
+                !seen.get(w).copied().unwrap_or(false),
+                "worker {w}'s leaves are not contiguous in the visibility order"
+            );
+            if w < seen.len() && !seen[w] {
+                seen[w] = true;
+                out.push(w);
+            }
+        }
+        out
+    }
+
+    /// The leaves of `worker` front to back as seen from `eye`.
+    pub fn leaf_order_of(&self, worker: usize, eye: [f64; 3]) -> Vec<usize> {
+        self.tree
+            .visibility_order(eye)
+            .into_iter()
+            .filter(|&l| self.owner.get(l) == Some(&worker))
+            .collect()
+    }
+
+    /// Largest worker cost over the mean worker cost (1 when nothing costs anything).
+    pub fn imbalance(&self) -> f64 {
+        let c = self.worker_costs();
+        let total: f64 = c.iter().sum();
+        let mean = total / self.workers.max(1) as f64;
+        if !(mean > 0.0 && mean.is_finite()) {
+            return 1.0;
+        }
+        c.iter().copied().fold(0.0, f64::max) / mean
+    }
+
+    /// Checks the structure (for a decomposition that arrived from elsewhere): every leaf
+    /// appears once in the tree, the per-leaf vectors match the leaves, every worker owns
+    /// at least one leaf, and every worker's leaves form one whole subtree.
+    pub fn validate(&self) -> Result<(), String> {
+        let n = self.tree.leaves.len();
+        if self.owner.len() != n || self.leaf_cost.len() != n {
+            return Err(format!(
+                "{n} leaves but {} owners and {} costs",
+                self.owner.len(),
+                self.leaf_cost.len()
+            ));
+        }
+        if let Some(&w) = self.owner.iter().find(|&&w| w >= self.workers) {
+            return Err(format!(
+                "owner {w} out of range for {} workers",
+                self.workers
+            ));
+        }
+        let mut count = vec![0usize; self.workers];
+        for &w in &self.owner {
+            count[w] += 1;
+        }
+        if let Some(w) = count.iter().position(|&c| c == 0) {
+            return Err(format!("worker {w} owns no leaf"));
+        }
+        /// Owners below a node (sorted) and its leaf count; marks `whole[w]` where a
+        /// subtree holds exactly the leaves of worker `w`.
+        fn walk(
+            n: &KdNode,
+            d: &Decomposition,
+            count: &[usize],
+            hit: &mut [bool],
+            whole: &mut [bool],
+        ) -> Result<(Vec<usize>, usize), String> {
+            let (owners, leaves) = match n {
+                KdNode::Leaf(i) => {
+                    if *i >= hit.len() || hit[*i] {
+                        return Err(format!("leaf {i} is missing or appears twice"));
+                    }
+                    hit[*i] = true;
+                    (vec![d.owner[*i]], 1)
+                }
+                KdNode::Split { axis, lo, hi, .. } => {
+                    if *axis > 2 {
+                        return Err(format!("split axis {axis}"));
+                    }
+                    let (mut a, na) = walk(lo, d, count, hit, whole)?;
+                    let (b, nb) = walk(hi, d, count, hit, whole)?;
+                    a.extend(b);
+                    a.sort_unstable();
+                    a.dedup();
+                    (a, na + nb)
+                }
+            };
+            if let [w] = owners[..] {
+                if count[w] == leaves {
+                    whole[w] = true;
+                }
+            }
+            Ok((owners, leaves))
+        }
+        let mut hit = vec![false; n];
+        let mut whole = vec![false; self.workers];
+        walk(&self.tree.root, self, &count, &mut hit, &mut whole)?;
+        if let Some(w) = whole.iter().position(|h| !h) {
+            return Err(format!("worker {w}'s leaves are not one whole subtree"));
+        }
+        if let Some(i) = hit.iter().position(|h| !h) {
+            return Err(format!("leaf {i} is not in the tree"));
+        }
+        Ok(())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -175,5 +593,395 @@ mod tests {
         assert_eq!(o, vec![1, 3, 0, 2]);
         let o = t.visibility_order([-1.0, 5.0, 20.0]);
         assert_eq!(o, vec![2, 0, 3, 1]);
+    }
+
+    fn cube(lo: [f64; 3], hi: [f64; 3]) -> Region {
+        Region { lo, hi }
+    }
+
+    fn volume(r: &Region) -> f64 {
+        (0..3).map(|a| r.hi[a] - r.lo[a]).product()
+    }
+
+    /// A grid of `n` equal boxes of cost `c` each tiling `r`.
+    fn grid(r: &Region, n: [usize; 3], c: f64) -> Vec<CostBox> {
+        let mut out = Vec::new();
+        for z in 0..n[2] {
+            for y in 0..n[1] {
+                for x in 0..n[0] {
+                    let i = [x, y, z];
+                    let at =
+                        |a: usize, k: usize| r.lo[a] + (r.hi[a] - r.lo[a]) * k as f64 / n[a] as f64;
+                    out.push(CostBox {
+                        region: Region {
+                            lo: [0, 1, 2].map(|a| at(a, i[a])),
+                            hi: [0, 1, 2].map(|a| at(a, i[a] + 1)),
+                        },
+                        cost: c,
+                    });
+                }
+            }
+        }
+        out
+    }
+
+    fn no_planes() -> [Vec<f64>; 3] {
+        [vec![], vec![], vec![]]
+    }
+
+    fn first_split(d: &Decomposition) -> (usize, f64) {
+        match d.tree.root {
+            KdNode::Split { axis, pos, .. } => (axis, pos),
+            KdNode::Leaf(_) => panic!("no split"),
+        }
+    }
+
+    /// Every structural property a decomposition promises.
+    fn check(d: &Decomposition, root: &Region, workers: usize, per: usize, total: f64) {
+        assert_eq!(d.validate(), Ok(()));
+        assert_eq!(d.workers, workers.max(1));
+        assert_eq!(d.tree.leaves.len(), d.workers * per.max(1));
+        for w in 0..d.workers {
+            let l = d.worker_leaves(w);
+            assert_eq!(l.len(), per.max(1), "worker {w}");
+            assert!(l.windows(2).all(|p| p[1] == p[0] + 1), "tree order: {l:?}");
+        }
+        let vol: f64 = d.tree.leaves.iter().map(volume).sum();
+        assert!(
+            (vol - volume(root)).abs() <= 1e-9 * volume(root),
+            "{vol} vs {}",
+            volume(root)
+        );
+        for l in &d.tree.leaves {
+            assert!((0..3).all(|a| l.lo[a] < l.hi[a]), "empty leaf {l:?}");
+        }
+        let sum: f64 = d.leaf_cost.iter().sum();
+        assert!(
+            (sum - total).abs() <= 1e-9 * total.max(1.0),
+            "{sum} vs {total}"
+        );
+    }
+
+    fn in_exactly_one(d: &Decomposition, p: [f64; 3]) {
+        let n = d.tree.leaves.iter().filter(|l| l.contains(p)).count();
+        assert_eq!(n, 1, "{p:?}");
+    }
+
+    fn contiguous(d: &Decomposition, eye: [f64; 3]) {
+        let order = d.worker_order(eye);
+        let mut sorted = order.clone();
+        sorted.sort_unstable();
+        assert_eq!(sorted, (0..d.workers).collect::<Vec<_>>());
+        let leaves = d.tree.visibility_order(eye);
+        let by_worker: Vec<usize> = order
+            .iter()
+            .flat_map(|&w| d.leaf_order_of(w, eye))
+            .collect();
+        assert_eq!(by_worker, leaves, "workers' leaves are not contiguous");
+    }
+
+    #[test]
+    fn uniform_halves_and_quarters() {
+        let r = cube([0.0; 3], [8.0, 4.0, 2.0]);
+        let boxes = [CostBox {
+            region: r,
+            cost: 64.0,
+        }];
+        let d = Decomposition::balanced(r, &boxes, 4, 1, &no_planes());
+        check(&d, &r, 4, 1, 64.0);
+        assert_eq!(first_split(&d), (0, 4.0));
+        assert!(d.imbalance() < 1.0 + 1e-9);
+        assert_eq!(d.leaf_cost, vec![16.0; 4]);
+        // Three workers: one third on the low side.
+        let d = Decomposition::balanced(r, &boxes, 3, 1, &no_planes());
+        let (axis, pos) = first_split(&d);
+        assert_eq!(axis, 0);
+        assert!((pos - 8.0 / 3.0).abs() < 1e-9, "{pos}");
+        assert!(d.imbalance() < 1.0 + 1e-9);
+    }
+
+    #[test]
+    fn cost_concentration_moves_the_split() {
+        let r = cube([0.0; 3], [10.0, 1.0, 1.0]);
+        let boxes = [
+            CostBox {
+                region: r,
+                cost: 10.0,
+            },
+            CostBox {
+                region: cube([0.0; 3], [1.0, 1.0, 1.0]),
+                cost: 90.0,
+            },
+        ];
+        let d = Decomposition::balanced(r, &boxes, 2, 1, &no_planes());
+        let (_, pos) = first_split(&d);
+        // Below x: 91·x for x ≤ 1, so the half (50) is at x = 50/91.
+        assert!((pos - 50.0 / 91.0).abs() < 1e-9, "{pos}");
+        assert!(d.imbalance() < 1.0 + 1e-9);
+    }
+
+    #[test]
+    fn flat_boxes_count_wholly_on_one_side() {
+        let r = cube([0.0; 3], [10.0, 1.0, 1.0]);
+        let boxes = [
+            CostBox {
+                region: cube([3.0, 0.0, 0.0], [3.0, 1.0, 1.0]),
+                cost: 5.0,
+            },
+            CostBox {
+                region: r,
+                cost: 20.0,
+            },
+        ];
+        let d = Decomposition::balanced(r, &boxes, 2, 1, &no_planes());
+        check(&d, &r, 2, 1, 25.0);
+        let (_, pos) = first_split(&d);
+        // 12.5 below: 2 per unit of x, plus the flat box's 5 past x = 3 → x = 3.75.
+        assert!((pos - 3.75).abs() < 1e-9, "{pos}");
+        // A plane exactly on a flat box puts it on the upper side (half-open); the plane
+        // is used because the big box is one brick worth 80% of the node.
+        let d = Decomposition::balanced(r, &boxes, 2, 1, &[vec![3.0], vec![], vec![]]);
+        assert_eq!(first_split(&d), (0, 3.0));
+        assert_eq!(d.leaf_cost, vec![6.0, 19.0]);
+        // A jump that overshoots: the closer side of it is taken (just past x = 3: 8 of
+        // 15 below, against 3 of 15 just before it).
+        let boxes = [
+            boxes[0],
+            CostBox {
+                region: r,
+                cost: 10.0,
+            },
+        ];
+        let d = Decomposition::balanced(r, &boxes, 2, 1, &no_planes());
+        check(&d, &r, 2, 1, 15.0);
+        let (_, pos) = first_split(&d);
+        assert!(pos > 3.0 && pos < 3.0 + 1e-9, "{pos}");
+        assert_eq!(d.leaf_cost, vec![8.0, 7.0]);
+    }
+
+    #[test]
+    fn snapping_uses_close_planes_only() {
+        let r = cube([0.0; 3], [10.0, 5.0, 5.0]);
+        let boxes = grid(&r, [100, 1, 1], 1.0);
+        // 4.9: fraction 0.49, within 0.02 of 0.5 → used.
+        let d = Decomposition::balanced(r, &boxes, 2, 1, &[vec![1.0, 4.9, 7.0], vec![], vec![]]);
+        assert_eq!(first_split(&d), (0, 4.9));
+        // 4.0: fraction 0.4 → not used (one box is 1% of the node).
+        let d = Decomposition::balanced(r, &boxes, 2, 1, &[vec![4.0, 6.1], vec![], vec![]]);
+        let (_, pos) = first_split(&d);
+        assert!((pos - 5.0).abs() < 1e-9, "{pos}");
+        // Planes on the node's faces or outside are never used; NaN planes are ignored.
+        let d = Decomposition::balanced(
+            r,
+            &boxes,
+            2,
+            1,
+            &[vec![0.0, 10.0, -3.0, f64::NAN], vec![], vec![]],
+        );
+        let (_, pos) = first_split(&d);
+        assert!((pos - 5.0).abs() < 1e-9, "{pos}");
+        // Coarse bricks: one brick's share widens the tolerance.
+        let boxes = grid(&r, [4, 1, 1], 1.0);
+        let d = Decomposition::balanced(r, &boxes, 3, 1, &[vec![2.5, 5.0, 7.5], vec![], vec![]]);
+        assert_eq!(first_split(&d), (0, 2.5));
+        // Brick-aligned planes on a uniform grid: snapping is exact.
+        let r = cube([0.0; 3], [8.0, 8.0, 8.0]);
+        let boxes = grid(&r, [8, 8, 8], 1.0);
+        let planes = [0, 1, 2].map(|_| (0..=8).map(f64::from).collect::<Vec<_>>());
+        let d = Decomposition::balanced(r, &boxes, 8, 1, &planes);
+        check(&d, &r, 8, 1, 512.0);
+        assert!(d.imbalance() < 1.0 + 1e-9);
+        for l in &d.tree.leaves {
+            assert!(l.lo.iter().chain(&l.hi).all(|v| v.fract() == 0.0), "{l:?}");
+        }
+    }
+
+    #[test]
+    fn degenerate_inputs_do_not_panic() {
+        let r = cube([0.0; 3], [1.0; 3]);
+        let d = Decomposition::balanced(r, &[], 0, 0, &no_planes());
+        check(&d, &r, 1, 1, 0.0);
+        assert_eq!(d.tree, KdTree::single(r));
+        assert_eq!(d.worker_order([5.0; 3]), vec![0]);
+        assert_eq!(d.imbalance(), 1.0);
+        let d = Decomposition::balanced(r, &[], 5, 2, &no_planes());
+        check(&d, &r, 5, 2, 0.0);
+        let nan = [
+            CostBox {
+                region: r,
+                cost: f64::NAN,
+            },
+            CostBox {
+                region: r,
+                cost: f64::INFINITY,
+            },
+            CostBox {
+                region: r,
+                cost: -3.0,
+            },
+            CostBox {
+                region: cube([f64::NAN; 3], [1.0; 3]),
+                cost: 1.0,
+            },
+            CostBox {
+                region: cube([5.0; 3], [6.0; 3]),
+                cost: 1.0,
+            },
+            CostBox {
+                region: cube([0.5; 3], [0.5; 3]),
+                cost: 2.0,
+            },
+        ];
+        let d = Decomposition::balanced(r, &nan, 7, 3, &no_planes());
+        check(&d, &r, 7, 3, 2.0);
+        // A point-like root: leaves are empty but the structure holds.
+        let p = cube([1.0; 3], [1.0; 3]);
+        let d = Decomposition::balanced(p, &nan, 3, 2, &no_planes());
+        assert_eq!(d.validate(), Ok(()));
+        assert_eq!(d.tree.leaves.len(), 6);
+        assert_eq!(d.worker_order([0.0; 3]).len(), 3);
+        // Boxes partly outside the root keep the cost of their inside part.
+        let half = [CostBox {
+            region: cube([0.5, 0.0, 0.0], [1.5, 1.0, 1.0]),
+            cost: 4.0,
+        }];
+        let d = Decomposition::balanced(r, &half, 2, 1, &no_planes());
+        check(&d, &r, 2, 1, 2.0);
+    }
+
+    #[test]
+    fn orders_and_serde() {
+        let r = cube([0.0; 3], [4.0, 4.0, 4.0]);
+        let boxes = grid(&r, [4, 4, 4], 1.0);
+        let d = Decomposition::balanced(r, &boxes, 4, 2, &no_planes());
+        check(&d, &r, 4, 2, 64.0);
+        for eye in [[-1.0, -1.0, -1.0], [5.0, 5.0, 5.0], [2.1, -3.0, 1.0]] {
+            contiguous(&d, eye);
+            for w in 0..4 {
+                let mut a = d.leaf_order_of(w, eye);
+                a.sort_unstable();
+                assert_eq!(a, d.worker_leaves(w));
+            }
+        }
+        // Eye at low x: the first split's low side comes first, so worker 0 is in front.
+        assert_eq!(d.worker_order([-1.0, 2.0, 2.0])[0], 0);
+        let bytes = bincode::serde::encode_to_vec(&d, bincode::config::standard()).unwrap();
+        let (back, _): (Decomposition, usize) =
+            bincode::serde::decode_from_slice(&bytes, bincode::config::standard()).unwrap();
+        assert_eq!(back, d);
+    }
+
+    #[test]
+    fn validate_rejects_split_workers() {
+        let r = cube([0.0; 3], [4.0, 4.0, 4.0]);
+        let mut d = Decomposition::balanced(r, &[], 2, 2, &no_planes());
+        assert_eq!(d.owner, vec![0, 0, 1, 1]);
+        d.owner = vec![0, 1, 0, 1];
+        assert!(d.validate().is_err());
+        d.owner = vec![0, 0, 0, 0];
+        assert!(d.validate().is_err(), "worker 1 owns nothing");
+        d.owner = vec![1, 1, 0, 0];
+        assert_eq!(d.validate(), Ok(()));
+    }
+
+    mod props {
+        use super::*;
+        use proptest::prelude::*;
+
+        fn region() -> impl Strategy<Value = Region> {
+            (
+                prop::array::uniform3(-100.0f64..100.0),
+                prop::array::uniform3(0.5f64..50.0),
+            )
+                .prop_map(|(lo, ext)| Region {
+                    lo,
+                    hi: [0, 1, 2].map(|a| lo[a] + ext[a]),
+                })
+        }
+
+        /// A box in unit coordinates of the root: corner, extent, flat axes, cost.
+        type UnitBox = ([f64; 3], [f64; 3], [bool; 3], f64);
+
+        fn boxes() -> impl Strategy<Value = Vec<UnitBox>> {
+            prop::collection::vec(
+                (
+                    prop::array::uniform3(-0.2f64..1.0),
+                    prop::array::uniform3(0.0f64..0.8),
+                    prop::array::uniform3(prop::bool::weighted(0.1)),
+                    prop_oneof![8 => 0.0f64..100.0, 1 => Just(f64::NAN), 1 => Just(0.0)],
+                ),
+                0..40,
+            )
+        }
+
+        fn place(r: &Region, b: &[UnitBox]) -> Vec<CostBox> {
+            b.iter()
+                .map(|(u, e, flat, c)| {
+                    let at = |a: usize, t: f64| r.lo[a] + t * (r.hi[a] - r.lo[a]);
+                    CostBox {
+                        region: Region {
+                            lo: [0, 1, 2].map(|a| at(a, u[a])),
+                            hi: [0, 1, 2].map(|a| at(a, if flat[a] { u[a] } else { u[a] + e[a] })),
+                        },
+                        cost: *c,
+                    }
+                })
+                .collect()
+        }
+
+        proptest! {
+            #![proptest_config(ProptestConfig::with_cases(200))]
+
+            #[test]
+            fn partitions_and_orders(
+                r in region(),
+                b in boxes(),
+                workers in 1usize..=16,
+                per in 1usize..=3,
+                planes in prop::collection::vec((0usize..3, 0.0f64..1.0), 0..30),
+                points in prop::collection::vec(prop::array::uniform3(0.0f64..1.0), 20),
+                eyes in prop::collection::vec(prop::array::uniform3(-1.0f64..2.0), 4),
+            ) {
+                let boxes = place(&r, &b);
+                let mut pl: [Vec<f64>; 3] = [vec![], vec![], vec![]];
+                for (a, t) in planes {
+                    pl[a].push(r.lo[a] + t * (r.hi[a] - r.lo[a]));
+                }
+                let d = Decomposition::balanced(r, &boxes, workers, per, &pl);
+                // The cost inside the root, computed independently.
+                let total: f64 = boxes
+                    .iter()
+                    .filter(|b| b.cost > 0.0)
+                    .filter_map(|b| clip_box(b, &r))
+                    .map(|b| b.cost)
+                    .sum();
+                check(&d, &r, workers, per, total);
+                let at = |p: [f64; 3]| [0, 1, 2].map(|a| r.lo[a] + p[a] * (r.hi[a] - r.lo[a]));
+                for p in points {
+                    in_exactly_one(&d, at(p));
+                }
+                // Split planes are themselves points of exactly one leaf.
+                for l in &d.tree.leaves {
+                    in_exactly_one(&d, l.lo);
+                }
+                for e in eyes {
+                    contiguous(&d, at(e));
+                }
+            }
+
+            #[test]
+            fn uniform_density_is_balanced(
+                r in region(),
+                n in prop::array::uniform3(1usize..6),
+                workers in 1usize..=16,
+                per in 1usize..=3,
+            ) {
+                let boxes = grid(&r, n, 1.0);
+                let d = Decomposition::balanced(r, &boxes, workers, per, &no_planes());
+                let total = (n[0] * n[1] * n[2]) as f64;
+                check(&d, &r, workers, per, total);
+                prop_assert!(d.imbalance() < 1.05, "imbalance {}", d.imbalance());
+            }
+        }
     }
 }

@@ -16,12 +16,16 @@
 //!   brick size, compression or source byte order.
 //! * [`geo`]: f64 affine transforms and the lateral survey grid.
 //! * [`image`]: premultiplied RGBA partial images and the OVER operator.
+//! * [`composite`]: the sans-IO sort-last compositing plans (direct send, binary swap,
+//!   radix-k), active-pixel encoding and the rank state machine that runs a plan.
+//! * [`wire`]: the cluster protocol: frame header, limits and messages (no I/O).
 //! * [`kd`]: half-open regions, k-d trees and their visibility order.
 //! * [`scene`]: the scene description (TOML) with errors that name line and column.
 //!
 //! No async, no networking, no threads are spawned here.
 #![deny(missing_docs)]
 
+pub mod composite;
 pub mod digest;
 pub mod filter;
 pub mod geo;
@@ -32,3 +36,4 @@ pub mod pyramid;
 pub mod sample;
 pub mod scene;
 pub mod store;
+pub mod wire;

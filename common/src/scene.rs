@@ -27,6 +27,149 @@ pub struct Scene {
     /// name its stores.
     #[serde(default)]
     pub synthetic: Option<SyntheticSpec>,
+    /// How partial images are composited.
+    #[serde(default)]
+    pub composite: CompositeSettings,
+    /// Workers: how many, where they come from, timeouts.
+    #[serde(default)]
+    pub cluster: ClusterSettings,
+}
+
+/// `[composite]`: the sort-last exchange.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CompositeSettings {
+    /// `direct-send`, `binary-swap` or `radix-k` (default).
+    #[serde(default = "default_algorithm")]
+    pub algorithm: crate::composite::Algorithm,
+    /// radix-k: a target k (`8`, IceT's default, chooses factors near it) or the exact
+    /// factors of the worker count (`[4, 2]`).
+    #[serde(default)]
+    pub k: KSetting,
+    /// Shuffle rows so every rank's active pixels spread over all final pieces.
+    #[serde(default = "yes")]
+    pub interlace: bool,
+    /// Pixel precision on the wire: `f32` (exact, default) or `f16` (half the bytes).
+    #[serde(default)]
+    pub wire: crate::composite::WireFormat,
+}
+
+impl Default for CompositeSettings {
+    fn default() -> Self {
+        CompositeSettings {
+            algorithm: default_algorithm(),
+            k: KSetting::default(),
+            interlace: true,
+            wire: Default::default(),
+        }
+    }
+}
+
+/// `composite.k`: one target or explicit factors.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum KSetting {
+    /// A target k.
+    Target(u32),
+    /// Exact factors whose product is the worker count.
+    Factors(Vec<u32>),
+}
+
+impl Default for KSetting {
+    fn default() -> Self {
+        KSetting::Target(crate::composite::DEFAULT_TARGET_K as u32)
+    }
+}
+
+impl KSetting {
+    /// As a list: `[target]` or the factors.
+    pub fn to_vec(&self) -> Vec<u32> {
+        match self {
+            KSetting::Target(k) => vec![*k],
+            KSetting::Factors(f) => f.clone(),
+        }
+    }
+}
+
+/// `[cluster]`: the worker processes.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ClusterSettings {
+    /// Workers to spawn (local mode) or to wait for (cluster mode); 0 = one per core
+    /// (at least 2, at most 8).
+    #[serde(default)]
+    pub workers: u32,
+    /// `true`: spawn the workers on this machine. `false`: wait for workers started by a
+    /// launcher (`srun`, `ssh`) with `worker --connect HOST:PORT`.
+    #[serde(default = "yes")]
+    pub spawn: bool,
+    /// UDP address the coordinator listens on (port 0: any free port).
+    #[serde(default = "default_listen")]
+    pub listen: String,
+    /// k-d leaves per worker (each worker renders one subtree of this many leaves).
+    #[serde(default = "default_one_u32")]
+    pub leaves_per_worker: u32,
+    /// Seconds to wait for all workers to connect and set up.
+    #[serde(default = "default_connect_timeout")]
+    pub connect_timeout_s: f64,
+    /// Seconds a frame (render + composite + gather) may take at most.
+    #[serde(default = "default_frame_timeout")]
+    pub frame_timeout_s: f64,
+    /// Seconds of silence after which a connection counts as lost (keep-alives keep
+    /// healthy connections from idling).
+    #[serde(default = "default_idle_timeout")]
+    pub idle_timeout_s: f64,
+    /// First QUIC packet size (bytes); 0 = 1200 on networks, larger on loopback.
+    #[serde(default)]
+    pub initial_mtu: u32,
+    /// Rayon threads per spawned worker; 0 = the cores divided among the workers.
+    #[serde(default)]
+    pub worker_threads: u32,
+    /// File holding the shared secret (first line). Otherwise `$STRATA_SECRET`; local
+    /// mode generates one per run when neither is set.
+    #[serde(default)]
+    pub secret_file: Option<PathBuf>,
+    /// Where to write this run's certificate fingerprint, for launchers to pass to
+    /// `worker --fingerprint-file`.
+    #[serde(default)]
+    pub fingerprint_file: Option<PathBuf>,
+}
+
+impl Default for ClusterSettings {
+    fn default() -> Self {
+        ClusterSettings {
+            workers: 0,
+            spawn: true,
+            listen: default_listen(),
+            leaves_per_worker: 1,
+            connect_timeout_s: default_connect_timeout(),
+            frame_timeout_s: default_frame_timeout(),
+            idle_timeout_s: default_idle_timeout(),
+            initial_mtu: 0,
+            worker_threads: 0,
+            secret_file: None,
+            fingerprint_file: None,
+        }
+    }
+}
+
+fn default_algorithm() -> crate::composite::Algorithm {
+    crate::composite::Algorithm::RadixK
+}
+fn default_listen() -> String {
+    "127.0.0.1:0".into()
+}
+fn default_one_u32() -> u32 {
+    1
+}
+fn default_connect_timeout() -> f64 {
+    60.0
+}
+fn default_frame_timeout() -> f64 {
+    600.0
+}
+fn default_idle_timeout() -> f64 {
+    10.0
 }
 
 /// A synthetic survey that the first command needing it generates into a cache folder.
@@ -297,6 +440,17 @@ impl Scene {
         if let Some(s) = &mut scene.synthetic {
             if s.dir.is_relative() {
                 s.dir = base.join(&s.dir);
+            }
+        }
+        for f in [
+            &mut scene.cluster.secret_file,
+            &mut scene.cluster.fingerprint_file,
+        ]
+        .into_iter()
+        .flatten()
+        {
+            if f.is_relative() {
+                *f = base.join(&*f);
             }
         }
         Ok(scene)

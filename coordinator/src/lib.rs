@@ -10,10 +10,13 @@
 //! * [`synth`]: deterministic synthetic seismic surveys.
 //! * [`inspect`]: store summaries, verification and digests.
 //! * [`overrides`]: loading a scene with `--set KEY=VALUE` and `--size WxH` overrides.
+//! * [`decompose`]: the cost-balanced k-d split of a scene over workers.
 //! * [`demo`]: the scene's built-in synthetic survey, generated once into a cache folder.
 //! * [`image_out`]: PNG (sRGB, flattened) and OpenEXR (float RGBA) image writers.
 
 pub mod builder;
+pub mod cluster;
+pub mod decompose;
 pub mod demo;
 pub mod horizon_text;
 pub mod image_out;

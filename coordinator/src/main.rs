@@ -39,6 +39,9 @@ enum Command {
     Inspect(InspectArgs),
     /// Render a scene to a PNG (8-bit sRGB) and optionally a float RGBA EXR.
     Render(RenderArgs),
+    /// Join a render run as a worker (what `render` spawns locally; same flags as the
+    /// `worker` binary).
+    Worker(strata_worker::cli::JoinArgs),
 }
 
 #[derive(Args)]
@@ -48,10 +51,14 @@ struct RenderArgs {
     /// Output PNG.
     #[arg(short, long)]
     output: PathBuf,
-    /// Render in this process through the worker engine (the reference image). Distributed
-    /// rendering over workers is not built yet, so this is also what happens without it.
+    /// Render in this process through the worker engine (the reference image) instead of
+    /// over worker processes.
     #[arg(long)]
     in_process: bool,
+    /// Worker processes (default: the scene's cluster.workers, else one per core, 2..=8).
+    /// Local mode spawns them; with cluster.spawn = false this many are awaited.
+    #[arg(long, value_name = "N")]
+    workers: Option<usize>,
     /// Override a scene setting, e.g. --set render.cache_mb=64 (repeatable).
     #[arg(long = "set", value_name = "KEY=VALUE")]
     sets: Vec<String>,
@@ -61,7 +68,7 @@ struct RenderArgs {
     /// Also write float RGBA (premultiplied) to this OpenEXR file.
     #[arg(long, value_name = "FILE")]
     exr: Option<PathBuf>,
-    /// Write the render summary as JSON to this file.
+    /// Write per-worker frame stats and the render summary as JSON lines to this file.
     #[arg(long, value_name = "FILE")]
     stats: Option<PathBuf>,
 }
@@ -466,13 +473,26 @@ fn run(cli: Cli) -> Result<()> {
                 exr: a.exr.clone(),
                 sets: a.sets.clone(),
                 size,
+                workers: a.workers,
             };
-            if !a.in_process {
-                info!("rendering in-process (distributed rendering over workers is not built yet)");
-            }
             let pb = progress(cli.quiet, "synth");
-            let s = render::render_in_process(&opts, &pb)?;
+            let s = if a.in_process {
+                render::render_in_process(&opts, &pb)
+            } else {
+                render::render_distributed(&opts, &pb)
+            };
             pb.finish_and_clear();
+            let s = s?;
+            if s.workers > 0 {
+                println!(
+                    "{} workers, {}: compositing {:.1} ms, {:.1} MiB exchanged, {:.1} MiB gathered",
+                    s.workers,
+                    s.algorithm.as_deref().unwrap_or("?"),
+                    s.composite_seconds * 1e3,
+                    s.exchange_bytes as f64 / (1 << 20) as f64,
+                    s.gather_bytes as f64 / (1 << 20) as f64
+                );
+            }
             println!(
                 "rendered {}x{} in {:.2} s: {} after {} round(s); last frame {:.3} s, {} samples ({:.1} M samples/s)",
                 s.width,
@@ -495,9 +515,11 @@ fn run(cli: Cli) -> Result<()> {
                 println!("wrote {}", e.display());
             }
             if let Some(p) = &a.stats {
-                let json = serde_json::to_string_pretty(&s)?;
-                synth::write_atomically(p, json.as_bytes())?;
+                synth::write_atomically(p, s.json_lines()?.as_bytes())?;
             }
+        }
+        Command::Worker(a) => {
+            strata_worker::cli::join(a)?;
         }
         Command::Inspect(a) => {
             let pb = progress(cli.quiet, "inspect");

@@ -511,7 +511,44 @@ mod tests {
                 "configs/demo.toml: render.{k} is not written out"
             );
         }
-        // And overrides apply to it.
+        // So are the composite and cluster keys (secret and fingerprint files are optional).
+        assert_eq!(s.composite, Default::default());
+        assert_eq!(s.cluster, Default::default());
+        for (section, value) in [
+            ("composite", toml::to_string(&s.composite).unwrap()),
+            ("cluster", toml::to_string(&s.cluster).unwrap()),
+        ] {
+            let written = table[section].as_table().unwrap();
+            let all: Table = toml::from_str(&value).unwrap();
+            for k in all.keys() {
+                assert!(
+                    written.contains_key(k),
+                    "configs/demo.toml: {section}.{k} is not written out"
+                );
+            }
+        }
+        // And overrides apply to it, including the compositing keys.
+        let s = load_scene(
+            &p,
+            &sets(&[
+                "composite.algorithm=binary-swap",
+                "composite.k=[4, 2]",
+                "composite.wire=f16",
+            ]),
+            None,
+        )
+        .unwrap();
+        assert_eq!(
+            s.composite.algorithm,
+            strata_common::composite::Algorithm::BinarySwap
+        );
+        assert_eq!(
+            s.composite.k,
+            strata_common::scene::KSetting::Factors(vec![4, 2])
+        );
+        assert_eq!(s.composite.wire, strata_common::composite::WireFormat::F16);
+        let e = load_scene(&p, &sets(&["composite.algorithm=tree"]), None).unwrap_err();
+        assert!(format!("{e:#}").contains("composite.algorithm"), "{e:#}");
         let s = load_scene(&p, &sets(&["render.cache_mb=64"]), Some((320, 200))).unwrap();
         assert_eq!(s.render.cache_mb, 64);
         assert_eq!((s.render.width, s.render.height), (320, 200));

@@ -1,15 +1,21 @@
 //! `coordinator render`: a scene to an image.
 //!
-//! In-process rendering runs the worker engine in this process over the whole scene as one
-//! region, in batch mode (frame → feedback → load until converged). It is the reference
-//! that distributed rendering must match.
+//! Distributed rendering (the default) splits the scene over worker processes
+//! ([`crate::cluster`]); each renders its k-d subtree and the partial images are
+//! composited by exchange among the workers. In-process rendering runs the worker engine
+//! in this process over the whole scene as one region, in batch mode (frame → feedback →
+//! load until converged). It is the reference that distributed rendering must match.
 
+use crate::cluster::{Cluster, ClusterOptions};
 use crate::{demo, image_out, overrides};
 use anyhow::{Context, Result};
 use indicatif::ProgressBar;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
+use strata_common::scene::Scene;
+use strata_common::wire::{CompositeChoice, FrameSource, WorkerFrameStats};
 use strata_worker::engine::{Engine, Outcome};
+use tracing::info;
 
 /// What to render and where to put it.
 #[derive(Clone, Debug, Default)]
@@ -24,6 +30,8 @@ pub struct RenderOptions {
     pub sets: Vec<String>,
     /// `--size WxH`.
     pub size: Option<(u32, u32)>,
+    /// `--workers N` (None: the scene's `cluster.workers`).
+    pub workers: Option<usize>,
 }
 
 /// What a render did.
@@ -55,11 +63,44 @@ pub struct RenderSummary {
     pub generated_synthetic: bool,
     /// Total wall time.
     pub seconds: f64,
+    /// Worker processes (0: rendered in-process).
+    pub workers: usize,
+    /// Compositing algorithm (distributed runs).
+    pub algorithm: Option<String>,
+    /// Exchange + gather time of the frame (distributed runs).
+    pub composite_seconds: f64,
+    /// Bytes the workers sent each other.
+    pub exchange_bytes: u64,
+    /// Bytes of the final pieces sent to the coordinator.
+    pub gather_bytes: u64,
+    /// Per-worker stats of each frame (distributed runs).
+    #[serde(skip)]
+    pub frames: Vec<Vec<WorkerFrameStats>>,
 }
 
-/// Renders `opts.scene` in this process.
-pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result<RenderSummary> {
-    let t0 = Instant::now();
+impl RenderSummary {
+    /// `--stats` output: one JSON object per line, first one per worker and frame
+    /// (`"kind": "worker"`), then the summary (`"kind": "summary"`).
+    pub fn json_lines(&self) -> Result<String> {
+        let mut out = String::new();
+        for (frame, workers) in self.frames.iter().enumerate() {
+            for w in workers {
+                let mut v = serde_json::to_value(w)?;
+                v["kind"] = "worker".into();
+                v["frame"] = frame.into();
+                out += &serde_json::to_string(&v)?;
+                out.push('\n');
+            }
+        }
+        let mut v = serde_json::to_value(self)?;
+        v["kind"] = "summary".into();
+        out += &serde_json::to_string(&v)?;
+        out.push('\n');
+        Ok(out)
+    }
+}
+
+fn prepare(opts: &RenderOptions, progress: &ProgressBar) -> Result<(Scene, bool)> {
     let scene = overrides::load_scene(&opts.scene, &opts.sets, opts.size)?;
     let generated = match &scene.synthetic {
         Some(spec) => demo::ensure_synthetic(spec, progress).with_context(|| {
@@ -76,6 +117,125 @@ pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result
         "{}: render.width and render.height must lie in 1..=32768, got {w}x{h}",
         opts.scene.display()
     );
+    Ok((scene, generated))
+}
+
+/// The composite settings of a scene as carried in frame requests (checked: a plan is
+/// built once here so a bad `composite.k` fails before any worker starts).
+pub fn composite_choice(scene: &Scene, workers: usize) -> Result<CompositeChoice> {
+    let c = &scene.composite;
+    let choice = CompositeChoice {
+        algorithm: c.algorithm,
+        k: c.k.to_vec(),
+        interlace: c.interlace,
+        format: c.wire,
+    };
+    let k: Vec<usize> = choice.k.iter().map(|&k| k as usize).collect();
+    strata_common::composite::build_plan(
+        workers,
+        1,
+        choice.algorithm,
+        (!k.is_empty()).then_some(&k[..]),
+    )
+    .with_context(|| format!("composite settings {c:?} with {workers} workers"))?;
+    Ok(choice)
+}
+
+/// Renders `opts.scene` over worker processes (spawned here, or launched elsewhere when
+/// `cluster.spawn = false`).
+pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Result<RenderSummary> {
+    let t0 = Instant::now();
+    let (scene, generated) = prepare(opts, progress)?;
+    let (w, h) = (scene.render.width, scene.render.height);
+    let copts = ClusterOptions::from_scene(&scene, opts.workers)?;
+    let n = copts.workers;
+    let choice = composite_choice(&scene, n)?;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    progress.set_message(format!("rendering on {n} workers"));
+    let result = rt.block_on(async {
+        let run = async {
+            let mut cluster = Cluster::start(&scene, copts).await?;
+            let camera = match &scene.camera {
+                Some(c) => c.clone(),
+                None => {
+                    let data = strata_worker::dataset::SceneData::open(&scene)?;
+                    strata_worker::camera::default_camera(&data.bounds(), &scene.render)
+                }
+            };
+            let r = cluster
+                .frame(&camera, w, h, &choice, FrameSource::Render)
+                .await;
+            cluster.shutdown().await;
+            r
+        };
+        tokio::select! {
+            r = run => r,
+            _ = tokio::signal::ctrl_c() => anyhow::bail!("interrupted (Ctrl-C); workers stopped"),
+        }
+    });
+    // Dropping the runtime kills any worker still running (kill_on_drop).
+    drop(rt);
+    let fr = result?;
+    let bg = scene.render.background.map(|c| c as f32);
+    image_out::write_png(&opts.output, w, h, &fr.image, bg)?;
+    if let Some(exr) = &opts.exr {
+        image_out::write_exr(exr, w, h, &fr.image)?;
+    }
+    for s in &fr.stats {
+        info!(
+            rank = s.rank,
+            position = s.position,
+            render_s = format!("{:.3}", s.render_s),
+            encode_s = format!("{:.4}", s.encode_s),
+            exchange_s = format!("{:.4}", s.exchange_s),
+            blend_s = format!("{:.4}", s.blend_s),
+            bytes_sent = s.bytes_sent,
+            bytes_received = s.bytes_received,
+            outcome = %s.outcome,
+            "worker frame stats"
+        );
+    }
+    let worst = |a: &str, b: &str| {
+        if b != "converged" {
+            b.to_string()
+        } else {
+            a.to_string()
+        }
+    };
+    Ok(RenderSummary {
+        width: w,
+        height: h,
+        rounds: fr.stats.iter().map(|s| s.render_rounds).max().unwrap_or(0),
+        outcome: fr
+            .stats
+            .iter()
+            .fold("converged".to_string(), |a, s| worst(&a, &s.outcome)),
+        samples: fr.stats.iter().map(|s| s.samples).sum(),
+        last_frame_seconds: fr.stats.iter().map(|s| s.render_s).fold(0.0, f64::max),
+        cast_seconds: fr.stats.iter().map(|s| s.render_s).sum(),
+        load_seconds: 0.0,
+        cache_hit_rate: f64::NAN,
+        pages_read: 0,
+        bytes_read: 0,
+        generated_synthetic: generated,
+        seconds: t0.elapsed().as_secs_f64(),
+        workers: n,
+        algorithm: Some(format!("{:?}", choice.algorithm)),
+        composite_seconds: fr.composite_s,
+        exchange_bytes: fr.stats.iter().map(|s| s.bytes_sent).sum(),
+        gather_bytes: fr.gather_bytes,
+        frames: vec![fr.stats],
+    })
+}
+
+/// Renders `opts.scene` in this process.
+pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result<RenderSummary> {
+    let t0 = Instant::now();
+    let (scene, generated) = prepare(opts, progress)?;
+    let (w, h) = (scene.render.width, scene.render.height);
     let mut engine =
         Engine::new(&scene).with_context(|| format!("scene {}", opts.scene.display()))?;
     let view = engine.view(w, h)?;
@@ -109,6 +269,12 @@ pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result
         bytes_read: cs.bytes_read,
         generated_synthetic: generated,
         seconds: t0.elapsed().as_secs_f64(),
+        workers: 0,
+        algorithm: None,
+        composite_seconds: 0.0,
+        exchange_bytes: 0,
+        gather_bytes: 0,
+        frames: vec![],
     })
 }
 

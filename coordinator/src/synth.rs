@@ -371,6 +371,8 @@ pub fn synth(
             ..RenderSettings::default()
         },
         synthetic: None,
+        composite: Default::default(),
+        cluster: Default::default(),
     };
     let scene_path = dir.join("scene.toml");
     write_atomically(

@@ -209,6 +209,8 @@ pub mod scenes {
             camera: Some(camera),
             render,
             synthetic: None,
+            composite: Default::default(),
+            cluster: Default::default(),
         }
     }
 

@@ -19,10 +19,12 @@
 pub mod atlas;
 pub mod cache;
 pub mod camera;
+pub mod cli;
 pub mod dataset;
 pub mod engine;
 pub mod feedback;
 pub mod horizon;
+pub mod node;
 pub mod raycast;
 pub mod tf;
 pub mod volume;

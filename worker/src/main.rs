@@ -1,5 +1,9 @@
 //! `worker`: the process the coordinator launches to render its share of a scene.
 //!
+//! `worker --connect HOST:PORT --fingerprint-file F --secret-file S` joins a render run:
+//! the coordinator spawns workers this way on one machine, and a launcher (`srun`, `ssh`)
+//! does on a cluster (see `configs/slurm-render.sh`).
+//!
 //! The data layer is in place: a worker reads pages of any store concurrently through
 //! positional reads. `worker read-bench` measures that path (random page reads from N
 //! threads), which is what the page cache's loader threads will do.
@@ -17,9 +21,12 @@ use strata_common::store::PageStore;
 /// Strata worker process.
 #[derive(Parser)]
 #[command(name = "worker", version, about)]
+#[command(args_conflicts_with_subcommands = true)]
 struct Cli {
     #[command(subcommand)]
-    command: Command,
+    command: Option<Command>,
+    #[command(flatten)]
+    join: strata_worker::cli::JoinArgs,
 }
 
 #[derive(Subcommand)]
@@ -104,14 +111,22 @@ fn read_bench(store: PathBuf, threads: usize, pages: u64, cold: bool, seed: u64)
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
     let r = match cli.command {
-        Command::ReadBench {
+        None => strata_worker::cli::join(cli.join),
+        Some(Command::ReadBench {
             store,
             threads,
             pages,
             cold,
             seed,
-        } => read_bench(store, threads, pages, cold, seed),
+        }) => read_bench(store, threads, pages, cold, seed),
     };
     match r {
         Ok(()) => ExitCode::SUCCESS,

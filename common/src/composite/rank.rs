@@ -1,0 +1,597 @@
+//! One rank's side of a compositing plan, as a sans-IO state machine, and the assembly
+//! of the final image from the gathered result pieces.
+//!
+//! Per round the caller sends [`RankCompositor::outgoing`] pieces to their positions,
+//! feeds every piece that arrives to [`RankCompositor::receive`] and, once
+//! [`RankCompositor::is_ready`], calls [`RankCompositor::finish_round`]. When
+//! [`RankCompositor::round`] is `None` the rank's [`result`](RankCompositor::result)
+//! is final.
+
+use std::sync::Arc;
+
+use super::{Interlace, PieceError, Plan, PlanError, Span, SparsePiece, WireFormat};
+use crate::image::{PartialImage, Rgba};
+
+/// Why compositing could not proceed.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum CompositeError {
+    /// The plan is invalid.
+    #[error(transparent)]
+    Plan(#[from] PlanError),
+    /// A piece is malformed or does not fit.
+    #[error(transparent)]
+    Piece(#[from] PieceError),
+    /// A position outside the plan.
+    #[error("position {position} is outside the plan's {ranks} ranks")]
+    PositionOutOfRange {
+        /// The position.
+        position: usize,
+        /// Ranks in the plan.
+        ranks: usize,
+    },
+    /// An image whose size does not match the plan.
+    #[error(
+        "position {position}: a {width}×{height} image does not have the plan's {pixels} pixels"
+    )]
+    ImageSize {
+        /// The position.
+        position: usize,
+        /// Image width.
+        width: u32,
+        /// Image height.
+        height: u32,
+        /// Pixels in the plan.
+        pixels: u32,
+    },
+    /// A partial image whose rectangle or pixel count is wrong.
+    #[error("position {position}: bad partial image: {reason}")]
+    BadImage {
+        /// The position.
+        position: usize,
+        /// What is wrong.
+        reason: String,
+    },
+    /// An interlace map for a different image size.
+    #[error("interlace map is for {il_width}×{il_height}, the image is {width}×{height}")]
+    InterlaceMismatch {
+        /// Interlace width.
+        il_width: u32,
+        /// Interlace height.
+        il_height: u32,
+        /// Image width.
+        width: u32,
+        /// Image height.
+        height: u32,
+    },
+    /// Wrong number of images for the plan.
+    #[error("{got} images for a plan of {ranks} ranks")]
+    ImageCount {
+        /// Images given.
+        got: usize,
+        /// Ranks in the plan.
+        ranks: usize,
+    },
+    /// A call that needs a round in progress after the last round.
+    #[error("position {position} has finished all rounds")]
+    Finished {
+        /// The position.
+        position: usize,
+    },
+    /// A piece from a position that is not expected to send this round.
+    #[error("position {position} expects no piece from position {from} in round {round}")]
+    Unexpected {
+        /// The receiving position.
+        position: usize,
+        /// The sender.
+        from: usize,
+        /// The round.
+        round: usize,
+    },
+    /// A second piece from the same position in one round.
+    #[error("position {position} already has the piece from position {from} in round {round}")]
+    Duplicate {
+        /// The receiving position.
+        position: usize,
+        /// The sender.
+        from: usize,
+        /// The round.
+        round: usize,
+    },
+    /// A piece whose span is not the one the plan says.
+    #[error("position {position} expects span {expected} from position {from} in round {round}, got {got}")]
+    SpanMismatch {
+        /// The receiving position.
+        position: usize,
+        /// The sender.
+        from: usize,
+        /// The round.
+        round: usize,
+        /// The span the plan says.
+        expected: Span,
+        /// The span received.
+        got: Span,
+    },
+    /// `finish_round` before every expected piece arrived.
+    #[error(
+        "position {position} cannot finish round {round}: still missing pieces from {missing:?}"
+    )]
+    NotReady {
+        /// The position.
+        position: usize,
+        /// The round.
+        round: usize,
+        /// Positions whose pieces are missing.
+        missing: Vec<usize>,
+    },
+    /// A gathered piece reaching past the image.
+    #[error("piece span {span} reaches past the image's {pixels} pixels")]
+    OutOfBounds {
+        /// The piece's span.
+        span: Span,
+        /// Pixels in the image.
+        pixels: u64,
+    },
+    /// Two gathered pieces overlap.
+    #[error("gathered pieces {a} and {b} overlap")]
+    Overlap {
+        /// One span.
+        a: Span,
+        /// The other.
+        b: Span,
+    },
+}
+
+/// One rank's compositing state: its current span's pixels (logical order) and the
+/// pieces received in the current round.
+#[derive(Debug)]
+pub struct RankCompositor {
+    plan: Arc<Plan>,
+    position: usize,
+    round: usize,
+    span: Span,
+    buf: Vec<Rgba>,
+    /// Indexed like the current step's blend list; `None` for this rank itself.
+    received: Vec<Option<SparsePiece>>,
+}
+
+impl RankCompositor {
+    /// Validates the plan and loads `image` (the partial image of the rank at
+    /// `position`) into a logical-order buffer over `[0, pixels)`: physical row `y`
+    /// becomes logical row `interlace.logical_row(y)`.
+    pub fn new(
+        plan: Arc<Plan>,
+        position: usize,
+        image: &PartialImage,
+        interlace: &Interlace,
+    ) -> Result<Self, CompositeError> {
+        plan.validate()?;
+        if position >= plan.ranks {
+            return Err(CompositeError::PositionOutOfRange {
+                position,
+                ranks: plan.ranks,
+            });
+        }
+        let (w, h) = (image.width, image.height);
+        if w as u64 * h as u64 != plan.pixels as u64 {
+            return Err(CompositeError::ImageSize {
+                position,
+                width: w,
+                height: h,
+                pixels: plan.pixels,
+            });
+        }
+        if (interlace.width, interlace.height) != (w, h) {
+            return Err(CompositeError::InterlaceMismatch {
+                il_width: interlace.width,
+                il_height: interlace.height,
+                width: w,
+                height: h,
+            });
+        }
+        let r = image.rect;
+        let bad = |reason: String| CompositeError::BadImage { position, reason };
+        if image.pixels.len() != r.area() {
+            return Err(bad(format!(
+                "{} pixels for a {}×{} rectangle",
+                image.pixels.len(),
+                r.w,
+                r.h
+            )));
+        }
+        if !r.is_empty()
+            && (r.x as u64 + r.w as u64 > w as u64 || r.y as u64 + r.h as u64 > h as u64)
+        {
+            return Err(bad(format!("rectangle {r:?} exceeds the {w}×{h} image")));
+        }
+        let mut buf = vec![[0.0f32; 4]; plan.pixels as usize];
+        if !r.is_empty() {
+            for (row, src) in image.pixels.chunks_exact(r.w as usize).enumerate() {
+                let l = interlace.logical_row(r.y + row as u32) as usize;
+                let at = l * w as usize + r.x as usize;
+                buf[at..at + src.len()].copy_from_slice(src);
+            }
+        }
+        let mut c = RankCompositor {
+            plan,
+            position,
+            round: 0,
+            span: Span::new(0, w * h),
+            buf,
+            received: Vec::new(),
+        };
+        c.reset_received();
+        Ok(c)
+    }
+
+    fn reset_received(&mut self) {
+        self.received = match self.round() {
+            Some(r) => vec![None; self.plan.rounds[r].steps[self.position].blend.len()],
+            None => Vec::new(),
+        };
+    }
+
+    /// This rank's position in the visibility order.
+    pub fn position(&self) -> usize {
+        self.position
+    }
+
+    /// The plan being run.
+    pub fn plan(&self) -> &Arc<Plan> {
+        &self.plan
+    }
+
+    /// The current round, `None` when all rounds are done.
+    pub fn round(&self) -> Option<usize> {
+        (self.round < self.plan.rounds.len()).then_some(self.round)
+    }
+
+    /// The span whose pixels this rank currently holds.
+    pub fn current_span(&self) -> Span {
+        self.span
+    }
+
+    fn step(&self) -> Option<&super::RankStep> {
+        self.round()
+            .map(|r| &self.plan.rounds[r].steps[self.position])
+    }
+
+    /// The pieces to send this round, as `(to position, piece)`; empty when done.
+    pub fn outgoing(&self, format: WireFormat) -> Vec<(usize, SparsePiece)> {
+        let Some(step) = self.step() else {
+            return Vec::new();
+        };
+        step.sends
+            .iter()
+            .map(|&(to, span)| {
+                let off = (span.start - self.span.start) as usize;
+                let px = &self.buf[off..off + span.len() as usize];
+                (to, SparsePiece::encode(px, span, format))
+            })
+            .collect()
+    }
+
+    /// The positions this rank must receive a piece from this round.
+    pub fn expected(&self) -> Vec<usize> {
+        self.step()
+            .map(|s| {
+                s.blend
+                    .iter()
+                    .copied()
+                    .filter(|&q| q != self.position)
+                    .collect()
+            })
+            .unwrap_or_default()
+    }
+
+    /// Accepts the piece sent by position `from` this round. Fails if `from` is not
+    /// expected, already delivered, or the span is not the one the plan says, or the
+    /// piece is internally inconsistent. Either wire format is accepted.
+    pub fn receive(&mut self, from: usize, piece: SparsePiece) -> Result<(), CompositeError> {
+        let position = self.position;
+        let Some(round) = self.round() else {
+            return Err(CompositeError::Finished { position });
+        };
+        let step = &self.plan.rounds[round].steps[position];
+        let Some(i) = step.blend.iter().position(|&q| q == from && q != position) else {
+            return Err(CompositeError::Unexpected {
+                position,
+                from,
+                round,
+            });
+        };
+        if self.received[i].is_some() {
+            return Err(CompositeError::Duplicate {
+                position,
+                from,
+                round,
+            });
+        }
+        if piece.span != step.keep {
+            return Err(CompositeError::SpanMismatch {
+                position,
+                from,
+                round,
+                expected: step.keep,
+                got: piece.span,
+            });
+        }
+        piece.check()?;
+        self.received[i] = Some(piece);
+        Ok(())
+    }
+
+    /// Whether every expected piece of this round has arrived (false when done).
+    pub fn is_ready(&self) -> bool {
+        match self.step() {
+            None => false,
+            Some(step) => step
+                .blend
+                .iter()
+                .zip(&self.received)
+                .all(|(&q, r)| q == self.position || r.is_some()),
+        }
+    }
+
+    /// Blends the received pieces in plan order, shrinks the buffer to the kept span
+    /// and moves to the next round. Pieces behind this rank (after it in the blend
+    /// list) go under the buffer in order, pieces in front go over it nearest first;
+    /// by associativity of OVER this is the ordered composite of the blend list.
+    pub fn finish_round(&mut self) -> Result<(), CompositeError> {
+        let position = self.position;
+        let Some(round) = self.round() else {
+            return Err(CompositeError::Finished { position });
+        };
+        if !self.is_ready() {
+            let step = &self.plan.rounds[round].steps[position];
+            let missing = step
+                .blend
+                .iter()
+                .zip(&self.received)
+                .filter(|&(&q, r)| q != position && r.is_none())
+                .map(|(&q, _)| q)
+                .collect();
+            return Err(CompositeError::NotReady {
+                position,
+                round,
+                missing,
+            });
+        }
+        let plan = Arc::clone(&self.plan);
+        let step = &plan.rounds[round].steps[position];
+        let keep = step.keep;
+        if keep.is_empty() {
+            self.buf = Vec::new();
+        } else {
+            // `keep` lies inside the current span (the plan is validated).
+            let off = (keep.start - self.span.start) as usize;
+            let len = keep.len() as usize;
+            if 2 * len <= self.buf.capacity() {
+                self.buf = self.buf[off..off + len].to_vec();
+            } else {
+                self.buf.copy_within(off..off + len, 0);
+                self.buf.truncate(len);
+            }
+            let me = step
+                .blend
+                .iter()
+                .position(|&q| q == position)
+                .expect("validated plan: a keeping rank blends itself");
+            let received = std::mem::take(&mut self.received);
+            for piece in received[..me].iter().rev().flatten() {
+                piece.blend_over(&mut self.buf, keep.start)?;
+            }
+            for piece in received[me + 1..].iter().flatten() {
+                piece.blend_under(&mut self.buf, keep.start)?;
+            }
+        }
+        self.span = keep;
+        self.round += 1;
+        self.reset_received();
+        Ok(())
+    }
+
+    /// The span this rank owns when all rounds are done (possibly empty).
+    pub fn result_span(&self) -> Span {
+        self.plan.result[self.position]
+    }
+
+    /// This rank's final span, encoded for the gather. Meaningful once
+    /// [`round`](Self::round) is `None`; before that it holds the partial composite.
+    pub fn result(&self, format: WireFormat) -> SparsePiece {
+        let r = self.result_span();
+        if r.is_empty() || !self.span.contains(&r) {
+            return SparsePiece::encode(&[], Span::new(r.start, r.start), format);
+        }
+        let off = (r.start - self.span.start) as usize;
+        SparsePiece::encode(&self.buf[off..off + r.len() as usize], r, format)
+    }
+}
+
+/// Builds the full physical row-major `width × height` image from gathered pieces
+/// (logical spans, mapped back through `interlace`); pixels no piece covers are
+/// transparent black. Fails if pieces overlap or reach past the image.
+pub fn assemble(
+    width: u32,
+    height: u32,
+    interlace: &Interlace,
+    pieces: &[SparsePiece],
+) -> Result<Vec<Rgba>, CompositeError> {
+    if (interlace.width, interlace.height) != (width, height) {
+        return Err(CompositeError::InterlaceMismatch {
+            il_width: interlace.width,
+            il_height: interlace.height,
+            width,
+            height,
+        });
+    }
+    let n = width as u64 * height as u64;
+    let mut spans: Vec<Span> = Vec::with_capacity(pieces.len());
+    for p in pieces {
+        if p.span.end as u64 > n || p.span.start > p.span.end {
+            return Err(CompositeError::OutOfBounds {
+                span: p.span,
+                pixels: n,
+            });
+        }
+        p.check()?;
+        if !p.span.is_empty() {
+            spans.push(p.span);
+        }
+    }
+    spans.sort_by_key(|s| s.start);
+    for w in spans.windows(2) {
+        if w[1].start < w[0].end {
+            return Err(CompositeError::Overlap { a: w[0], b: w[1] });
+        }
+    }
+    let mut out = vec![[0.0f32; 4]; n as usize];
+    if interlace.is_identity() {
+        for p in pieces {
+            p.decode_into(&mut out, 0)?;
+        }
+        return Ok(out);
+    }
+    let w = width as usize;
+    let mut tmp: Vec<Rgba> = Vec::new();
+    for p in pieces.iter().filter(|p| !p.span.is_empty()) {
+        let len = p.span.len() as usize;
+        tmp.clear();
+        tmp.resize(len, [0.0; 4]);
+        p.decode_into(&mut tmp, p.span.start)?;
+        let (s, e) = (p.span.start as usize, p.span.end as usize);
+        for l in s / w..=(e - 1) / w {
+            let a = s.max(l * w);
+            let b = e.min((l + 1) * w);
+            let y = interlace.physical_row(l as u32) as usize;
+            let dst = y * w + (a - l * w);
+            out[dst..dst + (b - a)].copy_from_slice(&tmp[a - s..b - s]);
+        }
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::{build_plan, Algorithm};
+    use super::*;
+    use crate::image::Rect;
+
+    fn solid(w: u32, h: u32, c: Rgba) -> PartialImage {
+        PartialImage {
+            width: w,
+            height: h,
+            rect: Rect { x: 0, y: 0, w, h },
+            pixels: vec![c; (w * h) as usize],
+        }
+    }
+
+    #[test]
+    fn receive_checks_sender_span_and_duplicates() {
+        let plan = Arc::new(build_plan(2, 8, Algorithm::BinarySwap, None).unwrap());
+        let il = Interlace::new(4, 2, 2, false);
+        let img = solid(4, 2, [0.1, 0.1, 0.1, 0.5]);
+        let mut a = RankCompositor::new(plan.clone(), 0, &img, &il).unwrap();
+        let b = RankCompositor::new(plan.clone(), 1, &img, &il).unwrap();
+        assert_eq!(a.expected(), [1]);
+        assert!(!a.is_ready());
+        let e = a.finish_round().unwrap_err();
+        assert!(matches!(e, CompositeError::NotReady { ref missing, .. } if missing == &[1]));
+
+        let mut out_b = b.outgoing(WireFormat::F32);
+        assert_eq!(out_b.len(), 1);
+        let (to, piece) = out_b.pop().unwrap();
+        assert_eq!(to, 0);
+        // Self and unknown positions are not expected.
+        assert!(matches!(
+            a.receive(0, piece.clone()),
+            Err(CompositeError::Unexpected { .. })
+        ));
+        assert!(matches!(
+            a.receive(5, piece.clone()),
+            Err(CompositeError::Unexpected { .. })
+        ));
+        // Wrong span.
+        let wrong = SparsePiece::encode(&[[0.0; 4]; 4], Span::new(4, 8), WireFormat::F32);
+        let e = a.receive(1, wrong).unwrap_err();
+        assert!(e.to_string().contains("expects span [0, 4)"), "{e}");
+        a.receive(1, piece.clone()).unwrap();
+        assert!(matches!(
+            a.receive(1, piece),
+            Err(CompositeError::Duplicate { .. })
+        ));
+        assert!(a.is_ready());
+        a.finish_round().unwrap();
+        assert_eq!(a.round(), None);
+        assert!(matches!(
+            a.finish_round(),
+            Err(CompositeError::Finished { .. })
+        ));
+        assert!(a.outgoing(WireFormat::F32).is_empty());
+        let r = a.result(WireFormat::F32);
+        assert_eq!(r.span, Span::new(0, 4));
+        let mut px = vec![[0.0; 4]; 4];
+        r.decode_into(&mut px, 0).unwrap();
+        // 0.5 alpha over 0.5 alpha.
+        assert!((px[0][3] - 0.75).abs() < 1e-6 && (px[0][0] - 0.15).abs() < 1e-6);
+    }
+
+    #[test]
+    fn new_checks_the_image() {
+        let plan = Arc::new(build_plan(2, 8, Algorithm::DirectSend, None).unwrap());
+        let il = Interlace::new(4, 2, 2, true);
+        let e = RankCompositor::new(plan.clone(), 2, &solid(4, 2, [0.0; 4]), &il).unwrap_err();
+        assert!(matches!(e, CompositeError::PositionOutOfRange { .. }));
+        let e = RankCompositor::new(plan.clone(), 0, &solid(3, 2, [0.0; 4]), &il).unwrap_err();
+        assert!(matches!(e, CompositeError::ImageSize { .. }));
+        let e = RankCompositor::new(plan.clone(), 0, &solid(2, 4, [0.0; 4]), &il).unwrap_err();
+        assert!(matches!(e, CompositeError::InterlaceMismatch { .. }));
+        let mut img = solid(4, 2, [0.0; 4]);
+        img.rect.x = 1;
+        assert!(matches!(
+            RankCompositor::new(plan.clone(), 0, &img, &il),
+            Err(CompositeError::BadImage { .. })
+        ));
+        img.rect.x = 0;
+        img.pixels.pop();
+        assert!(matches!(
+            RankCompositor::new(plan.clone(), 0, &img, &il),
+            Err(CompositeError::BadImage { .. })
+        ));
+        let mut bad_plan = (*plan).clone();
+        bad_plan.result.pop();
+        assert!(matches!(
+            RankCompositor::new(Arc::new(bad_plan), 0, &solid(4, 2, [0.0; 4]), &il),
+            Err(CompositeError::Plan(_))
+        ));
+    }
+
+    #[test]
+    fn assemble_checks_overlap_and_bounds() {
+        let il = Interlace::new(3, 3, 3, true);
+        let f = WireFormat::F32;
+        let a = SparsePiece::encode(&[[1.0; 4]; 4], Span::new(0, 4), f);
+        let b = SparsePiece::encode(&[[0.5; 4]; 3], Span::new(3, 6), f);
+        let c = SparsePiece::encode(&[[0.5; 4]; 3], Span::new(7, 10), f);
+        assert!(matches!(
+            assemble(3, 3, &il, &[a.clone(), b]),
+            Err(CompositeError::Overlap { .. })
+        ));
+        assert!(matches!(
+            assemble(3, 3, &il, &[c]),
+            Err(CompositeError::OutOfBounds { .. })
+        ));
+        assert!(matches!(
+            assemble(3, 2, &il, &[]),
+            Err(CompositeError::InterlaceMismatch { .. })
+        ));
+        let il = Interlace::new(3, 4, 2, true); // logical rows: 0, 2, 1, 3
+        let d = SparsePiece::encode(&[[2.0; 4]; 2], Span::new(5, 7), f);
+        let img = assemble(3, 4, &il, &[a, d]).unwrap();
+        let lit: Vec<usize> = (0..12).filter(|&i| img[i][0] != 0.0).collect();
+        // Logical 0..4: row 0 (physical 0) and x=0 of logical row 1 (physical 2);
+        // logical 5..7: x=2 of logical row 1 (physical 2) and x=0 of logical row 2
+        // (physical 1).
+        assert_eq!(lit, [0, 1, 2, 3, 6, 8]);
+        assert_eq!(img[8], [2.0; 4]);
+    }
+}

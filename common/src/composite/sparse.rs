@@ -1,0 +1,896 @@
+//! Active-pixel encoding of an image span, as IceT does it: run lengths plus the data of
+//! the active pixels only.
+//!
+//! A pixel is **inactive** iff all four of its `f32` channels have the bit pattern of
+//! `+0.0` (so `-0.0` counts as active; either way is exact, since both are identities
+//! of OVER). Inactive pixels are transparent black, the identity of OVER, so skipping
+//! them while blending is exact.
+//!
+//! The wire layout is documented on [`SparsePiece`].
+
+use half::f16;
+use half::slice::{HalfBitsSliceExt, HalfFloatSliceExt};
+use serde::{Deserialize, Serialize};
+
+use super::Span;
+use crate::image::{over, Rgba};
+
+/// How active pixels' channels travel on the wire.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum WireFormat {
+    /// Little-endian `f32`, 16 bytes per pixel, exact.
+    #[default]
+    F32,
+    /// Little-endian IEEE half floats, 8 bytes per pixel, rounded to nearest.
+    F16,
+}
+
+impl WireFormat {
+    /// Bytes per active pixel.
+    pub const fn bytes_per_pixel(self) -> usize {
+        match self {
+            WireFormat::F32 => 16,
+            WireFormat::F16 => 8,
+        }
+    }
+
+    const fn tag(self) -> u8 {
+        match self {
+            WireFormat::F32 => 0,
+            WireFormat::F16 => 1,
+        }
+    }
+}
+
+/// One span of an image, active pixels only.
+///
+/// `runs` alternates (inactive count, active count) and covers exactly `span.len()`
+/// pixels. [`encode`](Self::encode) writes the canonical form: an empty span has no
+/// runs, an all-inactive span is `[len, 0]`, trailing inactive pixels form a final
+/// `(count, 0)` pair, and every other pair has a non-zero active count (so leading and
+/// trailing inactive ranges cost one number each). [`parse`](Self::parse) accepts any
+/// even-length run list (zero counts included) that sums to the span length.
+///
+/// Wire layout (all little-endian), [`SparsePiece::HEADER_BYTES`] = 16 header bytes:
+///
+/// | bytes      | content                                             |
+/// |------------|-----------------------------------------------------|
+/// | 0..2       | magic `b"SP"`                                       |
+/// | 2          | layout version, 1                                   |
+/// | 3          | format: 0 = `f32`, 1 = `f16`                        |
+/// | 4..8       | span start (`u32`)                                  |
+/// | 8..12      | span end (`u32`)                                    |
+/// | 12..16     | number of run lengths `n` (`u32`, even)             |
+/// | 16..16+4n  | run lengths (`u32`): (inactive, active) pairs       |
+/// | then       | active pixels' RGBA, 16 B (`f32`) or 8 B (`f16`) each |
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct SparsePiece {
+    /// The logical pixel range covered.
+    pub span: Span,
+    /// Channel format of `data`.
+    pub format: WireFormat,
+    /// (inactive, active) run-length pairs.
+    pub runs: Vec<u32>,
+    /// The active pixels' RGBA in `format`, little-endian, in order.
+    pub data: Vec<u8>,
+}
+
+/// Why bytes are not a valid [`SparsePiece`], or a piece does not fit where it is used.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum PieceError {
+    /// Fewer bytes left than the layout requires.
+    #[error("truncated piece: expected {needed} bytes of {what} at byte offset {offset}, found {available}")]
+    Truncated {
+        /// Which part of the layout.
+        what: &'static str,
+        /// Byte offset where it starts.
+        offset: usize,
+        /// Bytes required.
+        needed: u64,
+        /// Bytes left.
+        available: usize,
+    },
+    /// The first three bytes are not `b"SP"` and version 1.
+    #[error(
+        "bad piece header at byte offset 0: expected magic \"SP\" version 1, found {found:02x?}"
+    )]
+    BadMagic {
+        /// The bytes found.
+        found: [u8; 3],
+    },
+    /// Unknown format byte.
+    #[error("bad piece format at byte offset 3: expected 0 (f32) or 1 (f16), found {found}")]
+    BadFormat {
+        /// The byte found.
+        found: u8,
+    },
+    /// `end < start`.
+    #[error("bad piece span at byte offset 4: start {start} is after end {end}")]
+    InvertedSpan {
+        /// Span start.
+        start: u32,
+        /// Span end.
+        end: u32,
+    },
+    /// The span reaches past the pixel limit.
+    #[error("piece span {span} at byte offset 4 exceeds the limit of {max_pixels} pixels")]
+    SpanTooLarge {
+        /// The span read.
+        span: Span,
+        /// The limit.
+        max_pixels: u32,
+    },
+    /// An odd number of run lengths.
+    #[error("bad run count at byte offset 12: expected an even number, found {count}")]
+    OddRuns {
+        /// The count read.
+        count: u32,
+    },
+    /// More run lengths than a span of this length can need.
+    #[error("bad run count at byte offset 12: at most {max} runs fit a span of {len} pixels, found {count}")]
+    TooManyRuns {
+        /// The count read.
+        count: u32,
+        /// The largest count accepted.
+        max: u64,
+        /// The span length.
+        len: u32,
+    },
+    /// The run lengths do not add up to the span length.
+    #[error("run lengths at byte offset {offset} sum to {sum}, expected the span length {len}")]
+    RunsSum {
+        /// Byte offset of the run lengths (0 for an in-memory piece).
+        offset: usize,
+        /// Their sum.
+        sum: u64,
+        /// The span length.
+        len: u32,
+    },
+    /// The data length does not match the active pixel count.
+    #[error("pixel data at byte offset {offset}: expected {expected} bytes for {active} active pixels, found {found}")]
+    DataLength {
+        /// Byte offset of the data (0 for an in-memory piece).
+        offset: usize,
+        /// Active pixels per the run lengths.
+        active: u64,
+        /// Bytes expected.
+        expected: u64,
+        /// Bytes present.
+        found: usize,
+    },
+    /// Bytes after the piece where none were expected.
+    #[error("{extra} unexpected bytes after the piece at byte offset {offset}")]
+    TrailingBytes {
+        /// Where the piece ended.
+        offset: usize,
+        /// Bytes left over.
+        extra: usize,
+    },
+    /// The piece's span is not inside the destination buffer's span.
+    #[error("piece span {span} lies outside the destination span {dst}")]
+    OutOfRange {
+        /// The piece's span.
+        span: Span,
+        /// The destination's span (`u32::MAX`-saturated end).
+        dst: Span,
+    },
+}
+
+/// Pixels decoded per chunk when the data cannot be used in place.
+const CHUNK: usize = 256;
+
+#[inline(always)]
+fn is_inactive(p: &[u32; 4]) -> bool {
+    (p[0] | p[1] | p[2] | p[3]) == 0
+}
+
+/// The bytes as RGBA `f32` pixels without copying, when layout and alignment allow.
+#[cfg(target_endian = "little")]
+fn f32_in_place(bytes: &[u8]) -> Option<&[Rgba]> {
+    bytemuck::try_cast_slice(bytes).ok()
+}
+
+#[cfg(not(target_endian = "little"))]
+fn f32_in_place(_bytes: &[u8]) -> Option<&[Rgba]> {
+    None
+}
+
+fn extend_f32_le(out: &mut Vec<u8>, px: &[Rgba]) {
+    if cfg!(target_endian = "little") {
+        out.extend_from_slice(bytemuck::cast_slice(px));
+    } else {
+        for v in px.iter().flatten() {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+}
+
+fn extend_f16_le(out: &mut Vec<u8>, px: &[Rgba]) {
+    let mut halves = [f16::ZERO; CHUNK * 4];
+    for chunk in px.chunks(CHUNK) {
+        let src: &[f32] = bytemuck::cast_slice(chunk);
+        let h = &mut halves[..src.len()];
+        h.convert_from_f32_slice(src);
+        let bits: &[u16] = h.reinterpret_cast();
+        if cfg!(target_endian = "little") {
+            out.extend_from_slice(bytemuck::cast_slice(bits));
+        } else {
+            for b in bits {
+                out.extend_from_slice(&b.to_le_bytes());
+            }
+        }
+    }
+}
+
+fn read_u32(bytes: &[u8], at: usize) -> u32 {
+    u32::from_le_bytes([bytes[at], bytes[at + 1], bytes[at + 2], bytes[at + 3]])
+}
+
+impl SparsePiece {
+    /// Header bytes before the run lengths.
+    pub const HEADER_BYTES: usize = 16;
+
+    /// Encodes `pixels`, exactly the pixels of `span` in logical order.
+    ///
+    /// # Panics
+    /// If `pixels.len() != span.len()` (a caller bug, not a data error).
+    pub fn encode(pixels: &[Rgba], span: Span, format: WireFormat) -> SparsePiece {
+        assert_eq!(
+            pixels.len(),
+            span.len() as usize,
+            "SparsePiece::encode: {} pixels for span {span}",
+            pixels.len()
+        );
+        let bits: &[[u32; 4]] = bytemuck::cast_slice(pixels);
+        let n = bits.len();
+        let mut runs = Vec::new();
+        let mut active = 0usize;
+        let mut i = 0usize;
+        while i < n {
+            let s = i;
+            while i < n && is_inactive(&bits[i]) {
+                i += 1;
+            }
+            let a = i;
+            while i < n && !is_inactive(&bits[i]) {
+                i += 1;
+            }
+            runs.push((a - s) as u32);
+            runs.push((i - a) as u32);
+            active += i - a;
+        }
+        let mut data = Vec::with_capacity(active * format.bytes_per_pixel());
+        let mut at = 0usize;
+        for pair in runs.chunks_exact(2) {
+            at += pair[0] as usize;
+            let px = &pixels[at..at + pair[1] as usize];
+            match format {
+                WireFormat::F32 => extend_f32_le(&mut data, px),
+                WireFormat::F16 => extend_f16_le(&mut data, px),
+            }
+            at += pair[1] as usize;
+        }
+        SparsePiece {
+            span,
+            format,
+            runs,
+            data,
+        }
+    }
+
+    /// Number of active pixels (from the data length).
+    pub fn active_pixels(&self) -> usize {
+        self.data.len() / self.format.bytes_per_pixel()
+    }
+
+    /// Bytes on the wire: header, run lengths and data.
+    pub fn byte_len(&self) -> usize {
+        Self::HEADER_BYTES + 4 * self.runs.len() + self.data.len()
+    }
+
+    /// Appends the wire form (layout in the [type docs](SparsePiece)) to `out`.
+    pub fn write(&self, out: &mut Vec<u8>) {
+        out.reserve(self.byte_len());
+        out.extend_from_slice(&[b'S', b'P', 1, self.format.tag()]);
+        out.extend_from_slice(&self.span.start.to_le_bytes());
+        out.extend_from_slice(&self.span.end.to_le_bytes());
+        out.extend_from_slice(&(self.runs.len() as u32).to_le_bytes());
+        if cfg!(target_endian = "little") {
+            out.extend_from_slice(bytemuck::cast_slice(&self.runs));
+        } else {
+            for r in &self.runs {
+                out.extend_from_slice(&r.to_le_bytes());
+            }
+        }
+        out.extend_from_slice(&self.data);
+    }
+
+    /// Parses exactly one piece from `bytes` (untrusted input): every count is checked
+    /// against the bytes left and against `max_pixels` (the span must end at or before
+    /// it) before anything is allocated. Trailing bytes are an error.
+    pub fn parse(bytes: &[u8], max_pixels: u32) -> Result<SparsePiece, PieceError> {
+        let (piece, used) = Self::parse_prefix(bytes, max_pixels)?;
+        if used != bytes.len() {
+            return Err(PieceError::TrailingBytes {
+                offset: used,
+                extra: bytes.len() - used,
+            });
+        }
+        Ok(piece)
+    }
+
+    /// Parses one piece from the start of `bytes`, returning it and the bytes it used.
+    pub fn parse_prefix(bytes: &[u8], max_pixels: u32) -> Result<(SparsePiece, usize), PieceError> {
+        let h = Self::HEADER_BYTES;
+        if bytes.len() < h {
+            return Err(PieceError::Truncated {
+                what: "header",
+                offset: 0,
+                needed: h as u64,
+                available: bytes.len(),
+            });
+        }
+        if bytes[..3] != [b'S', b'P', 1] {
+            return Err(PieceError::BadMagic {
+                found: [bytes[0], bytes[1], bytes[2]],
+            });
+        }
+        let format = match bytes[3] {
+            0 => WireFormat::F32,
+            1 => WireFormat::F16,
+            found => return Err(PieceError::BadFormat { found }),
+        };
+        let (start, end) = (read_u32(bytes, 4), read_u32(bytes, 8));
+        if end < start {
+            return Err(PieceError::InvertedSpan { start, end });
+        }
+        let span = Span::new(start, end);
+        if end > max_pixels {
+            return Err(PieceError::SpanTooLarge { span, max_pixels });
+        }
+        let len = span.len();
+        let count = read_u32(bytes, 12);
+        if count & 1 != 0 {
+            return Err(PieceError::OddRuns { count });
+        }
+        let max = 2 * len as u64 + 2;
+        if count as u64 > max {
+            return Err(PieceError::TooManyRuns { count, max, len });
+        }
+        let runs_bytes = 4 * count as u64;
+        let rest = &bytes[h..];
+        if runs_bytes > rest.len() as u64 {
+            return Err(PieceError::Truncated {
+                what: "run lengths",
+                offset: h,
+                needed: runs_bytes,
+                available: rest.len(),
+            });
+        }
+        let runs: Vec<u32> = rest[..runs_bytes as usize]
+            .chunks_exact(4)
+            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect();
+        let (sum, active) = runs.chunks_exact(2).fold((0u64, 0u64), |(s, a), p| {
+            (s + p[0] as u64 + p[1] as u64, a + p[1] as u64)
+        });
+        if sum != len as u64 {
+            return Err(PieceError::RunsSum {
+                offset: h,
+                sum,
+                len,
+            });
+        }
+        let data_at = h + runs_bytes as usize;
+        let rest = &bytes[data_at..];
+        let data_bytes = active * format.bytes_per_pixel() as u64;
+        if data_bytes > rest.len() as u64 {
+            return Err(PieceError::Truncated {
+                what: "pixel data",
+                offset: data_at,
+                needed: data_bytes,
+                available: rest.len(),
+            });
+        }
+        let data = rest[..data_bytes as usize].to_vec();
+        Ok((
+            SparsePiece {
+                span,
+                format,
+                runs,
+                data,
+            },
+            data_at + data_bytes as usize,
+        ))
+    }
+
+    /// Checks an in-memory piece's invariants (even run list summing to the span
+    /// length, data length matching the active count); offsets in errors are 0.
+    pub fn check(&self) -> Result<(), PieceError> {
+        if self.span.end < self.span.start {
+            return Err(PieceError::InvertedSpan {
+                start: self.span.start,
+                end: self.span.end,
+            });
+        }
+        if self.runs.len() & 1 != 0 {
+            return Err(PieceError::OddRuns {
+                count: self.runs.len() as u32,
+            });
+        }
+        let (sum, active) = self.runs.chunks_exact(2).fold((0u64, 0u64), |(s, a), p| {
+            (s + p[0] as u64 + p[1] as u64, a + p[1] as u64)
+        });
+        if sum != self.span.len() as u64 {
+            return Err(PieceError::RunsSum {
+                offset: 0,
+                sum,
+                len: self.span.len(),
+            });
+        }
+        let expected = active * self.format.bytes_per_pixel() as u64;
+        if expected != self.data.len() as u64 {
+            return Err(PieceError::DataLength {
+                offset: 0,
+                active,
+                expected,
+                found: self.data.len(),
+            });
+        }
+        Ok(())
+    }
+
+    /// Checks the piece and that its span lies inside `[dst_start, dst_start + dst_len)`;
+    /// returns the piece's offset in the destination.
+    fn locate(&self, dst_len: usize, dst_start: u32) -> Result<usize, PieceError> {
+        self.check()?;
+        let dst_end = (dst_start as u64 + dst_len as u64).min(u32::MAX as u64) as u32;
+        let inside = dst_start as u64 + dst_len as u64 >= self.span.end as u64;
+        if self.span.is_empty() {
+            return Ok(0);
+        }
+        if self.span.start < dst_start || !inside {
+            return Err(PieceError::OutOfRange {
+                span: self.span,
+                dst: Span::new(dst_start, dst_end),
+            });
+        }
+        Ok((self.span.start - dst_start) as usize)
+    }
+
+    /// Calls `f(offset in span, pixels)` for the active pixels, run by run (long runs
+    /// in chunks when they must be decoded). The piece must have passed [`check`](Self::check).
+    fn for_each_active(&self, mut f: impl FnMut(usize, &[Rgba])) {
+        let bpp = self.format.bytes_per_pixel();
+        let mut scratch = [[0f32; 4]; CHUNK];
+        let mut pos = 0usize;
+        let mut byte = 0usize;
+        for pair in self.runs.chunks_exact(2) {
+            pos += pair[0] as usize;
+            let n = pair[1] as usize;
+            let bytes = &self.data[byte..byte + n * bpp];
+            match self.format {
+                WireFormat::F32 => {
+                    if let Some(px) = f32_in_place(bytes) {
+                        f(pos, px);
+                    } else {
+                        for (i, chunk) in bytes.chunks(CHUNK * 16).enumerate() {
+                            let m = chunk.len() / 16;
+                            let floats: &mut [f32] = bytemuck::cast_slice_mut(&mut scratch[..m]);
+                            for (d, s) in floats.iter_mut().zip(chunk.chunks_exact(4)) {
+                                *d = f32::from_le_bytes([s[0], s[1], s[2], s[3]]);
+                            }
+                            f(pos + i * CHUNK, &scratch[..m]);
+                        }
+                    }
+                }
+                WireFormat::F16 => {
+                    let mut bits = [0u16; CHUNK * 4];
+                    for (i, chunk) in bytes.chunks(CHUNK * 8).enumerate() {
+                        let m = chunk.len() / 8;
+                        for (b, s) in bits[..4 * m].iter_mut().zip(chunk.chunks_exact(2)) {
+                            *b = u16::from_le_bytes([s[0], s[1]]);
+                        }
+                        let halves: &[f16] = bits[..4 * m].reinterpret_cast();
+                        halves.convert_to_f32_slice(bytemuck::cast_slice_mut(&mut scratch[..m]));
+                        f(pos + i * CHUNK, &scratch[..m]);
+                    }
+                }
+            }
+            pos += n;
+            byte += n * bpp;
+        }
+    }
+
+    /// `dst = piece OVER dst` (the piece in front) over the piece's span, where `dst`
+    /// holds the pixels from logical index `dst_span_start` on.
+    pub fn blend_over(&self, dst: &mut [Rgba], dst_span_start: u32) -> Result<(), PieceError> {
+        let base = self.locate(dst.len(), dst_span_start)?;
+        self.for_each_active(|off, px| {
+            let d = &mut dst[base + off..base + off + px.len()];
+            for (d, s) in d.iter_mut().zip(px) {
+                *d = over(*s, *d);
+            }
+        });
+        Ok(())
+    }
+
+    /// `dst = dst OVER piece` (the piece behind) over the piece's span, where `dst`
+    /// holds the pixels from logical index `dst_span_start` on.
+    pub fn blend_under(&self, dst: &mut [Rgba], dst_span_start: u32) -> Result<(), PieceError> {
+        let base = self.locate(dst.len(), dst_span_start)?;
+        self.for_each_active(|off, px| {
+            let d = &mut dst[base + off..base + off + px.len()];
+            for (d, s) in d.iter_mut().zip(px) {
+                *d = over(*d, *s);
+            }
+        });
+        Ok(())
+    }
+
+    /// Writes the piece's pixels (inactive ones as transparent black) into `dst`,
+    /// which holds the pixels from logical index `dst_span_start` on.
+    pub fn decode_into(&self, dst: &mut [Rgba], dst_span_start: u32) -> Result<(), PieceError> {
+        let base = self.locate(dst.len(), dst_span_start)?;
+        dst[base..base + self.span.len() as usize].fill([0.0; 4]);
+        self.for_each_active(|off, px| {
+            dst[base + off..base + off + px.len()].copy_from_slice(px);
+        });
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn px(v: f32) -> Rgba {
+        [v * 0.5, v * 0.25, 0.0, v]
+    }
+
+    fn roundtrip(p: &SparsePiece, max: u32) -> SparsePiece {
+        let mut bytes = Vec::new();
+        p.write(&mut bytes);
+        assert_eq!(bytes.len(), p.byte_len());
+        SparsePiece::parse(&bytes, max).unwrap()
+    }
+
+    #[test]
+    fn canonical_runs() {
+        let z = [0.0; 4];
+        let pixels = [z, z, px(1.0), px(0.5), z, z, z];
+        let p = SparsePiece::encode(&pixels, Span::new(10, 17), WireFormat::F32);
+        assert_eq!(p.runs, [2, 2, 3, 0]);
+        assert_eq!(p.active_pixels(), 2);
+        assert_eq!(p.data.len(), 32);
+        assert_eq!(p.byte_len(), 16 + 16 + 32);
+
+        let p = SparsePiece::encode(&[z; 5], Span::new(0, 5), WireFormat::F16);
+        assert_eq!(p.runs, [5, 0]);
+        assert!(p.data.is_empty());
+        let p = SparsePiece::encode(&[], Span::new(3, 3), WireFormat::F32);
+        assert!(p.runs.is_empty());
+        assert_eq!(roundtrip(&p, 3), p);
+
+        let p = SparsePiece::encode(&[px(1.0), px(1.0)], Span::new(0, 2), WireFormat::F16);
+        assert_eq!(p.runs, [0, 2]);
+        assert_eq!(p.data.len(), 16);
+        // -0.0 is active (bitwise test).
+        let p = SparsePiece::encode(&[[0.0, -0.0, 0.0, 0.0]], Span::new(0, 1), WireFormat::F32);
+        assert_eq!(p.runs, [0, 1]);
+    }
+
+    #[test]
+    fn f32_layout_is_little_endian() {
+        let p = SparsePiece::encode(&[[1.0, 2.0, 3.0, 4.0]], Span::new(7, 8), WireFormat::F32);
+        let mut b = Vec::new();
+        p.write(&mut b);
+        assert_eq!(&b[..4], b"SP\x01\x00");
+        assert_eq!(&b[4..16], &[7, 0, 0, 0, 8, 0, 0, 0, 2, 0, 0, 0]);
+        assert_eq!(&b[16..24], &[0, 0, 0, 0, 1, 0, 0, 0]);
+        assert_eq!(&b[24..28], &1.0f32.to_le_bytes());
+        assert_eq!(&b[36..40], &4.0f32.to_le_bytes());
+        let h = SparsePiece::encode(&[[1.0, 2.0, 3.0, 4.0]], Span::new(7, 8), WireFormat::F16);
+        let mut b = Vec::new();
+        h.write(&mut b);
+        assert_eq!(b[3], 1);
+        assert_eq!(&b[24..26], &f16::from_f32(1.0).to_bits().to_le_bytes());
+    }
+
+    #[test]
+    fn blends_match_scalar_over() {
+        let z = [0.0; 4];
+        let src = [z, [0.1, 0.2, 0.3, 0.5], z, [0.4, 0.0, 0.0, 0.4]];
+        let p = SparsePiece::encode(&src, Span::new(5, 9), WireFormat::F32);
+        let back = [[0.2, 0.2, 0.2, 0.6]; 6]; // logical [4, 10)
+        let mut a = back;
+        p.blend_over(&mut a, 4).unwrap();
+        let mut b = back;
+        p.blend_under(&mut b, 4).unwrap();
+        for i in 0..6 {
+            let s = if (1..5).contains(&i) { src[i - 1] } else { z };
+            assert_eq!(a[i], over(s, back[i]));
+            assert_eq!(b[i], over(back[i], s));
+        }
+        let mut c = [[9.0; 4]; 6];
+        p.decode_into(&mut c, 4).unwrap();
+        assert_eq!(c[0], [9.0; 4]);
+        assert_eq!(&c[1..5], &src);
+        assert_eq!(c[5], [9.0; 4]);
+    }
+
+    #[test]
+    fn long_runs_cross_chunks() {
+        let n = 3 * CHUNK + 17;
+        let src: Vec<Rgba> = (0..n)
+            .map(|i| {
+                if i % 700 == 3 {
+                    [0.0; 4]
+                } else {
+                    px((i % 97) as f32 / 97.0 + 0.01)
+                }
+            })
+            .collect();
+        for format in [WireFormat::F32, WireFormat::F16] {
+            let p = SparsePiece::encode(&src, Span::new(0, n as u32), format);
+            let mut out = vec![[0.0; 4]; n];
+            p.decode_into(&mut out, 0).unwrap();
+            for (a, b) in out.iter().zip(&src) {
+                for c in 0..4 {
+                    assert!((a[c] - b[c]).abs() <= 1e-3 * b[c].abs(), "{a:?} {b:?}");
+                }
+            }
+            // A misaligned copy of the data takes the decoding path.
+            let mut bytes = vec![0u8];
+            p.write(&mut bytes);
+            let q = SparsePiece::parse(&bytes[1..], n as u32).unwrap();
+            let mut out2 = vec![[0.0; 4]; n];
+            q.decode_into(&mut out2, 0).unwrap();
+            assert_eq!(out, out2);
+        }
+    }
+
+    #[test]
+    fn out_of_range_is_an_error() {
+        let p = SparsePiece::encode(&[px(1.0); 4], Span::new(5, 9), WireFormat::F32);
+        let mut dst = [[0.0; 4]; 4];
+        assert!(matches!(
+            p.blend_over(&mut dst, 6),
+            Err(PieceError::OutOfRange { .. })
+        ));
+        assert!(p.blend_under(&mut dst, 4).is_err());
+        assert!(p.decode_into(&mut dst[..3], 5).is_err());
+        p.blend_over(&mut dst, 5).unwrap();
+        let e = p.blend_over(&mut dst, u32::MAX).unwrap_err();
+        assert!(e.to_string().contains("[5, 9)"), "{e}");
+        // An inconsistent in-memory piece is refused, not indexed out of bounds.
+        let mut bad = p.clone();
+        bad.data.pop();
+        assert!(matches!(
+            bad.blend_over(&mut dst, 5),
+            Err(PieceError::DataLength { .. })
+        ));
+        let mut bad = p;
+        bad.runs = vec![0, 9];
+        assert!(matches!(
+            bad.blend_over(&mut dst, 5),
+            Err(PieceError::RunsSum { .. })
+        ));
+    }
+
+    fn valid_bytes() -> Vec<u8> {
+        let z = [0.0; 4];
+        let p = SparsePiece::encode(&[z, px(0.5), px(0.25), z], Span::new(2, 6), WireFormat::F32);
+        let mut b = Vec::new();
+        p.write(&mut b);
+        b
+    }
+
+    #[test]
+    fn parse_rejects_malformed_input() {
+        let good = valid_bytes();
+        SparsePiece::parse(&good, 6).unwrap();
+        for cut in 0..good.len() {
+            let e = SparsePiece::parse(&good[..cut], 6).unwrap_err();
+            assert!(matches!(e, PieceError::Truncated { .. }), "cut {cut}: {e}");
+        }
+        let mut b = good.clone();
+        b.push(0);
+        assert_eq!(
+            SparsePiece::parse(&b, 6),
+            Err(PieceError::TrailingBytes {
+                offset: good.len(),
+                extra: 1
+            })
+        );
+        let (_, used) = SparsePiece::parse_prefix(&b, 6).unwrap();
+        assert_eq!(used, good.len());
+
+        // Span beyond the limit.
+        assert!(matches!(
+            SparsePiece::parse(&good, 5),
+            Err(PieceError::SpanTooLarge { .. })
+        ));
+        // Magic, format.
+        let mut b = good.clone();
+        b[0] = b'X';
+        assert!(matches!(
+            SparsePiece::parse(&b, 6),
+            Err(PieceError::BadMagic { .. })
+        ));
+        let mut b = good.clone();
+        b[3] = 7;
+        assert_eq!(
+            SparsePiece::parse(&b, 6),
+            Err(PieceError::BadFormat { found: 7 })
+        );
+        // Inverted span.
+        let mut b = good.clone();
+        b[4..8].copy_from_slice(&9u32.to_le_bytes());
+        assert!(matches!(
+            SparsePiece::parse(&b, 100),
+            Err(PieceError::InvertedSpan { .. })
+        ));
+        // Runs not summing to the span: [1, 2, 1, 0] → [1, 2, 2, 0].
+        let mut b = good.clone();
+        b[16 + 8..16 + 12].copy_from_slice(&2u32.to_le_bytes());
+        let e = SparsePiece::parse(&b, 6).unwrap_err();
+        assert_eq!(
+            e,
+            PieceError::RunsSum {
+                offset: 16,
+                sum: 5,
+                len: 4
+            }
+        );
+        assert!(e.to_string().contains("byte offset 16"), "{e}");
+        // More active pixels than data: [1, 2, 1, 0] → [1, 3, 0, 0].
+        let mut b = good.clone();
+        b[16 + 4..16 + 8].copy_from_slice(&3u32.to_le_bytes());
+        b[16 + 8..16 + 12].copy_from_slice(&0u32.to_le_bytes());
+        assert!(matches!(
+            SparsePiece::parse(&b, 6),
+            Err(PieceError::Truncated {
+                what: "pixel data",
+                ..
+            })
+        ));
+        // Fewer active pixels than data: leftover bytes.
+        let mut b = good.clone();
+        b[16 + 4..16 + 8].copy_from_slice(&1u32.to_le_bytes());
+        b[16 + 8..16 + 12].copy_from_slice(&2u32.to_le_bytes());
+        assert!(matches!(
+            SparsePiece::parse(&b, 6),
+            Err(PieceError::TrailingBytes { .. })
+        ));
+        // Odd run count.
+        let mut b = good.clone();
+        b[12..16].copy_from_slice(&3u32.to_le_bytes());
+        assert_eq!(
+            SparsePiece::parse(&b, 6),
+            Err(PieceError::OddRuns { count: 3 })
+        );
+    }
+
+    #[test]
+    fn absurd_counts_do_not_allocate() {
+        // Runs count u32::MAX - 1 in a 20-byte buffer, with a huge span allowed.
+        let mut b = Vec::new();
+        b.extend_from_slice(b"SP\x01\x00");
+        b.extend_from_slice(&0u32.to_le_bytes());
+        b.extend_from_slice(&u32::MAX.to_le_bytes());
+        b.extend_from_slice(&(u32::MAX - 1).to_le_bytes());
+        b.extend_from_slice(&[0; 4]);
+        assert_eq!(b.len(), 20);
+        let e = SparsePiece::parse(&b, u32::MAX).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                PieceError::Truncated {
+                    what: "run lengths",
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        // Same count, small span: rejected by the run bound.
+        b[8..12].copy_from_slice(&10u32.to_le_bytes());
+        assert!(matches!(
+            SparsePiece::parse(&b, u32::MAX),
+            Err(PieceError::TooManyRuns { .. })
+        ));
+        // Two runs claiming u32::MAX active pixels: data check, no allocation.
+        let mut b = Vec::new();
+        b.extend_from_slice(b"SP\x01\x01");
+        b.extend_from_slice(&0u32.to_le_bytes());
+        b.extend_from_slice(&u32::MAX.to_le_bytes());
+        b.extend_from_slice(&2u32.to_le_bytes());
+        b.extend_from_slice(&0u32.to_le_bytes());
+        b.extend_from_slice(&u32::MAX.to_le_bytes());
+        let e = SparsePiece::parse(&b, u32::MAX).unwrap_err();
+        assert!(
+            matches!(e, PieceError::Truncated { what: "pixel data", needed, .. } if needed == u32::MAX as u64 * 8),
+            "{e}"
+        );
+    }
+
+    fn pixels_strategy() -> impl Strategy<Value = Vec<Rgba>> {
+        prop::collection::vec(
+            prop_oneof![
+                3 => Just([0.0f32; 4]),
+                2 => (0.0f32..=1.0, 0.0f32..=1.0, 0.0f32..=1.0, 0.0f32..=1.0)
+                    .prop_map(|(a, r, g, b)| [r * a, g * a, b * a, a]),
+                1 => any::<[f32; 4]>(),
+            ],
+            0..300,
+        )
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(128))]
+
+        #[test]
+        fn roundtrip_f32_is_exact(pixels in pixels_strategy(), start in 0u32..1000) {
+            let span = Span::new(start, start + pixels.len() as u32);
+            let p = SparsePiece::encode(&pixels, span, WireFormat::F32);
+            p.check().unwrap();
+            let q = roundtrip(&p, span.end);
+            prop_assert_eq!(&q, &p);
+            let active = pixels.iter().filter(|x| x.iter().any(|c| c.to_bits() != 0)).count();
+            prop_assert_eq!(q.active_pixels(), active);
+            let mut out = vec![[1.0; 4]; pixels.len()];
+            q.decode_into(&mut out, start).unwrap();
+            let same = out.iter().zip(&pixels).all(|(a, b)| {
+                a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())
+            });
+            prop_assert!(same);
+        }
+
+        #[test]
+        fn roundtrip_f16_rounds_to_nearest(pixels in pixels_strategy()) {
+            let span = Span::new(0, pixels.len() as u32);
+            let p = SparsePiece::encode(&pixels, span, WireFormat::F16);
+            let q = roundtrip(&p, span.end);
+            prop_assert_eq!(&q, &p);
+            let mut out = vec![[1.0; 4]; pixels.len()];
+            q.decode_into(&mut out, 0).unwrap();
+            for (a, b) in out.iter().zip(&pixels) {
+                for c in 0..4 {
+                    let want = f16::from_f32(b[c]).to_f32();
+                    prop_assert!(a[c].to_bits() == want.to_bits() || (a[c].is_nan() && want.is_nan()));
+                }
+            }
+        }
+
+        #[test]
+        fn random_bytes_never_panic(bytes in prop::collection::vec(any::<u8>(), 0..200), max in any::<u32>()) {
+            let _ = SparsePiece::parse(&bytes, max);
+            // With a valid header in front, the deeper checks get exercised too.
+            let mut b = b"SP\x01".to_vec();
+            b.push(bytes.first().copied().unwrap_or(0) % 2);
+            b.extend_from_slice(&bytes);
+            if let Ok(p) = SparsePiece::parse(&b, max) {
+                p.check().unwrap();
+                // Pieces with data are small; only all-inactive ones can claim big spans.
+                prop_assert!(p.active_pixels() <= bytes.len() / 8);
+                let mut dst = vec![[0.0; 4]; p.span.len().min(1 << 16) as usize];
+                let r = p.blend_over(&mut dst, p.span.start);
+                prop_assert_eq!(r.is_ok(), p.span.len() <= 1 << 16);
+            }
+        }
+
+        #[test]
+        fn corrupted_valid_pieces_never_panic(flip in 0usize..64, val in any::<u8>()) {
+            let mut b = valid_bytes();
+            let i = flip % b.len();
+            b[i] = val;
+            if let Ok(p) = SparsePiece::parse(&b, 64) {
+                p.check().unwrap();
+                let mut dst = vec![[0.0; 4]; 64];
+                p.blend_under(&mut dst, 0).unwrap();
+            }
+        }
+    }
+}

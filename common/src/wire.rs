@@ -1,0 +1,455 @@
+//! The cluster protocol: framing and messages, with no I/O.
+//!
+//! Every message travels as one *frame*: a fixed 24-byte header, a bincode-2 encoded
+//! `meta` message, and an optional raw `bulk` payload (image pieces, which are already a
+//! flat little-endian layout and would only be slowed down by a serializer).
+//!
+//! ```text
+//! offset  size  field
+//!      0     4  magic  "STRF"
+//!      4     2  protocol version (little-endian u16)
+//!      6     2  reserved, must be 0
+//!      8     4  meta length (u32)
+//!     12     8  bulk length (u64)
+//!     20     4  CRC-32C of bytes 0..20
+//! ```
+//!
+//! The header is checked (magic, version, CRC, both lengths against the receiver's
+//! [`Limits`]) before a single byte of the body is allocated, so a hostile or broken peer
+//! can make a receiver allocate at most its limits. The transport (`strata-net`) reads
+//! frames; this module says what they mean.
+
+use crate::composite::{Algorithm, WireFormat};
+use crate::kd::Region;
+use crate::scene::Camera;
+use serde::{de::DeserializeOwned, Deserialize, Serialize};
+
+/// Frame magic.
+pub const MAGIC: [u8; 4] = *b"STRF";
+/// Protocol version; bumped on any incompatible change of the header or the messages.
+pub const PROTOCOL_VERSION: u16 = 1;
+/// Size of the frame header.
+pub const HEADER_LEN: usize = 24;
+/// Largest meta message any endpoint accepts (control messages are small; the scene text
+/// is the biggest).
+pub const MAX_META: u32 = 4 << 20;
+
+/// How large a frame a receiver accepts.
+#[derive(Copy, Clone, Debug, PartialEq, Eq)]
+pub struct Limits {
+    /// Largest meta message.
+    pub max_meta: u32,
+    /// Largest bulk payload.
+    pub max_bulk: u64,
+}
+
+impl Limits {
+    /// Control messages only, no bulk (e.g. before a peer has authenticated).
+    pub const HANDSHAKE: Limits = Limits {
+        max_meta: 64 << 10,
+        max_bulk: 0,
+    };
+
+    /// Control messages plus image pieces of frames with up to `max_pixels` pixels.
+    pub fn for_pixels(max_pixels: u64) -> Limits {
+        Limits {
+            max_meta: MAX_META,
+            max_bulk: max_piece_bytes(max_pixels),
+        }
+    }
+}
+
+/// The largest encoded piece of `pixels` pixels: every pixel active at f32 plus the worst
+/// case of run lengths (alternating active and inactive pixels) and the piece header.
+pub fn max_piece_bytes(pixels: u64) -> u64 {
+    pixels * 16 + (pixels + 2) * 4 + 64
+}
+
+/// A parsed frame header.
+#[derive(Copy, Clone, Debug, PartialEq, Eq)]
+pub struct FrameHeader {
+    /// Meta length.
+    pub meta_len: u32,
+    /// Bulk length.
+    pub bulk_len: u64,
+}
+
+/// Why a frame was refused.
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum WireError {
+    /// Not a Strata frame.
+    #[error("bad frame magic {0:02x?} (expected \"STRF\"): not a Strata peer")]
+    BadMagic([u8; 4]),
+    /// Another protocol version.
+    #[error("protocol version {got}, this build speaks {PROTOCOL_VERSION}")]
+    Version {
+        /// The peer's version.
+        got: u16,
+    },
+    /// Header corrupted.
+    #[error("frame header checksum mismatch (stored {stored:08x}, computed {computed:08x})")]
+    HeaderCrc {
+        /// Stored CRC.
+        stored: u32,
+        /// Computed CRC.
+        computed: u32,
+    },
+    /// Reserved bits set.
+    #[error("frame header reserved field is {0}, expected 0")]
+    Reserved(u16),
+    /// Meta too large.
+    #[error("frame meta of {len} bytes exceeds the limit of {limit} bytes")]
+    MetaTooLarge {
+        /// Announced length.
+        len: u32,
+        /// The limit.
+        limit: u32,
+    },
+    /// Bulk too large.
+    #[error("frame payload of {len} bytes exceeds the limit of {limit} bytes")]
+    BulkTooLarge {
+        /// Announced length.
+        len: u64,
+        /// The limit.
+        limit: u64,
+    },
+    /// The meta message did not decode.
+    #[error("malformed message: {0}")]
+    Decode(String),
+}
+
+/// Encodes a frame header for a meta of `meta_len` bytes and a bulk of `bulk_len` bytes.
+pub fn encode_header(meta_len: u32, bulk_len: u64) -> [u8; HEADER_LEN] {
+    let mut h = [0u8; HEADER_LEN];
+    h[0..4].copy_from_slice(&MAGIC);
+    h[4..6].copy_from_slice(&PROTOCOL_VERSION.to_le_bytes());
+    h[8..12].copy_from_slice(&meta_len.to_le_bytes());
+    h[12..20].copy_from_slice(&bulk_len.to_le_bytes());
+    let crc = crc32c::crc32c(&h[0..20]);
+    h[20..24].copy_from_slice(&crc.to_le_bytes());
+    h
+}
+
+/// Parses and checks a frame header against `limits`.
+pub fn decode_header(h: &[u8; HEADER_LEN], limits: &Limits) -> Result<FrameHeader, WireError> {
+    let magic: [u8; 4] = h[0..4].try_into().unwrap();
+    if magic != MAGIC {
+        return Err(WireError::BadMagic(magic));
+    }
+    let stored = u32::from_le_bytes(h[20..24].try_into().unwrap());
+    let computed = crc32c::crc32c(&h[0..20]);
+    if stored != computed {
+        return Err(WireError::HeaderCrc { stored, computed });
+    }
+    let version = u16::from_le_bytes(h[4..6].try_into().unwrap());
+    if version != PROTOCOL_VERSION {
+        return Err(WireError::Version { got: version });
+    }
+    let reserved = u16::from_le_bytes(h[6..8].try_into().unwrap());
+    if reserved != 0 {
+        return Err(WireError::Reserved(reserved));
+    }
+    let meta_len = u32::from_le_bytes(h[8..12].try_into().unwrap());
+    let bulk_len = u64::from_le_bytes(h[12..20].try_into().unwrap());
+    if meta_len > limits.max_meta {
+        return Err(WireError::MetaTooLarge {
+            len: meta_len,
+            limit: limits.max_meta,
+        });
+    }
+    if bulk_len > limits.max_bulk {
+        return Err(WireError::BulkTooLarge {
+            len: bulk_len,
+            limit: limits.max_bulk,
+        });
+    }
+    Ok(FrameHeader { meta_len, bulk_len })
+}
+
+fn config() -> impl bincode::config::Config {
+    // The limit bounds what a length prefix inside a (length-checked) meta may claim.
+    bincode::config::standard().with_limit::<{ MAX_META as usize }>()
+}
+
+/// Serializes a meta message.
+pub fn encode_meta<T: Serialize>(msg: &T) -> Vec<u8> {
+    bincode::serde::encode_to_vec(msg, config()).expect("in-memory bincode encoding cannot fail")
+}
+
+/// Deserializes a meta message; the whole buffer must be consumed.
+pub fn decode_meta<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, WireError> {
+    let (v, used) = bincode::serde::decode_from_slice::<T, _>(bytes, config())
+        .map_err(|e| WireError::Decode(e.to_string()))?;
+    if used != bytes.len() {
+        return Err(WireError::Decode(format!(
+            "{} trailing bytes after the message",
+            bytes.len() - used
+        )));
+    }
+    Ok(v)
+}
+
+/// A SHA-256 certificate fingerprint.
+pub type Fingerprint = [u8; 32];
+
+/// Compositing choices carried with every frame (resolved from `[composite]`).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CompositeChoice {
+    /// The exchange algorithm.
+    pub algorithm: Algorithm,
+    /// radix-k: one target k, or the exact factors.
+    pub k: Vec<u32>,
+    /// Row interlacing of the pixel space.
+    pub interlace: bool,
+    /// Pixel precision on the wire.
+    pub format: WireFormat,
+}
+
+/// Worker → coordinator.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum WorkerMsg {
+    /// First message on a connection: who the worker is and the shared secret.
+    Hello {
+        /// Shared secret of the run.
+        secret: Vec<u8>,
+        /// Human-readable name (host:pid by default).
+        name: String,
+        /// Process id.
+        pid: u32,
+        /// Fingerprint of the worker's own certificate, which its peers will pin.
+        fingerprint: Fingerprint,
+    },
+    /// Peer connections are up; ready for frames.
+    Ready,
+    /// A frame's result: the final piece follows as bulk.
+    FrameDone {
+        /// Frame number.
+        frame: u64,
+        /// What it cost.
+        stats: WorkerFrameStats,
+    },
+    /// The worker could not do what was asked.
+    Failed {
+        /// The frame, if any.
+        frame: Option<u64>,
+        /// Why.
+        message: String,
+    },
+}
+
+/// Coordinator → worker.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum CoordMsg {
+    /// Everything a worker needs before the first frame.
+    Setup(Box<Setup>),
+    /// Render and composite one frame.
+    Frame(FrameRequest),
+    /// Exit cleanly.
+    Shutdown,
+    /// The connection is refused (sent before closing it).
+    Refused {
+        /// Why.
+        reason: String,
+    },
+}
+
+/// A peer worker's address and identity.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PeerInfo {
+    /// UDP address its endpoint listens on.
+    pub addr: String,
+    /// Its certificate fingerprint.
+    pub fingerprint: Fingerprint,
+    /// Its name.
+    pub name: String,
+}
+
+/// The run set-up of one worker.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Setup {
+    /// This worker's rank.
+    pub rank: u32,
+    /// The scene as TOML, with every path absolute (workers read the same store paths).
+    pub scene_toml: String,
+    /// The leaf regions this worker renders (one k-d subtree).
+    pub leaves: Vec<Region>,
+    /// Every worker by rank (including this one).
+    pub peers: Vec<PeerInfo>,
+    /// Token peers present to each other (random per run).
+    pub run_token: [u8; 32],
+    /// Largest frame (pixels) of the run, which bounds the size of image pieces.
+    pub max_pixels: u64,
+    /// How long to wait for any one peer message.
+    pub timeout_ms: u64,
+}
+
+/// One frame.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FrameRequest {
+    /// Frame number (increasing).
+    pub frame: u64,
+    /// Camera of this frame.
+    pub camera: Camera,
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+    /// Ranks in visibility order (position → rank), front first.
+    pub order: Vec<u32>,
+    /// This worker's leaves (indices into `Setup::leaves`), front to back.
+    pub leaf_order: Vec<u32>,
+    /// How to composite.
+    pub composite: CompositeChoice,
+    /// Where the partial images come from.
+    pub source: FrameSource,
+}
+
+/// What a worker composites.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum FrameSource {
+    /// Render its leaves of the scene.
+    Render,
+    /// Benchmark images (no rendering): every rank draws a translucent box covering
+    /// `coverage` of the frame (1.0: every pixel active), deterministic in `seed`, so the
+    /// exchange can be measured on dense and on sparse images as IceT's `SimpleTiming` does.
+    Synthetic {
+        /// Fraction of the frame each rank's image covers.
+        coverage: f32,
+        /// Seed of the colours and box placement.
+        seed: u64,
+    },
+}
+
+/// Peer ↔ peer.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum PeerMsg {
+    /// First message of a connector: the run token and its rank.
+    Hello {
+        /// The run token from `Setup`.
+        token: [u8; 32],
+        /// The connector's rank.
+        rank: u32,
+    },
+    /// One piece of a compositing round; the encoded piece follows as bulk.
+    Piece {
+        /// Frame number.
+        frame: u64,
+        /// Round of the plan.
+        round: u32,
+        /// Sender's position in the visibility order.
+        from: u32,
+    },
+}
+
+/// What one frame cost one worker.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct WorkerFrameStats {
+    /// Rank.
+    pub rank: u32,
+    /// Position in this frame's visibility order.
+    pub position: u32,
+    /// Seconds rendering (all feedback rounds, all leaves).
+    pub render_s: f64,
+    /// When rendering ended (µs since the Unix epoch): with the arrival of the last piece
+    /// at the coordinator it spans the whole compositing on one machine.
+    pub render_end_us: u64,
+    /// Seconds encoding pieces (active-pixel runs, f16 conversion).
+    pub encode_s: f64,
+    /// Seconds in the exchange: sending and waiting for pieces.
+    pub exchange_s: f64,
+    /// Seconds blending received pieces.
+    pub blend_s: f64,
+    /// Seconds encoding and sending the final piece to the coordinator.
+    pub gather_s: f64,
+    /// Bytes sent to peers.
+    pub bytes_sent: u64,
+    /// Bytes received from peers.
+    pub bytes_received: u64,
+    /// Bytes of the final piece sent to the coordinator.
+    pub gather_bytes: u64,
+    /// Compositing rounds.
+    pub rounds: u32,
+    /// Feedback rounds of the renderer.
+    pub render_rounds: u32,
+    /// Ray samples of the last render round.
+    pub samples: u64,
+    /// "converged", "round-limit" or "atlas-full".
+    pub outcome: String,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    #[test]
+    fn header_round_trip_and_limits() {
+        let l = Limits {
+            max_meta: 100,
+            max_bulk: 1000,
+        };
+        let h = encode_header(10, 1000);
+        assert_eq!(
+            decode_header(&h, &l).unwrap(),
+            FrameHeader {
+                meta_len: 10,
+                bulk_len: 1000
+            }
+        );
+        assert!(matches!(
+            decode_header(&encode_header(101, 0), &l),
+            Err(WireError::MetaTooLarge { len: 101, .. })
+        ));
+        assert!(matches!(
+            decode_header(&encode_header(1, u64::MAX), &l),
+            Err(WireError::BulkTooLarge { .. })
+        ));
+        let mut bad = h;
+        bad[0] = b'X';
+        assert!(matches!(
+            decode_header(&bad, &l),
+            Err(WireError::BadMagic(_))
+        ));
+        let mut bad = h;
+        bad[9] ^= 1;
+        assert!(matches!(
+            decode_header(&bad, &l),
+            Err(WireError::HeaderCrc { .. })
+        ));
+    }
+
+    #[test]
+    fn messages_round_trip() {
+        let m = PeerMsg::Piece {
+            frame: 7,
+            round: 2,
+            from: 3,
+        };
+        assert_eq!(decode_meta::<PeerMsg>(&encode_meta(&m)).unwrap(), m);
+        let w = WorkerMsg::FrameDone {
+            frame: 1,
+            stats: WorkerFrameStats {
+                outcome: "converged".into(),
+                ..Default::default()
+            },
+        };
+        assert_eq!(decode_meta::<WorkerMsg>(&encode_meta(&w)).unwrap(), w);
+        let mut bytes = encode_meta(&m);
+        bytes.push(0);
+        assert!(decode_meta::<PeerMsg>(&bytes).is_err());
+    }
+
+    proptest! {
+        /// Arbitrary bytes never panic the decoders.
+        #[test]
+        fn garbage_never_panics(bytes in proptest::collection::vec(any::<u8>(), 0..200)) {
+            let _ = decode_meta::<CoordMsg>(&bytes);
+            let _ = decode_meta::<WorkerMsg>(&bytes);
+            let _ = decode_meta::<PeerMsg>(&bytes);
+            if bytes.len() >= HEADER_LEN {
+                let h: [u8; HEADER_LEN] = bytes[..HEADER_LEN].try_into().unwrap();
+                let _ = decode_header(&h, &Limits::HANDSHAKE);
+            }
+        }
+    }
+}

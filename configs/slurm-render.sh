@@ -1,0 +1,48 @@
+#!/bin/bash
+# Render a scene on a Slurm allocation: the coordinator runs on the first node of the job,
+# one worker per task on all nodes; workers exchange image pieces directly over QUIC.
+#
+#   sbatch --nodes=4 --ntasks-per-node=2 configs/slurm-render.sh configs/demo.toml out.png
+#
+# Needs: the `coordinator` and `worker` binaries on PATH (cargo build --release) on every
+# node, and the scene's stores on a file system all nodes see (workers open the same paths).
+#SBATCH --job-name=strata-render
+#SBATCH --time=00:30:00
+#SBATCH --cpus-per-task=8
+set -euo pipefail
+
+SCENE=${1:?usage: slurm-render.sh SCENE.toml OUT.png}
+OUT=${2:?usage: slurm-render.sh SCENE.toml OUT.png}
+PORT=${STRATA_PORT:-7000}
+WORKERS=${SLURM_NTASKS:?run under sbatch/salloc}
+
+# A run folder on the shared file system, readable only by us: the secret and the
+# coordinator's certificate fingerprint travel through it.
+RUN=$(mktemp -d "${STRATA_RUN_DIR:-$HOME/.strata-runs}/run.XXXXXX")
+chmod 700 "$RUN"
+trap 'rm -rf "$RUN"' EXIT
+head -c 32 /dev/urandom | od -An -tx1 | tr -d ' \n' > "$RUN/secret"; echo >> "$RUN/secret"
+
+COORD_HOST=$(scontrol show hostnames "$SLURM_JOB_NODELIST" | head -n 1)
+
+# The coordinator listens on all interfaces and waits for $WORKERS workers (cluster.spawn = false).
+coordinator render "$SCENE" -o "$OUT" --workers "$WORKERS" \
+    --set cluster.spawn=false \
+    --set "cluster.listen=\"0.0.0.0:$PORT\"" \
+    --set "cluster.secret_file=\"$RUN/secret\"" \
+    --set "cluster.fingerprint_file=\"$RUN/fingerprint\"" \
+    --set cluster.connect_timeout_s=300 &
+COORD=$!
+
+# Workers need the fingerprint, which exists once the coordinator listens.
+for _ in $(seq 300); do [ -s "$RUN/fingerprint" ] && break; sleep 1; done
+[ -s "$RUN/fingerprint" ] || { echo "coordinator did not start" >&2; kill $COORD; exit 1; }
+
+srun --kill-on-bad-exit=1 worker --connect "$COORD_HOST:$PORT" \
+    --fingerprint-file "$RUN/fingerprint" --secret-file "$RUN/secret" &
+WORKERS_PID=$!
+
+wait $COORD
+STATUS=$?
+wait $WORKERS_PID || true
+exit $STATUS

@@ -1,0 +1,707 @@
+//! The coordinator's side of a distributed render: listen, start or await the workers,
+//! authenticate them, hand out the k-d decomposition, and per frame send the camera and
+//! visibility order and gather the composited pieces.
+//!
+//! The coordinator never relays image data between workers: they exchange pieces among
+//! themselves (`strata_worker::node`) and send the coordinator only their final piece.
+//! Every wait is bounded: workers must connect within `cluster.connect_timeout_s`, a frame
+//! must finish within `cluster.frame_timeout_s`, and a vanished worker is noticed by its
+//! process exiting (local mode) or by its connection's idle timeout, whichever comes
+//! first. Errors name the worker: rank, name, pid and address.
+
+use crate::decompose;
+use anyhow::{anyhow, bail, Context, Result};
+use std::future::IntoFuture;
+use std::net::SocketAddr;
+use std::os::unix::ffi::OsStringExt;
+use std::path::PathBuf;
+use std::process::Stdio;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use strata_common::composite::{assemble, Interlace, SparsePiece};
+use strata_common::image::Rgba;
+use strata_common::kd::Decomposition;
+use strata_common::scene::{Camera, Scene};
+use strata_common::wire::{
+    self, CompositeChoice, CoordMsg, FrameRequest, FrameSource, Limits, PeerInfo, Setup,
+    WorkerFrameStats, WorkerMsg,
+};
+use strata_net::frame::{read_frame, with_timeout, write_frame, NetError};
+use strata_net::{secret, tls, transport, Identity, NetConfig};
+use tokio::sync::mpsc;
+use tracing::{debug, info, warn};
+
+/// How to run the workers (resolved from `[cluster]` and the command line).
+#[derive(Clone, Debug)]
+pub struct ClusterOptions {
+    /// Number of workers.
+    pub workers: usize,
+    /// Spawn them locally (true) or wait for externally launched ones.
+    pub spawn: bool,
+    /// Listen address.
+    pub listen: SocketAddr,
+    /// k-d leaves per worker.
+    pub leaves_per_worker: usize,
+    /// Wait for workers to connect and set up.
+    pub connect_timeout: Duration,
+    /// Longest frame.
+    pub frame_timeout: Duration,
+    /// Connection idle timeout.
+    pub idle_timeout: Duration,
+    /// First QUIC packet size.
+    pub initial_mtu: u16,
+    /// Rayon threads per spawned worker (0: divide the cores).
+    pub worker_threads: usize,
+    /// Shared secret (None: generate one; only allowed when spawning).
+    pub secret: Option<Vec<u8>>,
+    /// Where to write the fingerprint for launchers.
+    pub fingerprint_file: Option<PathBuf>,
+    /// Largest frame of the run (pixels): bounds piece sizes.
+    pub max_pixels: u64,
+    /// Executable for spawned workers (None: this executable's `worker` subcommand).
+    pub worker_exe: Option<PathBuf>,
+}
+
+impl ClusterOptions {
+    /// From the scene's `[cluster]` section, `--workers` and the image size.
+    pub fn from_scene(scene: &Scene, workers: Option<usize>) -> Result<ClusterOptions> {
+        let c = &scene.cluster;
+        let workers = match workers.or((c.workers > 0).then_some(c.workers as usize)) {
+            Some(n) => n,
+            None => std::thread::available_parallelism()
+                .map_or(2, |n| n.get())
+                .clamp(2, 8),
+        };
+        anyhow::ensure!(
+            (1..=256).contains(&workers),
+            "cluster.workers must lie in 1..=256, got {workers}"
+        );
+        anyhow::ensure!(
+            c.leaves_per_worker >= 1 && c.leaves_per_worker <= 64,
+            "cluster.leaves_per_worker must lie in 1..=64, got {}",
+            c.leaves_per_worker
+        );
+        for (k, v) in [
+            ("connect_timeout_s", c.connect_timeout_s),
+            ("frame_timeout_s", c.frame_timeout_s),
+            ("idle_timeout_s", c.idle_timeout_s),
+        ] {
+            anyhow::ensure!(
+                v > 0.0 && v <= 1e6,
+                "cluster.{k} must be a positive number of seconds, got {v}"
+            );
+        }
+        let listen: SocketAddr = c.listen.parse().with_context(|| {
+            format!(
+                "cluster.listen = {:?}: expected IP:PORT, e.g. 0.0.0.0:7000",
+                c.listen
+            )
+        })?;
+        let loopback = listen.ip().is_loopback();
+        let secret = secret::read_secret(c.secret_file.as_deref(), secret::SECRET_ENV)?;
+        if !c.spawn && secret.is_none() {
+            bail!(
+                "cluster.spawn = false needs a shared secret: set cluster.secret_file or ${}",
+                secret::SECRET_ENV
+            );
+        }
+        Ok(ClusterOptions {
+            workers,
+            spawn: c.spawn,
+            listen,
+            leaves_per_worker: c.leaves_per_worker as usize,
+            connect_timeout: Duration::from_secs_f64(c.connect_timeout_s),
+            frame_timeout: Duration::from_secs_f64(c.frame_timeout_s),
+            idle_timeout: Duration::from_secs_f64(c.idle_timeout_s),
+            initial_mtu: match c.initial_mtu {
+                0 if loopback => 16384,
+                0 => 1200,
+                m => m.clamp(1200, 65000) as u16,
+            },
+            worker_threads: c.worker_threads as usize,
+            secret,
+            fingerprint_file: c.fingerprint_file.clone(),
+            max_pixels: scene.render.width as u64 * scene.render.height as u64,
+            worker_exe: std::env::var_os("STRATA_WORKER_BIN").map(PathBuf::from),
+        })
+    }
+}
+
+/// A connected worker.
+struct Worker {
+    rank: u32,
+    name: String,
+    pid: u32,
+    addr: SocketAddr,
+    fingerprint: wire::Fingerprint,
+    conn: quinn::Connection,
+    send: quinn::SendStream,
+}
+
+impl Worker {
+    fn describe(&self) -> String {
+        format!(
+            "worker {} ({}, pid {}, {})",
+            self.rank, self.name, self.pid, self.addr
+        )
+    }
+}
+
+enum Event {
+    Msg { rank: u32, frame: strata_net::Frame },
+    Lost { rank: u32, error: String },
+    Exited { child: usize, status: String },
+}
+
+/// One frame's result.
+pub struct FrameResult {
+    /// The composited image, premultiplied, row-major.
+    pub image: Vec<Rgba>,
+    /// Per-worker stats, by rank.
+    pub stats: Vec<WorkerFrameStats>,
+    /// Coordinator's wall time for the frame.
+    pub wall_s: f64,
+    /// From the last worker finishing its render to the last piece arriving here:
+    /// the whole compositing (exchange + gather), as IceT's frame time measures it.
+    pub composite_s: f64,
+    /// Bytes of final pieces received.
+    pub gather_bytes: u64,
+}
+
+/// A running set of workers.
+pub struct Cluster {
+    ep: quinn::Endpoint,
+    workers: Vec<Worker>,
+    events: mpsc::UnboundedReceiver<Event>,
+    decomposition: Decomposition,
+    opts: ClusterOptions,
+    frame_no: u64,
+    child_pids: Vec<u32>,
+}
+
+/// Seconds since the Unix epoch (µs), comparable between processes on one machine.
+pub fn unix_us() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_micros() as u64)
+}
+
+impl Cluster {
+    /// Decomposes the scene, starts (or awaits) the workers and sets them up.
+    pub async fn start(scene: &Scene, opts: ClusterOptions) -> Result<Cluster> {
+        let n = opts.workers;
+        let decomposition =
+            tokio::task::block_in_place(|| decompose::decompose(scene, n, opts.leaves_per_worker))?;
+        info!(
+            workers = n,
+            leaves = decomposition.tree.leaves.len(),
+            imbalance = format!("{:.3}", decomposition.imbalance()),
+            "k-d decomposition"
+        );
+        let id = Identity::generate()?;
+        let net = NetConfig {
+            idle_timeout: opts.idle_timeout,
+            initial_mtu: opts.initial_mtu,
+            ..NetConfig::default()
+        };
+        let ep = transport::endpoint(opts.listen, &id, &net)?;
+        let local = ep.local_addr()?;
+        let fp = tls::to_hex(&id.fingerprint);
+        info!(listen = %local, fingerprint = %fp, "coordinator listening");
+        if let Some(f) = &opts.fingerprint_file {
+            crate::synth::write_atomically(f, format!("{fp}\n").as_bytes())
+                .with_context(|| format!("writing the fingerprint to {}", f.display()))?;
+        }
+        let secret = opts.secret.clone().unwrap_or_else(secret::new_secret);
+        let (tx, events) = mpsc::unbounded_channel();
+        let mut child_pids = Vec::new();
+        if opts.spawn {
+            let exe = match &opts.worker_exe {
+                Some(p) => (p.clone(), vec![]),
+                None => (std::env::current_exe()?, vec!["worker".to_string()]),
+            };
+            let threads = if opts.worker_threads > 0 {
+                opts.worker_threads
+            } else {
+                let cores = std::thread::available_parallelism().map_or(1, |c| c.get());
+                cores.div_ceil(n).max(1)
+            };
+            for i in 0..n {
+                let mut cmd = tokio::process::Command::new(&exe.0);
+                cmd.args(&exe.1)
+                    .arg("--connect")
+                    .arg(local.to_string())
+                    .arg("--fingerprint")
+                    .arg(&fp)
+                    .arg("--name")
+                    .arg(format!("local-{i}"))
+                    .arg("--bind")
+                    .arg(format!("{}:0", local.ip()))
+                    .arg("--idle-timeout-s")
+                    .arg(opts.idle_timeout.as_secs_f64().to_string())
+                    .arg("--connect-timeout-s")
+                    .arg(opts.connect_timeout.as_secs_f64().to_string())
+                    .env(
+                        secret::SECRET_ENV,
+                        std::ffi::OsString::from_vec(secret.clone()),
+                    )
+                    .env("RAYON_NUM_THREADS", threads.to_string())
+                    .stdin(Stdio::null())
+                    .kill_on_drop(true);
+                // The workers die with the coordinator, however it ends (even SIGKILL).
+                unsafe {
+                    cmd.pre_exec(|| {
+                        if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
+                            return Err(std::io::Error::last_os_error());
+                        }
+                        Ok(())
+                    });
+                }
+                let mut child = cmd
+                    .spawn()
+                    .with_context(|| format!("cannot start worker {}", exe.0.display()))?;
+                child_pids.push(child.id().unwrap_or(0));
+                let tx = tx.clone();
+                tokio::spawn(async move {
+                    let status = match child.wait().await {
+                        Ok(s) => describe_status(s),
+                        Err(e) => e.to_string(),
+                    };
+                    let _ = tx.send(Event::Exited { child: i, status });
+                });
+            }
+            info!(workers = n, threads_each = threads, "spawned local workers");
+        } else {
+            info!(
+                "waiting for {n} workers: start them with `worker --connect HOST:{} --fingerprint {fp} --secret-file FILE`",
+                local.port()
+            );
+        }
+        let mut cluster = Cluster {
+            ep,
+            workers: Vec::new(),
+            events,
+            decomposition,
+            opts,
+            frame_no: 0,
+            child_pids,
+        };
+        cluster.gather_workers(&secret, &tx).await?;
+        cluster.setup(scene).await?;
+        Ok(cluster)
+    }
+
+    fn child_name(&self, child: usize) -> String {
+        let pid = self.child_pids.get(child).copied().unwrap_or(0);
+        match self.workers.iter().find(|w| w.pid == pid) {
+            Some(w) => w.describe(),
+            None => format!("local worker process {child} (pid {pid})"),
+        }
+    }
+
+    /// Accepts connections until `workers` have authenticated, refusing (and logging) any
+    /// that fail the secret, the protocol version or the frame limits.
+    async fn gather_workers(
+        &mut self,
+        secret: &[u8],
+        tx: &mpsc::UnboundedSender<Event>,
+    ) -> Result<()> {
+        let n = self.opts.workers;
+        let (auth_tx, mut auth_rx) = mpsc::unbounded_channel();
+        let ep = self.ep.clone();
+        let secret_owned = secret.to_vec();
+        let acceptor = tokio::spawn(async move {
+            while let Some(incoming) = ep.accept().await {
+                let auth_tx = auth_tx.clone();
+                let secret = secret_owned.clone();
+                tokio::spawn(async move {
+                    let remote = incoming.remote_address();
+                    match authenticate(incoming, &secret).await {
+                        Ok(w) => {
+                            let _ = auth_tx.send(w);
+                        }
+                        Err(e) => warn!(%remote, "refused a connection: {e:#}"),
+                    }
+                });
+            }
+        });
+        let deadline = Instant::now() + self.opts.connect_timeout;
+        while self.workers.len() < n {
+            let left = deadline.saturating_duration_since(Instant::now());
+            tokio::select! {
+                w = auth_rx.recv() => {
+                    let (name, pid, fingerprint, conn, send, recv) = w.ok_or_else(|| anyhow!("the listener stopped"))?;
+                    let rank = self.workers.len() as u32;
+                    let addr = conn.remote_address();
+                    info!(rank, %name, pid, %addr, "worker joined");
+                    spawn_reader(rank, conn.clone(), recv, Limits::for_pixels(self.opts.max_pixels), tx.clone());
+                    self.workers.push(Worker { rank, name, pid, addr, fingerprint, conn, send });
+                }
+                ev = self.events.recv() => {
+                    if let Some(Event::Exited { child, status }) = ev {
+                        acceptor.abort();
+                        bail!("{} exited before the run started: {status}", self.child_name(child));
+                    }
+                }
+                _ = tokio::time::sleep(left) => {
+                    acceptor.abort();
+                    bail!(
+                        "only {} of {n} workers connected within {:.0} s (cluster.connect_timeout_s)",
+                        self.workers.len(),
+                        self.opts.connect_timeout.as_secs_f64()
+                    );
+                }
+            }
+        }
+        acceptor.abort();
+        Ok(())
+    }
+
+    /// Sends every worker its set-up and waits until all have meshed with their peers.
+    async fn setup(&mut self, scene: &Scene) -> Result<()> {
+        let peers: Vec<PeerInfo> = self
+            .workers
+            .iter()
+            .map(|w| PeerInfo {
+                addr: w.addr.to_string(),
+                fingerprint: w.fingerprint,
+                name: w.name.clone(),
+            })
+            .collect();
+        let token = secret::random_bytes::<32>();
+        let scene_toml = scene.to_toml();
+        for w in &mut self.workers {
+            let leaves = self
+                .decomposition
+                .worker_leaves(w.rank as usize)
+                .into_iter()
+                .map(|l| self.decomposition.tree.leaves[l])
+                .collect();
+            let setup = CoordMsg::Setup(Box::new(Setup {
+                rank: w.rank,
+                scene_toml: scene_toml.clone(),
+                leaves,
+                peers: peers.clone(),
+                run_token: token,
+                max_pixels: self.opts.max_pixels,
+                timeout_ms: self.opts.frame_timeout.as_millis() as u64,
+            }));
+            let what = w.describe();
+            with_timeout(
+                self.opts.connect_timeout,
+                format!("sending the set-up to {what}"),
+                write_frame(&mut w.send, &wire::encode_meta(&setup), &[]),
+            )
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        }
+        let mut ready = vec![false; self.workers.len()];
+        let deadline = Instant::now() + self.opts.connect_timeout;
+        while ready.iter().any(|r| !r) {
+            let ev = self.next_event(deadline).await.map_err(|_| {
+                anyhow!(
+                    "workers {} did not finish their set-up within {:.0} s",
+                    self.list(ready.iter().enumerate().filter(|r| !r.1).map(|r| r.0)),
+                    self.opts.connect_timeout.as_secs_f64()
+                )
+            })?;
+            match ev {
+                Event::Msg { rank, frame } => match wire::decode_meta::<WorkerMsg>(&frame.meta) {
+                    Ok(WorkerMsg::Ready) => ready[rank as usize] = true,
+                    Ok(WorkerMsg::Failed { message, .. }) => bail!(
+                        "{} failed to set up: {message}",
+                        self.workers[rank as usize].describe()
+                    ),
+                    Ok(other) => bail!(
+                        "{} sent {other:?} during set-up",
+                        self.workers[rank as usize].describe()
+                    ),
+                    Err(e) => bail!(
+                        "{} sent a malformed message: {e}",
+                        self.workers[rank as usize].describe()
+                    ),
+                },
+                ev => return Err(self.event_error(ev)),
+            }
+        }
+        info!(workers = self.workers.len(), "all workers ready");
+        Ok(())
+    }
+
+    fn list(&self, ranks: impl Iterator<Item = usize>) -> String {
+        ranks
+            .map(|r| self.workers[r].describe())
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+
+    async fn next_event(&mut self, deadline: Instant) -> Result<Event, ()> {
+        let left = deadline.saturating_duration_since(Instant::now());
+        match tokio::time::timeout(left, self.events.recv()).await {
+            Ok(Some(ev)) => Ok(ev),
+            _ => Err(()),
+        }
+    }
+
+    /// The error an unexpected event means.
+    fn event_error(&self, ev: Event) -> anyhow::Error {
+        match ev {
+            Event::Lost { rank, error } => anyhow!(
+                "{} disconnected: {error}",
+                self.workers[rank as usize].describe()
+            ),
+            Event::Exited { child, status } => {
+                anyhow!("{} exited: {status}", self.child_name(child))
+            }
+            Event::Msg { rank, .. } => anyhow!(
+                "{} sent a message out of turn",
+                self.workers[rank as usize].describe()
+            ),
+        }
+    }
+
+    /// Number of workers.
+    pub fn workers(&self) -> usize {
+        self.workers.len()
+    }
+
+    /// The decomposition in use.
+    pub fn decomposition(&self) -> &Decomposition {
+        &self.decomposition
+    }
+
+    /// Renders and composites one frame.
+    pub async fn frame(
+        &mut self,
+        camera: &Camera,
+        width: u32,
+        height: u32,
+        composite: &CompositeChoice,
+        source: FrameSource,
+    ) -> Result<FrameResult> {
+        let t0 = Instant::now();
+        let pixels = width as u64 * height as u64;
+        anyhow::ensure!(
+            pixels <= self.opts.max_pixels,
+            "frame of {width}x{height} exceeds the run's {} pixels",
+            self.opts.max_pixels
+        );
+        let frame = self.frame_no;
+        self.frame_no += 1;
+        let order: Vec<u32> = self
+            .decomposition
+            .worker_order(camera.eye)
+            .into_iter()
+            .map(|w| w as u32)
+            .collect();
+        debug!(frame, ?order, "visibility order");
+        for w in &mut self.workers {
+            let mine = self.decomposition.worker_leaves(w.rank as usize);
+            let leaf_order = self
+                .decomposition
+                .leaf_order_of(w.rank as usize, camera.eye)
+                .into_iter()
+                .map(|l| mine.iter().position(|&m| m == l).unwrap() as u32)
+                .collect();
+            let req = CoordMsg::Frame(FrameRequest {
+                frame,
+                camera: camera.clone(),
+                width,
+                height,
+                order: order.clone(),
+                leaf_order,
+                composite: composite.clone(),
+                source: source.clone(),
+            });
+            let what = w.describe();
+            with_timeout(
+                self.opts.frame_timeout,
+                format!("sending frame {frame} to {what}"),
+                write_frame(&mut w.send, &wire::encode_meta(&req), &[]),
+            )
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        }
+        let n = self.workers.len();
+        let mut stats: Vec<Option<WorkerFrameStats>> = vec![None; n];
+        let mut pieces: Vec<Option<SparsePiece>> = vec![None; n];
+        let mut last_arrival = 0u64;
+        let mut gather_bytes = 0u64;
+        let deadline = t0 + self.opts.frame_timeout;
+        while stats.iter().any(Option::is_none) {
+            let ev = self.next_event(deadline).await.map_err(|_| {
+                anyhow!(
+                    "frame {frame}: no result from {} within {:.0} s (cluster.frame_timeout_s)",
+                    self.list(
+                        stats
+                            .iter()
+                            .enumerate()
+                            .filter(|s| s.1.is_none())
+                            .map(|s| s.0)
+                    ),
+                    self.opts.frame_timeout.as_secs_f64()
+                )
+            })?;
+            match ev {
+                Event::Msg { rank, frame: f } => {
+                    let who = self.workers[rank as usize].describe();
+                    match wire::decode_meta::<WorkerMsg>(&f.meta) {
+                        Ok(WorkerMsg::FrameDone {
+                            frame: fno,
+                            stats: s,
+                        }) if fno == frame => {
+                            let piece = SparsePiece::parse(&f.bulk, width * height)
+                                .with_context(|| format!("final piece from {who}"))?;
+                            gather_bytes += f.wire_len();
+                            last_arrival = unix_us();
+                            pieces[rank as usize] = Some(piece);
+                            stats[rank as usize] = Some(s);
+                        }
+                        Ok(WorkerMsg::Failed { message, .. }) => {
+                            bail!("frame {frame} failed on {who}: {message}")
+                        }
+                        Ok(other) => bail!("{who} sent {other:?} during frame {frame}"),
+                        Err(e) => bail!("{who} sent a malformed message: {e}"),
+                    }
+                }
+                ev => return Err(self.event_error(ev).context(format!("frame {frame}"))),
+            }
+        }
+        let stats: Vec<WorkerFrameStats> = stats.into_iter().map(Option::unwrap).collect();
+        let pieces: Vec<SparsePiece> = pieces.into_iter().map(Option::unwrap).collect();
+        let interlace = Interlace::new(width, height, n as u32, composite.interlace);
+        let image = tokio::task::block_in_place(|| assemble(width, height, &interlace, &pieces))?;
+        let render_end = stats.iter().map(|s| s.render_end_us).max().unwrap_or(0);
+        Ok(FrameResult {
+            image,
+            composite_s: last_arrival.saturating_sub(render_end) as f64 * 1e-6,
+            stats,
+            wall_s: t0.elapsed().as_secs_f64(),
+            gather_bytes,
+        })
+    }
+
+    /// Tells every worker to exit and waits (briefly) for them; stragglers are killed
+    /// when the cluster is dropped.
+    pub async fn shutdown(mut self) {
+        for w in &mut self.workers {
+            let _ = tokio::time::timeout(
+                Duration::from_secs(2),
+                write_frame(&mut w.send, &wire::encode_meta(&CoordMsg::Shutdown), &[]),
+            )
+            .await;
+            let _ = w.send.finish();
+        }
+        if !self.child_pids.is_empty() {
+            let deadline = Instant::now() + Duration::from_secs(5);
+            let mut exited = 0;
+            while exited < self.child_pids.len() {
+                match self.next_event(deadline).await {
+                    Ok(Event::Exited { .. }) => exited += 1,
+                    Ok(_) => {}
+                    Err(()) => break,
+                }
+            }
+        }
+        for w in &self.workers {
+            w.conn.close(0u32.into(), b"done");
+        }
+        let _ = tokio::time::timeout(Duration::from_secs(1), self.ep.wait_idle()).await;
+    }
+}
+
+type Authenticated = (
+    String,
+    u32,
+    wire::Fingerprint,
+    quinn::Connection,
+    quinn::SendStream,
+    quinn::RecvStream,
+);
+
+/// Completes the handshake of one connection: the first frame must be a `Hello` with the
+/// run's secret; anything else is refused, logged and closed.
+async fn authenticate(incoming: quinn::Incoming, secret: &[u8]) -> Result<Authenticated> {
+    let t = Duration::from_secs(10);
+    let conn = with_timeout(t, "QUIC handshake", incoming.into_future())
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    let (mut send, mut recv) = with_timeout(t, "opening the control stream", conn.accept_bi())
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    let f = match with_timeout(t, "the hello", read_frame(&mut recv, &Limits::HANDSHAKE)).await {
+        Ok(f) => f,
+        Err(e) => {
+            conn.close(4u32.into(), b"bad hello");
+            return Err(anyhow!("{e}"));
+        }
+    };
+    match wire::decode_meta::<WorkerMsg>(&f.meta) {
+        Ok(WorkerMsg::Hello {
+            secret: s,
+            name,
+            pid,
+            fingerprint,
+        }) => {
+            if !secret::ct_eq(&s, secret) {
+                let msg = wire::encode_meta(&CoordMsg::Refused {
+                    reason: "wrong shared secret".into(),
+                });
+                let _ = tokio::time::timeout(t, write_frame(&mut send, &msg, &[])).await;
+                let _ = send.finish();
+                tokio::time::sleep(Duration::from_millis(50)).await;
+                conn.close(5u32.into(), b"wrong secret");
+                bail!("worker {name:?} (pid {pid}) presented the wrong shared secret");
+            }
+            Ok((name, pid, fingerprint, conn, send, recv))
+        }
+        Ok(other) => {
+            conn.close(4u32.into(), b"expected hello");
+            bail!("expected a hello, got {other:?}")
+        }
+        Err(e) => {
+            conn.close(4u32.into(), b"malformed hello");
+            bail!("malformed hello: {e}")
+        }
+    }
+}
+
+/// Forwards a worker's control messages as events; a malformed frame closes that
+/// worker's connection (and only that one).
+fn spawn_reader(
+    rank: u32,
+    conn: quinn::Connection,
+    mut recv: quinn::RecvStream,
+    limits: Limits,
+    tx: mpsc::UnboundedSender<Event>,
+) {
+    tokio::spawn(async move {
+        loop {
+            match read_frame(&mut recv, &limits).await {
+                Ok(frame) => {
+                    if tx.send(Event::Msg { rank, frame }).is_err() {
+                        return;
+                    }
+                }
+                Err(e) => {
+                    if matches!(e, NetError::Wire(_)) {
+                        conn.close(4u32.into(), b"malformed frame");
+                    }
+                    let _ = tx.send(Event::Lost {
+                        rank,
+                        error: e.to_string(),
+                    });
+                    return;
+                }
+            }
+        }
+    });
+}
+
+fn describe_status(s: std::process::ExitStatus) -> String {
+    use std::os::unix::process::ExitStatusExt;
+    match (s.code(), s.signal()) {
+        (Some(c), _) => format!("exit status {c}"),
+        (None, Some(sig)) => format!("killed by signal {sig}"),
+        _ => s.to_string(),
+    }
+}

@@ -1,0 +1,388 @@
+//! Distributed rendering end to end: real `coordinator` and worker processes over
+//! loopback QUIC. The distributed image must equal the in-process one; bad peers must be
+//! refused without taking the run down; a killed worker must fail the frame with an error
+//! naming it, within the timeout.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+const BIN: &str = env!("CARGO_BIN_EXE_coordinator");
+const SIZE: &str = "96x64";
+
+/// A small synthetic survey (cube + 3 horizons + scene.toml), generated once per test run.
+fn survey() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let dir = std::env::temp_dir().join(format!("strata-cluster-{}", std::process::id()));
+        let out = Command::new(BIN)
+            .args(["-q", "synth", "-o"])
+            .arg(&dir)
+            .args(["--size", "40", "32", "24", "--seed", "5"])
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        dir
+    })
+}
+
+fn run(args: &[&str], env: &[(&str, &str)]) -> Output {
+    let mut c = Command::new(BIN);
+    c.arg("-q").args(args);
+    for (k, v) in env {
+        c.env(k, v);
+    }
+    c.output().unwrap()
+}
+
+fn read_exr(p: &Path) -> Vec<[f32; 4]> {
+    use exr::prelude::*;
+    let img = read_first_rgba_layer_from_file(
+        p,
+        |res, _| vec![[0f32; 4]; res.width() * res.height()],
+        |px: &mut Vec<[f32; 4]>, pos, (r, g, b, a): (f32, f32, f32, f32)| {
+            let w = 96;
+            px[pos.y() * w + pos.x()] = [r, g, b, a];
+        },
+    )
+    .unwrap();
+    img.layer_data.channel_data.pixels
+}
+
+fn render(out: &Path, extra: &[&str], env: &[(&str, &str)]) -> Output {
+    let scene = survey().join("scene.toml");
+    let png = out.with_extension("png");
+    let mut args = vec![
+        "render",
+        scene.to_str().unwrap(),
+        "-o",
+        png.to_str().unwrap(),
+        "--exr",
+        out.to_str().unwrap(),
+        "--size",
+        SIZE,
+    ];
+    args.extend_from_slice(extra);
+    run(&args, env)
+}
+
+fn max_diff(a: &[[f32; 4]], b: &[[f32; 4]]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .flat_map(|(p, q)| (0..4).map(move |c| (p[c] - q[c]).abs()))
+        .fold(0.0, f32::max)
+}
+
+fn reference() -> &'static Vec<[f32; 4]> {
+    static REF: OnceLock<Vec<[f32; 4]>> = OnceLock::new();
+    REF.get_or_init(|| {
+        let out = survey().join("ref.exr");
+        let o = render(&out, &["--in-process"], &[]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        read_exr(&out)
+    })
+}
+
+#[test]
+fn distributed_equals_in_process_for_every_algorithm_and_worker_count() {
+    let reference = reference();
+    let alpha: f32 = reference.iter().map(|p| p[3]).sum();
+    assert!(alpha > 100.0, "the reference image is nearly empty");
+    let dir = tempfile::tempdir().unwrap();
+    for workers in [1, 2, 3, 4, 7] {
+        for algorithm in ["direct-send", "binary-swap", "radix-k"] {
+            let out = dir.path().join(format!("{algorithm}-{workers}.exr"));
+            let stats = dir.path().join(format!("{algorithm}-{workers}.jsonl"));
+            let set = format!("composite.algorithm={algorithm}");
+            let w = workers.to_string();
+            let o = render(
+                &out,
+                &[
+                    "--workers",
+                    &w,
+                    "--set",
+                    &set,
+                    "--set",
+                    "composite.k=2",
+                    "--stats",
+                    stats.to_str().unwrap(),
+                ],
+                &[],
+            );
+            assert!(
+                o.status.success(),
+                "{algorithm} x{workers}: {}",
+                String::from_utf8_lossy(&o.stderr)
+            );
+            let d = max_diff(reference, &read_exr(&out));
+            assert!(
+                d <= 1e-5,
+                "{algorithm} with {workers} workers differs by {d}"
+            );
+            // One stats line per worker, then the summary.
+            let text = std::fs::read_to_string(&stats).unwrap();
+            let lines: Vec<serde_json::Value> = text
+                .lines()
+                .map(|l| serde_json::from_str(l).unwrap())
+                .collect();
+            assert_eq!(lines.len(), workers + 1);
+            assert!(lines[..workers].iter().all(|l| l["kind"] == "worker"));
+            assert_eq!(lines[workers]["kind"], "summary");
+            assert_eq!(lines[workers]["workers"], workers);
+            if workers > 1 {
+                let sent: u64 = lines[..workers]
+                    .iter()
+                    .map(|l| l["bytes_sent"].as_u64().unwrap())
+                    .sum();
+                assert!(sent > 0, "{algorithm} x{workers}: nothing exchanged");
+            }
+        }
+    }
+}
+
+#[test]
+fn options_that_change_bytes_not_pixels() {
+    let reference = reference();
+    let dir = tempfile::tempdir().unwrap();
+    // Radix-k with explicit factors, no interlacing, two leaves per worker.
+    let out = dir.path().join("factors.exr");
+    let o = render(
+        &out,
+        &[
+            "--workers",
+            "6",
+            "--set",
+            "composite.k=[3, 2]",
+            "--set",
+            "composite.interlace=false",
+            "--set",
+            "cluster.leaves_per_worker=2",
+        ],
+        &[],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(max_diff(reference, &read_exr(&out)) <= 1e-5);
+    // The f16 wire is lossy, but only by half-float rounding.
+    let out = dir.path().join("f16.exr");
+    let o = render(
+        &out,
+        &["--workers", "3", "--set", "composite.wire=f16"],
+        &[],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let d = max_diff(reference, &read_exr(&out));
+    assert!(d <= 4e-3, "f16 differs by {d}");
+    // Factors that do not multiply to the worker count are refused before any worker starts.
+    let o = render(
+        &dir.path().join("bad.exr"),
+        &["--workers", "4", "--set", "composite.k=[3, 2]"],
+        &[],
+    );
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("composite"), "{e}");
+    assert!(!dir.path().join("bad.png").exists());
+}
+
+/// A coordinator in cluster mode (`cluster.spawn = false`) waiting for one worker.
+struct Waiting {
+    child: Child,
+    dir: tempfile::TempDir,
+    port: u16,
+    fingerprint: String,
+}
+
+fn start_waiting_coordinator(workers: usize, extra: &[&str]) -> Waiting {
+    let dir = tempfile::tempdir().unwrap();
+    let secret = dir.path().join("secret");
+    std::fs::write(&secret, "correct-horse-battery-staple-42\n").unwrap();
+    let fp = dir.path().join("fingerprint");
+    let scene = survey().join("scene.toml");
+    let sets = [
+        "cluster.spawn=false".to_string(),
+        format!("cluster.secret_file={:?}", secret.display().to_string()),
+        format!("cluster.fingerprint_file={:?}", fp.display().to_string()),
+        "cluster.connect_timeout_s=60".to_string(),
+    ];
+    let mut c = Command::new(BIN);
+    c.args(["render", scene.to_str().unwrap(), "-o"])
+        .arg(dir.path().join("out.png"))
+        .args(["--size", SIZE, "--workers", &workers.to_string()]);
+    for s in &sets {
+        c.args(["--set", s]);
+    }
+    c.args(extra).stdout(Stdio::piped()).stderr(Stdio::piped());
+    let child = c.spawn().unwrap();
+    let t = Instant::now();
+    while !fp.exists() {
+        assert!(t.elapsed() < Duration::from_secs(60), "no fingerprint file");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let fingerprint = std::fs::read_to_string(&fp).unwrap().trim().to_string();
+    // The port is in the log line "coordinator listening listen=127.0.0.1:PORT".
+    let mut child = child;
+    let stderr = child.stderr.take().unwrap();
+    let mut reader = BufReader::new(stderr);
+    let mut port = 0;
+    let mut line = String::new();
+    while port == 0 {
+        line.clear();
+        assert!(
+            reader.read_line(&mut line).unwrap() > 0,
+            "coordinator ended"
+        );
+        let plain = strip_ansi(&line);
+        if let Some(i) = plain.find("listen=127.0.0.1:") {
+            let rest = &plain[i + "listen=127.0.0.1:".len()..];
+            port = rest
+                .split(|c: char| !c.is_ascii_digit())
+                .next()
+                .unwrap()
+                .parse()
+                .unwrap();
+        }
+    }
+    // Keep draining the log so the coordinator never blocks on a full pipe.
+    let log = dir.path().join("coordinator.log");
+    let log2 = log.clone();
+    std::thread::spawn(move || {
+        use std::io::Write;
+        let mut f = std::fs::File::create(log2).unwrap();
+        for l in reader.lines() {
+            let Ok(l) = l else { break };
+            writeln!(f, "{}", strip_ansi(&l)).unwrap();
+        }
+    });
+    Waiting {
+        child,
+        dir,
+        port,
+        fingerprint,
+    }
+}
+
+fn strip_ansi(s: &str) -> String {
+    let mut out = String::new();
+    let mut esc = false;
+    for c in s.chars() {
+        match (esc, c) {
+            (false, '\u{1b}') => esc = true,
+            (true, 'm') => esc = false,
+            (true, _) => {}
+            (false, c) => out.push(c),
+        }
+    }
+    out
+}
+
+fn worker(w: &Waiting, fingerprint: &str, secret: &str) -> Output {
+    Command::new(BIN)
+        .args(["worker", "--connect"])
+        .arg(format!("127.0.0.1:{}", w.port))
+        .args(["--fingerprint", fingerprint, "--connect-timeout-s", "10"])
+        .env("STRATA_SECRET", secret)
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn bad_peers_are_refused_and_the_run_goes_on() {
+    let mut w = start_waiting_coordinator(1, &[]);
+    let fp = w.fingerprint.clone();
+
+    // 1. A worker that pins another certificate refuses the coordinator itself.
+    let wrong_fp = "ab".repeat(32);
+    let o = worker(&w, &wrong_fp, "correct-horse-battery-staple-42");
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("not the pinned"), "{e}");
+
+    // 2. The wrong secret is refused by the coordinator, and the worker says so.
+    let o = worker(&w, &fp, "not-the-secret-of-this-run");
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("wrong shared secret"), "{e}");
+
+    // 3. An oversized frame and a malformed one: refused by the header, connection closed.
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let pinned = strata_net::tls::parse_fingerprint(&fp).unwrap();
+    let addr: std::net::SocketAddr = format!("127.0.0.1:{}", w.port).parse().unwrap();
+    rt.block_on(async {
+        let id = strata_net::Identity::generate().unwrap();
+        let net = strata_net::NetConfig::default();
+        let ep =
+            strata_net::transport::endpoint("127.0.0.1:0".parse().unwrap(), &id, &net).unwrap();
+        for (meta_len, body) in [(u32::MAX, vec![]), (40u32, vec![0xffu8; 40])] {
+            let conn =
+                strata_net::transport::connect(&ep, addr, pinned, &net, Duration::from_secs(10))
+                    .await
+                    .unwrap();
+            let (mut send, mut recv) = conn.open_bi().await.unwrap();
+            let header = strata_common::wire::encode_header(meta_len, 0);
+            send.write_all(&header).await.unwrap();
+            send.write_all(&body).await.unwrap();
+            // The coordinator closes the connection: reading ends with an error, promptly.
+            let r = tokio::time::timeout(Duration::from_secs(15), recv.read_to_end(1 << 20)).await;
+            assert!(matches!(r, Ok(Err(_))), "connection not closed: {r:?}");
+        }
+    });
+
+    // 4. A good worker is still welcome and the render completes.
+    let o = worker(&w, &fp, "correct-horse-battery-staple-42");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let status = w.child.wait().unwrap();
+    assert!(status.success());
+    assert!(w.dir.path().join("out.png").exists());
+    std::thread::sleep(Duration::from_millis(200));
+    let log = std::fs::read_to_string(w.dir.path().join("coordinator.log")).unwrap();
+    assert!(log.contains("wrong shared secret"), "{log}");
+    assert!(log.matches("refused a connection").count() >= 3, "{log}");
+}
+
+#[test]
+fn a_killed_worker_fails_the_frame_with_an_error_naming_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("killed.exr");
+    let t = Instant::now();
+    let o = render(
+        &out,
+        &["--workers", "3", "--set", "cluster.idle_timeout_s=3"],
+        &[("STRATA_TEST_KILL_RANK", "1")],
+    );
+    let took = t.elapsed();
+    assert!(!o.status.success());
+    let e = strip_ansi(&String::from_utf8_lossy(&o.stderr));
+    let last = e.lines().last().unwrap_or_default();
+    assert!(last.contains("worker 1"), "{last}");
+    assert!(
+        last.contains("killed by signal 9") || last.contains("disconnected"),
+        "{last}"
+    );
+    assert!(took < Duration::from_secs(60), "took {took:?}");
+    assert!(!out.exists() && !out.with_extension("png").exists());
+    // No orphans: every worker pid the coordinator logged is gone.
+    std::thread::sleep(Duration::from_millis(500));
+    for l in e.lines().filter(|l| l.contains("worker joined")) {
+        let pid = l
+            .split("pid=")
+            .nth(1)
+            .and_then(|r| r.split_whitespace().next())
+            .unwrap();
+        let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
+        // Gone, or a zombie awaiting its (already gone) parent's reaper.
+        assert!(
+            stat.is_empty() || stat.split_whitespace().nth(2) == Some("Z"),
+            "worker {pid} still running: {stat}"
+        );
+    }
+}

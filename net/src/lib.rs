@@ -1,0 +1,22 @@
+//! # strata-net
+//!
+//! The thin transport under Strata's cluster protocol (whose messages and frame layout
+//! live, I/O-free, in `strata_common::wire`):
+//!
+//! * [`tls`]: a fresh self-signed certificate per process and run, and a client
+//!   verifier that accepts exactly one pinned SHA-256 fingerprint (no CA, no names).
+//! * [`transport`]: quinn endpoint and transport settings (idle timeout, keep-alive,
+//!   flow-control windows, MTU).
+//! * [`frame`]: reading and writing length-checked frames on QUIC streams, with a
+//!   timeout on every wait.
+//! * [`secret`]: the run's shared secret (file or environment), random tokens and a
+//!   constant-time comparison.
+
+pub mod frame;
+pub mod secret;
+pub mod tls;
+pub mod transport;
+
+pub use frame::{read_frame, send_uni, with_timeout, write_frame, Frame, NetError};
+pub use tls::Identity;
+pub use transport::NetConfig;

@@ -1,0 +1,94 @@
+//! The `--connect` command line shared by `worker` and `coordinator worker` (the form in
+//! which a coordinator spawns local workers from its own executable, so the two can never
+//! be of different builds).
+
+use anyhow::{Context, Result};
+use std::net::{SocketAddr, ToSocketAddrs};
+use std::path::PathBuf;
+use std::time::Duration;
+
+/// Joining a render run.
+#[derive(clap::Args)]
+pub struct JoinArgs {
+    /// Coordinator address (HOST:PORT) to join.
+    #[arg(long, value_name = "HOST:PORT")]
+    pub connect: Option<String>,
+    /// The coordinator's certificate fingerprint (64 hex digits), as it printed it.
+    #[arg(long, conflicts_with = "fingerprint_file")]
+    pub fingerprint: Option<String>,
+    /// File with the coordinator's fingerprint (written by `[cluster] fingerprint_file`).
+    #[arg(long, value_name = "FILE")]
+    pub fingerprint_file: Option<PathBuf>,
+    /// File whose first line is the run's shared secret; otherwise the variable named by
+    /// --secret-env.
+    #[arg(long, value_name = "FILE")]
+    pub secret_file: Option<PathBuf>,
+    /// Environment variable holding the shared secret.
+    #[arg(long, default_value = "STRATA_SECRET")]
+    pub secret_env: String,
+    /// Name in logs and errors (default: HOST:PID).
+    #[arg(long)]
+    pub name: Option<String>,
+    /// Local UDP address for this worker's endpoint (peers connect to it); default: any
+    /// interface of the coordinator's address family, any port.
+    #[arg(long)]
+    pub bind: Option<SocketAddr>,
+    /// Seconds to keep trying to reach the coordinator.
+    #[arg(long, default_value_t = 60.0)]
+    pub connect_timeout_s: f64,
+    /// Seconds of silence after which the coordinator counts as gone.
+    #[arg(long, default_value_t = 10.0)]
+    pub idle_timeout_s: f64,
+}
+
+/// Joins the run described by `a`; returns when the coordinator shuts the run down.
+pub fn join(a: JoinArgs) -> Result<()> {
+    use strata_net::tls::parse_fingerprint;
+    let connect = a.connect.context("--connect HOST:PORT is required")?;
+    let addr = connect
+        .to_socket_addrs()
+        .with_context(|| format!("--connect {connect}: cannot resolve"))?
+        .next()
+        .with_context(|| format!("--connect {connect}: no address"))?;
+    let fingerprint = match (&a.fingerprint, &a.fingerprint_file) {
+        (Some(f), _) => parse_fingerprint(f).context("--fingerprint")?,
+        (None, Some(file)) => {
+            let text = std::fs::read_to_string(file)
+                .with_context(|| format!("cannot read {}", file.display()))?;
+            parse_fingerprint(&text).with_context(|| format!("{}", file.display()))?
+        }
+        (None, None) => anyhow::bail!(
+            "--fingerprint or --fingerprint-file is required: a worker only talks to the coordinator it was told to pin"
+        ),
+    };
+    let secret = strata_net::secret::read_secret(a.secret_file.as_deref(), &a.secret_env)?
+        .with_context(|| {
+            format!(
+                "no shared secret: pass --secret-file or set ${}",
+                a.secret_env
+            )
+        })?;
+    let host = std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .map(|h| h.trim().to_string())
+        .unwrap_or_else(|_| "host".into());
+    let bind = a.bind.unwrap_or(if addr.is_ipv6() {
+        "[::]:0".parse().unwrap()
+    } else {
+        "0.0.0.0:0".parse().unwrap()
+    });
+    anyhow::ensure!(
+        a.connect_timeout_s > 0.0 && a.idle_timeout_s > 0.0,
+        "timeouts must be positive"
+    );
+    crate::node::run(crate::node::NodeOptions {
+        connect: addr,
+        fingerprint,
+        secret,
+        name: a
+            .name
+            .unwrap_or_else(|| format!("{host}:{}", std::process::id())),
+        bind,
+        connect_timeout: Duration::from_secs_f64(a.connect_timeout_s),
+        idle_timeout: Duration::from_secs_f64(a.idle_timeout_s),
+    })
+}

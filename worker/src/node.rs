@@ -1,0 +1,645 @@
+//! The worker as a cluster node: connect to the coordinator, mesh with the peers, then
+//! render and composite frames on request.
+//!
+//! One QUIC endpoint serves everything: its client side dials the coordinator and the
+//! higher-ranked peers, its server side accepts the lower-ranked peers. The coordinator
+//! sees the endpoint's address on the worker's connection and hands it to the peers, so
+//! no port has to be configured. Every wait has a deadline; a peer or coordinator that
+//! vanishes is detected by the QUIC idle timeout (keep-alives run underneath) and turns
+//! into an error that names it.
+
+use crate::camera::View;
+use crate::engine::{Engine, Outcome};
+use anyhow::{anyhow, bail, Context, Result};
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use strata_common::composite::{
+    build_plan, Interlace, Plan, RankCompositor, SparsePiece, WireFormat,
+};
+use strata_common::image::{composite_front_to_back, PartialImage, Rect, Rgba};
+use strata_common::scene::Scene;
+use strata_common::wire::{
+    self, CoordMsg, Fingerprint, FrameRequest, FrameSource, Limits, PeerInfo, PeerMsg, Setup,
+    WorkerFrameStats, WorkerMsg,
+};
+use strata_net::frame::{read_frame, send_uni, with_timeout, write_frame, NetError};
+use strata_net::{transport, Identity, NetConfig};
+use tokio::sync::{mpsc, watch};
+use tracing::{debug, info, warn};
+
+/// How a worker finds and proves itself to its coordinator.
+#[derive(Clone, Debug)]
+pub struct NodeOptions {
+    /// Coordinator address.
+    pub connect: SocketAddr,
+    /// Pinned fingerprint of the coordinator's certificate.
+    pub fingerprint: Fingerprint,
+    /// Shared secret.
+    pub secret: Vec<u8>,
+    /// Name in logs and errors.
+    pub name: String,
+    /// Local address of the endpoint (port 0: any).
+    pub bind: SocketAddr,
+    /// How long to keep trying to reach the coordinator.
+    pub connect_timeout: Duration,
+    /// Idle timeout of the coordinator connection.
+    pub idle_timeout: Duration,
+}
+
+/// Runs the node until the coordinator says `Shutdown` (Ok) or the run fails (Err).
+pub fn run(opts: NodeOptions) -> Result<()> {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    rt.block_on(node(opts))
+}
+
+/// Messages from the peer reader tasks.
+enum PeerEvent {
+    Piece {
+        frame: u64,
+        round: u32,
+        from: u32,
+        bulk: Vec<u8>,
+        wire_len: u64,
+    },
+    Lost {
+        rank: u32,
+        error: String,
+    },
+}
+
+async fn node(opts: NodeOptions) -> Result<()> {
+    let id = Identity::generate()?;
+    let net = NetConfig {
+        idle_timeout: opts.idle_timeout,
+        ..NetConfig::default()
+    };
+    let ep = transport::endpoint(opts.bind, &id, &net)?;
+    let conn = transport::connect(
+        &ep,
+        opts.connect,
+        opts.fingerprint,
+        &net,
+        opts.connect_timeout,
+    )
+    .await
+    .context("reaching the coordinator")?;
+    let (mut csend, mut crecv) = conn.open_bi().await?;
+    let hello = WorkerMsg::Hello {
+        secret: opts.secret.clone(),
+        name: opts.name.clone(),
+        pid: std::process::id(),
+        fingerprint: id.fingerprint,
+    };
+    write_frame(&mut csend, &wire::encode_meta(&hello), &[]).await?;
+    let f = with_timeout(
+        opts.connect_timeout,
+        "waiting for the coordinator's set-up",
+        read_frame(
+            &mut crecv,
+            &Limits {
+                max_meta: wire::MAX_META,
+                max_bulk: 0,
+            },
+        ),
+    )
+    .await?;
+    let setup = match wire::decode_meta::<CoordMsg>(&f.meta)? {
+        CoordMsg::Setup(s) => *s,
+        CoordMsg::Refused { reason } => bail!("the coordinator refused this worker: {reason}"),
+        other => bail!("expected the set-up from the coordinator, got {other:?}"),
+    };
+    let rank = setup.rank;
+    info!(rank, name = %opts.name, peers = setup.peers.len(), "set up");
+    let scene: Scene =
+        toml::from_str(&setup.scene_toml).context("the scene sent by the coordinator")?;
+    let timeout = Duration::from_millis(setup.timeout_ms.max(1));
+    let limits = Limits::for_pixels(setup.max_pixels);
+
+    // Peers: accept the lower ranks (spawned first so nobody waits on us), dial the higher.
+    let (token_tx, token_rx) = watch::channel(Some(setup.run_token));
+    let (peer_tx, mut peer_rx) = mpsc::unbounded_channel::<(u32, quinn::Connection)>();
+    let n = setup.peers.len() as u32;
+    tokio::spawn(accept_peers(ep.clone(), token_rx, peer_tx, n));
+    let mut peers: Vec<Option<quinn::Connection>> = vec![None; n as usize];
+    for r in rank + 1..n {
+        let p = &setup.peers[r as usize];
+        let addr: SocketAddr = p
+            .addr
+            .parse()
+            .with_context(|| format!("peer {r} address {:?}", p.addr))?;
+        let c = transport::connect(&ep, addr, p.fingerprint, &net, timeout)
+            .await
+            .with_context(|| format!("connecting to peer {r} ({})", p.name))?;
+        let hello = PeerMsg::Hello {
+            token: setup.run_token,
+            rank,
+        };
+        send_uni(&c, &wire::encode_meta(&hello), &[]).await?;
+        peers[r as usize] = Some(c);
+    }
+    let deadline = Instant::now() + timeout;
+    while peers[..rank as usize].iter().any(Option::is_none) {
+        let left = deadline.saturating_duration_since(Instant::now());
+        match tokio::time::timeout(left, peer_rx.recv()).await {
+            Ok(Some((r, c))) if r < rank && peers[r as usize].is_none() => {
+                peers[r as usize] = Some(c)
+            }
+            Ok(Some((r, c))) => {
+                warn!(peer = r, "unexpected second connection; closing it");
+                c.close(1u32.into(), b"duplicate");
+            }
+            Ok(None) => bail!("the peer listener stopped"),
+            Err(_) => {
+                let missing: Vec<String> = (0..rank)
+                    .filter(|&r| peers[r as usize].is_none())
+                    .map(|r| describe(&setup.peers, r))
+                    .collect();
+                bail!(
+                    "peers {} did not connect within {:.1} s",
+                    missing.join(", "),
+                    timeout.as_secs_f64()
+                );
+            }
+        }
+    }
+    drop(token_tx);
+    let (ev_tx, mut ev_rx) = mpsc::unbounded_channel();
+    for (r, c) in peers.iter().enumerate() {
+        if let Some(c) = c {
+            tokio::spawn(read_peer(r as u32, c.clone(), limits, ev_tx.clone()));
+        }
+    }
+    let engine = tokio::task::block_in_place(|| Engine::new(&scene))
+        .context("opening the scene's stores")?;
+    let mut node = Node {
+        rank,
+        setup,
+        peers,
+        engine,
+        pending: HashMap::new(),
+        plans: HashMap::new(),
+        timeout,
+    };
+    write_frame(&mut csend, &wire::encode_meta(&WorkerMsg::Ready), &[]).await?;
+    info!(rank, "ready");
+
+    let control = Limits {
+        max_meta: wire::MAX_META,
+        max_bulk: 0,
+    };
+    loop {
+        // No deadline between frames (a user may pause); a vanished coordinator ends
+        // the connection through the idle timeout.
+        let f = match read_frame(&mut crecv, &control).await {
+            Ok(f) => f,
+            Err(e) => bail!("lost the coordinator: {e}"),
+        };
+        match wire::decode_meta::<CoordMsg>(&f.meta)? {
+            CoordMsg::Frame(req) => {
+                let frame = req.frame;
+                match node.frame(&req, &mut ev_rx).await {
+                    Ok((stats, piece)) => {
+                        let msg = WorkerMsg::FrameDone { frame, stats };
+                        write_frame(&mut csend, &wire::encode_meta(&msg), &piece).await?;
+                    }
+                    Err(e) => {
+                        warn!(frame, "frame failed: {e:#}");
+                        let msg = WorkerMsg::Failed {
+                            frame: Some(frame),
+                            message: format!("{e:#}"),
+                        };
+                        write_frame(&mut csend, &wire::encode_meta(&msg), &[]).await?;
+                    }
+                }
+            }
+            CoordMsg::Shutdown => break,
+            other => bail!("unexpected message from the coordinator: {other:?}"),
+        }
+    }
+    info!(rank, "shutting down");
+    let _ = csend.finish();
+    conn.close(0u32.into(), b"done");
+    let _ = tokio::time::timeout(Duration::from_secs(2), ep.wait_idle()).await;
+    Ok(())
+}
+
+fn describe(peers: &[PeerInfo], r: u32) -> String {
+    match peers.get(r as usize) {
+        Some(p) => format!("worker {r} ({} at {})", p.name, p.addr),
+        None => format!("worker {r}"),
+    }
+}
+
+/// Accepts peer connections; each must open with `PeerMsg::Hello` carrying the run token.
+async fn accept_peers(
+    ep: quinn::Endpoint,
+    token: watch::Receiver<Option<[u8; 32]>>,
+    out: mpsc::UnboundedSender<(u32, quinn::Connection)>,
+    n: u32,
+) {
+    while let Some(incoming) = ep.accept().await {
+        let token = *token.borrow();
+        let out = out.clone();
+        tokio::spawn(async move {
+            let remote = incoming.remote_address();
+            let conn = match incoming.await {
+                Ok(c) => c,
+                Err(e) => {
+                    warn!(%remote, "peer handshake failed: {e}");
+                    return;
+                }
+            };
+            let hello = async {
+                let mut s =
+                    with_timeout(Duration::from_secs(10), "peer hello", conn.accept_uni()).await?;
+                let f = with_timeout(
+                    Duration::from_secs(10),
+                    "peer hello",
+                    read_frame(&mut s, &Limits::HANDSHAKE),
+                )
+                .await?;
+                Ok::<_, NetError>(wire::decode_meta::<PeerMsg>(&f.meta)?)
+            };
+            match (hello.await, token) {
+                (Ok(PeerMsg::Hello { token: t, rank }), Some(tok))
+                    if strata_net::secret::ct_eq(&t, &tok) && rank < n =>
+                {
+                    debug!(peer = rank, %remote, "peer connected");
+                    let _ = out.send((rank, conn));
+                }
+                (r, _) => {
+                    warn!(%remote, "refused a peer connection: {}", match r {
+                        Ok(_) => "wrong run token or rank".to_string(),
+                        Err(e) => e.to_string(),
+                    });
+                    conn.close(2u32.into(), b"refused");
+                }
+            }
+        });
+    }
+}
+
+/// Reads a peer's pieces until its connection ends.
+async fn read_peer(
+    rank: u32,
+    conn: quinn::Connection,
+    limits: Limits,
+    out: mpsc::UnboundedSender<PeerEvent>,
+) {
+    let err = loop {
+        let mut s = match conn.accept_uni().await {
+            Ok(s) => s,
+            Err(e) => break e.to_string(),
+        };
+        let f = match read_frame(&mut s, &limits).await {
+            Ok(f) => f,
+            Err(e) => {
+                conn.close(3u32.into(), b"malformed frame");
+                break format!("malformed frame: {e}");
+            }
+        };
+        match wire::decode_meta::<PeerMsg>(&f.meta) {
+            Ok(PeerMsg::Piece { frame, round, from }) => {
+                let wire_len = f.wire_len();
+                if out
+                    .send(PeerEvent::Piece {
+                        frame,
+                        round,
+                        from,
+                        bulk: f.bulk,
+                        wire_len,
+                    })
+                    .is_err()
+                {
+                    return;
+                }
+            }
+            Ok(other) => {
+                conn.close(3u32.into(), b"unexpected message");
+                break format!("unexpected message {other:?}");
+            }
+            Err(e) => {
+                conn.close(3u32.into(), b"malformed message");
+                break format!("malformed message: {e}");
+            }
+        }
+    };
+    let _ = out.send(PeerEvent::Lost { rank, error: err });
+}
+
+struct Node {
+    rank: u32,
+    setup: Setup,
+    peers: Vec<Option<quinn::Connection>>,
+    engine: Engine,
+    /// Pieces that arrived before they were needed: (frame, round, from position).
+    pending: HashMap<(u64, u32, u32), (Vec<u8>, u64)>,
+    plans: HashMap<(usize, u32, String), Arc<Plan>>,
+    timeout: Duration,
+}
+
+impl Node {
+    /// Renders (or draws) this worker's image and runs its part of the exchange; returns
+    /// the stats and the encoded final piece.
+    async fn frame(
+        &mut self,
+        req: &FrameRequest,
+        events: &mut mpsc::UnboundedReceiver<PeerEvent>,
+    ) -> Result<(WorkerFrameStats, Vec<u8>)> {
+        let n = self.setup.peers.len();
+        anyhow::ensure!(
+            req.order.len() == n,
+            "the visibility order has {} ranks, the run has {n}",
+            req.order.len()
+        );
+        let pixels = req.width as u64 * req.height as u64;
+        anyhow::ensure!(
+            pixels > 0 && pixels <= self.setup.max_pixels,
+            "frame of {}x{} exceeds the run's limit of {} pixels",
+            req.width,
+            req.height,
+            self.setup.max_pixels
+        );
+        let position = req
+            .order
+            .iter()
+            .position(|&r| r == self.rank)
+            .ok_or_else(|| anyhow!("rank {} is missing from the visibility order", self.rank))?;
+        let mut stats = WorkerFrameStats {
+            rank: self.rank,
+            position: position as u32,
+            ..Default::default()
+        };
+        // 1. The partial image.
+        let t = Instant::now();
+        let image = tokio::task::block_in_place(|| self.image(req, &mut stats))?;
+        stats.render_s = t.elapsed().as_secs_f64();
+        stats.render_end_us = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_micros() as u64);
+
+        // Test hook: `STRATA_TEST_KILL_RANK=R` makes rank R die by SIGKILL between its
+        // render and the exchange, the worst moment for its peers, so tests can check that
+        // a vanished worker fails the frame with a clear error instead of a hang.
+        if std::env::var("STRATA_TEST_KILL_RANK").ok().as_deref() == Some(&self.rank.to_string()) {
+            warn!(
+                rank = self.rank,
+                "STRATA_TEST_KILL_RANK: killing this worker"
+            );
+            // SAFETY: plain syscalls on our own process.
+            unsafe {
+                libc::kill(libc::getpid(), libc::SIGKILL);
+            }
+        }
+        // 2. The exchange.
+        let key = (n, req.width * req.height, format!("{:?}", req.composite));
+        let plan = match self.plans.get(&key) {
+            Some(p) => p.clone(),
+            None => {
+                let k: Vec<usize> = req.composite.k.iter().map(|&k| k as usize).collect();
+                let p = Arc::new(build_plan(
+                    n,
+                    req.width * req.height,
+                    req.composite.algorithm,
+                    (!k.is_empty()).then_some(&k[..]),
+                )?);
+                self.plans.insert(key, p.clone());
+                p
+            }
+        };
+        let interlace = Interlace::new(req.width, req.height, n as u32, req.composite.interlace);
+        let format = req.composite.format;
+        let mut rc = RankCompositor::new(plan.clone(), position, &image, &interlace)?;
+        drop(image);
+        // Forget pieces of frames that are over.
+        self.pending.retain(|k, _| k.0 >= req.frame);
+        while let Some(round) = rc.round() {
+            stats.rounds += 1;
+            let t = Instant::now();
+            let outgoing = rc.outgoing(format);
+            let mut encoded = Vec::with_capacity(outgoing.len());
+            for (to, piece) in outgoing {
+                let mut bytes = Vec::with_capacity(piece.byte_len());
+                piece.write(&mut bytes);
+                encoded.push((to, bytes));
+            }
+            stats.encode_s += t.elapsed().as_secs_f64();
+            let t = Instant::now();
+            let mut sends = Vec::new();
+            for (to, bytes) in encoded {
+                let to_rank = req.order[to];
+                let conn = self.peers[to_rank as usize]
+                    .clone()
+                    .ok_or_else(|| anyhow!("no connection to rank {to_rank}"))?;
+                let meta = wire::encode_meta(&PeerMsg::Piece {
+                    frame: req.frame,
+                    round: round as u32,
+                    from: position as u32,
+                });
+                let what = describe(&self.setup.peers, to_rank);
+                sends.push(tokio::spawn(async move {
+                    send_uni(&conn, &meta, &bytes)
+                        .await
+                        .map_err(|e| anyhow!("sending to {what}: {e}"))
+                }));
+            }
+            let expected = rc.expected();
+            for from in expected {
+                let (bulk, len) = self
+                    .wait_piece(req, round as u32, from as u32, events)
+                    .await?;
+                stats.bytes_received += len;
+                let piece =
+                    SparsePiece::parse(&bulk, req.width * req.height).with_context(|| {
+                        format!(
+                            "piece from {}",
+                            describe(&self.setup.peers, req.order[from])
+                        )
+                    })?;
+                rc.receive(from, piece)?;
+            }
+            for s in sends {
+                match tokio::time::timeout(self.timeout, s).await {
+                    Ok(Ok(r)) => stats.bytes_sent += r?,
+                    Ok(Err(e)) => bail!("send task: {e}"),
+                    Err(_) => bail!(
+                        "sending a piece took more than {:.1} s",
+                        self.timeout.as_secs_f64()
+                    ),
+                }
+            }
+            stats.exchange_s += t.elapsed().as_secs_f64();
+            let t = Instant::now();
+            tokio::task::block_in_place(|| rc.finish_round())?;
+            stats.blend_s += t.elapsed().as_secs_f64();
+        }
+        let t = Instant::now();
+        let result = rc.result(format);
+        let mut bytes = Vec::with_capacity(result.byte_len());
+        result.write(&mut bytes);
+        stats.gather_s = t.elapsed().as_secs_f64();
+        stats.gather_bytes = bytes.len() as u64;
+        Ok((stats, bytes))
+    }
+
+    async fn wait_piece(
+        &mut self,
+        req: &FrameRequest,
+        round: u32,
+        from: u32,
+        events: &mut mpsc::UnboundedReceiver<PeerEvent>,
+    ) -> Result<(Vec<u8>, u64)> {
+        let deadline = Instant::now() + self.timeout;
+        loop {
+            if let Some(p) = self.pending.remove(&(req.frame, round, from)) {
+                return Ok(p);
+            }
+            let left = deadline.saturating_duration_since(Instant::now());
+            match tokio::time::timeout(left, events.recv()).await {
+                Ok(Some(PeerEvent::Piece {
+                    frame,
+                    round,
+                    from,
+                    bulk,
+                    wire_len,
+                })) => {
+                    if frame >= req.frame {
+                        self.pending.insert((frame, round, from), (bulk, wire_len));
+                    }
+                }
+                Ok(Some(PeerEvent::Lost { rank, error })) => {
+                    bail!(
+                        "lost the connection to {}: {error}",
+                        describe(&self.setup.peers, rank)
+                    )
+                }
+                Ok(None) => bail!("peer readers stopped"),
+                Err(_) => {
+                    let who = req.order.get(from as usize).copied().unwrap_or(u32::MAX);
+                    bail!(
+                        "no piece from {} (round {round} of frame {}) within {:.1} s",
+                        describe(&self.setup.peers, who),
+                        req.frame,
+                        self.timeout.as_secs_f64()
+                    )
+                }
+            }
+        }
+    }
+
+    /// This worker's partial image for the frame.
+    fn image(&mut self, req: &FrameRequest, stats: &mut WorkerFrameStats) -> Result<PartialImage> {
+        match &req.source {
+            FrameSource::Synthetic { coverage, seed } => Ok(synthetic_image(
+                req.width,
+                req.height,
+                self.rank,
+                self.setup.peers.len() as u32,
+                *coverage,
+                *seed ^ req.frame,
+            )),
+            FrameSource::Render => {
+                let view = View::new(&req.camera, &self.engine.settings, req.width, req.height)?;
+                let mut images = Vec::new();
+                let mut outcome = Outcome::Converged;
+                for &leaf in &req.leaf_order {
+                    let region = *self
+                        .setup
+                        .leaves
+                        .get(leaf as usize)
+                        .ok_or_else(|| anyhow!("leaf {leaf} is not one of this worker's"))?;
+                    let r = self.engine.render_batch(&view, &region)?;
+                    stats.render_rounds = stats.render_rounds.max(r.rounds);
+                    stats.samples += r.last.samples;
+                    if r.outcome != Outcome::Converged {
+                        outcome = r.outcome;
+                    }
+                    images.push(r.image);
+                }
+                stats.outcome = match outcome {
+                    Outcome::Converged => "converged",
+                    Outcome::RoundLimit => "round-limit",
+                    Outcome::AtlasFull => "atlas-full",
+                }
+                .into();
+                Ok(match images.len() {
+                    0 => PartialImage::empty(req.width, req.height),
+                    1 => images.pop().unwrap(),
+                    _ => {
+                        let refs: Vec<&PartialImage> = images.iter().collect();
+                        let full = composite_front_to_back(req.width, req.height, &refs);
+                        PartialImage::from_full(req.width, req.height, &full)
+                    }
+                })
+            }
+        }
+    }
+}
+
+/// A benchmark image: a translucent box's footprint for rank `rank` of `ranks`, covering
+/// `coverage` of the frame (every pixel when `coverage >= 1`), with smoothly varying
+/// premultiplied colour. Deterministic in `seed`.
+pub fn synthetic_image(
+    width: u32,
+    height: u32,
+    rank: u32,
+    ranks: u32,
+    coverage: f32,
+    seed: u64,
+) -> PartialImage {
+    let (w, h) = if coverage >= 1.0 {
+        (width, height)
+    } else {
+        let s = coverage.max(0.0).sqrt();
+        (
+            ((width as f32 * s).round() as u32).clamp(1, width),
+            ((height as f32 * s).round() as u32).clamp(1, height),
+        )
+    };
+    // Boxes of different ranks sit at different places, as the projections of the k-d
+    // leaves of a scene do.
+    let mix = strata_common::digest::fmix64(seed ^ (rank as u64 + 1) * 0x9e37_79b9_7f4a_7c15);
+    let x = if w < width {
+        (mix % (width - w + 1) as u64) as u32
+    } else {
+        0
+    };
+    let y = if h < height {
+        ((mix >> 32) % (height - h + 1) as u64) as u32
+    } else {
+        0
+    };
+    let alpha = 0.2 + 0.6 * (rank as f32 + 0.5) / ranks.max(1) as f32;
+    let mut pixels = Vec::with_capacity(w as usize * h as usize);
+    for j in 0..h {
+        for i in 0..w {
+            let a = alpha * (0.5 + 0.5 * ((i + j + rank) % 64) as f32 / 64.0);
+            let c: Rgba = [
+                a * (i as f32 / w as f32),
+                a * (j as f32 / h as f32),
+                a * 0.5,
+                a,
+            ];
+            pixels.push(c);
+        }
+    }
+    PartialImage {
+        width,
+        height,
+        rect: Rect { x, y, w, h },
+        pixels,
+    }
+}
+
+/// The wire format's name, for logs.
+pub fn format_name(f: WireFormat) -> &'static str {
+    match f {
+        WireFormat::F32 => "f32",
+        WireFormat::F16 => "f16",
+    }
+}
