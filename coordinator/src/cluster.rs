@@ -602,7 +602,12 @@ impl Cluster {
                 }
             }
         }
+        // Let each worker read the shutdown and close first, so none mistakes our close
+        // for a lost coordinator.
+        let deadline = Instant::now() + Duration::from_secs(3);
         for w in &self.workers {
+            let left = deadline.saturating_duration_since(Instant::now());
+            let _ = tokio::time::timeout(left, w.conn.closed()).await;
             w.conn.close(0u32.into(), b"done");
         }
         let _ = tokio::time::timeout(Duration::from_secs(1), self.ep.wait_idle()).await;
