@@ -39,10 +39,11 @@ for _ in $(seq 300); do [ -s "$RUN/fingerprint" ] && break; sleep 1; done
 [ -s "$RUN/fingerprint" ] || { echo "coordinator did not start" >&2; kill $COORD; exit 1; }
 
 srun --kill-on-bad-exit=1 worker --connect "$COORD_HOST:$PORT" \
-    --fingerprint-file "$RUN/fingerprint" --secret-file "$RUN/secret" &
+    --fingerprint-file "$RUN/fingerprint" --secret-file "$RUN/secret" \
+    --connect-timeout-s 300 &
 WORKERS_PID=$!
 
-wait $COORD
-STATUS=$?
+STATUS=0
+wait $COORD || STATUS=$?
 wait $WORKERS_PID || true
 exit $STATUS

@@ -119,9 +119,6 @@ pub struct ClusterSettings {
     /// healthy connections from idling).
     #[serde(default = "default_idle_timeout")]
     pub idle_timeout_s: f64,
-    /// First QUIC packet size (bytes); 0 = 1200 on networks, larger on loopback.
-    #[serde(default)]
-    pub initial_mtu: u32,
     /// Rayon threads per spawned worker; 0 = the cores divided among the workers.
     #[serde(default)]
     pub worker_threads: u32,
@@ -145,7 +142,6 @@ impl Default for ClusterSettings {
             connect_timeout_s: default_connect_timeout(),
             frame_timeout_s: default_frame_timeout(),
             idle_timeout_s: default_idle_timeout(),
-            initial_mtu: 0,
             worker_threads: 0,
             secret_file: None,
             fingerprint_file: None,

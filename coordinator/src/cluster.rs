@@ -47,8 +47,6 @@ pub struct ClusterOptions {
     pub frame_timeout: Duration,
     /// Connection idle timeout.
     pub idle_timeout: Duration,
-    /// First QUIC packet size.
-    pub initial_mtu: u16,
     /// Rayon threads per spawned worker (0: divide the cores).
     pub worker_threads: usize,
     /// Shared secret (None: generate one; only allowed when spawning).
@@ -96,7 +94,6 @@ impl ClusterOptions {
                 c.listen
             )
         })?;
-        let loopback = listen.ip().is_loopback();
         let secret = secret::read_secret(c.secret_file.as_deref(), secret::SECRET_ENV)?;
         if !c.spawn && secret.is_none() {
             bail!(
@@ -112,11 +109,6 @@ impl ClusterOptions {
             connect_timeout: Duration::from_secs_f64(c.connect_timeout_s),
             frame_timeout: Duration::from_secs_f64(c.frame_timeout_s),
             idle_timeout: Duration::from_secs_f64(c.idle_timeout_s),
-            initial_mtu: match c.initial_mtu {
-                0 if loopback => 16384,
-                0 => 1200,
-                m => m.clamp(1200, 65000) as u16,
-            },
             worker_threads: c.worker_threads as usize,
             secret,
             fingerprint_file: c.fingerprint_file.clone(),
@@ -200,7 +192,6 @@ impl Cluster {
         let id = Identity::generate()?;
         let net = NetConfig {
             idle_timeout: opts.idle_timeout,
-            initial_mtu: opts.initial_mtu,
             ..NetConfig::default()
         };
         let ep = transport::endpoint(opts.listen, &id, &net)?;
@@ -309,8 +300,15 @@ impl Cluster {
         let (auth_tx, mut auth_rx) = mpsc::unbounded_channel();
         let ep = self.ep.clone();
         let secret_owned = secret.to_vec();
+        // At most this many handshakes at once; strangers cannot queue unbounded work.
+        let pending = std::sync::Arc::new(tokio::sync::Semaphore::new(64));
         let acceptor = tokio::spawn(async move {
             while let Some(incoming) = ep.accept().await {
+                let Ok(permit) = pending.clone().try_acquire_owned() else {
+                    warn!(remote = %incoming.remote_address(), "refused a connection: too many handshakes in progress");
+                    incoming.refuse();
+                    continue;
+                };
                 let auth_tx = auth_tx.clone();
                 let secret = secret_owned.clone();
                 tokio::spawn(async move {
@@ -321,6 +319,7 @@ impl Cluster {
                         }
                         Err(e) => warn!(%remote, "refused a connection: {e:#}"),
                     }
+                    drop(permit);
                 });
             }
         });
@@ -331,16 +330,40 @@ impl Cluster {
                 w = auth_rx.recv() => {
                     let (name, pid, fingerprint, conn, send, recv) = w.ok_or_else(|| anyhow!("the listener stopped"))?;
                     let rank = self.workers.len() as u32;
-                    let addr = conn.remote_address();
+                    transport::trust(&conn);
+                    // Peers dial this address; an IPv4 worker on a dual-stack listener
+                    // shows up as ::ffff:a.b.c.d, which an IPv4 socket cannot dial.
+                    let remote = conn.remote_address();
+                    let addr = SocketAddr::new(remote.ip().to_canonical(), remote.port());
                     info!(rank, %name, pid, %addr, "worker joined");
                     spawn_reader(rank, conn.clone(), recv, Limits::for_pixels(self.opts.max_pixels), tx.clone());
                     self.workers.push(Worker { rank, name, pid, addr, fingerprint, conn, send });
                 }
                 ev = self.events.recv() => {
-                    if let Some(Event::Exited { child, status }) = ev {
-                        acceptor.abort();
-                        bail!("{} exited before the run started: {status}", self.child_name(child));
-                    }
+                    acceptor.abort();
+                    return Err(match ev {
+                        Some(Event::Exited { child, status }) => anyhow!(
+                            "{} exited before the run started: {status}",
+                            self.child_name(child)
+                        ),
+                        Some(Event::Lost { rank, error }) => anyhow!(
+                            "{} disconnected before the run started: {error}",
+                            self.workers[rank as usize].describe()
+                        ),
+                        Some(Event::Msg { rank, frame }) => {
+                            match wire::decode_meta::<WorkerMsg>(&frame.meta) {
+                                Ok(WorkerMsg::Failed { message, .. }) => anyhow!(
+                                    "{} failed: {message}",
+                                    self.workers[rank as usize].describe()
+                                ),
+                                _ => anyhow!(
+                                    "{} spoke out of turn before the run started",
+                                    self.workers[rank as usize].describe()
+                                ),
+                            }
+                        }
+                        None => anyhow!("event channel closed"),
+                    });
                 }
                 _ = tokio::time::sleep(left) => {
                     acceptor.abort();
@@ -353,6 +376,18 @@ impl Cluster {
             }
         }
         acceptor.abort();
+        // The run is full: no new connections; authenticated extras are told why.
+        self.ep.set_server_config(None);
+        while let Ok((name, pid, _, conn, mut send, _)) = auth_rx.try_recv() {
+            warn!(%name, pid, "refused a worker: the run already has {n}");
+            let msg = wire::encode_meta(&CoordMsg::Refused {
+                reason: format!("the run already has its {n} workers"),
+            });
+            let _ = tokio::time::timeout(Duration::from_secs(1), write_frame(&mut send, &msg, &[]))
+                .await;
+            let _ = send.finish();
+            conn.close(6u32.into(), b"run is full");
+        }
         Ok(())
     }
 
@@ -545,6 +580,13 @@ impl Cluster {
                 Event::Msg { rank, frame: f } => {
                     let who = self.workers[rank as usize].describe();
                     match wire::decode_meta::<WorkerMsg>(&f.meta) {
+                        // Leftovers of an earlier (failed) frame are not this frame's.
+                        Ok(WorkerMsg::FrameDone { frame: fno, .. })
+                        | Ok(WorkerMsg::Failed {
+                            frame: Some(fno), ..
+                        }) if fno < frame => {
+                            debug!(%who, fno, "ignoring a message of an earlier frame");
+                        }
                         Ok(WorkerMsg::FrameDone {
                             frame: fno,
                             stats: s,

@@ -16,7 +16,7 @@ const SIZE: &str = "96x64";
 fn survey() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
-        let dir = std::env::temp_dir().join(format!("strata-cluster-{}", std::process::id()));
+        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("cluster-survey");
         let out = Command::new(BIN)
             .args(["-q", "synth", "-o"])
             .arg(&dir)

@@ -124,7 +124,9 @@ pub async fn read_frame(recv: &mut quinn::RecvStream, limits: &Limits) -> Result
 
 /// Reads `len` bytes without zero-filling a buffer first (pieces are tens of MB).
 async fn read_exactly(recv: &mut quinn::RecvStream, len: usize) -> Result<Vec<u8>, NetError> {
-    let mut out = Vec::with_capacity(len);
+    // Reserve by what has arrived, not by what the header promises (capped at 64 MiB up
+    // front), so a lying header costs at most that much.
+    let mut out = Vec::with_capacity(len.min(64 << 20));
     while out.len() < len {
         match recv
             .read_chunk(len - out.len(), true)

@@ -39,20 +39,49 @@ impl NetConfig {
         t.keep_alive_interval(Some(self.keep_alive.min(self.idle_timeout / 2)));
         // Image pieces are tens of MB; windows of a few tens of MB keep a loopback or LAN
         // link busy without letting one peer pin unbounded memory.
+        // Until a peer has proven itself (`trust`), it may open one stream of each kind
+        // and have at most PRE_AUTH_WINDOW bytes buffered.
         t.stream_receive_window(quinn::VarInt::from_u32(32 << 20));
-        t.receive_window(quinn::VarInt::from_u32(128 << 20));
+        t.receive_window(quinn::VarInt::from_u32(PRE_AUTH_WINDOW));
         t.send_window(128 << 20);
-        t.max_concurrent_uni_streams(quinn::VarInt::from_u32(1024));
-        t.max_concurrent_bidi_streams(quinn::VarInt::from_u32(16));
+        t.max_concurrent_uni_streams(quinn::VarInt::from_u32(1));
+        t.max_concurrent_bidi_streams(quinn::VarInt::from_u32(1));
         t.initial_mtu(self.initial_mtu.max(1200));
+        if self.initial_mtu > 1452 {
+            // Let path MTU discovery keep (and probe above) a large starting size instead
+            // of capping it at the Ethernet-safe 1452.
+            let mut m = quinn::MtuDiscoveryConfig::default();
+            m.upper_bound(self.initial_mtu);
+            t.mtu_discovery_config(Some(m));
+        }
         Ok(Arc::new(t))
     }
+}
+
+/// Connection-level receive window before authentication.
+pub const PRE_AUTH_WINDOW: u32 = 256 << 10;
+
+/// Opens the flow-control windows of a connection whose peer has been authenticated
+/// (secret, run token, or a pinned certificate we dialled): image pieces are tens of MB,
+/// and windows of that size keep a loopback or LAN link busy.
+pub fn trust(conn: &quinn::Connection) {
+    conn.set_receive_window(quinn::VarInt::from_u32(128 << 20));
+    conn.set_max_concurrent_uni_streams(quinn::VarInt::from_u32(1024));
+    conn.set_max_concurrent_bi_streams(quinn::VarInt::from_u32(4));
 }
 
 /// An endpoint bound to `bind` that accepts connections with `id` (and can open them).
 pub fn endpoint(bind: SocketAddr, id: &Identity, cfg: &NetConfig) -> Result<quinn::Endpoint> {
     let server = tls::server_config(id, cfg.transport()?)?;
-    quinn::Endpoint::server(server, bind).with_context(|| format!("cannot bind UDP {bind}"))
+    // Accept datagrams as large as any peer's MTU (quinn's default drops anything above
+    // 1472 bytes, which would silently black-hole a peer configured for loopback sizes).
+    let mut ec = quinn::EndpointConfig::default();
+    ec.max_udp_payload_size(65527)
+        .map_err(|e| anyhow::anyhow!("max UDP payload: {e:?}"))?;
+    let socket =
+        std::net::UdpSocket::bind(bind).with_context(|| format!("cannot bind UDP {bind}"))?;
+    quinn::Endpoint::new(ec, Some(server), socket, Arc::new(quinn::TokioRuntime))
+        .with_context(|| format!("cannot start a QUIC endpoint on {bind}"))
 }
 
 /// Connects to `addr`, accepting only the certificate with fingerprint `pinned`, within

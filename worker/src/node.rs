@@ -60,6 +60,7 @@ pub fn run(opts: NodeOptions) -> Result<()> {
 /// Messages from the peer reader tasks.
 enum PeerEvent {
     Piece {
+        rank: u32,
         frame: u64,
         round: u32,
         from: u32,
@@ -88,6 +89,8 @@ async fn node(opts: NodeOptions) -> Result<()> {
     )
     .await
     .context("reaching the coordinator")?;
+    // The coordinator proved itself with the pinned certificate.
+    transport::trust(&conn);
     let (mut csend, mut crecv) = conn.open_bi().await?;
     let hello = WorkerMsg::Hello {
         secret: opts.secret.clone(),
@@ -115,75 +118,27 @@ async fn node(opts: NodeOptions) -> Result<()> {
     };
     let rank = setup.rank;
     info!(rank, name = %opts.name, peers = setup.peers.len(), "set up");
-    let scene: Scene =
-        toml::from_str(&setup.scene_toml).context("the scene sent by the coordinator")?;
-    let timeout = Duration::from_millis(setup.timeout_ms.max(1));
-    let limits = Limits::for_pixels(setup.max_pixels);
-
-    // Peers: accept the lower ranks (spawned first so nobody waits on us), dial the higher.
-    let (token_tx, token_rx) = watch::channel(Some(setup.run_token));
-    let (peer_tx, mut peer_rx) = mpsc::unbounded_channel::<(u32, quinn::Connection)>();
-    let n = setup.peers.len() as u32;
-    tokio::spawn(accept_peers(ep.clone(), token_rx, peer_tx, n));
-    let mut peers: Vec<Option<quinn::Connection>> = vec![None; n as usize];
-    for r in rank + 1..n {
-        let p = &setup.peers[r as usize];
-        let addr: SocketAddr = p
-            .addr
-            .parse()
-            .with_context(|| format!("peer {r} address {:?}", p.addr))?;
-        let c = transport::connect(&ep, addr, p.fingerprint, &net, timeout)
-            .await
-            .with_context(|| format!("connecting to peer {r} ({})", p.name))?;
-        let hello = PeerMsg::Hello {
-            token: setup.run_token,
-            rank,
-        };
-        send_uni(&c, &wire::encode_meta(&hello), &[]).await?;
-        peers[r as usize] = Some(c);
-    }
-    let deadline = Instant::now() + timeout;
-    while peers[..rank as usize].iter().any(Option::is_none) {
-        let left = deadline.saturating_duration_since(Instant::now());
-        match tokio::time::timeout(left, peer_rx.recv()).await {
-            Ok(Some((r, c))) if r < rank && peers[r as usize].is_none() => {
-                peers[r as usize] = Some(c)
-            }
-            Ok(Some((r, c))) => {
-                warn!(peer = r, "unexpected second connection; closing it");
-                c.close(1u32.into(), b"duplicate");
-            }
-            Ok(None) => bail!("the peer listener stopped"),
-            Err(_) => {
-                let missing: Vec<String> = (0..rank)
-                    .filter(|&r| peers[r as usize].is_none())
-                    .map(|r| describe(&setup.peers, r))
-                    .collect();
-                bail!(
-                    "peers {} did not connect within {:.1} s",
-                    missing.join(", "),
-                    timeout.as_secs_f64()
-                );
-            }
+    let mesh = tokio::select! {
+        r = mesh(&ep, setup, &net, opts.connect_timeout) => r,
+        e = conn.closed() => Err(anyhow!("lost the coordinator during set-up: {e}")),
+    };
+    let (mut node, mut ev_rx) = match mesh {
+        Ok(m) => m,
+        Err(e) => {
+            // Tell the coordinator why, so its error names the cause, not just an exit.
+            let msg = WorkerMsg::Failed {
+                frame: None,
+                message: format!("{e:#}"),
+            };
+            let _ = tokio::time::timeout(
+                Duration::from_secs(2),
+                write_frame(&mut csend, &wire::encode_meta(&msg), &[]),
+            )
+            .await;
+            let _ = csend.finish();
+            tokio::time::sleep(Duration::from_millis(100)).await;
+            return Err(e);
         }
-    }
-    drop(token_tx);
-    let (ev_tx, mut ev_rx) = mpsc::unbounded_channel();
-    for (r, c) in peers.iter().enumerate() {
-        if let Some(c) = c {
-            tokio::spawn(read_peer(r as u32, c.clone(), limits, ev_tx.clone()));
-        }
-    }
-    let engine = tokio::task::block_in_place(|| Engine::new(&scene))
-        .context("opening the scene's stores")?;
-    let mut node = Node {
-        rank,
-        setup,
-        peers,
-        engine,
-        pending: HashMap::new(),
-        plans: HashMap::new(),
-        timeout,
     };
     write_frame(&mut csend, &wire::encode_meta(&WorkerMsg::Ready), &[]).await?;
     info!(rank, "ready");
@@ -202,7 +157,11 @@ async fn node(opts: NodeOptions) -> Result<()> {
         match wire::decode_meta::<CoordMsg>(&f.meta)? {
             CoordMsg::Frame(req) => {
                 let frame = req.frame;
-                match node.frame(&req, &mut ev_rx).await {
+                let result = tokio::select! {
+                    r = node.frame(&req, &mut ev_rx) => r,
+                    e = conn.closed() => bail!("lost the coordinator during frame {frame}: {e}"),
+                };
+                match result {
                     Ok((stats, piece)) => {
                         let msg = WorkerMsg::FrameDone { frame, stats };
                         write_frame(&mut csend, &wire::encode_meta(&msg), &piece).await?;
@@ -226,6 +185,104 @@ async fn node(opts: NodeOptions) -> Result<()> {
     conn.close(0u32.into(), b"done");
     let _ = tokio::time::timeout(Duration::from_secs(2), ep.wait_idle()).await;
     Ok(())
+}
+
+/// Checks the set-up, meshes with the peers and opens the scene.
+async fn mesh(
+    ep: &quinn::Endpoint,
+    setup: Setup,
+    net: &NetConfig,
+    connect_timeout: Duration,
+) -> Result<(Node, mpsc::UnboundedReceiver<PeerEvent>)> {
+    let rank = setup.rank;
+    anyhow::ensure!(
+        (rank as usize) < setup.peers.len(),
+        "rank {rank} is not below the number of workers {}",
+        setup.peers.len()
+    );
+    let scene: Scene =
+        toml::from_str(&setup.scene_toml).context("the scene sent by the coordinator")?;
+    let timeout = Duration::from_millis(setup.timeout_ms.max(1));
+    let mesh_timeout = connect_timeout.min(timeout);
+    let limits = Limits::for_pixels(setup.max_pixels);
+
+    // Peers: accept the lower ranks (spawned first so nobody waits on us), dial the higher.
+    let (token_tx, token_rx) = watch::channel(Some(setup.run_token));
+    let (peer_tx, mut peer_rx) = mpsc::unbounded_channel::<(u32, quinn::Connection)>();
+    let n = setup.peers.len() as u32;
+    tokio::spawn(accept_peers(ep.clone(), token_rx, peer_tx, n));
+    let mut peers: Vec<Option<quinn::Connection>> = vec![None; n as usize];
+    // Dial the higher ranks all at once.
+    let mut dials = Vec::new();
+    for r in rank + 1..n {
+        let p = setup.peers[r as usize].clone();
+        let (ep, net, token) = (ep.clone(), net.clone(), setup.run_token);
+        dials.push(tokio::spawn(async move {
+            let addr: SocketAddr = p
+                .addr
+                .parse()
+                .with_context(|| format!("peer {r} address {:?}", p.addr))?;
+            let c = transport::connect(&ep, addr, p.fingerprint, &net, mesh_timeout)
+                .await
+                .with_context(|| format!("connecting to worker {r} ({} at {})", p.name, p.addr))?;
+            transport::trust(&c);
+            let hello = PeerMsg::Hello { token, rank };
+            send_uni(&c, &wire::encode_meta(&hello), &[])
+                .await
+                .with_context(|| format!("greeting worker {r} ({})", p.name))?;
+            anyhow::Ok((r, c))
+        }));
+    }
+    for d in dials {
+        let (r, c) = d.await.map_err(|e| anyhow!("dial task: {e}"))??;
+        peers[r as usize] = Some(c);
+    }
+    let deadline = Instant::now() + mesh_timeout;
+    while peers[..rank as usize].iter().any(Option::is_none) {
+        let left = deadline.saturating_duration_since(Instant::now());
+        match tokio::time::timeout(left, peer_rx.recv()).await {
+            Ok(Some((r, c))) if r < rank && peers[r as usize].is_none() => {
+                peers[r as usize] = Some(c)
+            }
+            Ok(Some((r, c))) => {
+                warn!(peer = r, "unexpected second connection; closing it");
+                c.close(1u32.into(), b"duplicate");
+            }
+            Ok(None) => bail!("the peer listener stopped"),
+            Err(_) => {
+                let missing: Vec<String> = (0..rank)
+                    .filter(|&r| peers[r as usize].is_none())
+                    .map(|r| describe(&setup.peers, r))
+                    .collect();
+                bail!(
+                    "peers {} did not connect within {:.1} s",
+                    missing.join(", "),
+                    mesh_timeout.as_secs_f64()
+                );
+            }
+        }
+    }
+    // The mesh is complete: later connections are refused.
+    drop(token_tx);
+    ep.set_server_config(None);
+    let (ev_tx, ev_rx) = mpsc::unbounded_channel();
+    for (r, c) in peers.iter().enumerate() {
+        if let Some(c) = c {
+            tokio::spawn(read_peer(r as u32, c.clone(), limits, ev_tx.clone()));
+        }
+    }
+    let engine = tokio::task::block_in_place(|| Engine::new(&scene))
+        .context("opening the scene's stores")?;
+    let node = Node {
+        rank,
+        setup,
+        peers,
+        engine,
+        pending: HashMap::new(),
+        plans: HashMap::new(),
+        timeout,
+    };
+    Ok((node, ev_rx))
 }
 
 fn describe(peers: &[PeerInfo], r: u32) -> String {
@@ -270,6 +327,7 @@ async fn accept_peers(
                     if strata_net::secret::ct_eq(&t, &tok) && rank < n =>
                 {
                     debug!(peer = rank, %remote, "peer connected");
+                    transport::trust(&conn);
                     let _ = out.send((rank, conn));
                 }
                 (r, _) => {
@@ -308,6 +366,7 @@ async fn read_peer(
                 let wire_len = f.wire_len();
                 if out
                     .send(PeerEvent::Piece {
+                        rank,
                         frame,
                         round,
                         from,
@@ -365,6 +424,15 @@ impl Node {
             req.height,
             self.setup.max_pixels
         );
+        let mut seen = vec![false; n];
+        for &r in &req.order {
+            anyhow::ensure!(
+                (r as usize) < n && !std::mem::replace(&mut seen[r as usize], true),
+                "the visibility order {:?} is not a permutation of the {n} ranks",
+                req.order
+            );
+        }
+        let deadline = Instant::now() + self.timeout;
         let position = req
             .order
             .iter()
@@ -442,16 +510,20 @@ impl Node {
                     from: position as u32,
                 });
                 let what = describe(&self.setup.peers, to_rank);
-                sends.push(tokio::spawn(async move {
-                    send_uni(&conn, &meta, &bytes)
-                        .await
-                        .map_err(|e| anyhow!("sending to {what}: {e}"))
-                }));
+                let task_what = what.clone();
+                sends.push((
+                    what,
+                    tokio::spawn(async move {
+                        send_uni(&conn, &meta, &bytes)
+                            .await
+                            .map_err(|e| anyhow!("sending to {task_what}: {e}"))
+                    }),
+                ));
             }
             let expected = rc.expected();
             for from in expected {
                 let (bulk, len) = self
-                    .wait_piece(req, round as u32, from as u32, events)
+                    .wait_piece(req, round as u32, from as u32, deadline, events)
                     .await?;
                 stats.bytes_received += len;
                 let piece =
@@ -461,14 +533,20 @@ impl Node {
                             describe(&self.setup.peers, req.order[from])
                         )
                     })?;
-                rc.receive(from, piece)?;
+                rc.receive(from, piece).with_context(|| {
+                    format!(
+                        "piece from {}",
+                        describe(&self.setup.peers, req.order[from])
+                    )
+                })?;
             }
-            for s in sends {
-                match tokio::time::timeout(self.timeout, s).await {
+            for (what, s) in sends {
+                let left = deadline.saturating_duration_since(Instant::now());
+                match tokio::time::timeout(left, s).await {
                     Ok(Ok(r)) => stats.bytes_sent += r?,
-                    Ok(Err(e)) => bail!("send task: {e}"),
+                    Ok(Err(e)) => bail!("sending to {what}: {e}"),
                     Err(_) => bail!(
-                        "sending a piece took more than {:.1} s",
+                        "sending to {what} did not finish within the frame timeout of {:.1} s",
                         self.timeout.as_secs_f64()
                     ),
                 }
@@ -492,9 +570,9 @@ impl Node {
         req: &FrameRequest,
         round: u32,
         from: u32,
+        deadline: Instant,
         events: &mut mpsc::UnboundedReceiver<PeerEvent>,
     ) -> Result<(Vec<u8>, u64)> {
-        let deadline = Instant::now() + self.timeout;
         loop {
             if let Some(p) = self.pending.remove(&(req.frame, round, from)) {
                 return Ok(p);
@@ -502,12 +580,20 @@ impl Node {
             let left = deadline.saturating_duration_since(Instant::now());
             match tokio::time::timeout(left, events.recv()).await {
                 Ok(Some(PeerEvent::Piece {
+                    rank,
                     frame,
                     round,
                     from,
                     bulk,
                     wire_len,
                 })) => {
+                    // A piece must come from the rank at the position it claims.
+                    if frame == req.frame && req.order.get(from as usize) != Some(&rank) {
+                        bail!(
+                            "{} sent a piece as position {from}, which is not its position",
+                            describe(&self.setup.peers, rank)
+                        );
+                    }
                     if frame >= req.frame {
                         self.pending.insert((frame, round, from), (bulk, wire_len));
                     }
@@ -522,7 +608,7 @@ impl Node {
                 Err(_) => {
                     let who = req.order.get(from as usize).copied().unwrap_or(u32::MAX);
                     bail!(
-                        "no piece from {} (round {round} of frame {}) within {:.1} s",
+                        "no piece from {} (round {round} of frame {}) within the frame timeout of {:.1} s",
                         describe(&self.setup.peers, who),
                         req.frame,
                         self.timeout.as_secs_f64()
