@@ -504,12 +504,14 @@ fn run(cli: Cli) -> Result<()> {
                 s.samples,
                 s.samples as f64 / s.last_frame_seconds.max(1e-9) / 1e6
             );
-            println!(
-                "pages read {} ({:.1} MiB), cache hit rate {:.1}%",
-                s.pages_read,
-                s.bytes_read as f64 / (1 << 20) as f64,
-                100.0 * s.cache_hit_rate
-            );
+            if s.workers == 0 {
+                println!(
+                    "pages read {} ({:.1} MiB), cache hit rate {:.1}%",
+                    s.pages_read,
+                    s.bytes_read as f64 / (1 << 20) as f64,
+                    100.0 * s.cache_hit_rate
+                );
+            }
             println!("wrote {}", a.output.display());
             if let Some(e) = &a.exr {
                 println!("wrote {}", e.display());

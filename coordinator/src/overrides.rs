@@ -387,11 +387,11 @@ mod tests {
         assert!(e.contains("after --set render.cach_mb=5"), "{e}");
         assert!(e.contains("cach_mb"), "{e}");
         assert!(e.contains("(key render.cach_mb)"), "{e}");
-        let e = load_scene(&p, &sets(&["composite.algorithm=radix-k"]), None)
+        let e = load_scene(&p, &sets(&["composite.algoritm=radix-k"]), None)
             .unwrap_err()
             .to_string();
-        assert!(e.contains("unknown field `composite`"), "{e}");
-        assert!(e.contains("(key composite.algorithm)"), "{e}");
+        assert!(e.contains("unknown field `algoritm`"), "{e}");
+        assert!(e.contains("(key composite.algoritm)"), "{e}");
         let e = load_scene(&p, &sets(&["volume.0.colour=grey"]), None)
             .unwrap_err()
             .to_string();
