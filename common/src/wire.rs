@@ -193,7 +193,7 @@ pub fn decode_meta<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, WireError> {
 pub type Fingerprint = [u8; 32];
 
 /// Compositing choices carried with every frame (resolved from `[composite]`).
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub struct CompositeChoice {
     /// The exchange algorithm.
     pub algorithm: Algorithm,

@@ -16,7 +16,7 @@ use std::net::SocketAddr;
 use std::os::unix::ffi::OsStringExt;
 use std::path::PathBuf;
 use std::process::Stdio;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 use strata_common::composite::{assemble, Interlace, SparsePiece};
 use strata_common::image::Rgba;
 use strata_common::kd::Decomposition;
@@ -168,13 +168,6 @@ pub struct Cluster {
     opts: ClusterOptions,
     frame_no: u64,
     child_pids: Vec<u32>,
-}
-
-/// Seconds since the Unix epoch (µs), comparable between processes on one machine.
-pub fn unix_us() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_micros() as u64)
 }
 
 impl Cluster {
@@ -426,8 +419,7 @@ impl Cluster {
                 format!("sending the set-up to {what}"),
                 write_frame(&mut w.send, &wire::encode_meta(&setup), &[]),
             )
-            .await
-            .map_err(|e| anyhow!("{e}"))?;
+            .await?;
         }
         let mut ready = vec![false; self.workers.len()];
         let deadline = Instant::now() + self.opts.connect_timeout;
@@ -553,8 +545,7 @@ impl Cluster {
                 format!("sending frame {frame} to {what}"),
                 write_frame(&mut w.send, &wire::encode_meta(&req), &[]),
             )
-            .await
-            .map_err(|e| anyhow!("{e}"))?;
+            .await?;
         }
         let n = self.workers.len();
         let mut stats: Vec<Option<WorkerFrameStats>> = vec![None; n];
@@ -594,7 +585,7 @@ impl Cluster {
                             let piece = SparsePiece::parse(&f.bulk, width * height)
                                 .with_context(|| format!("final piece from {who}"))?;
                             gather_bytes += f.wire_len();
-                            last_arrival = unix_us();
+                            last_arrival = strata_net::unix_us();
                             pieces[rank as usize] = Some(piece);
                             stats[rank as usize] = Some(s);
                         }
@@ -669,12 +660,9 @@ type Authenticated = (
 /// run's secret; anything else is refused, logged and closed.
 async fn authenticate(incoming: quinn::Incoming, secret: &[u8]) -> Result<Authenticated> {
     let t = Duration::from_secs(10);
-    let conn = with_timeout(t, "QUIC handshake", incoming.into_future())
-        .await
-        .map_err(|e| anyhow!("{e}"))?;
-    let (mut send, mut recv) = with_timeout(t, "opening the control stream", conn.accept_bi())
-        .await
-        .map_err(|e| anyhow!("{e}"))?;
+    let conn = with_timeout(t, "QUIC handshake", incoming.into_future()).await?;
+    let (mut send, mut recv) =
+        with_timeout(t, "opening the control stream", conn.accept_bi()).await?;
     let f = match with_timeout(t, "the hello", read_frame(&mut recv, &Limits::HANDSHAKE)).await {
         Ok(f) => f,
         Err(e) => {

@@ -50,11 +50,6 @@ pub const TRANSPARENT_FACTOR: f64 = 0.05;
 /// Cost of one horizon cell, in volume samples.
 pub const HORIZON_CELL_COST: f64 = 1.0;
 
-/// Padding of the data bounds that gives the scene region. Must match
-/// `strata_worker::engine::Engine::scene_region` (`bounds().padded(1e-3)`), so that the
-/// decomposition's root is exactly the region workers clip to.
-pub const SCENE_PADDING: f64 = 1e-3;
-
 /// Boxes of work of a scene, candidate split planes and the scene region.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SceneCosts {
@@ -82,8 +77,8 @@ pub fn scene_costs(scene: &Scene) -> Result<SceneCosts> {
 
 /// The work of already opened data sets; `skipping` is `render.empty_space_skipping`.
 pub fn costs_of(data: &SceneData, skipping: bool) -> SceneCosts {
-    // Same computation as `Engine::scene_region` (which needs a whole engine).
-    let root = data.bounds().padded(SCENE_PADDING);
+    // The region workers clip to (`Engine::scene_region` is the same call).
+    let root = data.region();
     let mut boxes = Vec::new();
     let mut planes: [Vec<f64>; 3] = [vec![], vec![], vec![]];
     for v in &data.volumes {
@@ -159,12 +154,8 @@ fn volume_boxes(v: &Volume, skipping: bool, out: &mut Vec<CostBox>) {
                 let b = [x, y, z];
                 let r = p.core_range(0, b);
                 let [mn, mx] = v.bounds[level0_index(bricks, b)];
-                // The renderer's test (engine.rs, `Engine::setup`).
-                let transparent = if skipping {
-                    v.tf.max_alpha(mn, mx) <= 0.0
-                } else {
-                    no_values(mn, mx)
-                };
+                // The renderer's own test.
+                let transparent = v.page_transparent([mn, mx], skipping);
                 let samples: u64 = r.iter().map(|(lo, hi)| hi - lo).product();
                 let factor = if transparent { TRANSPARENT_FACTOR } else { 1.0 };
                 out.push(CostBox {

@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 use strata_common::scene::Scene;
 use strata_common::wire::{CompositeChoice, FrameSource, WorkerFrameStats};
-use strata_worker::engine::{Engine, Outcome};
+use strata_worker::engine::Engine;
 use tracing::info;
 
 /// What to render and where to put it.
@@ -254,12 +254,7 @@ pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result
         width: w,
         height: h,
         rounds: result.rounds,
-        outcome: match result.outcome {
-            Outcome::Converged => "converged",
-            Outcome::RoundLimit => "round-limit",
-            Outcome::AtlasFull => "atlas-full",
-        }
-        .into(),
+        outcome: result.outcome.as_str().into(),
         samples: result.last.samples,
         last_frame_seconds: result.last_seconds,
         cast_seconds: result.cast_seconds,

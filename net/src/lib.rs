@@ -20,3 +20,11 @@ pub mod transport;
 pub use frame::{read_frame, send_uni, with_timeout, write_frame, Frame, NetError};
 pub use tls::Identity;
 pub use transport::NetConfig;
+
+/// Microseconds since the Unix epoch: comparable between processes on one machine (the
+/// coordinator times compositing from the workers' render-end stamps to the last piece).
+pub fn unix_us() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_micros() as u64)
+}

@@ -86,6 +86,17 @@ fn open(path: &std::path::Path, kind: DataKind) -> Result<Arc<PageStore>> {
 }
 
 impl Volume {
+    /// Whether a page with index bounds `[min, max]` contributes nothing: no valid value,
+    /// or (with empty-space skipping) values the transfer function makes transparent.
+    /// The renderer skips such bricks and the decomposition weighs them down.
+    pub fn page_transparent(&self, b: [f32; 2], skipping: bool) -> bool {
+        if skipping {
+            self.tf.max_alpha(b[0], b[1]) <= 0.0
+        } else {
+            !(b[0] <= b[1])
+        }
+    }
+
     /// Opens a volume layer as data set `ds`.
     pub fn open(layer: &VolumeLayer, ds: u16) -> Result<Self> {
         let store = open(&layer.store, DataKind::Volume)?;
@@ -144,6 +155,9 @@ impl Horizon {
     }
 }
 
+/// Padding of the data bounds that gives the scene region.
+pub const SCENE_PADDING: f64 = 1e-3;
+
 /// All data sets of a scene (volumes first, then horizons, numbered in that order).
 pub struct SceneData {
     /// Volumes.
@@ -195,6 +209,13 @@ impl SceneData {
         } else {
             &self.horizons[ds as usize - nv].pyramid
         }
+    }
+
+    /// The region that holds the whole scene: the bounds padded so no sample lies on its
+    /// faces. The engine clips to it and the coordinator's k-d tree splits it, so both
+    /// must take it from here.
+    pub fn region(&self) -> Region {
+        self.bounds().padded(SCENE_PADDING)
     }
 
     /// World bounds of every data set (volume boxes, horizon boxes over their height range).

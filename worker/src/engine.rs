@@ -55,6 +55,17 @@ pub enum Outcome {
     AtlasFull,
 }
 
+impl Outcome {
+    /// The name used in summaries and stats.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Outcome::Converged => "converged",
+            Outcome::RoundLimit => "round-limit",
+            Outcome::AtlasFull => "atlas-full",
+        }
+    }
+}
+
 /// Result of a batch render.
 pub struct BatchResult {
     /// The final frame's image.
@@ -229,7 +240,7 @@ impl Engine {
 
     /// The region that holds the whole scene (bounds padded so no sample lies on its faces).
     pub fn scene_region(&self) -> Region {
-        self.bounds().padded(1e-3)
+        self.data.region()
     }
 
     /// The view of the scene camera at `width`×`height`.
@@ -302,14 +313,11 @@ impl Engine {
             let vsize = (0..3).map(|k| col_len(&rel[i], k)).fold(0.0, f64::max);
             let nl = v.pyramid.level_count();
             let level_t = level_distances(vsize, nl, s.tau, pa);
-            let transparent = if s.empty_space_skipping {
-                v.bounds
-                    .iter()
-                    .map(|b| v.tf.max_alpha(b[0], b[1]) <= 0.0)
-                    .collect()
-            } else {
-                v.bounds.iter().map(|b| !(b[0] <= b[1])).collect()
-            };
+            let transparent = v
+                .bounds
+                .iter()
+                .map(|&b| v.page_transparent(b, s.empty_space_skipping))
+                .collect();
             let d = v.dims();
             vols.push(VolFrame {
                 ds: v.ds,
@@ -357,7 +365,7 @@ impl Engine {
             });
         }
         // Region ∩ data bounds, camera-relative.
-        let data = self.bounds().padded(1e-3);
+        let data = self.data.region();
         let clipped = Region {
             lo: [0, 1, 2].map(|a| region.lo[a].max(data.lo[a])),
             hi: [0, 1, 2].map(|a| region.hi[a].min(data.hi[a])),

@@ -15,14 +15,12 @@ use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-use strata_common::composite::{
-    build_plan, Interlace, Plan, RankCompositor, SparsePiece, WireFormat,
-};
+use strata_common::composite::{build_plan, Interlace, Plan, RankCompositor, SparsePiece};
 use strata_common::image::{composite_front_to_back, PartialImage, Rect, Rgba};
 use strata_common::scene::Scene;
 use strata_common::wire::{
-    self, CoordMsg, Fingerprint, FrameRequest, FrameSource, Limits, PeerInfo, PeerMsg, Setup,
-    WorkerFrameStats, WorkerMsg,
+    self, CompositeChoice, CoordMsg, Fingerprint, FrameRequest, FrameSource, Limits, PeerInfo,
+    PeerMsg, Setup, WorkerFrameStats, WorkerMsg,
 };
 use strata_net::frame::{read_frame, send_uni, with_timeout, write_frame, NetError};
 use strata_net::{transport, Identity, NetConfig};
@@ -398,7 +396,7 @@ struct Node {
     engine: Engine,
     /// Pieces that arrived before they were needed: (frame, round, from position).
     pending: HashMap<(u64, u32, u32), (Vec<u8>, u64)>,
-    plans: HashMap<(usize, u32, String), Arc<Plan>>,
+    plans: HashMap<(usize, u32, CompositeChoice), Arc<Plan>>,
     timeout: Duration,
 }
 
@@ -447,9 +445,7 @@ impl Node {
         let t = Instant::now();
         let image = tokio::task::block_in_place(|| self.image(req, &mut stats))?;
         stats.render_s = t.elapsed().as_secs_f64();
-        stats.render_end_us = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| d.as_micros() as u64);
+        stats.render_end_us = strata_net::unix_us();
 
         // Test hook: `STRATA_TEST_KILL_RANK=R` makes rank R die by SIGKILL between its
         // render and the exchange, the worst moment for its peers, so tests can check that
@@ -465,7 +461,7 @@ impl Node {
             }
         }
         // 2. The exchange.
-        let key = (n, req.width * req.height, format!("{:?}", req.composite));
+        let key = (n, req.width * req.height, req.composite.clone());
         let plan = match self.plans.get(&key) {
             Some(p) => p.clone(),
             None => {
@@ -647,12 +643,7 @@ impl Node {
                     }
                     images.push(r.image);
                 }
-                stats.outcome = match outcome {
-                    Outcome::Converged => "converged",
-                    Outcome::RoundLimit => "round-limit",
-                    Outcome::AtlasFull => "atlas-full",
-                }
-                .into();
+                stats.outcome = outcome.as_str().into();
                 Ok(match images.len() {
                     0 => PartialImage::empty(req.width, req.height),
                     1 => images.pop().unwrap(),
@@ -719,13 +710,5 @@ pub fn synthetic_image(
         height,
         rect: Rect { x, y, w, h },
         pixels,
-    }
-}
-
-/// The wire format's name, for logs.
-pub fn format_name(f: WireFormat) -> &'static str {
-    match f {
-        WireFormat::F32 => "f32",
-        WireFormat::F16 => "f16",
     }
 }
