@@ -4,6 +4,7 @@
 //!   (`../shared/baselines/paraview_volume.py`), at 1024² and 1920×1080;
 //! * accuracy against time: step, early termination, adaptive step and LOD tolerance, each
 //!   compared with a high-accuracy reference image;
+//! * the engine's CPU and GPU backends on the same bonsai frame (1920×1080, 3840×2160);
 //! * a large synthetic survey with three horizons under a 1 GiB cache: rounds to converge,
 //!   pages loaded, hit rate.
 //!
@@ -39,7 +40,7 @@ struct Cli {
     /// Only the synthetic survey.
     #[arg(long)]
     only_survey: bool,
-    /// Skip the WGSL (wgpu) comparison.
+    /// Skip the CPU-against-GPU backend comparison.
     #[arg(long)]
     no_gpu: bool,
     /// The bonsai raw file.
@@ -114,7 +115,7 @@ fn time_scene(scene: &Scene, frames: usize) -> Result<Timed> {
     let mut times = Vec::new();
     let mut last = None;
     for _ in 0..frames.max(1) {
-        let f = e.render_frame(&view, &region);
+        let f = e.render_frame(&view, &region)?;
         times.push(f.seconds);
         last = Some(f);
     }
@@ -216,115 +217,69 @@ fn bonsai(cli: &Cli) -> Result<()> {
     Ok(())
 }
 
-/// The CPU caster against the same ray march in WGSL (wgpu; Mesa's lavapipe when there is
-/// no GPU), same frame, same run: fixed step, early termination 0.99, skipping in both
-/// (64³ bricks on the CPU, 8³ cells on the GPU).
-fn cpu_vs_wgsl(cli: &Cli) -> Result<()> {
+/// The engine's two backends on the same frame, same run: the CPU caster (rayon) and the
+/// wgpu caster (a hardware GPU, or Mesa's lavapipe when there is none), both through the
+/// atlas, page tables and feedback. For each: the cold batch (time to converge, rounds, bytes
+/// uploaded to the device), the converged frame (median time, samples/s), the feedback bytes
+/// read back per frame, and the GPU image's largest difference from the CPU image.
+fn cpu_vs_gpu(cli: &Cli) -> Result<()> {
+    use strata_common::scene::Backend;
     let store = bonsai_store(cli)?;
-    let (w, h) = (1920u32, 1080u32);
-    let mut scene = bonsai_scene(&store, w, h);
-    scene.render.adaptive_step = false;
-    let cpu = time_scene(&scene, cli.frames)?;
-
-    let mut gpu = match strata_gpu::GpuRayMarcher::new() {
-        Ok(g) => g,
-        Err(e) => {
-            println!("## CPU vs WGSL: skipped, no wgpu adapter ({e:#})");
-            return Ok(());
-        }
-    };
-    // The same inputs the CPU caster derives: dense level 0, rel→index affine, TF table.
-    let raw = std::fs::read(bonsai_path(cli))?;
-    let voxels: Vec<f32> = raw.iter().map(|&b| b as f32).collect();
-    let engine = Engine::new(&scene)?;
-    let view = engine.view(w, h)?;
-    let pstore = strata_common::store::PageStore::open(&store)?;
-    let rel = view.relative_affine(&pstore.header().transform);
-    let inv = strata_worker::camera::invert_affine(&rel).context("singular transform")?;
-    let world_to_index = [0, 1, 2].map(|r| [0, 1, 2, 3].map(|c| inv.rows[r][c] as f32));
-    let tf = strata_worker::tf::TransferFunction::from_layer(&scene.volumes[0], [0.0, 255.0])?;
-    let brick = 8u32;
-    let cells = 256 / brick;
-    let mut transparent = vec![0u32; (cells * cells * cells) as usize];
-    for cz in 0..cells {
-        for cy in 0..cells {
-            for cx in 0..cells {
-                // Conservative: the cell plus a one-voxel margin (trilinear footprint).
-                let (mut lo, mut hi) = (f32::MAX, f32::MIN);
-                let r = |c: u32| (c * brick).saturating_sub(1)..((c + 1) * brick + 1).min(256);
-                for z in r(cz) {
-                    for y in r(cy) {
-                        for x in r(cx) {
-                            let v = voxels[((z * 256 + y) * 256 + x) as usize];
-                            lo = lo.min(v);
-                            hi = hi.max(v);
-                        }
-                    }
+    println!("## Engine backends on the same frame: bonsai, ParaView's setup");
+    println!();
+    println!("| size | backend | cold batch | rounds | uploaded MiB | frame (median) | samples | samples/s | feedback bytes/frame | max diff vs CPU | speed-up |");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
+    for (w, h) in [(1920u32, 1080u32), (3840, 2160)] {
+        let mut cpu_row: Option<(f64, Vec<Rgba>)> = None;
+        for backend in [Backend::Cpu, Backend::Gpu] {
+            let mut scene = bonsai_scene(&store, w, h);
+            scene.render.backend = backend;
+            let mut e = match Engine::new(&scene) {
+                Ok(e) => e,
+                Err(err) => {
+                    println!("| {w}×{h} | {backend:?} | skipped: {err:#} |||||||||");
+                    continue;
                 }
-                transparent[((cz * cells + cy) * cells + cx) as usize] =
-                    (tf.max_alpha(lo, hi) <= 0.0) as u32;
+            };
+            let view = e.view(w, h)?;
+            let region = e.scene_region();
+            let t = Instant::now();
+            let b = e.render_batch(&view, &region)?;
+            let cold = t.elapsed().as_secs_f64();
+            let mut times = Vec::new();
+            let mut last = None;
+            for _ in 0..cli.frames.max(1) {
+                let f = e.render_frame(&view, &region)?;
+                times.push(f.seconds);
+                last = Some(f);
+            }
+            times.sort_by(|a, b| a.total_cmp(b));
+            let med = times[times.len() / 2];
+            let f = last.unwrap();
+            let img = f.image.to_full();
+            let (diff, speed) = match &cpu_row {
+                Some((cpu_t, cpu_img)) => (
+                    format!("{:.2e}", rmse(&img, cpu_img).1),
+                    format!("{:.2}×", cpu_t / med),
+                ),
+                None => ("–".into(), "1×".into()),
+            };
+            println!(
+                "| {w}×{h} | {} | {:.3} s | {} | {:.1} | {:.1} ms | {} | {:.0} M/s | {} | {diff} | {speed} |",
+                b.backend,
+                cold,
+                b.rounds,
+                b.uploaded_bytes as f64 / (1 << 20) as f64,
+                med * 1e3,
+                f.stats.samples,
+                f.stats.samples as f64 / med / 1e6,
+                f.gpu.feedback_bytes,
+            );
+            if backend == Backend::Cpu {
+                cpu_row = Some((med, img));
             }
         }
     }
-    let job = strata_gpu::VolumeJob {
-        dims: [256, 256, 256],
-        voxels: &voxels,
-        world_to_index,
-        tf: &tf.table,
-        tf_range: [tf.lo, tf.hi],
-        width: w,
-        height: h,
-        dir00: view.dir00,
-        du: view.du,
-        dv: view.dv,
-        step: scene.render.step as f32,
-        alpha_exponent: 1.0,
-        early_termination: scene.render.early_termination as f32,
-        brick,
-        transparent: &transparent,
-    };
-    gpu.render(&job)?; // warm-up (upload, pipeline)
-    let mut times = Vec::new();
-    let mut last = None;
-    for _ in 0..cli.frames.clamp(1, 3) {
-        let f = gpu.render(&job)?;
-        times.push(f.kernel_ms + f.readback_ms);
-        last = Some(f);
-    }
-    times.sort_by(|a, b| a.total_cmp(b));
-    let g = times[times.len() / 2] / 1e3;
-    let (e, m) = rmse(&cpu.image, &last.unwrap().rgba);
-    println!(
-        "## CPU caster vs WGSL compute ({}), bonsai 1920×1080, same run",
-        gpu.adapter_name()
-    );
-    println!();
-    println!("| path | frame | samples/s (CPU trilinear samples / frame time) |");
-    println!("|---|---|---|");
-    println!(
-        "| CPU (rayon, 2 threads) | {:.0} ms | {:.0} M/s |",
-        cpu.median * 1e3,
-        cpu.samples as f64 / cpu.median / 1e6
-    );
-    println!(
-        "| WGSL on {} | {:.0} ms | {:.0} M/s (same samples) |",
-        if gpu.is_software() {
-            "software Vulkan"
-        } else {
-            "GPU"
-        },
-        g * 1e3,
-        cpu.samples as f64 / g / 1e6
-    );
-    println!();
-    println!(
-        "CPU is {:.2}× the speed of WGSL; image difference RMSE {:.5}, max {:.4} (the CPU \
-         interpolates a premultiplied, pre-corrected table; the WGSL job interpolates straight \
-         RGBA).",
-        g / cpu.median,
-        e,
-        m
-    );
     println!();
     Ok(())
 }
@@ -414,7 +369,7 @@ fn main() -> Result<()> {
         bonsai(&cli)?;
     }
     if !cli.no_gpu && !cli.only_survey {
-        cpu_vs_wgsl(&cli)?;
+        cpu_vs_gpu(&cli)?;
     }
     if !cli.no_survey {
         survey(&cli)?;

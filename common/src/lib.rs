@@ -15,6 +15,8 @@
 //!   so two stores with the same data print the same digest whatever their
 //!   brick size, compression or source byte order.
 //! * [`geo`]: f64 affine transforms and the lateral survey grid.
+//! * [`gpu`]: the `#[repr(C)]` tables both ray-casting backends read (page-table entries,
+//!   level and slot records, per-frame and per-volume parameters), with size assertions.
 //! * [`image`]: premultiplied RGBA partial images and the OVER operator.
 //! * [`composite`]: the sans-IO sort-last compositing plans (direct send, binary swap,
 //!   radix-k), active-pixel encoding and the rank state machine that runs a plan.
@@ -29,6 +31,7 @@ pub mod composite;
 pub mod digest;
 pub mod filter;
 pub mod geo;
+pub mod gpu;
 pub mod ids;
 pub mod image;
 pub mod kd;

@@ -298,6 +298,45 @@ pub struct RenderSettings {
     /// Background colour (linear RGB) under the image when it is flattened to PNG.
     #[serde(default)]
     pub background: [f64; 3],
+    /// Which ray caster renders: `auto` (a hardware GPU if there is one and the scene fits
+    /// the GPU caster, else the CPU), `cpu`, or `gpu` (any adapter, software Vulkan too).
+    #[serde(default)]
+    pub backend: Backend,
+    /// The GPU to use: an adapter index or a case-insensitive substring of its name.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gpu_adapter: Option<AdapterSelector>,
+}
+
+/// `render.backend`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Backend {
+    /// A hardware GPU when there is one and the scene fits the GPU caster, else the CPU.
+    #[default]
+    Auto,
+    /// The CPU caster (rayon).
+    Cpu,
+    /// The wgpu caster on any adapter, Mesa's software Vulkan (lavapipe) included.
+    Gpu,
+}
+
+/// `render.gpu_adapter`: an index into the adapter list or a substring of its name.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum AdapterSelector {
+    /// The adapter's index in wgpu's list.
+    Index(u32),
+    /// A case-insensitive substring of the adapter's name.
+    Name(String),
+}
+
+impl std::fmt::Display for AdapterSelector {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            AdapterSelector::Index(i) => write!(f, "{i}"),
+            AdapterSelector::Name(n) => f.write_str(n),
+        }
+    }
 }
 
 impl Default for RenderSettings {
@@ -321,6 +360,8 @@ impl Default for RenderSettings {
             max_rounds: default_rounds(),
             loader_threads: default_loaders(),
             background: [0.0; 3],
+            backend: Backend::Auto,
+            gpu_adapter: None,
         }
     }
 }

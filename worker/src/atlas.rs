@@ -1,9 +1,11 @@
 //! The virtualized atlas: a fixed pool of physical page slots plus per-data-set page tables.
 //!
-//! Everything the ray caster reads is a flat `#[repr(C)]` array, laid out exactly as the
-//! wgpu caster uploads it:
+//! Everything the ray casters read is a flat `#[repr(C)]` array whose records live in
+//! [`strata_common::gpu`], so the CPU caster and the wgpu backend read one layout:
 //!
-//! * the **pool**: `slots × page_samples` f32 (page samples x fastest, border included);
+//! * the **pool**: `slots × page_samples` f32 (page samples x fastest, border included).
+//!   The CPU backend keeps it in host memory; the GPU backend keeps only the bookkeeping
+//!   here ([`Pool::bookkeeping`]) and the samples in a GPU buffer, slot for slot;
 //! * **slot records** ([`SlotInfo`]): which page a slot holds and when it was last used;
 //! * **page tables**: one `u32` per virtual page of every level of a data set, concatenated
 //!   level by level (level 0 first, bricks x fastest), with per-level offsets and brick
@@ -14,39 +16,11 @@
 //!
 //! One pool holds volume bricks and another horizon tiles, each with its own budget.
 
-use bytemuck::{Pod, Zeroable};
 use std::collections::{HashMap, HashSet};
 use strata_common::ids::PageId;
 use strata_common::pyramid::Pyramid;
 
-/// Page-table entry for "nothing resident on the path to the root".
-pub const NOT_RESIDENT: u32 = u32::MAX;
-/// Bits of a page-table entry that hold the slot.
-pub const SLOT_MASK: u32 = (1 << 24) - 1;
-/// Largest number of slots a pool may have.
-pub const MAX_SLOTS: usize = SLOT_MASK as usize;
-
-/// One slot's record.
-#[repr(C)]
-#[derive(Copy, Clone, Debug, Default, PartialEq, Pod, Zeroable)]
-pub struct SlotInfo {
-    /// Page key held, or `u64::MAX` when free.
-    pub page: u64,
-    /// Frame number of the last use.
-    pub last_used: u32,
-    /// 1 = pinned (a data set's root; never evicted).
-    pub pinned: u32,
-}
-
-/// Per-level layout of a page table.
-#[repr(C)]
-#[derive(Copy, Clone, Debug, Default, PartialEq, Pod, Zeroable)]
-pub struct LevelInfo {
-    /// First entry of this level in `entries`.
-    pub offset: u32,
-    /// Bricks per axis.
-    pub bricks: [u32; 3],
-}
+pub use strata_common::gpu::{LevelInfo, SlotInfo, MAX_SLOTS, NOT_RESIDENT, SLOT_MASK};
 
 /// A data set's page table.
 #[derive(Clone, Debug)]
@@ -61,14 +35,18 @@ impl PageTable {
     /// An empty table for a pyramid.
     pub fn new(p: &Pyramid) -> Self {
         let mut levels = Vec::new();
-        let mut n = 0u32;
+        let mut n = 0u64;
         for l in p.levels() {
             levels.push(LevelInfo {
-                offset: n,
+                offset: n as u32,
                 bricks: l.bricks,
             });
-            n += l.bricks.iter().product::<u32>();
+            n += l.bricks.iter().map(|&b| b as u64).product::<u64>();
         }
+        assert!(
+            n < u32::MAX as u64,
+            "a page table of {n} entries does not fit u32 indices"
+        );
         PageTable {
             levels,
             entries: vec![NOT_RESIDENT; n as usize],
@@ -113,7 +91,7 @@ impl PageTable {
 pub struct Pool {
     /// Samples per page (border included).
     pub page_samples: usize,
-    /// `slots × page_samples` samples.
+    /// `slots × page_samples` samples (empty for a bookkeeping-only pool).
     pub data: Vec<f32>,
     /// Slot records.
     pub slots: Vec<SlotInfo>,
@@ -131,17 +109,25 @@ pub enum PlaceError {
 impl Pool {
     /// A pool of `budget_bytes / page bytes` slots (at least one).
     pub fn new(page_samples: usize, budget_bytes: u64) -> Self {
-        let n = ((budget_bytes / (page_samples as u64 * 4)) as usize).clamp(1, MAX_SLOTS);
+        let n = Self::slots_for(page_samples, budget_bytes);
+        let mut p = Self::bookkeeping(page_samples, n);
+        p.data = vec![0.0; n * page_samples];
+        p
+    }
+
+    /// Slots of `page_samples` f32 samples that fit `budget_bytes` (at least one).
+    pub fn slots_for(page_samples: usize, budget_bytes: u64) -> usize {
+        ((budget_bytes / (page_samples as u64 * 4)) as usize).clamp(1, MAX_SLOTS)
+    }
+
+    /// A pool of `slots` slots whose samples live elsewhere (in a GPU buffer): only the
+    /// slot records and the page → slot map are kept here.
+    pub fn bookkeeping(page_samples: usize, slots: usize) -> Self {
+        let n = slots.clamp(1, MAX_SLOTS);
         Pool {
             page_samples,
-            data: vec![0.0; n * page_samples],
-            slots: vec![
-                SlotInfo {
-                    page: u64::MAX,
-                    ..SlotInfo::default()
-                };
-                n
-            ],
+            data: Vec::new(),
+            slots: vec![SlotInfo::free(); n],
             map: HashMap::new(),
             free: (0..n as u32).rev().collect(),
         }
@@ -190,22 +176,20 @@ impl Pool {
                     .slots
                     .iter()
                     .enumerate()
-                    .filter(|(_, s)| s.pinned == 0 && !keep.contains(&s.page))
+                    .filter(|(_, s)| s.pinned == 0 && !keep.contains(&s.page()))
                     .min_by_key(|(_, s)| s.last_used)
                     .map(|(i, _)| i as u32)
                     .ok_or(PlaceError::Full)?;
-                let old = self.slots[victim as usize].page;
+                let old = self.slots[victim as usize].page();
                 self.map.remove(&old);
                 victim
             }
         };
-        let o = slot as usize * self.page_samples;
-        self.data[o..o + self.page_samples].copy_from_slice(samples);
-        self.slots[slot as usize] = SlotInfo {
-            page: key,
-            last_used: frame,
-            pinned: pinned as u32,
-        };
+        if !self.data.is_empty() {
+            let o = slot as usize * self.page_samples;
+            self.data[o..o + self.page_samples].copy_from_slice(samples);
+        }
+        self.slots[slot as usize] = SlotInfo::new(key, frame, pinned);
         self.map.insert(key, slot);
         Ok(slot)
     }

@@ -5,6 +5,8 @@ use crate::cache::{CacheStats, Class, PageCache};
 use crate::camera::{default_camera, invert_affine, View};
 use crate::dataset::SceneData;
 use crate::feedback::Feedback;
+use crate::gpu::backend::{GpuBackend, GpuFrameStats};
+use crate::gpu::AdapterChoice;
 use crate::horizon::HorFrame;
 use crate::raycast::{Bands, CastStats, FrameSetup};
 use crate::volume::VolFrame;
@@ -14,7 +16,7 @@ use std::time::{Duration, Instant};
 use strata_common::geo::Affine3;
 use strata_common::image::{PartialImage, Rect};
 use strata_common::kd::Region;
-use strata_common::scene::{Camera, RenderSettings, Scene};
+use strata_common::scene::{Backend, Camera, RenderSettings, Scene};
 
 /// How long a batch round waits for its page loads before failing.
 pub const LOAD_TIMEOUT: Duration = Duration::from_secs(300);
@@ -29,6 +31,8 @@ pub struct Frame {
     pub stats: CastStats,
     /// Wall time of the cast.
     pub seconds: f64,
+    /// GPU transfer counters (zero on the CPU backend).
+    pub gpu: GpuFrameStats,
 }
 
 /// What one feedback round did.
@@ -86,6 +90,12 @@ pub struct BatchResult {
     pub load_seconds: f64,
     /// Per-round reports.
     pub reports: Vec<UpdateReport>,
+    /// The backend and adapter that rendered (see [`Engine::backend_name`]).
+    pub backend: String,
+    /// GPU transfer counters of the final frame (zero on the CPU backend).
+    pub last_gpu: GpuFrameStats,
+    /// Bytes written to the GPU over the batch (pages and tables).
+    pub uploaded_bytes: u64,
 }
 
 /// A worker's renderer for one scene.
@@ -99,6 +109,57 @@ pub struct Engine {
     hpool: Option<Pool>,
     tables: Vec<PageTable>,
     frame_no: u32,
+    gpu: Option<GpuBackend>,
+}
+
+/// Why the scene can't go to the GPU caster, if it can't.
+fn gpu_unfit(data: &SceneData) -> Option<String> {
+    if !data.horizons.is_empty() {
+        return Some("the GPU caster does not render horizons yet".into());
+    }
+    if data.volumes.is_empty() {
+        return Some("the scene has no volume".into());
+    }
+    if data.volumes.len() > crate::gpu::MAX_VOLUMES {
+        return Some(format!(
+            "the GPU caster mixes at most {} volumes",
+            crate::gpu::MAX_VOLUMES
+        ));
+    }
+    None
+}
+
+/// Opens the GPU backend `render.backend` asks for, or none (the CPU caster).
+fn open_backend(s: &RenderSettings, data: &SceneData) -> Result<Option<GpuBackend>> {
+    let choice = |allow_software| AdapterChoice {
+        adapter: s.gpu_adapter.as_ref().map(|a| a.to_string()),
+        allow_software,
+    };
+    let pyramids = || data.volumes.iter().map(|v| v.pyramid.clone()).collect();
+    match s.backend {
+        Backend::Cpu => Ok(None),
+        Backend::Gpu => {
+            if let Some(why) = gpu_unfit(data) {
+                bail!("render.backend = \"gpu\": {why}; use \"cpu\" or \"auto\"");
+            }
+            GpuBackend::new(&choice(true), pyramids())
+                .map(Some)
+                .context("render.backend = \"gpu\"")
+        }
+        Backend::Auto => {
+            if let Some(why) = gpu_unfit(data) {
+                tracing::info!("backend auto: CPU caster ({why})");
+                return Ok(None);
+            }
+            match GpuBackend::new(&choice(false), pyramids()) {
+                Ok(g) => Ok(Some(g)),
+                Err(e) => {
+                    tracing::info!("backend auto: CPU caster ({e:#})");
+                    Ok(None)
+                }
+            }
+        }
+    }
 }
 
 fn rows_f32(a: &Affine3) -> ([[f32; 3]; 3], [f32; 3]) {
@@ -155,7 +216,26 @@ impl Engine {
                 );
             }
         }
-        let vpool = vps.map(|n| Pool::new(n, s.atlas_mb << 20));
+        let mut gpu = open_backend(&s, &data)?;
+        let vpool = match (vps, gpu.as_mut()) {
+            (None, _) => None,
+            (Some(n), None) => Some(Pool::new(n, s.atlas_mb << 20)),
+            (Some(n), Some(g)) => {
+                // The samples live in one device buffer: as many slots as the budget and the
+                // adapter's largest binding allow.
+                let want = Pool::slots_for(n, s.atlas_mb << 20);
+                let slots = want.min(g.max_slots(n));
+                if slots < want {
+                    tracing::warn!(
+                        want,
+                        slots,
+                        "render.atlas_mb exceeds the adapter's largest storage binding"
+                    );
+                }
+                g.alloc_pool(slots, n)?;
+                Some(Pool::bookkeeping(n, slots))
+            }
+        };
         let hpool = hps.map(|n| Pool::new(n, s.horizon_atlas_mb << 20));
         let tables = (0..data.volumes.len() + data.horizons.len())
             .map(|ds| PageTable::new(data.pyramid(ds as u16)))
@@ -173,7 +253,11 @@ impl Engine {
             hpool,
             tables,
             frame_no: 0,
+            gpu,
         };
+        if let Some(g) = &e.gpu {
+            tracing::info!(adapter = %g.adapter_name(), "GPU caster");
+        }
         e.pin_roots()?;
         Ok(e)
     }
@@ -187,9 +271,13 @@ impl Engine {
             let key = p.id(top, [0, 0, 0]).with_dataset(ds).0;
             let page = self.cache.load_now(key)?;
             let pool = self.pool_mut(ds);
-            pool.place(key, &page, 0, true, &none).map_err(|_| {
+            let slot = pool.place(key, &page, 0, true, &none).map_err(|_| {
                 anyhow::anyhow!("the atlas has no slot for the root pages; raise render.atlas_mb")
             })?;
+            let vol = self.is_volume(ds);
+            if let (Some(g), true) = (self.gpu.as_mut(), vol) {
+                g.write_page(slot, &page);
+            }
         }
         self.rebuild_tables();
         Ok(())
@@ -225,6 +313,18 @@ impl Engine {
             };
             let lookup = pool.resident_of(ds, &pyr);
             self.tables[ds as usize].rebuild(lookup);
+        }
+        if let Some(g) = self.gpu.as_mut() {
+            g.sync_tables(&self.tables);
+        }
+    }
+
+    /// The backend that renders, e.g. `cpu (16 threads)` or
+    /// `gpu: NVIDIA H100 80GB HBM3 (Vulkan)`.
+    pub fn backend_name(&self) -> String {
+        match &self.gpu {
+            Some(g) => format!("gpu: {}", g.adapter_name()),
+            None => format!("cpu ({} threads)", rayon::current_num_threads()),
         }
     }
 
@@ -399,19 +499,39 @@ impl Engine {
         }
     }
 
-    /// Renders one frame of `region` with what is resident now.
-    pub fn render_frame(&self, view: &View, region: &Region) -> Frame {
+    /// The sampling bands a frame of `region` through `view` uses: `(start, step)` per band.
+    pub fn sampling_bands(&self, view: &View, region: &Region) -> (Vec<f32>, Vec<f32>) {
+        let b = self.setup(view, region).bands;
+        (b.start, b.dt)
+    }
+
+    /// Renders one frame of `region` with what is resident now, on the engine's backend.
+    pub fn render_frame(&mut self, view: &View, region: &Region) -> Result<Frame> {
         let t = Instant::now();
+        if self.gpu.is_some() {
+            let mut gpu = self.gpu.take().expect("checked");
+            let res = gpu.render(&self.setup(view, region));
+            self.gpu = Some(gpu);
+            let (image, feedback, stats, g) = res?;
+            return Ok(Frame {
+                image,
+                feedback,
+                stats,
+                seconds: t.elapsed().as_secs_f64(),
+                gpu: g,
+            });
+        }
         let setup = self.setup(view, region);
         let out = setup.render();
         let mut feedback = Feedback::default();
         feedback.add(&out.feedback);
-        Frame {
+        Ok(Frame {
             image: out.image,
             feedback,
             stats: out.stats,
             seconds: t.elapsed().as_secs_f64(),
-        }
+            gpu: GpuFrameStats::default(),
+        })
     }
 
     fn parent_key(&self, key: u64) -> Option<u64> {
@@ -474,7 +594,13 @@ impl Engine {
             };
             let ds = strata_common::ids::PageId(k).dataset();
             match self.pool_mut(ds).place(k, &page, frame, false, &needed) {
-                Ok(_) => report.uploaded += 1,
+                Ok(slot) => {
+                    report.uploaded += 1;
+                    let vol = self.is_volume(ds);
+                    if let (Some(g), true) = (self.gpu.as_mut(), vol) {
+                        g.write_page(slot, &page);
+                    }
+                }
                 Err(PlaceError::Full) => report.no_slot += 1,
             }
         }
@@ -514,10 +640,12 @@ impl Engine {
         let mut total = CastStats::default();
         let (mut cast_s, mut load_s) = (0.0, 0.0);
         let mut rounds = 0;
+        let mut uploaded_bytes = 0;
         loop {
             rounds += 1;
-            let f = self.render_frame(view, region);
+            let f = self.render_frame(view, region)?;
             cast_s += f.seconds;
+            uploaded_bytes += f.gpu.uploaded_bytes;
             total += f.stats;
             let t = Instant::now();
             let rep = self.update(&f.feedback, true).context("batch round")?;
@@ -550,6 +678,9 @@ impl Engine {
                     cast_seconds: cast_s,
                     load_seconds: load_s,
                     reports,
+                    backend: self.backend_name(),
+                    last_gpu: f.gpu,
+                    uploaded_bytes,
                 });
             }
         }

@@ -1,0 +1,311 @@
+//! The GPU backend against the CPU backend, and the sort-last invariants on the GPU.
+//!
+//! Both backends read the same atlas bookkeeping, page tables and transfer-function tables
+//! (`strata_common::gpu`); the WGSL caster interpolates trilinearly in the shader
+//! (`exact` filtering), so its images must match the CPU's to 1e-4, and a region split on the
+//! GPU must composite to the whole GPU image within 1e-5.
+//!
+//! On a machine without any wgpu adapter these tests print a notice and pass, unless
+//! `STRATA_REQUIRE_GPU_ADAPTER=1` (CI sets it, with lavapipe installed): then they fail.
+
+use std::path::{Path, PathBuf};
+use strata_common::kd::KdTree;
+use strata_common::scene::{Backend, Scene};
+use strata_tests::scenes::*;
+use strata_worker::engine::{Engine, Outcome};
+use strata_worker::gpu::{AdapterChoice, GpuCaster};
+use tempfile::TempDir;
+
+/// Whether a wgpu adapter (software included) exists; fails the test when one is required.
+/// Once an adapter exists, the caster must build on it (a shader error fails the test).
+fn gpu_available() -> bool {
+    if strata_worker::gpu::list_adapters().is_empty() {
+        if std::env::var("STRATA_REQUIRE_GPU_ADAPTER").as_deref() == Ok("1") {
+            panic!("STRATA_REQUIRE_GPU_ADAPTER=1 but wgpu finds no adapter");
+        }
+        eprintln!("NOTICE: GPU test skipped, no wgpu adapter");
+        return false;
+    }
+    if let Err(e) = GpuCaster::new(&AdapterChoice {
+        adapter: None,
+        allow_software: true,
+    }) {
+        panic!("an adapter exists but the GPU caster does not open on it: {e:#}");
+    }
+    true
+}
+
+fn on(s: &Scene, b: Backend) -> Scene {
+    let mut s = s.clone();
+    s.render.backend = b;
+    s
+}
+
+/// A synthetic survey's seismic volume alone (UTM coordinates, z down).
+fn survey_volume(dir: &Path, size: [u64; 3], page: u32, w: u32, h: u32) -> Scene {
+    let out =
+        strata_coordinator::synth::synth(dir, size, 5, false, &indicatif::ProgressBar::hidden())
+            .unwrap();
+    let mut s = Scene::parse(&out.scene, &std::fs::read_to_string(&out.scene).unwrap()).unwrap();
+    s.horizons.clear();
+    if page != 64 {
+        let vol = dir.join(format!("seismic{page}.strata"));
+        use strata_coordinator::builder::{build_store, BuildOptions};
+        let model = strata_coordinator::synth::SynthModel::new(size, 5).unwrap();
+        let mut o = BuildOptions::volume("seismic", strata_common::sample::SampleType::F32);
+        o.page_size = page;
+        o.transform = model.transform();
+        build_store(&model, &vol, &o, &indicatif::ProgressBar::hidden()).unwrap();
+        s.volumes[0].store = vol;
+    }
+    s.render.width = w;
+    s.render.height = h;
+    s.render.early_termination = 1.0;
+    s.render.max_rounds = 64;
+    s.volumes[0].opacity = 0.3;
+    s
+}
+
+fn assert_gpu_matches_cpu(s: &Scene, tol: f32, what: &str) -> Vec<[f32; 4]> {
+    let cpu = render_whole(&on(s, Backend::Cpu));
+    let gpu = render_whole(&on(s, Backend::Gpu));
+    assert_clean(&gpu);
+    let d = max_diff(&cpu, &gpu);
+    assert!(
+        d <= tol,
+        "{what}: GPU differs from CPU by {d} (tolerance {tol})"
+    );
+    assert!(
+        gpu.iter().filter(|p| p[3] > 0.02).count() > gpu.len() / 20,
+        "{what}: the view shows the data"
+    );
+    gpu
+}
+
+#[test]
+fn gpu_equals_cpu_on_the_survey_with_lod_bands_shading_and_a_camera_inside() {
+    if !gpu_available() {
+        return;
+    }
+    let dir = TempDir::new().unwrap();
+    let s = survey_volume(dir.path(), [72, 56, 48], 64, 96, 64);
+    assert_gpu_matches_cpu(&s, 1e-4, "survey");
+    let mut shaded = s.clone();
+    shaded.render.volume_shading = true;
+    assert_gpu_matches_cpu(&shaded, 1e-4, "gradient shading");
+    let mut ert = s.clone();
+    ert.render.early_termination = 0.95;
+    ert.volumes[0].opacity = 1.0;
+    assert_gpu_matches_cpu(&ert, 1e-4, "early termination");
+    let mut noskip = s.clone();
+    noskip.render.empty_space_skipping = false;
+    assert_gpu_matches_cpu(&noskip, 1e-4, "no empty-space skipping");
+    // A camera inside the volume: rays start inside the box.
+    let e = Engine::new(&s).unwrap();
+    let b = e.bounds();
+    let mid = [0, 1, 2].map(|a| 0.5 * (b.lo[a] + b.hi[a]));
+    let mut inside = s.clone();
+    inside.camera = Some(strata_common::scene::Camera {
+        eye: mid,
+        target: [mid[0] + 100.0, mid[1] + 30.0, mid[2] + 5.0],
+        up: [0.0, 0.0, 1.0],
+        fov_deg: 70.0,
+    });
+    assert_gpu_matches_cpu(&inside, 1e-4, "camera inside");
+}
+
+#[test]
+fn gpu_equals_cpu_for_overlapping_volumes_and_nan_data() {
+    if !gpu_available() {
+        return;
+    }
+    let dir = TempDir::new().unwrap();
+    let n = 24u64;
+    let a: Vec<f32> = (0..n * n * n)
+        .map(|i| {
+            if i % 97 == 0 {
+                f32::NAN // no data: transparent on both backends
+            } else {
+                ((i % n) as f32 * 0.5).sin() * ((i / (n * n)) as f32 * 0.3).cos()
+            }
+        })
+        .collect();
+    let b: Vec<f32> = (0..n * n * n)
+        .map(|i| ((i / n % n) as f32 * 0.4).cos())
+        .collect();
+    use strata_common::geo::Affine3;
+    let va = volume_store(dir.path(), "a", [n, n, n], a, Affine3::IDENTITY, 32);
+    let (c, s_) = (0.8f64, 0.6f64);
+    let vb = volume_store(
+        dir.path(),
+        "b",
+        [n, n, n],
+        b,
+        Affine3 {
+            rows: [
+                [0.7 * c, -0.7 * s_, 0.0, 8.0],
+                [0.7 * s_, 0.7 * c, 0.0, 2.0],
+                [0.0, 0.0, 0.9, 5.0],
+            ],
+        },
+        32,
+    );
+    let cam = strata_common::scene::Camera {
+        eye: [-30.0, -40.0, 50.0],
+        target: [12.0, 12.0, 12.0],
+        up: [0.0, 0.0, 1.0],
+        fov_deg: 40.0,
+    };
+    let s = scene(
+        vec![
+            volume_layer(
+                va,
+                "seismic",
+                [-1.0, 1.0],
+                vec![[0.0, 0.2], [0.5, 0.0], [1.0, 0.2]],
+            ),
+            volume_layer(vb, "viridis", [-1.0, 1.0], vec![[0.0, 0.0], [1.0, 0.15]]),
+        ],
+        vec![],
+        cam,
+        exact_settings(64, 48),
+    );
+    let whole = assert_gpu_matches_cpu(&s, 1e-4, "two overlapping volumes");
+    let gs = on(&s, Backend::Gpu);
+    let tree = KdTree::from_splits(scene_region(&gs), &[(0, 0, 0.5), (0, 2, 0.4), (1, 1, 0.55)]);
+    let d = max_diff(&whole, &render_split(&gs, &tree));
+    assert!(
+        d < 1e-5,
+        "GPU split of overlapping volumes: max difference {d}"
+    );
+}
+
+#[test]
+fn gpu_region_split_is_seamless_across_lod_levels_and_step_bands() {
+    if !gpu_available() {
+        return;
+    }
+    let dir = TempDir::new().unwrap();
+    // 128³ in 32³ bricks seen at 48×36 pixels: the footprint calls for coarse levels.
+    let s = on(
+        &survey_volume(dir.path(), [128, 128, 128], 32, 48, 36),
+        Backend::Gpu,
+    );
+    let mut e = Engine::new(&s).unwrap();
+    assert!(
+        e.backend_name().starts_with("gpu: "),
+        "{}",
+        e.backend_name()
+    );
+    let view = e.view(48, 36).unwrap();
+    let region = e.scene_region();
+    let r = e.render_batch(&view, &region).unwrap();
+    assert_eq!(r.outcome, Outcome::Converged);
+    // What the frame provably used: levels from the GPU feedback, bands from the step table.
+    let f = e.render_frame(&view, &region).unwrap();
+    let levels: std::collections::BTreeSet<u8> = f
+        .feedback
+        .coverage
+        .keys()
+        .map(|&k| strata_common::ids::PageId(k).level())
+        .collect();
+    assert!(levels.len() >= 2, "levels requested: {levels:?}");
+    let (start, dt) = e.sampling_bands(&view, &region);
+    let b = e.bounds();
+    let far = (0..8)
+        .map(|c| {
+            let p = [0, 1, 2].map(|a| if c >> a & 1 == 0 { b.lo[a] } else { b.hi[a] });
+            let rel = view.relative(p);
+            (rel[0] * rel[0] + rel[1] * rel[1] + rel[2] * rel[2]).sqrt()
+        })
+        .fold(0.0f32, f32::max);
+    let used = start.iter().filter(|&&t| t < far).count();
+    assert!(
+        used >= 2,
+        "bands within the data: starts {start:?}, steps {dt:?}, far {far}"
+    );
+    assert!(f.gpu.feedback_bytes > 4 && f.gpu.feedback_bytes < 8 * 1024 * 1024);
+
+    let whole = f.image.to_full();
+    assert_clean(&whole);
+    let root = scene_region(&s);
+    let splits: [&[(usize, usize, f64)]; 3] = [
+        &[(0, 0, 0.43)],
+        &[(0, 2, 0.5), (0, 0, 0.3), (1, 1, 0.61)],
+        &[
+            (0, 0, 0.37),
+            (0, 1, 0.6),
+            (1, 2, 0.45),
+            (2, 0, 0.5),
+            (3, 1, 0.3),
+            (1, 0, 0.71),
+        ],
+    ];
+    for sp in splits {
+        let tree = KdTree::from_splits(root, sp);
+        let d = max_diff(&whole, &render_split(&s, &tree));
+        assert!(
+            d < 1e-5,
+            "{} GPU regions: max difference {d}",
+            tree.leaves.len()
+        );
+    }
+    // And the GPU image equals the CPU's.
+    let cpu = render_whole(&on(&s, Backend::Cpu));
+    let d = max_diff(&cpu, &whole);
+    assert!(d <= 1e-4, "GPU vs CPU at coarse levels: {d}");
+}
+
+#[test]
+fn gpu_out_of_core_converges_to_the_unlimited_atlas_image() {
+    if !gpu_available() {
+        return;
+    }
+    let dir = TempDir::new().unwrap();
+    // 256×256×128 f32 = 32 MiB of level 0 in 32³ bricks; an atlas of 4 MiB holds 1/8.
+    let mut s = on(
+        &survey_volume(dir.path(), [256, 256, 128], 32, 64, 48),
+        Backend::Gpu,
+    );
+    s.render.upload_pages_per_frame = 16; // several rounds
+    let want = render_whole(&s);
+    s.render.atlas_mb = 4;
+    let mut e = Engine::new(&s).unwrap();
+    let view = e.view(64, 48).unwrap();
+    let region = e.scene_region();
+    let r = e.render_batch(&view, &region).unwrap();
+    assert_eq!(r.outcome, Outcome::Converged, "{:?}", r.reports);
+    let d = max_diff(&want, &r.image.to_full());
+    assert!(d < 1e-6, "limited atlas against unlimited: {d}");
+    let slots = strata_worker::atlas::Pool::slots_for(34 * 34 * 34, 4 << 20);
+    let uploaded: usize = r.reports.iter().map(|r| r.uploaded).sum();
+    assert!(r.rounds > 2, "several rounds: {:?}", r.reports);
+    assert!(uploaded > 0 && r.uploaded_bytes > uploaded as u64 * 34 * 34 * 34 * 4 / 2);
+    let (used, _) = e.atlas_usage();
+    assert!(used <= slots, "{used} of {slots} slots");
+}
+
+#[test]
+fn backend_gpu_refuses_horizons_with_a_clear_error() {
+    let dir = TempDir::new().unwrap();
+    let out = strata_coordinator::synth::synth(
+        dir.path(),
+        [40, 32, 24],
+        5,
+        false,
+        &indicatif::ProgressBar::hidden(),
+    )
+    .unwrap();
+    let mut s = Scene::parse(&out.scene, &std::fs::read_to_string(&out.scene).unwrap()).unwrap();
+    s.render.backend = Backend::Gpu;
+    let e = Engine::new(&s)
+        .err()
+        .expect("horizons are not on the GPU yet");
+    let msg = format!("{e:#}");
+    assert!(msg.contains("horizons"), "{msg}");
+    // auto falls back to the CPU for such a scene.
+    s.render.backend = Backend::Auto;
+    let e = Engine::new(&s).unwrap();
+    assert!(e.backend_name().starts_with("cpu"), "{}", e.backend_name());
+    let _unused: Option<PathBuf> = None;
+}

@@ -1,0 +1,258 @@
+//! The engine's side of the GPU backend: lays the per-volume page tables out in one global
+//! index space, turns a [`FrameSetup`] into the shared `strata_common::gpu` records, and
+//! turns the compacted feedback back into page keys.
+
+use super::{AdapterChoice, GpuCaster, MAX_VOLUMES};
+use crate::atlas::PageTable;
+use crate::feedback::Feedback;
+use crate::raycast::{CastStats, FrameSetup};
+use anyhow::{bail, Result};
+use strata_common::gpu::{FrameParams, VolumeParams, MAX_BANDS, MAX_LEVELS, TF_SIZE};
+use strata_common::image::PartialImage;
+use strata_common::pyramid::Pyramid;
+
+/// The GPU caster plus where each volume's page table lives in the global tables.
+pub struct GpuBackend {
+    caster: GpuCaster,
+    /// First global entry of each volume's table (volume `i` is data set `i`).
+    table_base: Vec<u32>,
+    /// First global level record of each volume.
+    level_base: Vec<u32>,
+    /// Global entries in all.
+    entries: u32,
+    pyramids: Vec<Pyramid>,
+    global: Vec<u32>,
+}
+
+/// What a GPU frame adds to the CPU's counters.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct GpuFrameStats {
+    /// Bytes read back (pixels, feedback, counters).
+    pub readback_bytes: u64,
+    /// Feedback bytes read back (length and compact list).
+    pub feedback_bytes: u64,
+    /// Bytes written to the device since the previous frame (pages, tables).
+    pub uploaded_bytes: u64,
+}
+
+impl GpuBackend {
+    /// Opens the adapter for volumes with these pyramids (data sets `0..n`).
+    pub fn new(choice: &AdapterChoice, pyramids: Vec<Pyramid>) -> Result<Self> {
+        if pyramids.is_empty() || pyramids.len() > MAX_VOLUMES {
+            bail!(
+                "the GPU caster renders 1 to {MAX_VOLUMES} volumes, the scene has {}",
+                pyramids.len()
+            );
+        }
+        for p in &pyramids {
+            if p.level_count() > MAX_LEVELS {
+                bail!(
+                    "a volume of {} levels exceeds the GPU caster's {MAX_LEVELS}",
+                    p.level_count()
+                );
+            }
+        }
+        let caster = GpuCaster::new(choice)?;
+        let mut table_base = Vec::new();
+        let mut level_base = Vec::new();
+        let (mut n, mut nl) = (0u64, 0u32);
+        for p in &pyramids {
+            table_base.push(n as u32);
+            level_base.push(nl);
+            let t = PageTable::new(p);
+            n += t.entries.len() as u64;
+            nl += t.levels.len() as u32;
+        }
+        if n >= u32::MAX as u64 / 2 {
+            bail!("the scene's page tables ({n} entries) exceed the GPU caster's u32 indices");
+        }
+        Ok(GpuBackend {
+            caster,
+            table_base,
+            level_base,
+            entries: n as u32,
+            pyramids,
+            global: Vec::new(),
+        })
+    }
+
+    /// The adapter's name and API.
+    pub fn adapter_name(&self) -> String {
+        self.caster.adapter_name()
+    }
+
+    /// Pool slots the adapter can bind for pages of `page_samples` samples.
+    pub fn max_slots(&self, page_samples: usize) -> usize {
+        self.caster.max_slots(page_samples)
+    }
+
+    /// Allocates the device pool.
+    pub fn alloc_pool(&mut self, slots: usize, page_samples: usize) -> Result<()> {
+        self.caster.alloc_pool(slots, page_samples)
+    }
+
+    /// Writes a newly resident page into its slot.
+    pub fn write_page(&mut self, slot: u32, samples: &[f32]) {
+        self.caster.write_page(slot, samples);
+    }
+
+    /// Writes the changed entries of the volumes' page tables; returns how many.
+    pub fn sync_tables(&mut self, tables: &[PageTable]) -> usize {
+        self.global.clear();
+        for t in tables.iter().take(self.pyramids.len()) {
+            self.global.extend_from_slice(&t.entries);
+        }
+        debug_assert_eq!(self.global.len(), self.entries as usize);
+        self.caster.sync_table(&self.global)
+    }
+
+    /// Casts the frame on the GPU: the same image, feedback and counters as
+    /// [`FrameSetup::render`] gives on the CPU.
+    pub fn render(
+        &mut self,
+        setup: &FrameSetup<'_>,
+    ) -> Result<(PartialImage, Feedback, CastStats, GpuFrameStats)> {
+        let r = setup.rect;
+        let mut stats = GpuFrameStats {
+            uploaded_bytes: 0,
+            ..Default::default()
+        };
+        if r.w == 0 || r.h == 0 {
+            stats.uploaded_bytes = self.caster.take_uploaded();
+            let image = PartialImage {
+                width: setup.width,
+                height: setup.height,
+                rect: r,
+                pixels: Vec::new(),
+            };
+            return Ok((image, Feedback::default(), CastStats::default(), stats));
+        }
+        let nb = setup.bands.dt.len();
+        if nb > MAX_BANDS {
+            bail!("{nb} sampling bands exceed the GPU caster's {MAX_BANDS}");
+        }
+        let mut band_start = [0f32; MAX_BANDS];
+        let mut band_dt = [0f32; MAX_BANDS];
+        band_start[..nb].copy_from_slice(&setup.bands.start);
+        band_dt[..nb].copy_from_slice(&setup.bands.dt);
+        let frame = FrameParams {
+            dir00: setup.dir00,
+            width: setup.width,
+            du: setup.du,
+            height: setup.height,
+            dv: setup.dv,
+            rect_x: r.x,
+            region_lo: setup.region_lo,
+            rect_y: r.y,
+            region_hi: setup.region_hi,
+            rect_w: r.w,
+            band_start,
+            band_dt,
+            rect_h: r.h,
+            n_bands: nb as u32,
+            n_vols: setup.vols.len() as u32,
+            ert: setup.ert,
+            flags: 0,
+            fb_entries: self.entries,
+            _pad: [0; 2],
+        };
+        let mut vols = Vec::with_capacity(setup.vols.len());
+        let mut levels = Vec::new();
+        let mut tf = Vec::with_capacity(setup.vols.len() * nb * TF_SIZE);
+        let mut bits = vec![0u32; (self.entries as usize).div_ceil(32)];
+        for (i, v) in setup.vols.iter().enumerate() {
+            debug_assert_eq!(v.ds as usize, i);
+            let nl = v.level_t.len();
+            let mut level_t = [0f32; MAX_LEVELS];
+            level_t[..nl].copy_from_slice(&v.level_t);
+            let t0 = &v.tables[0];
+            for t in &v.tables {
+                if t.entries.len() != TF_SIZE {
+                    bail!(
+                        "the GPU caster needs transfer-function tables of {TF_SIZE} entries, got {}",
+                        t.entries.len()
+                    );
+                }
+                tf.extend_from_slice(&t.entries);
+            }
+            let base = self.table_base[i];
+            for (j, &tr) in v.transparent.iter().enumerate() {
+                if tr {
+                    let g = base as usize + j;
+                    bits[g / 32] |= 1 << (g % 32);
+                }
+            }
+            levels.extend(
+                v.table
+                    .levels
+                    .iter()
+                    .map(|l| [l.offset, l.bricks[0], l.bricks[1], l.bricks[2]]),
+            );
+            vols.push(VolumeParams {
+                m0: v.m[0],
+                core: v.core,
+                m1: v.m[1],
+                border: v.border,
+                m2: v.m[2],
+                page: v.page as u32,
+                c: v.c,
+                n_levels: nl as u32,
+                hi: v.hi,
+                table_base: base,
+                level_base: self.level_base[i],
+                tf_base: (i * nb * TF_SIZE) as u32,
+                tf_scale: t0.scale,
+                tf_offset: t0.offset,
+                tf_last: t0.last,
+                pool_base: 0,
+                _pad: [0; 2],
+                level_t,
+            });
+        }
+        self.caster.sync_frame_tables(&bits, &levels, &tf);
+        stats.uploaded_bytes = self.caster.take_uploaded();
+        let out = self.caster.cast(&frame, &vols, setup.volume_shading)?;
+        stats.readback_bytes = out.readback_bytes;
+        stats.feedback_bytes = out.feedback_bytes;
+        let mut feedback = Feedback::default();
+        for &(g, n) in &out.feedback {
+            if let Some(key) = self.key_of(g) {
+                *feedback.coverage.entry(key).or_insert(0) += n;
+            }
+        }
+        let cast = CastStats {
+            rays: out.rays,
+            samples: out.samples,
+            skipped: out.skipped,
+            hits: 0,
+            terminated: out.terminated,
+        };
+        let image = PartialImage {
+            width: setup.width,
+            height: setup.height,
+            rect: r,
+            pixels: out.pixels,
+        };
+        Ok((image, feedback, cast, stats))
+    }
+
+    /// The page key of global page-table entry `g`.
+    fn key_of(&self, g: u32) -> Option<u64> {
+        if g >= self.entries {
+            return None;
+        }
+        let ds = self.table_base.partition_point(|&b| b <= g) - 1;
+        let p = &self.pyramids[ds];
+        let mut local = g - self.table_base[ds];
+        for l in 0..p.level_count() {
+            let b = p.level(l).bricks;
+            let n = b[0] * b[1] * b[2];
+            if local < n {
+                let brick = [local % b[0], local / b[0] % b[1], local / (b[0] * b[1])];
+                return Some(p.id(l, brick).with_dataset(ds as u16).0);
+            }
+            local -= n;
+        }
+        None
+    }
+}

@@ -1,0 +1,693 @@
+//! The wgpu backend of the engine: the atlas pool, the page tables and the transfer-function
+//! tables live in GPU buffers, a WGSL compute shader ([`SHADER`]) casts the rays with the CPU
+//! caster's semantics, and the feedback is counted and compacted on the GPU.
+//!
+//! The engine keeps the bookkeeping (which page is in which slot, the page tables) on the
+//! host, exactly as for the CPU backend, and hands this module:
+//!
+//! * newly resident pages ([`GpuCaster::write_page`]), written into their slot;
+//! * the page tables ([`GpuCaster::sync_table`]): only the runs of entries that changed
+//!   since the last frame are written;
+//! * per frame, the [`FrameParams`] and [`VolumeParams`] of `strata_common::gpu`.
+//!
+//! [`GpuCaster::cast`] returns the region's pixels, the compacted feedback
+//! (`(global page-table entry, rays)` pairs, no per-pixel buffer crosses the bus) and the
+//! counters, with the bytes read back.
+
+use std::collections::HashMap;
+use std::sync::{mpsc, Arc, Mutex};
+use std::time::Instant;
+
+use anyhow::{anyhow, bail, Context, Result};
+use strata_common::gpu::{FrameParams, VolumeParams};
+
+pub mod backend;
+
+/// The WGSL of the caster and the feedback compaction.
+pub const SHADER: &str = include_str!("cast.wgsl");
+/// Volumes the GPU caster mixes at most.
+pub const MAX_VOLUMES: usize = 4;
+const WORKGROUP: u32 = 8;
+const COMPACT_WORKGROUP: u32 = 64;
+
+/// Which adapter to take.
+#[derive(Clone, Debug, Default)]
+pub struct AdapterChoice {
+    /// An index into the adapter list, or a case-insensitive substring of the adapter's name.
+    pub adapter: Option<String>,
+    /// Accept software adapters (lavapipe, llvmpipe).
+    pub allow_software: bool,
+}
+
+/// What one GPU frame produced.
+pub struct GpuCast {
+    /// Pixels of the frame's rectangle, rows top to bottom.
+    pub pixels: Vec<[f32; 4]>,
+    /// `(global page-table entry, rays that entered it)`, unordered.
+    pub feedback: Vec<(u32, u32)>,
+    /// Trilinear samples taken.
+    pub samples: u64,
+    /// Lattice samples skipped as empty space.
+    pub skipped: u64,
+    /// Rays ended by early termination.
+    pub terminated: u64,
+    /// Rays cast.
+    pub rays: u64,
+    /// Bytes read back: pixels, feedback length and list, counters.
+    pub readback_bytes: u64,
+    /// Feedback bytes read back (length and list).
+    pub feedback_bytes: u64,
+}
+
+/// A storage buffer that grows when a larger content arrives.
+struct Grow {
+    label: &'static str,
+    usage: wgpu::BufferUsages,
+    buf: Option<wgpu::Buffer>,
+}
+
+impl Grow {
+    fn new(label: &'static str, usage: wgpu::BufferUsages) -> Self {
+        Grow {
+            label,
+            usage,
+            buf: None,
+        }
+    }
+
+    /// Makes room for `bytes`; true if the buffer was (re)created.
+    fn ensure(&mut self, device: &wgpu::Device, bytes: u64) -> bool {
+        let bytes = bytes.max(16).next_multiple_of(16);
+        if self.buf.as_ref().is_some_and(|b| b.size() >= bytes) {
+            return false;
+        }
+        self.buf = None; // free before allocating the new one
+        self.buf = Some(device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(self.label),
+            size: bytes,
+            usage: self.usage,
+            mapped_at_creation: false,
+        }));
+        true
+    }
+
+    fn get(&self) -> &wgpu::Buffer {
+        self.buf.as_ref().expect("ensured before use")
+    }
+}
+
+/// The GPU caster: device, pipelines and the buffers kept between frames.
+pub struct GpuCaster {
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    info: wgpu::AdapterInfo,
+    limits: wgpu::Limits,
+    module: wgpu::ShaderModule,
+    /// Cast pipelines by effect set (shading, several volumes).
+    pipelines: HashMap<(bool, bool), wgpu::ComputePipeline>,
+    compact: wgpu::ComputePipeline,
+    frame: wgpu::Buffer,
+    vols: wgpu::Buffer,
+    levels: Grow,
+    table: Grow,
+    transparent: Grow,
+    tf: Grow,
+    pool: Grow,
+    feedback: Grow,
+    fb_list: Grow,
+    fb_len: wgpu::Buffer,
+    stats: wgpu::Buffer,
+    out: Grow,
+    read: Grow,
+    table_mirror: Vec<u32>,
+    transparent_mirror: Vec<u32>,
+    tf_mirror: Vec<[f32; 4]>,
+    levels_mirror: Vec<[u32; 4]>,
+    page_bytes: u64,
+    /// Bytes written to the device since the last [`take_uploaded`](Self::take_uploaded).
+    uploaded: u64,
+    uncaptured: Arc<Mutex<Option<String>>>,
+}
+
+const STORAGE_DST: wgpu::BufferUsages =
+    wgpu::BufferUsages::STORAGE.union(wgpu::BufferUsages::COPY_DST);
+const STORAGE_SRC_DST: wgpu::BufferUsages = STORAGE_DST.union(wgpu::BufferUsages::COPY_SRC);
+
+/// The wgpu instance: Vulkan unless `WGPU_BACKEND` names others (`gl`, `vulkan,gl`).
+fn instance() -> (wgpu::Instance, wgpu::Backends) {
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle_from_env();
+    if std::env::var_os("WGPU_BACKEND").is_none() {
+        desc.backends = wgpu::Backends::VULKAN;
+    }
+    let backends = desc.backends;
+    (wgpu::Instance::new(desc), backends)
+}
+
+/// The adapters wgpu sees, as `(index, name, backend, software)`.
+pub fn list_adapters() -> Vec<(usize, String, String, bool)> {
+    let (instance, backends) = instance();
+    let adapters = pollster::block_on(instance.enumerate_adapters(backends));
+    adapters
+        .iter()
+        .enumerate()
+        .map(|(i, a)| {
+            let info = a.get_info();
+            (
+                i,
+                info.name.clone(),
+                format!("{:?}", info.backend),
+                info.device_type == wgpu::DeviceType::Cpu,
+            )
+        })
+        .collect()
+}
+
+fn pick_adapter(choice: &AdapterChoice) -> Result<wgpu::Adapter> {
+    let (instance, backends) = instance();
+    let mut adapters = pollster::block_on(instance.enumerate_adapters(backends));
+    let usable = |a: &wgpu::Adapter| {
+        a.get_downlevel_capabilities()
+            .flags
+            .contains(wgpu::DownlevelFlags::COMPUTE_SHADERS)
+    };
+    let software = |a: &wgpu::Adapter| a.get_info().device_type == wgpu::DeviceType::Cpu;
+    let names = || adapters_desc(&pollster::block_on(instance.enumerate_adapters(backends)));
+    if let Some(want) = &choice.adapter {
+        let found = match want.trim().parse::<usize>() {
+            Ok(i) if i < adapters.len() => Some(adapters.swap_remove(i)),
+            Ok(i) => bail!(
+                "render.gpu_adapter = {i}: there are only {} adapters ({})",
+                adapters.len(),
+                names()
+            ),
+            Err(_) => {
+                let w = want.to_lowercase();
+                let pos = adapters
+                    .iter()
+                    .position(|a| a.get_info().name.to_lowercase().contains(&w));
+                pos.map(|i| adapters.swap_remove(i))
+            }
+        };
+        let a = found.ok_or_else(|| {
+            anyhow!(
+                "render.gpu_adapter = {want:?} matches no adapter ({})",
+                names()
+            )
+        })?;
+        if !usable(&a) {
+            bail!("adapter {} has no compute shaders", a.get_info().name);
+        }
+        if software(&a) && !choice.allow_software {
+            bail!(
+                "adapter {} is a software renderer (render.backend = \"gpu\" accepts it)",
+                a.get_info().name
+            );
+        }
+        return Ok(a);
+    }
+    // Prefer discrete, then integrated, then anything else; software only when allowed.
+    let rank = |a: &wgpu::Adapter| match a.get_info().device_type {
+        wgpu::DeviceType::DiscreteGpu => 0,
+        wgpu::DeviceType::IntegratedGpu => 1,
+        wgpu::DeviceType::VirtualGpu | wgpu::DeviceType::Other => 2,
+        wgpu::DeviceType::Cpu => 3,
+    };
+    adapters.retain(|a| usable(a) && (choice.allow_software || !software(a)));
+    adapters.sort_by_key(|a| (rank(a), a.get_info().backend != wgpu::Backend::Vulkan));
+    adapters.into_iter().next().ok_or_else(|| {
+        anyhow!(
+            "no {}GPU adapter with compute shaders (adapters: {}; without a GPU, \
+             `apt-get install mesa-vulkan-drivers libvulkan1` provides lavapipe)",
+            if choice.allow_software {
+                ""
+            } else {
+                "hardware "
+            },
+            names()
+        )
+    })
+}
+
+fn adapters_desc(a: &[wgpu::Adapter]) -> String {
+    if a.is_empty() {
+        return "none".into();
+    }
+    a.iter()
+        .enumerate()
+        .map(|(i, a)| {
+            let info = a.get_info();
+            format!(
+                "{i}: {} ({:?}, {:?})",
+                info.name, info.backend, info.device_type
+            )
+        })
+        .collect::<Vec<_>>()
+        .join("; ")
+}
+
+impl GpuCaster {
+    /// Opens an adapter and builds the pipelines. Fails, never panics, when there is no
+    /// suitable adapter.
+    pub fn new(choice: &AdapterChoice) -> Result<Self> {
+        let adapter = pick_adapter(choice)?;
+        let info = adapter.get_info();
+        // The adapter's own limits: the WebGPU defaults cap a storage binding at 128 MiB.
+        let limits = adapter.limits();
+        if limits.max_storage_buffers_per_shader_stage < 10 {
+            bail!(
+                "adapter {} binds {} storage buffers per stage; the caster needs 10",
+                info.name,
+                limits.max_storage_buffers_per_shader_stage
+            );
+        }
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("strata-gpu-caster"),
+            required_features: wgpu::Features::empty(),
+            required_limits: limits.clone(),
+            ..Default::default()
+        }))
+        .with_context(|| format!("opening {} ({:?})", info.name, info.backend))?;
+        let uncaptured = Arc::new(Mutex::new(None));
+        let sink = uncaptured.clone();
+        device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
+            let mut slot = sink.lock().unwrap_or_else(|p| p.into_inner());
+            slot.get_or_insert_with(|| e.to_string());
+        }));
+        let (module, compact) = checked(&device, "building the caster's shader", || {
+            let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some("cast.wgsl"),
+                source: wgpu::ShaderSource::Wgsl(SHADER.into()),
+            });
+            let compact = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some("feedback compaction"),
+                layout: None,
+                module: &module,
+                entry_point: Some("compact"),
+                compilation_options: Default::default(),
+                cache: None,
+            });
+            (module, compact)
+        })?;
+        let uniform = |label, size| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
+        };
+        let frame = uniform("frame", std::mem::size_of::<FrameParams>() as u64);
+        let vols = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("volumes"),
+            size: (MAX_VOLUMES * std::mem::size_of::<VolumeParams>()) as u64,
+            usage: STORAGE_DST,
+            mapped_at_creation: false,
+        });
+        let small = |label| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: 32,
+                usage: STORAGE_SRC_DST,
+                mapped_at_creation: false,
+            })
+        };
+        let fb_len = small("feedback length");
+        let stats = small("counters");
+        Ok(GpuCaster {
+            device,
+            queue,
+            info,
+            limits,
+            module,
+            pipelines: HashMap::new(),
+            compact,
+            frame,
+            vols,
+            levels: Grow::new("levels", STORAGE_DST),
+            table: Grow::new("page table", STORAGE_DST),
+            transparent: Grow::new("transparent pages", STORAGE_DST),
+            tf: Grow::new("transfer functions", STORAGE_DST),
+            pool: Grow::new("atlas pool", STORAGE_DST),
+            feedback: Grow::new("feedback counters", STORAGE_DST),
+            fb_list: Grow::new("feedback list", STORAGE_SRC_DST),
+            fb_len,
+            stats,
+            out: Grow::new("image", STORAGE_SRC_DST),
+            read: Grow::new(
+                "readback",
+                wgpu::BufferUsages::MAP_READ.union(wgpu::BufferUsages::COPY_DST),
+            ),
+            table_mirror: Vec::new(),
+            transparent_mirror: Vec::new(),
+            tf_mirror: Vec::new(),
+            levels_mirror: Vec::new(),
+            page_bytes: 0,
+            uploaded: 0,
+            uncaptured,
+        })
+    }
+
+    /// The adapter, e.g. `NVIDIA H100 80GB HBM3 (Vulkan)` or `llvmpipe (LLVM 15.0.6, 256 bits) (Vulkan)`.
+    pub fn adapter_name(&self) -> String {
+        format!("{} ({:?})", self.info.name, self.info.backend)
+    }
+
+    /// Whether the adapter is a CPU implementation (lavapipe, llvmpipe).
+    pub fn is_software(&self) -> bool {
+        self.info.device_type == wgpu::DeviceType::Cpu
+    }
+
+    /// Pool slots of `page_samples` f32 samples the adapter can bind in one buffer.
+    pub fn max_slots(&self, page_samples: usize) -> usize {
+        let bind =
+            (self.limits.max_storage_buffer_binding_size as u64).min(self.limits.max_buffer_size);
+        (bind / (page_samples as u64 * 4)) as usize
+    }
+
+    /// Allocates the atlas pool: `slots` slots of `page_samples` f32 samples.
+    pub fn alloc_pool(&mut self, slots: usize, page_samples: usize) -> Result<()> {
+        let bytes = slots as u64 * page_samples as u64 * 4;
+        self.page_bytes = page_samples as u64 * 4;
+        let (device, pool) = (&self.device, &mut self.pool);
+        checked(device, "allocating the atlas pool", || {
+            pool.ensure(device, bytes);
+        })
+    }
+
+    /// Writes a page into its pool slot.
+    pub fn write_page(&mut self, slot: u32, samples: &[f32]) {
+        let bytes: &[u8] = bytemuck::cast_slice(samples);
+        debug_assert_eq!(bytes.len() as u64, self.page_bytes);
+        self.queue
+            .write_buffer(self.pool.get(), slot as u64 * self.page_bytes, bytes);
+        self.uploaded += bytes.len() as u64;
+    }
+
+    /// Brings the device's global page table up to `entries`, writing only the runs that
+    /// changed (runs closer than 64 entries are merged into one write). Returns the entries
+    /// written.
+    pub fn sync_table(&mut self, entries: &[u32]) -> usize {
+        let fresh = self.table.ensure(&self.device, entries.len() as u64 * 4);
+        // Feedback counters cover the same entries.
+        if self.feedback.ensure(&self.device, entries.len() as u64 * 4) {
+            let zero = vec![0u8; self.feedback.get().size() as usize];
+            self.queue.write_buffer(self.feedback.get(), 0, &zero);
+        }
+        self.fb_list.ensure(&self.device, entries.len() as u64 * 8);
+        if fresh || self.table_mirror.len() != entries.len() {
+            self.queue
+                .write_buffer(self.table.get(), 0, bytemuck::cast_slice(entries));
+            self.table_mirror = entries.to_vec();
+            self.uploaded += entries.len() as u64 * 4;
+            return entries.len();
+        }
+        let mut written = 0;
+        let mut i = 0;
+        let n = entries.len();
+        while i < n {
+            if entries[i] == self.table_mirror[i] {
+                i += 1;
+                continue;
+            }
+            let start = i;
+            let mut end = i + 1; // exclusive end of the last changed entry
+            let mut j = i + 1;
+            while j < n && j < end + 64 {
+                if entries[j] != self.table_mirror[j] {
+                    end = j + 1;
+                }
+                j += 1;
+            }
+            self.queue.write_buffer(
+                self.table.get(),
+                start as u64 * 4,
+                bytemuck::cast_slice(&entries[start..end]),
+            );
+            self.table_mirror[start..end].copy_from_slice(&entries[start..end]);
+            written += end - start;
+            i = end;
+        }
+        self.uploaded += written as u64 * 4;
+        written
+    }
+
+    /// Brings the per-entry transparency bits, the level records and the transfer-function
+    /// tables up to date (each written only when it changed).
+    pub fn sync_frame_tables(&mut self, transparent: &[u32], levels: &[[u32; 4]], tf: &[[f32; 4]]) {
+        fn sync<T: bytemuck::Pod + PartialEq>(
+            device: &wgpu::Device,
+            queue: &wgpu::Queue,
+            buf: &mut Grow,
+            mirror: &mut Vec<T>,
+            data: &[T],
+            uploaded: &mut u64,
+        ) {
+            let fresh = buf.ensure(device, std::mem::size_of_val(data) as u64);
+            if fresh || mirror.as_slice() != data {
+                if !data.is_empty() {
+                    queue.write_buffer(buf.get(), 0, bytemuck::cast_slice(data));
+                }
+                *mirror = data.to_vec();
+                *uploaded += std::mem::size_of_val(data) as u64;
+            }
+        }
+        let (d, q) = (&self.device, &self.queue);
+        sync(
+            d,
+            q,
+            &mut self.transparent,
+            &mut self.transparent_mirror,
+            transparent,
+            &mut self.uploaded,
+        );
+        sync(
+            d,
+            q,
+            &mut self.levels,
+            &mut self.levels_mirror,
+            levels,
+            &mut self.uploaded,
+        );
+        sync(
+            d,
+            q,
+            &mut self.tf,
+            &mut self.tf_mirror,
+            tf,
+            &mut self.uploaded,
+        );
+    }
+
+    /// Bytes written to the device (pages, tables) since the last call.
+    pub fn take_uploaded(&mut self) -> u64 {
+        std::mem::take(&mut self.uploaded)
+    }
+
+    fn pipeline(&mut self, shading: bool, multi: bool) -> Result<wgpu::ComputePipeline> {
+        if let Some(p) = self.pipelines.get(&(shading, multi)) {
+            return Ok(p.clone());
+        }
+        let (device, module) = (&self.device, &self.module);
+        let p = checked(device, "building a cast pipeline", || {
+            let constants = [
+                ("SHADING", if shading { 1.0 } else { 0.0 }),
+                ("MULTI", if multi { 1.0 } else { 0.0 }),
+            ];
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some("cast"),
+                layout: None,
+                module,
+                entry_point: Some("cast_rays"),
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    constants: &constants,
+                    ..Default::default()
+                },
+                cache: None,
+            })
+        })?;
+        self.pipelines.insert((shading, multi), p.clone());
+        Ok(p)
+    }
+
+    /// Casts one frame and reads back its pixels, feedback and counters. The tables must
+    /// have been synced ([`sync_table`](Self::sync_table),
+    /// [`sync_frame_tables`](Self::sync_frame_tables)) and the pool allocated.
+    pub fn cast(
+        &mut self,
+        frame: &FrameParams,
+        vols: &[VolumeParams],
+        shading: bool,
+    ) -> Result<GpuCast> {
+        if vols.is_empty() || vols.len() > MAX_VOLUMES {
+            bail!(
+                "the GPU caster renders 1 to {MAX_VOLUMES} volumes, the scene has {}",
+                vols.len()
+            );
+        }
+        if self.pool.buf.is_none() || self.table.buf.is_none() || self.tf.buf.is_none() {
+            bail!("GPU caster: the pool and tables must be uploaded before a frame");
+        }
+        let px = frame.rect_w as u64 * frame.rect_h as u64;
+        let pipeline = self.pipeline(shading, vols.len() > 1)?;
+        let out_bytes = px * 16;
+        let clock = Instant::now();
+        let device = &self.device;
+        self.out.ensure(device, out_bytes);
+        self.read.ensure(device, out_bytes.max(64));
+        let queue = &self.queue;
+        queue.write_buffer(&self.frame, 0, bytemuck::bytes_of(frame));
+        queue.write_buffer(&self.vols, 0, bytemuck::cast_slice(vols));
+        queue.write_buffer(&self.stats, 0, &[0u8; 32]);
+        queue.write_buffer(&self.fb_len, 0, &[0u8; 32]);
+        fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+            wgpu::BindGroupEntry {
+                binding,
+                resource: buffer.as_entire_binding(),
+            }
+        }
+        let entries = frame.fb_entries;
+        let (group, compact_group) = checked(device, "binding the frame", || {
+            let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("cast"),
+                layout: &pipeline.get_bind_group_layout(0),
+                entries: &[
+                    entry(0, &self.frame),
+                    entry(1, &self.vols),
+                    entry(2, self.levels.get()),
+                    entry(3, self.table.get()),
+                    entry(4, self.transparent.get()),
+                    entry(5, self.tf.get()),
+                    entry(6, self.pool.get()),
+                    entry(7, self.feedback.get()),
+                    entry(8, self.out.get()),
+                    entry(9, &self.stats),
+                ],
+            });
+            let fb_counts = wgpu::BindGroupEntry {
+                binding: 7,
+                resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                    buffer: self.feedback.get(),
+                    offset: 0,
+                    size: std::num::NonZeroU64::new(entries.max(1) as u64 * 4),
+                }),
+            };
+            let compact_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("compact"),
+                layout: &self.compact.get_bind_group_layout(0),
+                entries: &[
+                    fb_counts,
+                    entry(10, self.fb_list.get()),
+                    entry(11, &self.fb_len),
+                ],
+            });
+            (group, compact_group)
+        })?;
+        checked(device, "dispatching the cast", || {
+            let mut enc = device.create_command_encoder(&Default::default());
+            {
+                let mut pass = enc.begin_compute_pass(&Default::default());
+                pass.set_pipeline(&pipeline);
+                pass.set_bind_group(0, &group, &[]);
+                pass.dispatch_workgroups(
+                    frame.rect_w.div_ceil(WORKGROUP).max(1),
+                    frame.rect_h.div_ceil(WORKGROUP).max(1),
+                    1,
+                );
+                let groups = entries.max(1).div_ceil(COMPACT_WORKGROUP);
+                let gx = groups.min(self.limits.max_compute_workgroups_per_dimension);
+                pass.set_pipeline(&self.compact);
+                pass.set_bind_group(0, &compact_group, &[]);
+                pass.dispatch_workgroups(gx, groups.div_ceil(gx), 1);
+            }
+            // Counters and feedback length first: one small readback tells how much list to fetch.
+            enc.copy_buffer_to_buffer(&self.stats, 0, self.read.get(), 0, 32);
+            enc.copy_buffer_to_buffer(&self.fb_len, 0, self.read.get(), 32, 4);
+            queue.submit([enc.finish()]);
+        })?;
+        let head: Vec<u32> = self.map_read(36)?;
+        let stat64 = |i: usize| head[i] as u64 | (head[i + 1] as u64) << 32;
+        let fb_n = head[8].min(entries) as u64;
+        let fb_bytes = fb_n * 8;
+        let read_bytes = out_bytes.max(fb_bytes);
+        self.read.ensure(&self.device, read_bytes);
+        let mut feedback = Vec::with_capacity(fb_n as usize);
+        if fb_n > 0 {
+            checked(&self.device, "reading the feedback list", || {
+                let mut enc = self.device.create_command_encoder(&Default::default());
+                enc.copy_buffer_to_buffer(self.fb_list.get(), 0, self.read.get(), 0, fb_bytes);
+                self.queue.submit([enc.finish()]);
+            })?;
+            let list: Vec<u32> = self.map_read(fb_bytes)?;
+            feedback.extend(list.chunks_exact(2).map(|p| (p[0], p[1])));
+        }
+        let mut pixels = Vec::new();
+        if out_bytes > 0 {
+            checked(&self.device, "reading the image", || {
+                let mut enc = self.device.create_command_encoder(&Default::default());
+                enc.copy_buffer_to_buffer(self.out.get(), 0, self.read.get(), 0, out_bytes);
+                self.queue.submit([enc.finish()]);
+            })?;
+            let raw: Vec<f32> = self.map_read(out_bytes)?;
+            pixels = raw
+                .chunks_exact(4)
+                .map(|c| [c[0], c[1], c[2], c[3]])
+                .collect();
+        }
+        tracing::trace!(ms = clock.elapsed().as_secs_f64() * 1e3, "gpu cast");
+        Ok(GpuCast {
+            pixels,
+            feedback,
+            samples: stat64(0),
+            skipped: stat64(2),
+            terminated: head[4] as u64,
+            rays: head[5] as u64,
+            readback_bytes: 36 + fb_bytes + out_bytes,
+            feedback_bytes: 4 + fb_bytes,
+        })
+    }
+
+    /// Waits for the queue, maps the first `bytes` of the readback buffer and copies them out.
+    fn map_read<T: bytemuck::Pod>(&self, bytes: u64) -> Result<Vec<T>> {
+        let buf = self.read.get();
+        let slice = buf.slice(0..bytes);
+        let (tx, rx) = mpsc::channel();
+        slice.map_async(wgpu::MapMode::Read, move |r| {
+            let _ = tx.send(r);
+        });
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| anyhow!("waiting for the device: {e}"))?;
+        self.check_uncaptured()?;
+        rx.recv()
+            .context("map callback did not run")?
+            .context("mapping the readback buffer")?;
+        let out = {
+            let view = slice.get_mapped_range().context("readback mapped range")?;
+            bytemuck::cast_slice::<u8, T>(&view).to_vec()
+        };
+        buf.unmap();
+        Ok(out)
+    }
+
+    fn check_uncaptured(&self) -> Result<()> {
+        let mut slot = self.uncaptured.lock().unwrap_or_else(|p| p.into_inner());
+        match slot.take() {
+            Some(e) => bail!("wgpu error: {e}"),
+            None => Ok(()),
+        }
+    }
+}
+
+/// Runs `f` inside validation and out-of-memory error scopes and turns what they caught into
+/// an error: wgpu's default reaction to either is a panic.
+fn checked<T>(device: &wgpu::Device, what: &str, f: impl FnOnce() -> T) -> Result<T> {
+    let out_of_memory = device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+    let validation = device.push_error_scope(wgpu::ErrorFilter::Validation);
+    let value = f();
+    let validation = pollster::block_on(validation.pop());
+    let out_of_memory = pollster::block_on(out_of_memory.pop());
+    match validation.or(out_of_memory) {
+        Some(e) => bail!("{what}: {e}"),
+        None => Ok(value),
+    }
+}
