@@ -375,6 +375,8 @@ pub struct WorkerFrameStats {
     pub samples: u64,
     /// "converged", "round-limit" or "atlas-full".
     pub outcome: String,
+    /// The backend and adapter that rendered, e.g. `gpu: NVIDIA H100 (Vulkan)` or `cpu (8 threads)`.
+    pub backend: String,
 }
 
 #[cfg(test)]
@@ -430,6 +432,7 @@ mod tests {
             frame: 1,
             stats: WorkerFrameStats {
                 outcome: "converged".into(),
+                backend: "cpu (2 threads)".into(),
                 ..Default::default()
             },
         };

@@ -229,6 +229,8 @@ impl Cluster {
                         std::ffi::OsString::from_vec(secret.clone()),
                     )
                     .env("RAYON_NUM_THREADS", threads.to_string())
+                    // Spread GPU workers over the node's GPUs (one each while there are enough).
+                    .env(strata_worker::gpu::GPU_SLOT_ENV, i.to_string())
                     .stdin(Stdio::null())
                     .kill_on_drop(true);
                 // The workers die with the coordinator, however it ends (even SIGKILL).

@@ -504,6 +504,7 @@ fn run(cli: Cli) -> Result<()> {
                 s.samples,
                 s.samples as f64 / s.last_frame_seconds.max(1e-9) / 1e6
             );
+            println!("backend: {}", s.backend);
             if s.workers == 0 {
                 println!(
                     "pages read {} ({:.1} MiB), cache hit rate {:.1}%",

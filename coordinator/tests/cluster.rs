@@ -409,3 +409,81 @@ fn a_killed_worker_fails_the_frame_with_an_error_naming_it() {
         );
     }
 }
+
+/// The survey's seismic volume alone (the GPU caster does not render horizons yet).
+fn volume_only_scene(dir: &Path) -> PathBuf {
+    let src = survey().join("scene.toml");
+    let mut s =
+        strata_common::scene::Scene::parse(&src, &std::fs::read_to_string(&src).unwrap()).unwrap();
+    s.horizons.clear();
+    for v in &mut s.volumes {
+        if v.store.is_relative() {
+            v.store = survey().join(&v.store);
+        }
+    }
+    let p = dir.join("volume-only.toml");
+    std::fs::write(&p, toml::to_string(&s).unwrap()).unwrap();
+    p
+}
+
+#[test]
+fn gpu_workers_equal_the_in_process_cpu_image() {
+    // Three worker processes, each casting on its own wgpu device (lavapipe in CI), composite
+    // to the single-process CPU image. Skipped without an adapter unless one is required.
+    if strata_worker::gpu::list_adapters().is_empty() {
+        assert_ne!(
+            std::env::var("STRATA_REQUIRE_GPU_ADAPTER").as_deref(),
+            Ok("1"),
+            "STRATA_REQUIRE_GPU_ADAPTER=1 but wgpu finds no adapter"
+        );
+        eprintln!("NOTICE: skipped, no wgpu adapter");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let scene = volume_only_scene(dir.path());
+    let go = |name: &str, extra: &[&str]| {
+        let out = dir.path().join(format!("{name}.exr"));
+        let png = out.with_extension("png");
+        let stats = out.with_extension("jsonl");
+        let mut args = vec![
+            "render",
+            scene.to_str().unwrap(),
+            "-o",
+            png.to_str().unwrap(),
+            "--exr",
+            out.to_str().unwrap(),
+            "--stats",
+            stats.to_str().unwrap(),
+            "--size",
+            SIZE,
+            "--set",
+            "render.early_termination=1.0",
+        ];
+        args.extend_from_slice(extra);
+        let o = run(&args, &[]);
+        assert!(
+            o.status.success(),
+            "{name}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        (read_exr(&out), std::fs::read_to_string(&stats).unwrap())
+    };
+    let (cpu, cpu_stats) = go("cpu", &["--in-process", "--set", "render.backend=cpu"]);
+    assert!(cpu_stats.contains("\"backend\":\"cpu"), "{cpu_stats}");
+    let (gpu, gpu_stats) = go("gpu", &["--workers", "3", "--set", "render.backend=gpu"]);
+    let d = max_diff(&cpu, &gpu);
+    assert!(
+        d <= 1e-4,
+        "3 GPU workers against the in-process CPU image: {d}"
+    );
+    let alpha: f32 = cpu.iter().map(|p| p[3]).sum();
+    assert!(alpha > 100.0, "the image shows the volume");
+    let workers = gpu_stats
+        .lines()
+        .filter(|l| l.contains("\"kind\":\"worker\""))
+        .collect::<Vec<_>>();
+    assert_eq!(workers.len(), 3, "{gpu_stats}");
+    for l in workers {
+        assert!(l.contains("\"backend\":\"gpu: "), "{l}");
+    }
+}

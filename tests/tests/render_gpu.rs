@@ -29,6 +29,7 @@ fn gpu_available() -> bool {
     if let Err(e) = GpuCaster::new(&AdapterChoice {
         adapter: None,
         allow_software: true,
+        spread: None,
     }) {
         panic!("an adapter exists but the GPU caster does not open on it: {e:#}");
     }

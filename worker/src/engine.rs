@@ -134,6 +134,9 @@ fn open_backend(s: &RenderSettings, data: &SceneData) -> Result<Option<GpuBacken
     let choice = |allow_software| AdapterChoice {
         adapter: s.gpu_adapter.as_ref().map(|a| a.to_string()),
         allow_software,
+        spread: std::env::var(crate::gpu::GPU_SLOT_ENV)
+            .ok()
+            .and_then(|v| v.parse().ok()),
     };
     let pyramids = || data.volumes.iter().map(|v| v.pyramid.clone()).collect();
     match s.backend {

@@ -637,6 +637,7 @@ impl Node {
                         .ok_or_else(|| anyhow!("leaf {leaf} is not one of this worker's"))?;
                     let r = self.engine.render_batch(&view, &region)?;
                     stats.render_rounds = stats.render_rounds.max(r.rounds);
+                    stats.backend = r.backend.clone();
                     stats.samples += r.last.samples;
                     if r.outcome != Outcome::Converged {
                         outcome = r.outcome;

@@ -37,7 +37,14 @@ pub struct AdapterChoice {
     pub adapter: Option<String>,
     /// Accept software adapters (lavapipe, llvmpipe).
     pub allow_software: bool,
+    /// With no explicit adapter, take the `spread % n`-th of the `n` best adapters of the same
+    /// kind, so that local workers on a multi-GPU node each take their own GPU (the local
+    /// spawner passes the worker's index in [`GPU_SLOT_ENV`]).
+    pub spread: Option<usize>,
 }
+
+/// The environment variable through which local spawning gives each worker its index.
+pub const GPU_SLOT_ENV: &str = "STRATA_GPU_SLOT";
 
 /// What one GPU frame produced.
 pub struct GpuCast {
@@ -214,6 +221,14 @@ fn pick_adapter(choice: &AdapterChoice) -> Result<wgpu::Adapter> {
     };
     adapters.retain(|a| usable(a) && (choice.allow_software || !software(a)));
     adapters.sort_by_key(|a| (rank(a), a.get_info().backend != wgpu::Backend::Vulkan));
+    if let (Some(i), Some(best)) = (choice.spread, adapters.first()) {
+        let key = |a: &wgpu::Adapter| (rank(a), a.get_info().backend);
+        let k = key(best);
+        let n = adapters.iter().take_while(|a| key(a) == k).count();
+        if n > 1 {
+            return Ok(adapters.swap_remove(i % n));
+        }
+    }
     adapters.into_iter().next().ok_or_else(|| {
         anyhow!(
             "no {}GPU adapter with compute shaders (adapters: {}; without a GPU, \
