@@ -43,6 +43,9 @@ struct Cli {
     /// Skip the CPU-against-GPU backend comparison.
     #[arg(long)]
     no_gpu: bool,
+    /// Only the CPU-against-GPU backend comparison.
+    #[arg(long)]
+    only_backends: bool,
     /// The bonsai raw file.
     #[arg(long)]
     bonsai: Option<PathBuf>,
@@ -365,13 +368,13 @@ fn main() -> Result<()> {
         std::thread::available_parallelism().map_or(1, |n| n.get())
     );
     println!();
-    if !cli.only_survey {
+    if !cli.only_survey && !cli.only_backends {
         bonsai(&cli)?;
     }
     if !cli.no_gpu && !cli.only_survey {
         cpu_vs_gpu(&cli)?;
     }
-    if !cli.no_survey {
+    if !cli.no_survey && !cli.only_backends {
         survey(&cli)?;
     }
     println!("peak RSS {:.0} MiB", peak_rss_mib());

@@ -59,7 +59,10 @@ fn read_exr(p: &Path) -> Vec<[f32; 4]> {
 /// front of it, so with termination at `t` a sort-last image may differ from the
 /// single-process one by up to `1 - t` (checked separately below).
 fn render(out: &Path, extra: &[&str], env: &[(&str, &str)]) -> Output {
-    let scene = survey().join("scene.toml");
+    render_scene(&survey().join("scene.toml"), out, extra, env)
+}
+
+fn render_scene(scene: &Path, out: &Path, extra: &[&str], env: &[(&str, &str)]) -> Output {
     let png = out.with_extension("png");
     let mut args = vec![
         "render",
@@ -443,24 +446,10 @@ fn gpu_workers_equal_the_in_process_cpu_image() {
     let scene = volume_only_scene(dir.path());
     let go = |name: &str, extra: &[&str]| {
         let out = dir.path().join(format!("{name}.exr"));
-        let png = out.with_extension("png");
         let stats = out.with_extension("jsonl");
-        let mut args = vec![
-            "render",
-            scene.to_str().unwrap(),
-            "-o",
-            png.to_str().unwrap(),
-            "--exr",
-            out.to_str().unwrap(),
-            "--stats",
-            stats.to_str().unwrap(),
-            "--size",
-            SIZE,
-            "--set",
-            "render.early_termination=1.0",
-        ];
+        let mut args = vec!["--stats", stats.to_str().unwrap()];
         args.extend_from_slice(extra);
-        let o = run(&args, &[]);
+        let o = render_scene(&scene, &out, &args, &[]);
         assert!(
             o.status.success(),
             "{name}: {}",

@@ -214,6 +214,61 @@ pub mod scenes {
         }
     }
 
+    /// Two overlapping 24³ volumes of different resolution and orientation (seismic and
+    /// viridis maps), seen from outside both; every `nan_every`-th sample of the first is NaN
+    /// (no data) when `nan_every > 0`.
+    pub fn overlapping_volumes(dir: &Path, nan_every: u64) -> Scene {
+        let n = 24u64;
+        let a: Vec<f32> = (0..n * n * n)
+            .map(|i| {
+                if nan_every > 0 && i % nan_every == 0 {
+                    f32::NAN
+                } else {
+                    ((i % n) as f32 * 0.5).sin() * ((i / (n * n)) as f32 * 0.3).cos()
+                }
+            })
+            .collect();
+        let b: Vec<f32> = (0..n * n * n)
+            .map(|i| ((i / n % n) as f32 * 0.4).cos())
+            .collect();
+        let va = volume_store(dir, "a", [n, n, n], a, Affine3::IDENTITY, 32);
+        let (c, s_) = (0.8f64, 0.6f64);
+        let vb = volume_store(
+            dir,
+            "b",
+            [n, n, n],
+            b,
+            Affine3 {
+                rows: [
+                    [0.7 * c, -0.7 * s_, 0.0, 8.0],
+                    [0.7 * s_, 0.7 * c, 0.0, 2.0],
+                    [0.0, 0.0, 0.9, 5.0],
+                ],
+            },
+            32,
+        );
+        let cam = Camera {
+            eye: [-30.0, -40.0, 50.0],
+            target: [12.0, 12.0, 12.0],
+            up: [0.0, 0.0, 1.0],
+            fov_deg: 40.0,
+        };
+        scene(
+            vec![
+                volume_layer(
+                    va,
+                    "seismic",
+                    [-1.0, 1.0],
+                    vec![[0.0, 0.2], [0.5, 0.0], [1.0, 0.2]],
+                ),
+                volume_layer(vb, "viridis", [-1.0, 1.0], vec![[0.0, 0.0], [1.0, 0.15]]),
+            ],
+            vec![],
+            cam,
+            exact_settings(64, 48),
+        )
+    }
+
     /// Renders the whole scene in batch mode (asserting convergence); full-frame pixels.
     pub fn render_whole(scene: &Scene) -> Vec<Rgba> {
         let mut e = Engine::new(scene).unwrap();

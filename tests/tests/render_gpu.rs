@@ -121,56 +121,7 @@ fn gpu_equals_cpu_for_overlapping_volumes_and_nan_data() {
         return;
     }
     let dir = TempDir::new().unwrap();
-    let n = 24u64;
-    let a: Vec<f32> = (0..n * n * n)
-        .map(|i| {
-            if i % 97 == 0 {
-                f32::NAN // no data: transparent on both backends
-            } else {
-                ((i % n) as f32 * 0.5).sin() * ((i / (n * n)) as f32 * 0.3).cos()
-            }
-        })
-        .collect();
-    let b: Vec<f32> = (0..n * n * n)
-        .map(|i| ((i / n % n) as f32 * 0.4).cos())
-        .collect();
-    use strata_common::geo::Affine3;
-    let va = volume_store(dir.path(), "a", [n, n, n], a, Affine3::IDENTITY, 32);
-    let (c, s_) = (0.8f64, 0.6f64);
-    let vb = volume_store(
-        dir.path(),
-        "b",
-        [n, n, n],
-        b,
-        Affine3 {
-            rows: [
-                [0.7 * c, -0.7 * s_, 0.0, 8.0],
-                [0.7 * s_, 0.7 * c, 0.0, 2.0],
-                [0.0, 0.0, 0.9, 5.0],
-            ],
-        },
-        32,
-    );
-    let cam = strata_common::scene::Camera {
-        eye: [-30.0, -40.0, 50.0],
-        target: [12.0, 12.0, 12.0],
-        up: [0.0, 0.0, 1.0],
-        fov_deg: 40.0,
-    };
-    let s = scene(
-        vec![
-            volume_layer(
-                va,
-                "seismic",
-                [-1.0, 1.0],
-                vec![[0.0, 0.2], [0.5, 0.0], [1.0, 0.2]],
-            ),
-            volume_layer(vb, "viridis", [-1.0, 1.0], vec![[0.0, 0.0], [1.0, 0.15]]),
-        ],
-        vec![],
-        cam,
-        exact_settings(64, 48),
-    );
+    let s = overlapping_volumes(dir.path(), 97); // NaN samples: transparent on both
     let whole = assert_gpu_matches_cpu(&s, 1e-4, "two overlapping volumes");
     let gs = on(&s, Backend::Gpu);
     let tree = KdTree::from_splits(scene_region(&gs), &[(0, 0, 0.5), (0, 2, 0.4), (1, 1, 0.55)]);
