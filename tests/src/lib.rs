@@ -269,6 +269,20 @@ pub mod scenes {
         )
     }
 
+    /// k-d splits of 2, 4 and 7 regions (`(leaf, axis, fraction)`, see `KdTree::from_splits`).
+    pub const SPLITS_2_4_7: [&[(usize, usize, f64)]; 3] = [
+        &[(0, 0, 0.43)],
+        &[(0, 2, 0.5), (0, 0, 0.3), (1, 1, 0.61)],
+        &[
+            (0, 0, 0.37),
+            (0, 1, 0.6),
+            (1, 2, 0.45),
+            (2, 0, 0.5),
+            (3, 1, 0.3),
+            (1, 0, 0.71),
+        ],
+    ];
+
     /// Renders the whole scene in batch mode (asserting convergence); full-frame pixels.
     pub fn render_whole(scene: &Scene) -> Vec<Rgba> {
         let mut e = Engine::new(scene).unwrap();

@@ -8,7 +8,7 @@
 //! On a machine without any wgpu adapter these tests print a notice and pass, unless
 //! `STRATA_REQUIRE_GPU_ADAPTER=1` (CI sets it, with lavapipe installed): then they fail.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use strata_common::kd::KdTree;
 use strata_common::scene::{Backend, Scene};
 use strata_tests::scenes::*;
@@ -181,19 +181,7 @@ fn gpu_region_split_is_seamless_across_lod_levels_and_step_bands() {
     let whole = f.image.to_full();
     assert_clean(&whole);
     let root = scene_region(&s);
-    let splits: [&[(usize, usize, f64)]; 3] = [
-        &[(0, 0, 0.43)],
-        &[(0, 2, 0.5), (0, 0, 0.3), (1, 1, 0.61)],
-        &[
-            (0, 0, 0.37),
-            (0, 1, 0.6),
-            (1, 2, 0.45),
-            (2, 0, 0.5),
-            (3, 1, 0.3),
-            (1, 0, 0.71),
-        ],
-    ];
-    for sp in splits {
+    for sp in SPLITS_2_4_7 {
         let tree = KdTree::from_splits(root, sp);
         let d = max_diff(&whole, &render_split(&s, &tree));
         assert!(
@@ -259,5 +247,4 @@ fn backend_gpu_refuses_horizons_with_a_clear_error() {
     s.render.backend = Backend::Auto;
     let e = Engine::new(&s).unwrap();
     assert!(e.backend_name().starts_with("cpu"), "{}", e.backend_name());
-    let _unused: Option<PathBuf> = None;
 }

@@ -42,19 +42,7 @@ fn region_split_equals_whole_for_2_4_and_7_regions() {
         "the view shows the data"
     );
     let root = scene_region(&s);
-    let splits: [&[(usize, usize, f64)]; 3] = [
-        &[(0, 0, 0.43)],
-        &[(0, 2, 0.5), (0, 0, 0.3), (1, 1, 0.61)],
-        &[
-            (0, 0, 0.37),
-            (0, 1, 0.6),
-            (1, 2, 0.45),
-            (2, 0, 0.5),
-            (3, 1, 0.3),
-            (1, 0, 0.71),
-        ],
-    ];
-    for sp in splits {
+    for sp in SPLITS_2_4_7 {
         let tree = KdTree::from_splits(root, sp);
         let split = render_split(&s, &tree);
         let d = max_diff(&whole, &split);

@@ -113,10 +113,7 @@ impl GpuBackend {
         setup: &FrameSetup<'_>,
     ) -> Result<(PartialImage, Feedback, CastStats, GpuFrameStats)> {
         let r = setup.rect;
-        let mut stats = GpuFrameStats {
-            uploaded_bytes: 0,
-            ..Default::default()
-        };
+        let mut stats = GpuFrameStats::default();
         if r.w == 0 || r.h == 0 {
             stats.uploaded_bytes = self.caster.take_uploaded();
             let image = PartialImage {

@@ -627,22 +627,13 @@ impl GpuCaster {
         self.read.ensure(&self.device, read_bytes);
         let mut feedback = Vec::with_capacity(fb_n as usize);
         if fb_n > 0 {
-            checked(&self.device, "reading the feedback list", || {
-                let mut enc = self.device.create_command_encoder(&Default::default());
-                enc.copy_buffer_to_buffer(self.fb_list.get(), 0, self.read.get(), 0, fb_bytes);
-                self.queue.submit([enc.finish()]);
-            })?;
-            let list: Vec<u32> = self.map_read(fb_bytes)?;
+            let list: Vec<u32> =
+                self.copy_and_read(self.fb_list.get(), fb_bytes, "feedback list")?;
             feedback.extend(list.chunks_exact(2).map(|p| (p[0], p[1])));
         }
         let mut pixels = Vec::new();
         if out_bytes > 0 {
-            checked(&self.device, "reading the image", || {
-                let mut enc = self.device.create_command_encoder(&Default::default());
-                enc.copy_buffer_to_buffer(self.out.get(), 0, self.read.get(), 0, out_bytes);
-                self.queue.submit([enc.finish()]);
-            })?;
-            let raw: Vec<f32> = self.map_read(out_bytes)?;
+            let raw: Vec<f32> = self.copy_and_read(self.out.get(), out_bytes, "image")?;
             pixels = raw
                 .chunks_exact(4)
                 .map(|c| [c[0], c[1], c[2], c[3]])
@@ -659,6 +650,21 @@ impl GpuCaster {
             readback_bytes: 36 + fb_bytes + out_bytes,
             feedback_bytes: 4 + fb_bytes,
         })
+    }
+
+    /// Copies the first `bytes` of `src` into the readback buffer and reads them.
+    fn copy_and_read<T: bytemuck::Pod>(
+        &self,
+        src: &wgpu::Buffer,
+        bytes: u64,
+        what: &str,
+    ) -> Result<Vec<T>> {
+        checked(&self.device, &format!("reading the {what}"), || {
+            let mut enc = self.device.create_command_encoder(&Default::default());
+            enc.copy_buffer_to_buffer(src, 0, self.read.get(), 0, bytes);
+            self.queue.submit([enc.finish()]);
+        })?;
+        self.map_read(bytes)
     }
 
     /// Waits for the queue, maps the first `bytes` of the readback buffer and copies them out.
