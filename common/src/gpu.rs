@@ -13,7 +13,8 @@
 //!   case once a data set's root is pinned).
 //! * [`LevelInfo`]: where a level's entries start and its bricks per axis.
 //! * [`SlotInfo`]: which page a pool slot holds, for eviction (host side only).
-//! * [`FrameParams`], [`VolumeParams`]: one frame's camera, region, bands and volumes.
+//! * [`FrameParams`], [`VolumeParams`], [`HorizonParams`]: one frame's camera, region,
+//!   bands, volumes and horizons.
 //! * Transfer-function tables: [`TF_SIZE`] premultiplied, step-corrected `[f32; 4]` entries
 //!   per volume and band.
 
@@ -133,8 +134,10 @@ pub struct FrameParams {
     pub flags: u32,
     /// Entries of the feedback buffer (the global page-table index space).
     pub fb_entries: u32,
+    /// Horizons in use.
+    pub n_hors: u32,
     /// Padding.
-    pub _pad: [u32; 2],
+    pub _pad: u32,
 }
 
 /// One volume of a frame: its camera-relative → index transform, brick layout, LOD
@@ -181,6 +184,66 @@ pub struct VolumeParams {
     pub level_t: [f32; MAX_LEVELS],
 }
 
+/// [`HorizonParams::flags`]: colour by height through the colour map.
+pub const HORIZON_DEPTH_MAP: u32 = 1;
+/// [`HorizonParams::flags`]: Lambert (headlight) shading.
+pub const HORIZON_LIGHTING: u32 = 2;
+/// Horizons the GPU caster intersects at most.
+pub const MAX_HORIZONS: usize = 16;
+
+/// One horizon of a frame: its camera-relative → index (i, j, height) transform, tile
+/// layout, LOD distances, colouring, and where its page table, tile bounds and colour map
+/// start in the global buffers.
+#[repr(C)]
+#[derive(Copy, Clone, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct HorizonParams {
+    /// Row 0 of the camera-relative → level-0 index linear map.
+    pub m0: [f32; 3],
+    /// Core nodes per tile axis.
+    pub core: u32,
+    /// Row 1.
+    pub m1: [f32; 3],
+    /// Border nodes.
+    pub border: u32,
+    /// Row 2 (the height row).
+    pub m2: [f32; 3],
+    /// Nodes per tile axis, border included.
+    pub page: u32,
+    /// Offset of the map.
+    pub c: [f32; 3],
+    /// Levels of the tile tree.
+    pub n_levels: u32,
+    /// Straight linear RGB for a constant colour.
+    pub color: [f32; 3],
+    /// Opacity.
+    pub opacity: f32,
+    /// Level-0 nodes per axis (i, j).
+    pub dims: [u32; 2],
+    /// First entry of this data set's page table in the global table.
+    pub table_base: u32,
+    /// First [`LevelInfo`] of this data set in the global level array.
+    pub level_base: u32,
+    /// First `[min, max]` of this horizon in the global tile-bounds array (page-table order;
+    /// an all-hole tile has `min > max`).
+    pub bounds_base: u32,
+    /// First colour-map point in the colour buffer.
+    pub map_base: u32,
+    /// Colour-map points (at least 2 with [`HORIZON_DEPTH_MAP`]).
+    pub map_len: u32,
+    /// [`HORIZON_DEPTH_MAP`] | [`HORIZON_LIGHTING`].
+    pub flags: u32,
+    /// Height at the colour map's start.
+    pub depth_lo: f32,
+    /// Height at its end.
+    pub depth_hi: f32,
+    /// First sample of the horizon pool (0: one pool for all horizons).
+    pub pool_base: u32,
+    /// Padding.
+    pub _pad: u32,
+    /// `level_t[l]`: distance from which level `l` is fine enough (`level_t[0] = 0`).
+    pub level_t: [f32; MAX_LEVELS],
+}
+
 // The WGSL structs mirror these byte for byte (vec3<f32> is 16-aligned, hence the scalar
 // after every [f32; 3]); the worker's naga test compares them with the shader.
 const _: () = assert!(size_of::<LevelInfo>() == 16);
@@ -195,6 +258,11 @@ const _: () = assert!(offset_of!(VolumeParams, table_base) == 76);
 const _: () = assert!(offset_of!(VolumeParams, level_base) == 80);
 const _: () = assert!(offset_of!(VolumeParams, level_t) == 112);
 const _: () = assert!(size_of::<VolumeParams>() % 16 == 0);
+const _: () = assert!(offset_of!(FrameParams, n_hors) == 168);
+const _: () = assert!(size_of::<HorizonParams>() == 192);
+const _: () = assert!(offset_of!(HorizonParams, dims) == 80);
+const _: () = assert!(offset_of!(HorizonParams, depth_lo) == 112);
+const _: () = assert!(offset_of!(HorizonParams, level_t) == 128);
 
 /// Field offsets of [`FrameParams`] by WGSL member name, for the layout check.
 pub fn frame_params_offsets() -> Vec<(&'static str, usize)> {
@@ -217,6 +285,7 @@ pub fn frame_params_offsets() -> Vec<(&'static str, usize)> {
         ("ert", offset_of!(FrameParams, ert)),
         ("flags", offset_of!(FrameParams, flags)),
         ("fb_entries", offset_of!(FrameParams, fb_entries)),
+        ("n_hors", offset_of!(FrameParams, n_hors)),
     ]
 }
 
@@ -240,6 +309,33 @@ pub fn volume_params_offsets() -> Vec<(&'static str, usize)> {
         ("tf_last", offset_of!(VolumeParams, tf_last)),
         ("pool_base", offset_of!(VolumeParams, pool_base)),
         ("level_t", offset_of!(VolumeParams, level_t)),
+    ]
+}
+
+/// Field offsets of [`HorizonParams`] by WGSL member name, for the layout check.
+pub fn horizon_params_offsets() -> Vec<(&'static str, usize)> {
+    vec![
+        ("m0", offset_of!(HorizonParams, m0)),
+        ("core", offset_of!(HorizonParams, core)),
+        ("m1", offset_of!(HorizonParams, m1)),
+        ("border", offset_of!(HorizonParams, border)),
+        ("m2", offset_of!(HorizonParams, m2)),
+        ("page", offset_of!(HorizonParams, page)),
+        ("c", offset_of!(HorizonParams, c)),
+        ("n_levels", offset_of!(HorizonParams, n_levels)),
+        ("color", offset_of!(HorizonParams, color)),
+        ("opacity", offset_of!(HorizonParams, opacity)),
+        ("dims", offset_of!(HorizonParams, dims)),
+        ("table_base", offset_of!(HorizonParams, table_base)),
+        ("level_base", offset_of!(HorizonParams, level_base)),
+        ("bounds_base", offset_of!(HorizonParams, bounds_base)),
+        ("map_base", offset_of!(HorizonParams, map_base)),
+        ("map_len", offset_of!(HorizonParams, map_len)),
+        ("flags", offset_of!(HorizonParams, flags)),
+        ("depth_lo", offset_of!(HorizonParams, depth_lo)),
+        ("depth_hi", offset_of!(HorizonParams, depth_hi)),
+        ("pool_base", offset_of!(HorizonParams, pool_base)),
+        ("level_t", offset_of!(HorizonParams, level_t)),
     ]
 }
 

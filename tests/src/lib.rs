@@ -102,7 +102,7 @@ pub mod scenes {
     use strata_common::image::{composite_front_to_back, PartialImage, Rgba};
     use strata_common::kd::{KdTree, Region};
     use strata_common::sample::SampleType;
-    use strata_common::scene::{Camera, HorizonLayer, RenderSettings, Scene, VolumeLayer};
+    use strata_common::scene::{Backend, Camera, HorizonLayer, RenderSettings, Scene, VolumeLayer};
     use strata_coordinator::builder::{build_store, BuildOptions};
     use strata_coordinator::source::MemorySource;
     use strata_worker::engine::{Engine, Outcome};
@@ -291,6 +291,53 @@ pub mod scenes {
         let r = e.render_batch(&view, &region).unwrap();
         assert_eq!(r.outcome, Outcome::Converged, "after {} rounds", r.rounds);
         r.image.to_full()
+    }
+
+    /// Whether a wgpu adapter (software included) exists, so the GPU backend can be tested.
+    /// Without one this prints a notice and returns false, unless
+    /// `STRATA_REQUIRE_GPU_ADAPTER=1` (CI sets it, with lavapipe installed): then it panics.
+    /// Once an adapter exists, the caster must build on it (a shader error panics).
+    pub fn gpu_available() -> bool {
+        use strata_worker::gpu::{list_adapters, AdapterChoice, GpuCaster};
+        if list_adapters().is_empty() {
+            if std::env::var("STRATA_REQUIRE_GPU_ADAPTER").as_deref() == Ok("1") {
+                panic!("STRATA_REQUIRE_GPU_ADAPTER=1 but wgpu finds no adapter");
+            }
+            eprintln!("NOTICE: GPU comparison skipped, no wgpu adapter");
+            return false;
+        }
+        if let Err(e) = GpuCaster::new(&AdapterChoice {
+            adapter: None,
+            allow_software: true,
+            spread: None,
+        }) {
+            panic!("an adapter exists but the GPU caster does not open on it: {e:#}");
+        }
+        true
+    }
+
+    /// The scene with `render.backend` set.
+    pub fn on_backend(s: &Scene, b: Backend) -> Scene {
+        let mut s = s.clone();
+        s.render.backend = b;
+        s
+    }
+
+    /// Renders the scene on the CPU and, where an adapter exists, on the GPU too, asserting
+    /// that the two images agree within `tol` (largest channel difference) and that the GPU
+    /// image is clean; returns the CPU image.
+    pub fn render_on_both(scene: &Scene, tol: f32, what: &str) -> Vec<Rgba> {
+        let cpu = render_whole(&on_backend(scene, Backend::Cpu));
+        if gpu_available() {
+            let gpu = render_whole(&on_backend(scene, Backend::Gpu));
+            assert_clean(&gpu);
+            let d = max_diff(&cpu, &gpu);
+            assert!(
+                d <= tol,
+                "{what}: GPU differs from CPU by {d} (tolerance {tol})"
+            );
+        }
+        cpu
     }
 
     /// Renders each leaf of `tree` with its own engine (as separate workers would) and

@@ -13,33 +13,10 @@ use strata_common::kd::KdTree;
 use strata_common::scene::{Backend, Scene};
 use strata_tests::scenes::*;
 use strata_worker::engine::{Engine, Outcome};
-use strata_worker::gpu::{AdapterChoice, GpuCaster};
 use tempfile::TempDir;
 
-/// Whether a wgpu adapter (software included) exists; fails the test when one is required.
-/// Once an adapter exists, the caster must build on it (a shader error fails the test).
-fn gpu_available() -> bool {
-    if strata_worker::gpu::list_adapters().is_empty() {
-        if std::env::var("STRATA_REQUIRE_GPU_ADAPTER").as_deref() == Ok("1") {
-            panic!("STRATA_REQUIRE_GPU_ADAPTER=1 but wgpu finds no adapter");
-        }
-        eprintln!("NOTICE: GPU test skipped, no wgpu adapter");
-        return false;
-    }
-    if let Err(e) = GpuCaster::new(&AdapterChoice {
-        adapter: None,
-        allow_software: true,
-        spread: None,
-    }) {
-        panic!("an adapter exists but the GPU caster does not open on it: {e:#}");
-    }
-    true
-}
-
 fn on(s: &Scene, b: Backend) -> Scene {
-    let mut s = s.clone();
-    s.render.backend = b;
-    s
+    on_backend(s, b)
 }
 
 /// A synthetic survey's seismic volume alone (UTM coordinates, z down).
@@ -225,26 +202,100 @@ fn gpu_out_of_core_converges_to_the_unlimited_atlas_image() {
     assert!(used <= slots, "{used} of {slots} slots");
 }
 
-#[test]
-fn backend_gpu_refuses_horizons_with_a_clear_error() {
-    let dir = TempDir::new().unwrap();
+/// The synthetic survey as generated: a seismic volume and three horizons.
+fn survey_with_horizons(dir: &Path, w: u32, h: u32) -> Scene {
     let out = strata_coordinator::synth::synth(
-        dir.path(),
-        [40, 32, 24],
+        dir,
+        [64, 48, 40],
         5,
         false,
         &indicatif::ProgressBar::hidden(),
     )
     .unwrap();
     let mut s = Scene::parse(&out.scene, &std::fs::read_to_string(&out.scene).unwrap()).unwrap();
-    s.render.backend = Backend::Gpu;
-    let e = Engine::new(&s)
-        .err()
-        .expect("horizons are not on the GPU yet");
-    let msg = format!("{e:#}");
-    assert!(msg.contains("horizons"), "{msg}");
-    // auto falls back to the CPU for such a scene.
-    s.render.backend = Backend::Auto;
-    let e = Engine::new(&s).unwrap();
-    assert!(e.backend_name().starts_with("cpu"), "{}", e.backend_name());
+    assert_eq!(s.horizons.len(), 3);
+    s.render.width = w;
+    s.render.height = h;
+    s.render.max_rounds = 64;
+    s
+}
+
+#[test]
+fn gpu_equals_cpu_for_volume_and_horizons_in_one_pass() {
+    if !gpu_available() {
+        return;
+    }
+    let dir = TempDir::new().unwrap();
+    let s = survey_with_horizons(dir.path(), 96, 64);
+    let mut e = Engine::new(&on(&s, Backend::Gpu)).unwrap();
+    assert!(
+        e.backend_name().starts_with("gpu: "),
+        "{}",
+        e.backend_name()
+    );
+    let view = e.view(96, 64).unwrap();
+    let region = e.scene_region();
+    let r = e.render_batch(&view, &region).unwrap();
+    assert_eq!(r.outcome, Outcome::Converged);
+    assert!(r.last.hits > 500, "the horizons are hit: {:?}", r.last);
+    // The feedback asked for horizon tiles (data sets after the volume).
+    let f = e.render_frame(&view, &region).unwrap();
+    let hor_pages = f
+        .feedback
+        .coverage
+        .keys()
+        .filter(|&&k| strata_common::ids::PageId(k).dataset() >= 1)
+        .count();
+    assert!(hor_pages > 0, "horizon tiles in the GPU feedback");
+
+    let mut translucent = s.clone();
+    translucent.volumes[0].opacity = 0.4;
+    for h in &mut translucent.horizons {
+        h.opacity = 0.6;
+    }
+    translucent.render.early_termination = 1.0;
+    for (what, scene) in [
+        ("survey as generated", s.clone()),
+        ("translucent horizons", translucent.clone()),
+    ] {
+        assert_gpu_matches_cpu(&scene, 1e-4, what);
+    }
+    let mut unlit = translucent.clone();
+    unlit.render.lighting = false;
+    assert_gpu_matches_cpu(&unlit, 1e-4, "horizons without lighting");
+    let mut depth = translucent.clone();
+    for h in &mut depth.horizons {
+        h.color_by = "depth".into();
+        h.colormap = "viridis".into();
+    }
+    assert_gpu_matches_cpu(&depth, 1e-4, "horizons coloured by depth");
+    let mut only = translucent;
+    only.volumes.clear();
+    assert_gpu_matches_cpu(&only, 1e-4, "horizons alone");
+}
+
+#[test]
+fn gpu_region_split_with_horizons_is_seamless() {
+    if !gpu_available() {
+        return;
+    }
+    let dir = TempDir::new().unwrap();
+    let mut s = on(&survey_with_horizons(dir.path(), 64, 48), Backend::Gpu);
+    s.volumes[0].opacity = 0.4;
+    for h in &mut s.horizons {
+        h.opacity = 0.6;
+    }
+    s.render.early_termination = 1.0;
+    let whole = render_whole(&s);
+    assert_clean(&whole);
+    let root = scene_region(&s);
+    for sp in SPLITS_2_4_7 {
+        let tree = KdTree::from_splits(root, sp);
+        let d = max_diff(&whole, &render_split(&s, &tree));
+        assert!(
+            d < 1e-5,
+            "{} GPU regions with horizons: max difference {d}",
+            tree.leaves.len()
+        );
+    }
 }

@@ -114,16 +114,19 @@ pub struct Engine {
 
 /// Why the scene can't go to the GPU caster, if it can't.
 fn gpu_unfit(data: &SceneData) -> Option<String> {
-    if !data.horizons.is_empty() {
-        return Some("the GPU caster does not render horizons yet".into());
-    }
-    if data.volumes.is_empty() {
-        return Some("the scene has no volume".into());
+    if data.volumes.is_empty() && data.horizons.is_empty() {
+        return Some("the scene has no data".into());
     }
     if data.volumes.len() > crate::gpu::MAX_VOLUMES {
         return Some(format!(
             "the GPU caster mixes at most {} volumes",
             crate::gpu::MAX_VOLUMES
+        ));
+    }
+    if data.horizons.len() > strata_common::gpu::MAX_HORIZONS {
+        return Some(format!(
+            "the GPU caster intersects at most {} horizons",
+            strata_common::gpu::MAX_HORIZONS
         ));
     }
     None
@@ -138,14 +141,19 @@ fn open_backend(s: &RenderSettings, data: &SceneData) -> Result<Option<GpuBacken
             .ok()
             .and_then(|v| v.parse().ok()),
     };
-    let pyramids = || data.volumes.iter().map(|v| v.pyramid.clone()).collect();
+    let nv = data.volumes.len();
+    let pyramids = || {
+        (0..nv + data.horizons.len())
+            .map(|ds| data.pyramid(ds as u16).clone())
+            .collect()
+    };
     match s.backend {
         Backend::Cpu => Ok(None),
         Backend::Gpu => {
             if let Some(why) = gpu_unfit(data) {
                 bail!("render.backend = \"gpu\": {why}; use \"cpu\" or \"auto\"");
             }
-            GpuBackend::new(&choice(true), pyramids())
+            GpuBackend::new(&choice(true), pyramids(), nv)
                 .map(Some)
                 .context("render.backend = \"gpu\"")
         }
@@ -154,7 +162,7 @@ fn open_backend(s: &RenderSettings, data: &SceneData) -> Result<Option<GpuBacken
                 tracing::info!("backend auto: CPU caster ({why})");
                 return Ok(None);
             }
-            match GpuBackend::new(&choice(false), pyramids()) {
+            match GpuBackend::new(&choice(false), pyramids(), nv) {
                 Ok(g) => Ok(Some(g)),
                 Err(e) => {
                     tracing::info!("backend auto: CPU caster ({e:#})");
@@ -239,7 +247,15 @@ impl Engine {
                 Some(Pool::bookkeeping(n, slots))
             }
         };
-        let hpool = hps.map(|n| Pool::new(n, s.horizon_atlas_mb << 20));
+        let hpool = match (hps, gpu.as_mut()) {
+            (None, _) => None,
+            (Some(n), None) => Some(Pool::new(n, s.horizon_atlas_mb << 20)),
+            (Some(n), Some(g)) => {
+                let slots = Pool::slots_for(n, s.horizon_atlas_mb << 20).min(g.max_slots(n));
+                g.alloc_horizon_pool(slots, n)?;
+                Some(Pool::bookkeeping(n, slots))
+            }
+        };
         let tables = (0..data.volumes.len() + data.horizons.len())
             .map(|ds| PageTable::new(data.pyramid(ds as u16)))
             .collect();
@@ -277,9 +293,8 @@ impl Engine {
             let slot = pool.place(key, &page, 0, true, &none).map_err(|_| {
                 anyhow::anyhow!("the atlas has no slot for the root pages; raise render.atlas_mb")
             })?;
-            let vol = self.is_volume(ds);
-            if let (Some(g), true) = (self.gpu.as_mut(), vol) {
-                g.write_page(slot, &page);
+            if let Some(g) = self.gpu.as_mut() {
+                g.write_page(ds, slot, &page);
             }
         }
         self.rebuild_tables();
@@ -599,9 +614,8 @@ impl Engine {
             match self.pool_mut(ds).place(k, &page, frame, false, &needed) {
                 Ok(slot) => {
                     report.uploaded += 1;
-                    let vol = self.is_volume(ds);
-                    if let (Some(g), true) = (self.gpu.as_mut(), vol) {
-                        g.write_page(slot, &page);
+                    if let Some(g) = self.gpu.as_mut() {
+                        g.write_page(ds, slot, &page);
                     }
                 }
                 Err(PlaceError::Full) => report.no_slot += 1,

@@ -89,6 +89,12 @@ impl ColorMap {
         }
     }
 
+    /// The control points, linear RGB, evenly spaced over [0, 1] (the GPU caster
+    /// interpolates them as [`ColorMap::at`] does).
+    pub fn points(&self) -> &[[f32; 3]] {
+        &self.points
+    }
+
     /// Linear RGB at `x` (clamped to [0, 1]).
     pub fn at(&self, x: f32) -> [f32; 3] {
         let n = self.points.len();

@@ -3,7 +3,7 @@
 //! host uploads.
 
 use naga::valid::{Capabilities, ValidationFlags, Validator};
-use strata_common::gpu::{self, FrameParams, VolumeParams};
+use strata_common::gpu::{self, FrameParams, HorizonParams, VolumeParams};
 use strata_worker::gpu::SHADER;
 
 fn module() -> naga::Module {
@@ -76,6 +76,15 @@ fn volume_struct_matches_the_host_record() {
 }
 
 #[test]
+fn horizon_struct_matches_the_host_record() {
+    check(
+        "Horizon",
+        std::mem::size_of::<HorizonParams>(),
+        gpu::horizon_params_offsets(),
+    );
+}
+
+#[test]
 fn shader_constants_match_the_host() {
     // The constants the host sizes buffers with.
     for (name, want) in [
@@ -83,6 +92,9 @@ fn shader_constants_match_the_host() {
         ("MAX_VOLS", strata_worker::gpu::MAX_VOLUMES as u64),
         ("NOT_RESIDENT", gpu::NOT_RESIDENT as u64),
         ("SLOT_MASK", gpu::SLOT_MASK as u64),
+        ("MAX_HORS", gpu::MAX_HORIZONS as u64),
+        ("HORIZON_DEPTH_MAP", gpu::HORIZON_DEPTH_MAP as u64),
+        ("HORIZON_LIGHTING", gpu::HORIZON_LIGHTING as u64),
     ] {
         let line = SHADER
             .lines()

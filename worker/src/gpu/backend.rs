@@ -1,22 +1,27 @@
-//! The engine's side of the GPU backend: lays the per-volume page tables out in one global
-//! index space, turns a [`FrameSetup`] into the shared `strata_common::gpu` records, and
-//! turns the compacted feedback back into page keys.
+//! The engine's side of the GPU backend: lays the page tables of every data set (volumes,
+//! then horizons) out in one global index space, turns a [`FrameSetup`] into the shared
+//! `strata_common::gpu` records, and turns the compacted feedback back into page keys.
 
 use super::{AdapterChoice, GpuCaster, MAX_VOLUMES};
 use crate::atlas::PageTable;
 use crate::feedback::Feedback;
 use crate::raycast::{CastStats, FrameSetup};
 use anyhow::{bail, Result};
-use strata_common::gpu::{FrameParams, VolumeParams, MAX_BANDS, MAX_LEVELS, TF_SIZE};
+use strata_common::gpu::{
+    FrameParams, HorizonParams, VolumeParams, HORIZON_DEPTH_MAP, HORIZON_LIGHTING, MAX_BANDS,
+    MAX_HORIZONS, MAX_LEVELS, TF_SIZE,
+};
 use strata_common::image::PartialImage;
 use strata_common::pyramid::Pyramid;
 
-/// The GPU caster plus where each volume's page table lives in the global tables.
+/// The GPU caster plus where each data set's page table lives in the global tables.
 pub struct GpuBackend {
     caster: GpuCaster,
-    /// First global entry of each volume's table (volume `i` is data set `i`).
+    /// Volumes (data sets `0..volumes`; horizons follow).
+    volumes: usize,
+    /// First global entry of each data set's table.
     table_base: Vec<u32>,
-    /// First global level record of each volume.
+    /// First global level record of each data set.
     level_base: Vec<u32>,
     /// Global entries in all.
     entries: u32,
@@ -36,12 +41,14 @@ pub struct GpuFrameStats {
 }
 
 impl GpuBackend {
-    /// Opens the adapter for volumes with these pyramids (data sets `0..n`).
-    pub fn new(choice: &AdapterChoice, pyramids: Vec<Pyramid>) -> Result<Self> {
-        if pyramids.is_empty() || pyramids.len() > MAX_VOLUMES {
+    /// Opens the adapter for data sets with these pyramids, in data-set order: `volumes`
+    /// volumes, then horizons.
+    pub fn new(choice: &AdapterChoice, pyramids: Vec<Pyramid>, volumes: usize) -> Result<Self> {
+        let horizons = pyramids.len().saturating_sub(volumes);
+        if pyramids.is_empty() || volumes > MAX_VOLUMES || horizons > MAX_HORIZONS {
             bail!(
-                "the GPU caster renders 1 to {MAX_VOLUMES} volumes, the scene has {}",
-                pyramids.len()
+                "the GPU caster renders up to {MAX_VOLUMES} volumes and {MAX_HORIZONS} horizons, \
+                 the scene has {volumes} and {horizons}"
             );
         }
         for p in &pyramids {
@@ -68,6 +75,7 @@ impl GpuBackend {
         }
         Ok(GpuBackend {
             caster,
+            volumes,
             table_base,
             level_base,
             entries: n as u32,
@@ -91,12 +99,22 @@ impl GpuBackend {
         self.caster.alloc_pool(slots, page_samples)
     }
 
-    /// Writes a newly resident page into its slot.
-    pub fn write_page(&mut self, slot: u32, samples: &[f32]) {
-        self.caster.write_page(slot, samples);
+    /// Allocates the device's horizon pool.
+    pub fn alloc_horizon_pool(&mut self, slots: usize, page_samples: usize) -> Result<()> {
+        self.caster.alloc_horizon_pool(slots, page_samples)
     }
 
-    /// Writes the changed entries of the volumes' page tables; returns how many.
+    /// Writes a newly resident page of data set `ds` into its slot (of the volume or the
+    /// horizon pool).
+    pub fn write_page(&mut self, ds: u16, slot: u32, samples: &[f32]) {
+        if (ds as usize) < self.volumes {
+            self.caster.write_page(slot, samples);
+        } else {
+            self.caster.write_horizon_page(slot, samples);
+        }
+    }
+
+    /// Writes the changed entries of the data sets' page tables; returns how many.
     pub fn sync_tables(&mut self, tables: &[PageTable]) -> usize {
         self.global.clear();
         for t in tables.iter().take(self.pyramids.len()) {
@@ -151,7 +169,8 @@ impl GpuBackend {
             ert: setup.ert,
             flags: 0,
             fb_entries: self.entries,
-            _pad: [0; 2],
+            n_hors: setup.hors.len() as u32,
+            _pad: 0,
         };
         let mut vols = Vec::with_capacity(setup.vols.len());
         let mut levels = Vec::new();
@@ -206,9 +225,74 @@ impl GpuBackend {
                 level_t,
             });
         }
-        self.caster.sync_frame_tables(&bits, &levels, &tf);
+        let mut hors = Vec::with_capacity(setup.hors.len());
+        let mut hbounds = Vec::new();
+        for (j, h) in setup.hors.iter().enumerate() {
+            let ds = self.volumes + j;
+            debug_assert_eq!(h.ds as usize, ds);
+            let nl = h.level_t.len();
+            let mut level_t = [0f32; MAX_LEVELS];
+            level_t[..nl].copy_from_slice(&h.level_t);
+            levels.extend(
+                h.table
+                    .levels
+                    .iter()
+                    .map(|l| [l.offset, l.bricks[0], l.bricks[1], l.bricks[2]]),
+            );
+            let bounds_base = hbounds.len() as u32;
+            // All-hole tiles (NaN bounds) become min > max: the shader skips them without
+            // comparing NaNs, which GPU compilers may assume away.
+            hbounds.extend(h.bounds.iter().map(
+                |&[lo, hi]| {
+                    if lo <= hi {
+                        [lo, hi]
+                    } else {
+                        [1.0, 0.0]
+                    }
+                },
+            ));
+            let mut flags = 0;
+            let (mut map_base, mut map_len, mut depth) = (0, 0, [0.0; 2]);
+            if let Some((map, range)) = h.depth_map {
+                flags |= HORIZON_DEPTH_MAP;
+                map_base = tf.len() as u32;
+                map_len = map.points().len() as u32;
+                tf.extend(map.points().iter().map(|p| [p[0], p[1], p[2], 1.0]));
+                depth = range;
+            }
+            if h.lighting {
+                flags |= HORIZON_LIGHTING;
+            }
+            hors.push(HorizonParams {
+                m0: h.m[0],
+                core: h.core,
+                m1: h.m[1],
+                border: h.border,
+                m2: h.m[2],
+                page: h.page as u32,
+                c: h.c,
+                n_levels: nl as u32,
+                color: h.color,
+                opacity: h.opacity,
+                dims: h.dims,
+                table_base: self.table_base[ds],
+                level_base: self.level_base[ds],
+                bounds_base,
+                map_base,
+                map_len,
+                flags,
+                depth_lo: depth[0],
+                depth_hi: depth[1],
+                pool_base: 0,
+                _pad: 0,
+                level_t,
+            });
+        }
+        self.caster.sync_frame_tables(&bits, &levels, &tf, &hbounds);
         stats.uploaded_bytes = self.caster.take_uploaded();
-        let out = self.caster.cast(&frame, &vols, setup.volume_shading)?;
+        let out = self
+            .caster
+            .cast(&frame, &vols, &hors, setup.volume_shading)?;
         stats.readback_bytes = out.readback_bytes;
         stats.feedback_bytes = out.feedback_bytes;
         let mut feedback = Feedback::default();
@@ -221,7 +305,7 @@ impl GpuBackend {
             rays: out.rays,
             samples: out.samples,
             skipped: out.skipped,
-            hits: 0,
+            hits: out.hits,
             terminated: out.terminated,
         };
         let image = PartialImage {

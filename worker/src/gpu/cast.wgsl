@@ -10,17 +10,31 @@
 // atomic counter per virtual page) unless it is transparent under the transfer function.
 // `compact` then turns the counters into a short list for the host.
 //
+// Horizons (worker/src/horizon.rs) are intersected first: each ray descends the horizon's
+// min-max tile tree front to back with an explicit stack, down to the tile level its
+// footprint calls for, and walks that tile's cells (of the finest resident level) with a 2D
+// DDA, solving the ray against each cell's bilinear patch exactly. The crossings, sorted, cut
+// the volume march into segments; each surface is composited when the march reaches it.
+//
 // Effects are pipeline-overridable constants, so a scene without them runs no code for them:
-// SHADING (gradient shading), MULTI (several volumes mixed per sample).
+// SHADING (gradient shading), MULTI (several volumes mixed per sample), HORIZONS.
 
 const TF_SIZE: u32 = 1024u;
 const MAX_VOLS: u32 = 4u;
 const NOT_RESIDENT: u32 = 0xffffffffu;
 const SLOT_MASK: u32 = 0xffffffu;
 const BIG: f32 = 3.0e38; // stands in for +infinity (WGSL has no infinity literal)
+const MAX_HORS: u32 = 16u;
+const HORIZON_DEPTH_MAP: u32 = 1u;
+const HORIZON_LIGHTING: u32 = 2u;
+// Surface crossings a ray keeps (the nearest ones; the CPU keeps 32 per horizon).
+const MAX_HITS: u32 = 32u;
+// Tile-tree traversal stack: at most 3 siblings wait per level below the root, plus one.
+const STACK: u32 = 52u;
 
 override SHADING: bool = false;
 override MULTI: bool = false;
+override HORIZONS: bool = false;
 
 struct Frame {
     dir00: vec3<f32>,
@@ -41,8 +55,8 @@ struct Frame {
     ert: f32,
     flags: u32,
     fb_entries: u32,
+    n_hors: u32,
     _pad0: u32,
-    _pad1: u32,
 }
 
 struct Volume {
@@ -67,6 +81,31 @@ struct Volume {
     level_t: array<f32, 16>,
 }
 
+struct Horizon {
+    m0: vec3<f32>,
+    core: u32,
+    m1: vec3<f32>,
+    border: u32,
+    m2: vec3<f32>,
+    page: u32,
+    c: vec3<f32>,
+    n_levels: u32,
+    color: vec3<f32>,
+    opacity: f32,
+    dims: vec2<u32>,
+    table_base: u32,
+    level_base: u32,
+    bounds_base: u32,
+    map_base: u32,
+    map_len: u32,
+    flags: u32,
+    depth_lo: f32,
+    depth_hi: f32,
+    pool_base: u32,
+    _pad0: u32,
+    level_t: array<f32, 16>,
+}
+
 struct Cursor {
     level: u32,
     t_exit: f32,
@@ -87,13 +126,24 @@ struct Cursor {
 @group(0) @binding(6) var<storage, read> pool: array<f32>;
 @group(0) @binding(7) var<storage, read_write> feedback: array<atomic<u32>>;
 @group(0) @binding(8) var<storage, read_write> out_px: array<vec4<f32>>;
-// samples lo/hi, skipped lo/hi, terminated, rays.
+// samples lo/hi, skipped lo/hi, terminated, rays, hits.
 @group(0) @binding(9) var<storage, read_write> stats: array<atomic<u32>, 8>;
+@group(0) @binding(12) var<storage, read> hors: array<Horizon>;
+// [min, max] height per tile of every horizon, page-table order; min > max: all holes.
+@group(0) @binding(13) var<storage, read> hbounds: array<vec2<f32>>;
+// The horizon pool: slots of page² heights (i fastest), NaN = hole.
+@group(0) @binding(14) var<storage, read> hpool: array<f32>;
+
+// A ray's surface crossings, nearest first.
+var<private> n_hits: u32;
+var<private> hit_t: array<f32, MAX_HITS>;
+var<private> hit_c: array<vec4<f32>, MAX_HITS>;
 
 var<workgroup> wg_samples: atomic<u32>;
 var<workgroup> wg_skipped: atomic<u32>;
 var<workgroup> wg_terminated: atomic<u32>;
 var<workgroup> wg_rays: atomic<u32>;
+var<workgroup> wg_hits: atomic<u32>;
 
 fn band_start(b: u32) -> f32 {
     return F.band_start[b >> 2u][b & 3u];
@@ -324,6 +374,7 @@ struct Ray {
     samples: u32,
     skipped: u32,
     terminated: u32,
+    hits: u32,
 }
 
 fn blend(acc: vec4<f32>, s: vec4<f32>) -> vec4<f32> {
@@ -495,6 +546,406 @@ fn march_fragments(spans: ptr<function, array<vec2<f32>, 4>>, curs: ptr<function
     }
 }
 
+// ---- Horizons -------------------------------------------------------------------------
+
+// [t0, t1] of the ray c + t·d inside the box [lo, hi] (empty: t0 > t1).
+fn slab(c: vec3<f32>, d: vec3<f32>, lo: vec3<f32>, hi: vec3<f32>) -> vec2<f32> {
+    var t0 = -BIG;
+    var t1 = BIG;
+    for (var a = 0u; a < 3u; a = a + 1u) {
+        if (d[a] == 0.0) {
+            if (!(lo[a] <= c[a] && c[a] <= hi[a])) {
+                return vec2<f32>(1.0, 0.0);
+            }
+        } else {
+            let ta = (lo[a] - c[a]) / d[a];
+            let tb = (hi[a] - c[a]) / d[a];
+            t0 = max(t0, min(ta, tb));
+            t1 = min(t1, max(ta, tb));
+        }
+    }
+    return vec2<f32>(t0, t1);
+}
+
+// Entry of the ray into the lateral prism [lo, hi] × (−∞, ∞).
+fn slab_entry2(c: vec3<f32>, d: vec3<f32>, lo: vec2<f32>, hi: vec2<f32>) -> f32 {
+    var t0 = -BIG;
+    for (var a = 0u; a < 2u; a = a + 1u) {
+        if (d[a] == 0.0) {
+            if (!(lo[a] <= c[a] && c[a] <= hi[a])) {
+                return 1.0;
+            }
+        } else {
+            let ta = (lo[a] - c[a]) / d[a];
+            let tb = (hi[a] - c[a]) / d[a];
+            t0 = max(t0, min(ta, tb));
+        }
+    }
+    return t0;
+}
+
+struct Roots {
+    n: u32,
+    r: vec2<f32>,
+}
+
+// Rust's f32::signum: ±1 by the sign bit.
+fn signum(x: f32) -> f32 {
+    return select(1.0, -1.0, (bitcast<u32>(x) & 0x80000000u) != 0u);
+}
+
+// Real roots of a s² + b s + c = 0 in [lo, hi), ascending.
+fn roots_in(a: f32, b: f32, c: f32, lo: f32, hi: f32) -> Roots {
+    var out = Roots(0u, vec2<f32>(0.0));
+    var cand = vec2<f32>(0.0);
+    var nc = 0u;
+    let scale = max(max(abs(b), abs(c)), 1e-30);
+    if (abs(a) <= 1e-7 * scale) {
+        if (b != 0.0) {
+            cand[0] = -c / b;
+            nc = 1u;
+        }
+    } else {
+        let disc = b * b - 4.0 * a * c;
+        if (disc < 0.0) {
+            return out;
+        }
+        // The numerically stable pair (no cancellation between b and the root).
+        let q = -0.5 * (b + signum(b) * sqrt(disc));
+        var s1 = 0.0;
+        var s2 = 0.0;
+        if (q != 0.0) {
+            s1 = q / a;
+            s2 = c / q;
+        }
+        cand = vec2<f32>(min(s1, s2), max(s1, s2));
+        nc = select(2u, 1u, cand[1] == cand[0]);
+    }
+    for (var i = 0u; i < nc; i = i + 1u) {
+        let s = cand[i];
+        if (is_finite(s) && s >= lo && s < hi) {
+            out.r[out.n] = s;
+            out.n = out.n + 1u;
+        }
+    }
+    return out;
+}
+
+// Keeps the crossing in the ray's sorted list (after equal ones, as a stable sort would);
+// a full list drops its farthest.
+fn push_hit(t: f32, c: vec4<f32>) {
+    var j = n_hits;
+    if (j == MAX_HITS) {
+        if (t >= hit_t[MAX_HITS - 1u]) {
+            return;
+        }
+        j = MAX_HITS - 1u;
+    } else {
+        n_hits = n_hits + 1u;
+    }
+    loop {
+        if (j > 0u && hit_t[j - 1u] > t) {
+            hit_t[j] = hit_t[j - 1u];
+            hit_c[j] = hit_c[j - 1u];
+            j = j - 1u;
+        } else {
+            break;
+        }
+    }
+    hit_t[j] = t;
+    hit_c[j] = c;
+}
+
+fn h_level_at(hi: u32, t: f32) -> u32 {
+    var l = 0u;
+    loop {
+        if (l + 1u < hors[hi].n_levels && t >= hors[hi].level_t[l + 1u]) { l = l + 1u; } else { break; }
+    }
+    return l;
+}
+
+// Lateral footprint of tile b at `level` in level-0 node coordinates (lo.xy, hi.xy): the
+// cells whose lower node lies in the tile's core.
+fn footprint(hi: u32, level: u32, b: vec2<u32>) -> vec4<f32> {
+    let s = ldexp(1.0, i32(level));
+    let core = f32(hors[hi].core);
+    return vec4<f32>(
+        (f32(b.x) * core + 0.5) * s - 0.5,
+        (f32(b.y) * core + 0.5) * s - 0.5,
+        (f32(b.x + 1u) * core + 0.5) * s - 0.5,
+        (f32(b.y + 1u) * core + 0.5) * s - 0.5,
+    );
+}
+
+// Index of tile b at `level` in the horizon's own page table.
+fn h_index(hi: u32, level: u32, b: vec2<u32>) -> u32 {
+    let li = levels[hors[hi].level_base + level];
+    return li.x + b.y * li.y + b.x;
+}
+
+fn nan_f32() -> f32 {
+    return bitcast<f32>(0x7fc00000u);
+}
+
+// Colour of the surface at height h with index-space slopes (hu, hv) at level scale sr.
+fn shade_horizon(hi: u32, d: vec3<f32>, hu: f32, hv: f32, sr: f32, h: f32) -> vec3<f32> {
+    let hz = &hors[hi];
+    var base = (*hz).color;
+    if (((*hz).flags & HORIZON_DEPTH_MAP) != 0u) {
+        let lo = (*hz).depth_lo;
+        let top = (*hz).depth_hi;
+        var x = 0.5;
+        if (top > lo) {
+            x = (h - lo) / (top - lo);
+        }
+        let n = (*hz).map_len;
+        let s = clamp(x, 0.0, 1.0) * f32(n - 1u);
+        let i = min(u32(s), n - 2u);
+        let f = s - f32(i);
+        let a = tf[(*hz).map_base + i].xyz;
+        let b = tf[(*hz).map_base + i + 1u].xyz;
+        base = a + f * (b - a);
+    }
+    if (((*hz).flags & HORIZON_LIGHTING) == 0u) {
+        return base;
+    }
+    // Normal in index space (per level-0 node), then to camera space by Mᵀ.
+    let ni = vec3<f32>(-hu * sr, -hv * sr, 1.0);
+    let m0 = (*hz).m0;
+    let m1 = (*hz).m1;
+    let m2 = (*hz).m2;
+    let n = vec3<f32>(
+        m0.x * ni.x + m1.x * ni.y + m2.x * ni.z,
+        m0.y * ni.x + m1.y * ni.y + m2.y * ni.z,
+        m0.z * ni.x + m1.z * ni.y + m2.z * ni.z,
+    );
+    let len = sqrt(n.x * n.x + n.y * n.y + n.z * n.z);
+    var cosv = 1.0;
+    if (len > 0.0 && is_finite(len)) {
+        cosv = abs((n.x * d.x + n.y * d.y + n.z * d.z) / len);
+    }
+    let k = 0.25 + 0.75 * cosv;
+    return base * k;
+}
+
+// Height at level-r node (i, j) of the tile held in the slot at `base` whose first node is
+// `off`; NaN outside the tile.
+fn h_node(base: u32, p: i32, off: vec2<i32>, i: i32, j: i32) -> f32 {
+    let li = i - off.x;
+    let lj = j - off.y;
+    if (li < 0 || lj < 0 || li >= p || lj >= p) {
+        return nan_f32();
+    }
+    return hpool[base + u32(lj * p + li)];
+}
+
+// Walks the cells of tile b at `level`, using the finest resident data; crossings go to the
+// hit list, an opaque one lowers `limit`.
+fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f32, limit: ptr<function, f32>) {
+    let hz = &hors[hi];
+    let e = table[(*hz).table_base + h_index(hi, level, b)];
+    if (e == NOT_RESIDENT) {
+        return;
+    }
+    let r = e >> 24u;
+    let slot = e & SLOT_MASK;
+    let k = r - level;
+    let br = vec2<u32>(b.x >> k, b.y >> k);
+    // Clip to this tile's own footprint (exact, not padded), within the data.
+    let fp = footprint(hi, level, b);
+    let dims = (*hz).dims;
+    let flo = vec2<f32>(max(fp.x, 0.0), max(fp.y, 0.0));
+    let fhi = vec2<f32>(min(fp.z, f32(dims.x) - 1.0), min(fp.w, f32(dims.y) - 1.0));
+    // Also clip to the height range of the data used, so steep rays walk few cells.
+    let zb = hbounds[(*hz).bounds_base + h_index(hi, r, br)];
+    if (!(zb.x <= zb.y)) {
+        return;
+    }
+    let c = (*hz).c;
+    let eps = 1e-4 * (1.0 + max(abs(zb.x), abs(zb.y)));
+    let u = slab(c, md, vec3<f32>(flo, zb.x - eps), vec3<f32>(fhi, zb.y + eps));
+    let t_lo = max(max(u.x, ta), 0.0);
+    let t_hi = min(u.y, *limit);
+    if (t_lo >= t_hi) {
+        return;
+    }
+    // Ray in level-r node coordinates.
+    let sr = ldexp(1.0, -i32(r));
+    let cr = vec3<f32>((c.x + 0.5) * sr - 0.5, (c.y + 0.5) * sr - 0.5, c.z);
+    let dr = vec3<f32>(md.x * sr, md.y * sr, md.z);
+    var nodes = dims;
+    for (var l = 0u; l < r; l = l + 1u) {
+        nodes = (nodes + vec2<u32>(1u)) / 2u;
+    }
+    let nodes_r = vec2<i32>(nodes);
+    let p = i32((*hz).page);
+    let core = i32((*hz).core);
+    let border = i32((*hz).border);
+    let off = vec2<i32>(i32(br.x) * core - border, i32(br.y) * core - border);
+    let base = (*hz).pool_base + slot * u32(p * p);
+    let opacity = (*hz).opacity;
+    // 2D DDA over level-r cells.
+    var cell = vec2<i32>(i32(floor(cr.x + t_lo * dr.x)), i32(floor(cr.y + t_lo * dr.y)));
+    let step = vec2<i32>(select(-1, 1, dr.x > 0.0), select(-1, 1, dr.y > 0.0));
+    var t_cell = t_lo;
+    var guard = 0u;
+    loop {
+        if (!(t_cell < t_hi) || guard >= (1u << 20u)) { break; }
+        guard = guard + 1u;
+        var tx = BIG;
+        if (dr.x != 0.0) {
+            tx = (f32(select(cell.x, cell.x + 1, dr.x > 0.0)) - cr.x) / dr.x;
+        }
+        var ty = BIG;
+        if (dr.y != 0.0) {
+            ty = (f32(select(cell.y, cell.y + 1, dr.y > 0.0)) - cr.y) / dr.y;
+        }
+        let t_next = min(min(tx, ty), t_hi);
+        let i = cell.x;
+        let j = cell.y;
+        if (i >= 0 && j >= 0 && i + 1 < nodes_r.x && j + 1 < nodes_r.y && t_next > t_cell) {
+            let h00 = h_node(base, p, off, i, j);
+            let h10 = h_node(base, p, off, i + 1, j);
+            let h01 = h_node(base, p, off, i, j + 1);
+            let h11 = h_node(base, p, off, i + 1, j + 1);
+            if (!(is_nan(h00) || is_nan(h10) || is_nan(h01) || is_nan(h11))) {
+                let z0 = cr.z + t_cell * dr.z;
+                let z1 = cr.z + t_next * dr.z;
+                let hmin = min(min(h00, h10), min(h01, h11));
+                let hmax = max(max(h00, h10), max(h01, h11));
+                if (min(z0, z1) <= hmax && max(z0, z1) >= hmin) {
+                    // Solve relative to where the ray enters this cell (independent of where
+                    // the region clipped it): the same crossing gets the same t everywhere.
+                    var ex = -BIG;
+                    if (dr.x != 0.0) {
+                        ex = (f32(select(i + 1, i, dr.x > 0.0)) - cr.x) / dr.x;
+                    }
+                    var ey = -BIG;
+                    if (dr.y != 0.0) {
+                        ey = (f32(select(j + 1, j, dr.y > 0.0)) - cr.y) / dr.y;
+                    }
+                    var t_org = max(ex, ey);
+                    if (!(t_org > -BIG)) {
+                        t_org = t_cell;
+                    }
+                    let zo = cr.z + t_org * dr.z;
+                    let u0 = cr.x + t_org * dr.x - f32(i);
+                    let v0 = cr.y + t_org * dr.y - f32(j);
+                    let a = h10 - h00;
+                    let bb = h01 - h00;
+                    let cc = h00 - h10 - h01 + h11;
+                    let qa = -cc * dr.x * dr.y;
+                    let qb = dr.z - a * dr.x - bb * dr.y - cc * (u0 * dr.y + v0 * dr.x);
+                    let qc = zo - h00 - a * u0 - bb * v0 - cc * u0 * v0;
+                    let roots = roots_in(qa, qb, qc, t_cell - t_org, t_next - t_org);
+                    for (var q = 0u; q < roots.n; q = q + 1u) {
+                        let sroot = roots.r[q];
+                        let t = t_org + sroot;
+                        if (t < t_cell || t >= t_next || t < ta || t >= *limit) {
+                            continue;
+                        }
+                        let uu = clamp(u0 + sroot * dr.x, 0.0, 1.0);
+                        let vv = clamp(v0 + sroot * dr.y, 0.0, 1.0);
+                        let h = h00 + a * uu + bb * vv + cc * uu * vv;
+                        let rgb = shade_horizon(hi, d, a + cc * vv, bb + cc * uu, sr, h);
+                        push_hit(t, vec4<f32>(rgb * opacity, opacity));
+                        if (opacity >= 1.0) {
+                            // Nothing behind an opaque surface is visible.
+                            *limit = min(*limit, t);
+                        }
+                    }
+                }
+            }
+        }
+        t_cell = t_next;
+        if (tx <= ty) {
+            cell.x = cell.x + step.x;
+        } else {
+            cell.y = cell.y + step.y;
+        }
+    }
+}
+
+// All crossings of the ray t·d, t in [ta, tb), with horizon `hi`: a front-to-back descent
+// of the min-max tile tree to the level the footprint calls for; the tiles reached are
+// counted in the feedback.
+fn intersect_horizon(hi: u32, d: vec3<f32>, ta: f32, tb: f32) {
+    let hz = &hors[hi];
+    let m0 = (*hz).m0;
+    let m1 = (*hz).m1;
+    let m2 = (*hz).m2;
+    let md = vec3<f32>(
+        m0.x * d.x + m0.y * d.y + m0.z * d.z,
+        m1.x * d.x + m1.y * d.y + m1.z * d.z,
+        m2.x * d.x + m2.y * d.y + m2.z * d.z,
+    );
+    let c = (*hz).c;
+    var limit = tb;
+    var stack: array<vec3<u32>, STACK>;
+    stack[0] = vec3<u32>((*hz).n_levels - 1u, 0u, 0u);
+    var sp = 1u;
+    loop {
+        if (sp == 0u) { break; }
+        sp = sp - 1u;
+        let level = stack[sp].x;
+        let b = stack[sp].yz;
+        let idx = h_index(hi, level, b);
+        let zb = hbounds[(*hz).bounds_base + idx];
+        if (!(zb.x <= zb.y)) {
+            continue; // all holes
+        }
+        let s = ldexp(1.0, i32(level));
+        let fp = footprint(hi, level, b);
+        // Pad by one cell of this level: coarse and fine footprints do not nest exactly. A
+        // flat tile gets a little thickness so the slab test cannot lose it to rounding.
+        let eps = 1e-4 * (1.0 + max(abs(zb.x), abs(zb.y)));
+        let e = slab(c, md, vec3<f32>(fp.x - s, fp.y - s, zb.x - eps), vec3<f32>(fp.z + s, fp.w + s, zb.y + eps));
+        if (max(e.x, ta) >= min(e.y, limit) || e.y < 0.0) {
+            continue;
+        }
+        // The LOD decision uses the unclipped entry, so it does not depend on the region.
+        let want = h_level_at(hi, max(e.x, 0.0));
+        if (level == 0u || level <= want) {
+            atomicAdd(&feedback[(*hz).table_base + idx], 1u);
+            h_leaf(hi, level, b, d, md, ta, &limit);
+            continue;
+        }
+        // Children sorted front to back by their entry (stable), pushed farthest first.
+        let lb = levels[(*hz).level_base + level - 1u].yz;
+        var kt: array<f32, 4>;
+        var kb: array<vec2<u32>, 4>;
+        var n = 0u;
+        for (var dy = 0u; dy < 2u; dy = dy + 1u) {
+            for (var dx = 0u; dx < 2u; dx = dx + 1u) {
+                let cb = vec2<u32>(2u * b.x + dx, 2u * b.y + dy);
+                if (cb.x < lb.x && cb.y < lb.y) {
+                    let cf = footprint(hi, level - 1u, cb);
+                    let t0 = slab_entry2(c, md, cf.xy, cf.zw);
+                    var j = n;
+                    loop {
+                        if (j > 0u && kt[j - 1u] > t0) {
+                            kt[j] = kt[j - 1u];
+                            kb[j] = kb[j - 1u];
+                            j = j - 1u;
+                        } else {
+                            break;
+                        }
+                    }
+                    kt[j] = t0;
+                    kb[j] = cb;
+                    n = n + 1u;
+                }
+            }
+        }
+        for (var q = 0u; q < n; q = q + 1u) {
+            if (sp < STACK) {
+                stack[sp] = vec3<u32>(level - 1u, kb[n - 1u - q]);
+                sp = sp + 1u;
+            }
+        }
+    }
+}
+
 fn sanitize(c: vec4<f32>) -> vec4<f32> {
     if (is_finite(c.x) && is_finite(c.y) && is_finite(c.z) && is_finite(c.w)) {
         return vec4<f32>(max(c.xyz, vec3<f32>(0.0)), clamp(c.w, 0.0, 1.0));
@@ -520,9 +971,10 @@ fn cast_rays(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
         atomicStore(&wg_skipped, 0u);
         atomicStore(&wg_terminated, 0u);
         atomicStore(&wg_rays, 0u);
+        atomicStore(&wg_hits, 0u);
     }
     workgroupBarrier();
-    var ray = Ray(vec4<f32>(0.0), false, 0u, 0u, 0u);
+    var ray = Ray(vec4<f32>(0.0), false, 0u, 0u, 0u, 0u);
     let inside = gid.x < F.rect_w && gid.y < F.rect_h;
     if (inside) {
         let x = F.rect_x + gid.x;
@@ -534,27 +986,61 @@ fn cast_rays(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
         let d = d0 / l;
         let tt = clip_region(F.region_lo, F.region_hi, d);
         if (tt.x < tt.y) {
-            if (MULTI) {
-                var curs: array<Cursor, 4>;
-                var mds: array<vec3<f32>, 4>;
-                var spans: array<vec2<f32>, 4>;
-                for (var i = 0u; i < F.n_vols; i = i + 1u) {
-                    let md = index_dir(i, d);
-                    let iv = interval(i, md);
-                    mds[i] = md;
-                    spans[i] = vec2<f32>(max(iv.x, tt.x), min(iv.y, tt.y));
-                    curs[i] = new_cursor();
+            var curs: array<Cursor, 4>;
+            var mds: array<vec3<f32>, 4>;
+            var spans: array<vec2<f32>, 4>;
+            for (var i = 0u; i < F.n_vols; i = i + 1u) {
+                let md = index_dir(i, d);
+                let iv = interval(i, md);
+                mds[i] = md;
+                spans[i] = vec2<f32>(max(iv.x, tt.x), min(iv.y, tt.y));
+                curs[i] = new_cursor();
+            }
+            var nh = 0u;
+            if (HORIZONS) {
+                n_hits = 0u;
+                for (var h = 0u; h < F.n_hors; h = h + 1u) {
+                    intersect_horizon(h, d, tt.x, tt.y);
                 }
-                march_fragments(&spans, &curs, &mds, d, tt.x, tt.y, &ray);
-            } else if (F.n_vols == 1u) {
-                let md = index_dir(0u, d);
-                let iv = interval(0u, md);
-                let a = max(iv.x, tt.x);
-                let b = min(iv.y, tt.y);
-                if (a < b) {
-                    var cur = new_cursor();
-                    march_one(0u, &cur, md, d, a, b, &ray);
+                nh = n_hits;
+            }
+            // March the volumes up to each crossing, composite it, go on.
+            var cur_t = tt.x;
+            var next = 0u;
+            loop {
+                var next_hit = BIG;
+                if (HORIZONS && next < nh) {
+                    next_hit = hit_t[next];
                 }
+                let seg_end = min(next_hit, tt.y);
+                if (seg_end > cur_t) {
+                    if (MULTI) {
+                        march_fragments(&spans, &curs, &mds, d, cur_t, seg_end, &ray);
+                    } else if (F.n_vols == 1u) {
+                        let a = max(spans[0].x, cur_t);
+                        let b = min(spans[0].y, seg_end);
+                        if (a < b) {
+                            var cur = curs[0];
+                            march_one(0u, &cur, mds[0], d, a, b, &ray);
+                            curs[0] = cur;
+                        }
+                    }
+                    cur_t = seg_end;
+                }
+                if (ray.done) { break; }
+                if (HORIZONS && next < nh && next_hit < tt.y && seg_end >= next_hit) {
+                    ray.acc = blend(ray.acc, hit_c[next]);
+                    ray.hits = ray.hits + 1u;
+                    next = next + 1u;
+                    if (ray.acc.w >= F.ert) {
+                        ray.done = true;
+                        ray.terminated = 1u;
+                        break;
+                    }
+                    cur_t = max(cur_t, next_hit);
+                    continue;
+                }
+                break;
             }
         }
         out_px[gid.y * F.rect_w + gid.x] = sanitize(ray.acc);
@@ -562,6 +1048,7 @@ fn cast_rays(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
         atomicAdd(&wg_skipped, ray.skipped);
         atomicAdd(&wg_terminated, ray.terminated);
         atomicAdd(&wg_rays, 1u);
+        atomicAdd(&wg_hits, ray.hits);
     }
     workgroupBarrier();
     if (lid == 0u) {
@@ -569,6 +1056,7 @@ fn cast_rays(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
         add64(2u, atomicLoad(&wg_skipped));
         atomicAdd(&stats[4], atomicLoad(&wg_terminated));
         atomicAdd(&stats[5], atomicLoad(&wg_rays));
+        atomicAdd(&stats[6], atomicLoad(&wg_hits));
     }
 }
 

@@ -8,7 +8,9 @@
 //! * newly resident pages ([`GpuCaster::write_page`]), written into their slot;
 //! * the page tables ([`GpuCaster::sync_table`]): only the runs of entries that changed
 //!   since the last frame are written;
-//! * per frame, the [`FrameParams`] and [`VolumeParams`] of `strata_common::gpu`.
+//! * newly resident horizon tiles ([`GpuCaster::write_horizon_page`]) into the horizon pool;
+//! * per frame, the [`FrameParams`], [`VolumeParams`] and [`HorizonParams`] of
+//!   `strata_common::gpu`, and the horizons' tile bounds.
 //!
 //! [`GpuCaster::cast`] returns the region's pixels, the compacted feedback
 //! (`(global page-table entry, rays)` pairs, no per-pixel buffer crosses the bus) and the
@@ -19,7 +21,7 @@ use std::sync::{mpsc, Arc, Mutex};
 use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context, Result};
-use strata_common::gpu::{FrameParams, VolumeParams};
+use strata_common::gpu::{FrameParams, HorizonParams, VolumeParams, MAX_HORIZONS};
 
 pub mod backend;
 
@@ -60,6 +62,8 @@ pub struct GpuCast {
     pub terminated: u64,
     /// Rays cast.
     pub rays: u64,
+    /// Horizon crossings composited.
+    pub hits: u64,
     /// Bytes read back: pixels, feedback length and list, counters.
     pub readback_bytes: u64,
     /// Feedback bytes read back (length and list).
@@ -110,11 +114,14 @@ pub struct GpuCaster {
     info: wgpu::AdapterInfo,
     limits: wgpu::Limits,
     module: wgpu::ShaderModule,
-    /// Cast pipelines by effect set (shading, several volumes).
-    pipelines: HashMap<(bool, bool), wgpu::ComputePipeline>,
+    /// Cast pipelines by effect set (shading, several volumes, horizons).
+    pipelines: HashMap<(bool, bool, bool), wgpu::ComputePipeline>,
     compact: wgpu::ComputePipeline,
     frame: wgpu::Buffer,
     vols: wgpu::Buffer,
+    hors: wgpu::Buffer,
+    hbounds: Grow,
+    hpool: Grow,
     levels: Grow,
     table: Grow,
     transparent: Grow,
@@ -130,7 +137,9 @@ pub struct GpuCaster {
     transparent_mirror: Vec<u32>,
     tf_mirror: Vec<[f32; 4]>,
     levels_mirror: Vec<[u32; 4]>,
+    hbounds_mirror: Vec<[f32; 2]>,
     page_bytes: u64,
+    hpage_bytes: u64,
     /// Bytes written to the device since the last [`take_uploaded`](Self::take_uploaded).
     uploaded: u64,
     uncaptured: Arc<Mutex<Option<String>>>,
@@ -268,9 +277,9 @@ impl GpuCaster {
         let info = adapter.get_info();
         // The adapter's own limits: the WebGPU defaults cap a storage binding at 128 MiB.
         let limits = adapter.limits();
-        if limits.max_storage_buffers_per_shader_stage < 10 {
+        if limits.max_storage_buffers_per_shader_stage < 12 {
             bail!(
-                "adapter {} binds {} storage buffers per stage; the caster needs 10",
+                "adapter {} binds {} storage buffers per stage; the caster needs 12",
                 info.name,
                 limits.max_storage_buffers_per_shader_stage
             );
@@ -318,6 +327,12 @@ impl GpuCaster {
             usage: STORAGE_DST,
             mapped_at_creation: false,
         });
+        let hors = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("horizons"),
+            size: (MAX_HORIZONS * std::mem::size_of::<HorizonParams>()) as u64,
+            usage: STORAGE_DST,
+            mapped_at_creation: false,
+        });
         let small = |label| {
             device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),
@@ -338,6 +353,9 @@ impl GpuCaster {
             compact,
             frame,
             vols,
+            hors,
+            hbounds: Grow::new("horizon tile bounds", STORAGE_DST),
+            hpool: Grow::new("horizon pool", STORAGE_DST),
             levels: Grow::new("levels", STORAGE_DST),
             table: Grow::new("page table", STORAGE_DST),
             transparent: Grow::new("transparent pages", STORAGE_DST),
@@ -356,7 +374,9 @@ impl GpuCaster {
             transparent_mirror: Vec::new(),
             tf_mirror: Vec::new(),
             levels_mirror: Vec::new(),
+            hbounds_mirror: Vec::new(),
             page_bytes: 0,
+            hpage_bytes: 0,
             uploaded: 0,
             uncaptured,
         })
@@ -395,6 +415,25 @@ impl GpuCaster {
         debug_assert_eq!(bytes.len() as u64, self.page_bytes);
         self.queue
             .write_buffer(self.pool.get(), slot as u64 * self.page_bytes, bytes);
+        self.uploaded += bytes.len() as u64;
+    }
+
+    /// Allocates the horizon pool: `slots` tiles of `page_samples` f32 heights.
+    pub fn alloc_horizon_pool(&mut self, slots: usize, page_samples: usize) -> Result<()> {
+        let bytes = slots as u64 * page_samples as u64 * 4;
+        self.hpage_bytes = page_samples as u64 * 4;
+        let (device, pool) = (&self.device, &mut self.hpool);
+        checked(device, "allocating the horizon pool", || {
+            pool.ensure(device, bytes);
+        })
+    }
+
+    /// Writes a horizon tile into its slot of the horizon pool.
+    pub fn write_horizon_page(&mut self, slot: u32, heights: &[f32]) {
+        let bytes: &[u8] = bytemuck::cast_slice(heights);
+        debug_assert_eq!(bytes.len() as u64, self.hpage_bytes);
+        self.queue
+            .write_buffer(self.hpool.get(), slot as u64 * self.hpage_bytes, bytes);
         self.uploaded += bytes.len() as u64;
     }
 
@@ -446,9 +485,16 @@ impl GpuCaster {
         written
     }
 
-    /// Brings the per-entry transparency bits, the level records and the transfer-function
-    /// tables up to date (each written only when it changed).
-    pub fn sync_frame_tables(&mut self, transparent: &[u32], levels: &[[u32; 4]], tf: &[[f32; 4]]) {
+    /// Brings the per-entry transparency bits, the level records, the transfer-function and
+    /// colour-map tables and the horizons' tile bounds up to date (each written only when it
+    /// changed).
+    pub fn sync_frame_tables(
+        &mut self,
+        transparent: &[u32],
+        levels: &[[u32; 4]],
+        tf: &[[f32; 4]],
+        hbounds: &[[f32; 2]],
+    ) {
         fn sync<T: bytemuck::Pod + PartialEq>(
             device: &wgpu::Device,
             queue: &wgpu::Queue,
@@ -491,6 +537,14 @@ impl GpuCaster {
             tf,
             &mut self.uploaded,
         );
+        sync(
+            d,
+            q,
+            &mut self.hbounds,
+            &mut self.hbounds_mirror,
+            hbounds,
+            &mut self.uploaded,
+        );
     }
 
     /// Bytes written to the device (pages, tables) since the last call.
@@ -498,8 +552,14 @@ impl GpuCaster {
         std::mem::take(&mut self.uploaded)
     }
 
-    fn pipeline(&mut self, shading: bool, multi: bool) -> Result<wgpu::ComputePipeline> {
-        if let Some(p) = self.pipelines.get(&(shading, multi)) {
+    fn pipeline(
+        &mut self,
+        shading: bool,
+        multi: bool,
+        horizons: bool,
+    ) -> Result<wgpu::ComputePipeline> {
+        let key = (shading, multi, horizons);
+        if let Some(p) = self.pipelines.get(&key) {
             return Ok(p.clone());
         }
         let (device, module) = (&self.device, &self.module);
@@ -507,6 +567,7 @@ impl GpuCaster {
             let constants = [
                 ("SHADING", if shading { 1.0 } else { 0.0 }),
                 ("MULTI", if multi { 1.0 } else { 0.0 }),
+                ("HORIZONS", if horizons { 1.0 } else { 0.0 }),
             ];
             device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some("cast"),
@@ -520,30 +581,42 @@ impl GpuCaster {
                 cache: None,
             })
         })?;
-        self.pipelines.insert((shading, multi), p.clone());
+        self.pipelines.insert(key, p.clone());
         Ok(p)
     }
 
     /// Casts one frame and reads back its pixels, feedback and counters. The tables must
     /// have been synced ([`sync_table`](Self::sync_table),
-    /// [`sync_frame_tables`](Self::sync_frame_tables)) and the pool allocated.
+    /// [`sync_frame_tables`](Self::sync_frame_tables)) and the pools allocated.
     pub fn cast(
         &mut self,
         frame: &FrameParams,
         vols: &[VolumeParams],
+        hors: &[HorizonParams],
         shading: bool,
     ) -> Result<GpuCast> {
-        if vols.is_empty() || vols.len() > MAX_VOLUMES {
+        if vols.len() > MAX_VOLUMES || hors.len() > MAX_HORIZONS || vols.len() + hors.len() == 0 {
             bail!(
-                "the GPU caster renders 1 to {MAX_VOLUMES} volumes, the scene has {}",
-                vols.len()
+                "the GPU caster renders up to {MAX_VOLUMES} volumes and {MAX_HORIZONS} horizons, \
+                 at least one of either; the frame has {} and {}",
+                vols.len(),
+                hors.len()
             );
         }
-        if self.pool.buf.is_none() || self.table.buf.is_none() || self.tf.buf.is_none() {
-            bail!("GPU caster: the pool and tables must be uploaded before a frame");
+        if self.table.buf.is_none() || self.tf.buf.is_none() {
+            bail!("GPU caster: the tables must be uploaded before a frame");
+        }
+        if (!vols.is_empty() && self.pool.buf.is_none())
+            || (!hors.is_empty() && self.hpool.buf.is_none())
+        {
+            bail!("GPU caster: the pools must be allocated before a frame");
+        }
+        // Every binding needs a buffer, used or not.
+        for g in [&mut self.pool, &mut self.hpool, &mut self.hbounds] {
+            g.ensure(&self.device, 16);
         }
         let px = frame.rect_w as u64 * frame.rect_h as u64;
-        let pipeline = self.pipeline(shading, vols.len() > 1)?;
+        let pipeline = self.pipeline(shading, vols.len() > 1, !hors.is_empty())?;
         let out_bytes = px * 16;
         let clock = Instant::now();
         let device = &self.device;
@@ -551,7 +624,12 @@ impl GpuCaster {
         self.read.ensure(device, out_bytes.max(64));
         let queue = &self.queue;
         queue.write_buffer(&self.frame, 0, bytemuck::bytes_of(frame));
-        queue.write_buffer(&self.vols, 0, bytemuck::cast_slice(vols));
+        if !vols.is_empty() {
+            queue.write_buffer(&self.vols, 0, bytemuck::cast_slice(vols));
+        }
+        if !hors.is_empty() {
+            queue.write_buffer(&self.hors, 0, bytemuck::cast_slice(hors));
+        }
         queue.write_buffer(&self.stats, 0, &[0u8; 32]);
         queue.write_buffer(&self.fb_len, 0, &[0u8; 32]);
         fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
@@ -576,6 +654,9 @@ impl GpuCaster {
                     entry(7, self.feedback.get()),
                     entry(8, self.out.get()),
                     entry(9, &self.stats),
+                    entry(12, &self.hors),
+                    entry(13, self.hbounds.get()),
+                    entry(14, self.hpool.get()),
                 ],
             });
             let fb_counts = wgpu::BindGroupEntry {
@@ -647,6 +728,7 @@ impl GpuCaster {
             skipped: stat64(2),
             terminated: head[4] as u64,
             rays: head[5] as u64,
+            hits: head[6] as u64,
             readback_bytes: 36 + fb_bytes + out_bytes,
             feedback_bytes: 4 + fb_bytes,
         })
