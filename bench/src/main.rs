@@ -4,7 +4,8 @@
 //!   (`../shared/baselines/paraview_volume.py`), at 1024² and 1920×1080;
 //! * accuracy against time: step, early termination, adaptive step and LOD tolerance, each
 //!   compared with a high-accuracy reference image;
-//! * the engine's CPU and GPU backends on the same bonsai frame (1920×1080, 3840×2160);
+//! * the engine's CPU and GPU backends on the same frames (bonsai, and a synthetic survey
+//!   with three horizons; 1920×1080, 3840×2160);
 //! * a large synthetic survey with three horizons under a 1 GiB cache: rounds to converge,
 //!   pages loaded, hit rate.
 //!
@@ -49,6 +50,10 @@ struct Cli {
     /// The bonsai raw file.
     #[arg(long)]
     bonsai: Option<PathBuf>,
+    /// Samples per axis of the synthetic survey (volume + 3 horizons) in the backend
+    /// comparison (1120 1000 1000 is the 4 GiB survey).
+    #[arg(long, num_args = 3, default_values_t = [256u64, 256, 256])]
+    backends_survey_size: Vec<u64>,
 }
 
 fn bonsai_path(cli: &Cli) -> PathBuf {
@@ -225,61 +230,97 @@ fn bonsai(cli: &Cli) -> Result<()> {
 /// atlas, page tables and feedback. For each: the cold batch (time to converge, rounds, bytes
 /// uploaded to the device), the converged frame (median time, samples/s), the feedback bytes
 /// read back per frame, and the GPU image's largest difference from the CPU image.
+/// The synthetic survey of `size` (generated once into the scratch folder) with its three
+/// horizons, at `w`×`h`, and whether this call generated it.
+fn survey_scene(cli: &Cli, size: [u64; 3], w: u32, h: u32) -> Result<(Scene, bool)> {
+    let dir = cli
+        .dir
+        .join(format!("survey-{}x{}x{}", size[0], size[1], size[2]));
+    let spec = SyntheticSpec {
+        dir: dir.clone(),
+        size,
+        seed: 11,
+    };
+    let generated = strata_coordinator::demo::ensure_synthetic(&spec, &ProgressBar::hidden())?;
+    let scene_path = dir.join("scene.toml");
+    let text = std::fs::read_to_string(&scene_path).context("survey scene")?;
+    let mut scene = Scene::parse(&scene_path, &text)?;
+    scene.render.width = w;
+    scene.render.height = h;
+    scene.render.cache_mb = 1024;
+    // The atlas (the GPU-side pool, host memory on the CPU) must hold the view's cut; the
+    // 1 GiB cache is what streams.
+    scene.render.atlas_mb = 4096;
+    scene.volumes[0].opacity = 0.25;
+    Ok((scene, generated))
+}
+
 fn cpu_vs_gpu(cli: &Cli) -> Result<()> {
     use strata_common::scene::Backend;
     let store = bonsai_store(cli)?;
-    println!("## Engine backends on the same frame: bonsai, ParaView's setup");
+    let ss = [
+        cli.backends_survey_size[0],
+        cli.backends_survey_size[1],
+        cli.backends_survey_size[2],
+    ];
+    println!("## Engine backends on the same frame: bonsai (ParaView's setup) and the synthetic survey {}×{}×{} f32 with three horizons", ss[0], ss[1], ss[2]);
     println!();
-    println!("| size | backend | cold batch | rounds | uploaded MiB | frame (median) | samples | samples/s | feedback bytes/frame | max diff vs CPU | speed-up |");
-    println!("|---|---|---|---|---|---|---|---|---|---|---|");
-    for (w, h) in [(1920u32, 1080u32), (3840, 2160)] {
-        let mut cpu_row: Option<(f64, Vec<Rgba>)> = None;
-        for backend in [Backend::Cpu, Backend::Gpu] {
-            let mut scene = bonsai_scene(&store, w, h);
-            scene.render.backend = backend;
-            let mut e = match Engine::new(&scene) {
-                Ok(e) => e,
-                Err(err) => {
-                    println!("| {w}×{h} | {backend:?} | skipped: {err:#} |||||||||");
-                    continue;
+    println!("| scene | size | backend | cold batch | rounds | uploaded MiB | frame (median) | samples | hits | samples/s | feedback bytes/frame | max diff vs CPU | speed-up |");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    for name in ["bonsai", "survey"] {
+        for (w, h) in [(1920u32, 1080u32), (3840, 2160)] {
+            let mut cpu_row: Option<(f64, Vec<Rgba>)> = None;
+            for backend in [Backend::Cpu, Backend::Gpu] {
+                let mut scene = match name {
+                    "bonsai" => bonsai_scene(&store, w, h),
+                    _ => survey_scene(cli, ss, w, h)?.0,
+                };
+                scene.render.backend = backend;
+                let mut e = match Engine::new(&scene) {
+                    Ok(e) => e,
+                    Err(err) => {
+                        println!("| {name} | {w}×{h} | {backend:?} | skipped: {err:#} ||||||||||");
+                        continue;
+                    }
+                };
+                let view = e.view(w, h)?;
+                let region = e.scene_region();
+                let t = Instant::now();
+                let b = e.render_batch(&view, &region)?;
+                let cold = t.elapsed().as_secs_f64();
+                let mut times = Vec::new();
+                let mut last = None;
+                for _ in 0..cli.frames.max(1) {
+                    let f = e.render_frame(&view, &region)?;
+                    times.push(f.seconds);
+                    last = Some(f);
                 }
-            };
-            let view = e.view(w, h)?;
-            let region = e.scene_region();
-            let t = Instant::now();
-            let b = e.render_batch(&view, &region)?;
-            let cold = t.elapsed().as_secs_f64();
-            let mut times = Vec::new();
-            let mut last = None;
-            for _ in 0..cli.frames.max(1) {
-                let f = e.render_frame(&view, &region)?;
-                times.push(f.seconds);
-                last = Some(f);
-            }
-            times.sort_by(|a, b| a.total_cmp(b));
-            let med = times[times.len() / 2];
-            let f = last.unwrap();
-            let img = f.image.to_full();
-            let (diff, speed) = match &cpu_row {
-                Some((cpu_t, cpu_img)) => (
-                    format!("{:.2e}", rmse(&img, cpu_img).1),
-                    format!("{:.2}×", cpu_t / med),
-                ),
-                None => ("–".into(), "1×".into()),
-            };
-            println!(
-                "| {w}×{h} | {} | {:.3} s | {} | {:.1} | {:.1} ms | {} | {:.0} M/s | {} | {diff} | {speed} |",
-                b.backend,
-                cold,
-                b.rounds,
-                b.uploaded_bytes as f64 / (1 << 20) as f64,
-                med * 1e3,
-                f.stats.samples,
-                f.stats.samples as f64 / med / 1e6,
-                f.gpu.feedback_bytes,
-            );
-            if backend == Backend::Cpu {
-                cpu_row = Some((med, img));
+                times.sort_by(|a, b| a.total_cmp(b));
+                let med = times[times.len() / 2];
+                let f = last.unwrap();
+                let img = f.image.to_full();
+                let (diff, speed) = match &cpu_row {
+                    Some((cpu_t, cpu_img)) => (
+                        format!("{:.2e}", rmse(&img, cpu_img).1),
+                        format!("{:.2}×", cpu_t / med),
+                    ),
+                    None => ("–".into(), "1×".into()),
+                };
+                println!(
+                    "| {name} | {w}×{h} | {} | {:.3} s | {} | {:.1} | {:.1} ms | {} | {} | {:.0} M/s | {} | {diff} | {speed} |",
+                    b.backend,
+                    cold,
+                    b.rounds,
+                    b.uploaded_bytes as f64 / (1 << 20) as f64,
+                    med * 1e3,
+                    f.stats.samples,
+                    f.stats.hits,
+                    f.stats.samples as f64 / med / 1e6,
+                    f.gpu.feedback_bytes,
+                );
+                if backend == Backend::Cpu {
+                    cpu_row = Some((med, img));
+                }
             }
         }
     }
@@ -289,27 +330,9 @@ fn cpu_vs_gpu(cli: &Cli) -> Result<()> {
 
 fn survey(cli: &Cli) -> Result<()> {
     let size = [cli.survey_size[0], cli.survey_size[1], cli.survey_size[2]];
-    let dir = cli
-        .dir
-        .join(format!("survey-{}x{}x{}", size[0], size[1], size[2]));
-    let spec = SyntheticSpec {
-        dir: dir.clone(),
-        size,
-        seed: 11,
-    };
     let t = Instant::now();
-    let generated = strata_coordinator::demo::ensure_synthetic(&spec, &ProgressBar::hidden())?;
+    let (scene, generated) = survey_scene(cli, size, 1920, 1080)?;
     let gen_s = t.elapsed().as_secs_f64();
-    let scene_path = dir.join("scene.toml");
-    let text = std::fs::read_to_string(&scene_path).context("survey scene")?;
-    let mut scene = Scene::parse(&scene_path, &text)?;
-    scene.render.width = 1920;
-    scene.render.height = 1080;
-    scene.render.cache_mb = 1024;
-    // The atlas (the GPU-side pool, host memory here) must hold the view's cut; the 1 GiB
-    // cache is what streams.
-    scene.render.atlas_mb = 4096;
-    scene.volumes[0].opacity = 0.25;
     let bytes: u64 = size.iter().product::<u64>() * 4;
     println!(
         "## Synthetic survey {}×{}×{} f32 ({:.2} GiB level 0) + 3 horizons, 1920×1080, 1 GiB cache{}",

@@ -60,6 +60,42 @@ impl Affine3 {
     pub fn is_finite(&self) -> bool {
         self.rows.iter().flatten().all(|v| v.is_finite())
     }
+
+    /// The inverse map (f64), or `None` if it is singular.
+    pub fn inverse(&self) -> Option<Affine3> {
+        let a = self;
+        let m = |r: usize, c: usize| a.rows[r][c];
+        let det = m(0, 0) * (m(1, 1) * m(2, 2) - m(1, 2) * m(2, 1))
+            - m(0, 1) * (m(1, 0) * m(2, 2) - m(1, 2) * m(2, 0))
+            + m(0, 2) * (m(1, 0) * m(2, 1) - m(1, 1) * m(2, 0));
+        if det.abs() < 1e-300 || !det.is_finite() {
+            return None;
+        }
+        let inv = [
+            [
+                (m(1, 1) * m(2, 2) - m(1, 2) * m(2, 1)) / det,
+                (m(0, 2) * m(2, 1) - m(0, 1) * m(2, 2)) / det,
+                (m(0, 1) * m(1, 2) - m(0, 2) * m(1, 1)) / det,
+            ],
+            [
+                (m(1, 2) * m(2, 0) - m(1, 0) * m(2, 2)) / det,
+                (m(0, 0) * m(2, 2) - m(0, 2) * m(2, 0)) / det,
+                (m(0, 2) * m(1, 0) - m(0, 0) * m(1, 2)) / det,
+            ],
+            [
+                (m(1, 0) * m(2, 1) - m(1, 1) * m(2, 0)) / det,
+                (m(0, 1) * m(2, 0) - m(0, 0) * m(2, 1)) / det,
+                (m(0, 0) * m(1, 1) - m(0, 1) * m(1, 0)) / det,
+            ],
+        ];
+        let t = [a.rows[0][3], a.rows[1][3], a.rows[2][3]];
+        let mut rows = [[0.0; 4]; 3];
+        for r in 0..3 {
+            rows[r][..3].copy_from_slice(&inv[r]);
+            rows[r][3] = -(inv[r][0] * t[0] + inv[r][1] * t[1] + inv[r][2] * t[2]);
+        }
+        Some(Affine3 { rows })
+    }
 }
 
 /// A 2D affine map `(i, j) ↦ (x, y)`, rows `[a, b, t]`.
@@ -188,6 +224,25 @@ pub fn fit_affine2(points: &[([f64; 2], [f64; 2])]) -> Option<AffineFit> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn inverse_round_trips() {
+        let a = Affine3 {
+            rows: [
+                [2.0, 0.3, 0.0, 605000.0],
+                [-0.3, 2.0, 0.0, 6075000.0],
+                [0.0, 0.0, 4.0, 12.0],
+            ],
+        };
+        let i = a.inverse().unwrap();
+        let p = [3.0, 7.0, 11.0];
+        let q = i.apply(a.apply(p));
+        for k in 0..3 {
+            assert!((q[k] - p[k]).abs() < 1e-6, "{q:?}");
+        }
+        let flat = Affine3::scale_offset([1.0, 1.0, 0.0], [0.0; 3]);
+        assert!(flat.inverse().is_none());
+    }
 
     #[test]
     fn fit_recovers_rotated_utm_grid_exactly() {

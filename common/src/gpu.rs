@@ -18,6 +18,7 @@
 //! * Transfer-function tables: [`TF_SIZE`] premultiplied, step-corrected `[f32; 4]` entries
 //!   per volume and band.
 
+use crate::sample::SampleType;
 use bytemuck::{Pod, Zeroable};
 use std::mem::{offset_of, size_of};
 
@@ -176,12 +177,145 @@ pub struct VolumeParams {
     pub tf_offset: f32,
     /// Last table position (`TF_SIZE − 1`).
     pub tf_last: f32,
-    /// First slot sample of the pool this volume's pages live in (0: one pool per type).
+    /// First pool element of the pool this volume's pages live in (0: one pool).
     pub pool_base: u32,
-    /// Padding.
-    pub _pad: [u32; 2],
+    /// [`VOLUME_SIGNED`] | [`VOLUME_NO_DATA`].
+    pub flags: u32,
+    /// The integer pool value that means "no data" (with [`VOLUME_NO_DATA`]).
+    pub no_data: i32,
     /// `level_t[l]`: distance from which level `l` is fine enough (`level_t[0] = 0`).
     pub level_t: [f32; MAX_LEVELS],
+}
+
+/// [`VolumeParams::flags`]: the volume's samples are signed integers in an 8- or 16-bit pool.
+pub const VOLUME_SIGNED: u32 = 1;
+/// [`VolumeParams::flags`]: the pool value [`VolumeParams::no_data`] stands for no data (the
+/// NaN of the decoded `f32` page).
+pub const VOLUME_NO_DATA: u32 = 2;
+
+/// How the device pool stores volume samples: in the narrowest width that holds every
+/// volume's sample type (`u8`/`i8` → 8 bits, `u16`/`i16` → 16, `f32` → 32), so 8- and 16-bit
+/// data are not widened to `f32` on the GPU. The shader decodes an element to the `f32` the
+/// host's decoded page holds, bit for bit ([`PoolFormat::decode`] is its mirror).
+///
+/// A storage-buffer pool holds integers in two's complement. A texture pool (for the
+/// texture unit's filter, `render.gpu_filter = "hardware"`) uses unsigned normalized texels,
+/// so its signed values are *biased* by `2^(bits−1)`: filtering commutes with the bias and
+/// the shader subtracts it after the filter.
+#[derive(Copy, Clone, Debug, PartialEq, Eq)]
+pub struct PoolFormat {
+    /// Bits per element: 8, 16 or 32.
+    pub bits: u32,
+    /// Signed values are stored plus `2^(bits−1)` (unsigned-normalized texels).
+    pub biased: bool,
+}
+
+impl PoolFormat {
+    /// The format for volumes of these sample types (32 bits if there are none).
+    pub fn for_types(types: impl IntoIterator<Item = SampleType>) -> Self {
+        let bytes = types.into_iter().map(|t| t.size()).max().unwrap_or(4);
+        PoolFormat {
+            bits: 8 * bytes as u32,
+            biased: false,
+        }
+    }
+
+    /// What a signed volume's values are stored plus (0 for two's complement and for f32).
+    pub fn bias(self, t: SampleType) -> i32 {
+        if self.biased && self.bits < 32 && t.is_signed() {
+            1 << (self.bits - 1)
+        } else {
+            0
+        }
+    }
+
+    /// Elements per 32-bit word.
+    pub fn per_word(self) -> usize {
+        (32 / self.bits) as usize
+    }
+
+    /// Elements a slot of `page_samples` takes: whole 32-bit words, so every slot starts on a
+    /// word (buffer writes are 4-byte aligned).
+    pub fn slot_elems(self, page_samples: usize) -> usize {
+        page_samples.next_multiple_of(self.per_word())
+    }
+
+    /// Bytes of a slot.
+    pub fn slot_bytes(self, page_samples: usize) -> u64 {
+        (self.slot_elems(page_samples) * (self.bits / 8) as usize) as u64
+    }
+
+    /// [`VolumeParams::flags`] and [`VolumeParams::no_data`] of a volume of type `t` with
+    /// no-data sentinel `no_data`.
+    pub fn volume_flags(self, t: SampleType, no_data: Option<f32>) -> (u32, i32) {
+        if self.bits == 32 {
+            return (0, 0); // f32 elements hold the NaN itself
+        }
+        let mut flags = 0;
+        if t.is_signed() {
+            flags |= VOLUME_SIGNED;
+        }
+        match no_data {
+            Some(nd) => (flags | VOLUME_NO_DATA, nd as i32),
+            None => (flags, 0),
+        }
+    }
+
+    /// Appends the slot bytes of a decoded page (`f32`, NaN = no data; integer values of the
+    /// volume's type `t`), zero-padded to [`slot_bytes`](Self::slot_bytes). NaN becomes the
+    /// volume's sentinel (0 if it has none, as in the store encoder).
+    pub fn encode(self, values: &[f32], t: SampleType, no_data: Option<f32>, out: &mut Vec<u8>) {
+        let start = out.len();
+        let nd = no_data.unwrap_or(0.0);
+        let bias = self.bias(t);
+        let int = |v: f32| if v.is_nan() { nd as i32 } else { v as i32 } + bias;
+        match self.bits {
+            8 => out.extend(values.iter().map(|&v| int(v) as u8)),
+            16 => {
+                for &v in values {
+                    out.extend_from_slice(&(int(v) as u16).to_le_bytes());
+                }
+            }
+            _ => {
+                for &v in values {
+                    out.extend_from_slice(&v.to_le_bytes());
+                }
+            }
+        }
+        out.resize(start + self.slot_bytes(values.len()) as usize, 0);
+    }
+
+    /// Element `i` of a slot's bytes as the shader reads it, for a volume with these
+    /// [`VolumeParams::flags`] and [`VolumeParams::no_data`].
+    pub fn decode(self, bytes: &[u8], i: usize, flags: u32, no_data: i32) -> f32 {
+        let signed = flags & VOLUME_SIGNED != 0;
+        let raw = match self.bits {
+            8 => {
+                let b = bytes[i];
+                match (signed, self.biased) {
+                    (true, true) => b as i32 - 128,
+                    (true, false) => b as i8 as i32,
+                    _ => b as i32,
+                }
+            }
+            16 => {
+                let h = u16::from_le_bytes([bytes[2 * i], bytes[2 * i + 1]]);
+                match (signed, self.biased) {
+                    (true, true) => h as i32 - 32768,
+                    (true, false) => h as i16 as i32,
+                    _ => h as i32,
+                }
+            }
+            _ => {
+                let w = &bytes[4 * i..4 * i + 4];
+                return f32::from_le_bytes([w[0], w[1], w[2], w[3]]);
+            }
+        };
+        if flags & VOLUME_NO_DATA != 0 && raw == no_data {
+            return f32::NAN;
+        }
+        raw as f32
+    }
 }
 
 /// [`HorizonParams::flags`]: colour by height through the colour map.
@@ -308,6 +442,8 @@ pub fn volume_params_offsets() -> Vec<(&'static str, usize)> {
         ("tf_offset", offset_of!(VolumeParams, tf_offset)),
         ("tf_last", offset_of!(VolumeParams, tf_last)),
         ("pool_base", offset_of!(VolumeParams, pool_base)),
+        ("flags", offset_of!(VolumeParams, flags)),
+        ("no_data", offset_of!(VolumeParams, no_data)),
         ("level_t", offset_of!(VolumeParams, level_t)),
     ]
 }
@@ -358,5 +494,68 @@ mod tests {
         assert_eq!(SlotInfo::free().page(), u64::MAX);
         assert_eq!(page_entry(5, 3) & SLOT_MASK, 5);
         assert_eq!(page_entry(5, 3) >> 24, 3);
+    }
+
+    /// Every sample type's decoded values survive the pool encoding bit for bit, in every
+    /// pool width that holds the type, sentinels included.
+    #[test]
+    fn pool_elements_decode_to_the_hosts_f32() {
+        use SampleType::*;
+        let cases: [(SampleType, Option<f32>, Vec<f32>); 5] = [
+            (U8, None, vec![0.0, 1.0, 127.0, 128.0, 255.0]),
+            (
+                I8,
+                Some(-128.0),
+                vec![-127.0, -1.0, 0.0, 5.0, 127.0, f32::NAN],
+            ),
+            (
+                U16,
+                Some(65535.0),
+                vec![0.0, 300.0, 40000.0, 65534.0, f32::NAN],
+            ),
+            (
+                I16,
+                Some(-32768.0),
+                vec![-32767.0, -2.0, 0.0, 12345.0, 32767.0, f32::NAN],
+            ),
+            (F32, None, vec![-1.5e-7, 0.0, 3.25, 1e30, f32::NAN]),
+        ];
+        for (t, nd, values) in cases {
+            for (bits, biased) in [8u32, 16, 32]
+                .into_iter()
+                .flat_map(|b| [(b, false), (b, true)])
+            {
+                if bits < 8 * t.size() as u32 {
+                    continue;
+                }
+                let f = PoolFormat { bits, biased };
+                let (flags, ndi) = f.volume_flags(t, nd);
+                let mut bytes = vec![0xAB]; // encoding appends
+                f.encode(&values, t, nd, &mut bytes);
+                let slot = &bytes[1..];
+                assert_eq!(slot.len() as u64, f.slot_bytes(values.len()));
+                assert_eq!(slot.len() % 4, 0);
+                for (i, &v) in values.iter().enumerate() {
+                    let got = f.decode(slot, i, flags, ndi);
+                    assert!(
+                        got.to_bits() == v.to_bits() || (got.is_nan() && v.is_nan()),
+                        "{t:?} in {bits}-bit pool: {v} became {got}"
+                    );
+                }
+            }
+        }
+        assert_eq!(PoolFormat::for_types([U8, I8]).bits, 8);
+        assert_eq!(PoolFormat::for_types([U8, I16]).bits, 16);
+        assert_eq!(PoolFormat::for_types([U16, F32]).bits, 32);
+        let f8 = PoolFormat {
+            bits: 8,
+            biased: false,
+        };
+        assert_eq!(f8.slot_elems(4913), 4916);
+        // Biased signed texels are ordered as the values are (filtering commutes with it).
+        let b8 = PoolFormat { biased: true, ..f8 };
+        let mut bytes = Vec::new();
+        b8.encode(&[-128.0, -1.0, 0.0, 127.0], I8, None, &mut bytes);
+        assert_eq!(bytes, [0, 127, 128, 255]);
     }
 }

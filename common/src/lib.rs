@@ -14,9 +14,14 @@
 //! * [`digest`]: an order-independent digest of a data set's level-0 samples,
 //!   so two stores with the same data print the same digest whatever their
 //!   brick size, compression or source byte order.
-//! * [`geo`]: f64 affine transforms and the lateral survey grid.
+//! * [`geo`]: f64 affine transforms (and their inverses) and the lateral survey grid.
+//! * [`camera`]: the view: f64 camera and data transforms, camera-relative f32 rays, the
+//!   default camera that frames a scene.
+//! * [`tf`]: colour maps and transfer functions (opacity-corrected step tables, page
+//!   transparency for empty-space skipping).
 //! * [`gpu`]: the `#[repr(C)]` tables both ray-casting backends read (page-table entries,
-//!   level and slot records, per-frame and per-volume parameters), with size assertions.
+//!   level and slot records, per-frame, per-volume and per-horizon parameters, the volume
+//!   pool's element format), with size assertions.
 //! * [`image`]: premultiplied RGBA partial images and the OVER operator.
 //! * [`composite`]: the sans-IO sort-last compositing plans (direct send, binary swap,
 //!   radix-k), active-pixel encoding and the rank state machine that runs a plan.
@@ -27,6 +32,7 @@
 //! No async, no networking, no threads are spawned here.
 #![deny(missing_docs)]
 
+pub mod camera;
 pub mod composite;
 pub mod digest;
 pub mod filter;
@@ -39,4 +45,5 @@ pub mod pyramid;
 pub mod sample;
 pub mod scene;
 pub mod store;
+pub mod tf;
 pub mod wire;

@@ -305,6 +305,22 @@ pub struct RenderSettings {
     /// The GPU to use: an adapter index or a case-insensitive substring of its name.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub gpu_adapter: Option<AdapterSelector>,
+    /// How the GPU caster interpolates volume samples: `exact` (trilinear in the shader, the
+    /// CPU's formula) or `hardware` (the texture unit's trilinear filter; many GPUs use 8-bit
+    /// filter weights).
+    #[serde(default)]
+    pub gpu_filter: GpuFilter,
+}
+
+/// `render.gpu_filter`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum GpuFilter {
+    /// Trilinear interpolation in the shader, operation for operation the CPU's.
+    #[default]
+    Exact,
+    /// The texture unit's trilinear filter over a 3D-texture pool.
+    Hardware,
 }
 
 /// `render.backend`.
@@ -362,6 +378,7 @@ impl Default for RenderSettings {
             background: [0.0; 3],
             backend: Backend::Auto,
             gpu_adapter: None,
+            gpu_filter: GpuFilter::Exact,
         }
     }
 }

@@ -17,7 +17,7 @@
 //!   the renderer, but still pay for traversing them. "Transparent" is the renderer's own
 //!   empty-space-skipping test, replicated here because it is inlined in
 //!   `Engine::setup`: with `render.empty_space_skipping`,
-//!   [`TransferFunction::max_alpha`](strata_worker::tf::TransferFunction::max_alpha) of
+//!   [`TransferFunction::max_alpha`](strata_common::tf::TransferFunction::max_alpha) of
 //!   the page's index `[min, max]` is zero; without it, only pages with no valid sample.
 //! * **Horizons.** One box per level-0 tile that holds a valid height: laterally the cells
 //!   whose lower node lies in the tile's core (the renderer's tile footprint), clipped to
@@ -155,7 +155,7 @@ fn volume_boxes(v: &Volume, skipping: bool, out: &mut Vec<CostBox>) {
                 let r = p.core_range(0, b);
                 let [mn, mx] = v.bounds[level0_index(bricks, b)];
                 // The renderer's own test.
-                let transparent = v.page_transparent([mn, mx], skipping);
+                let transparent = v.tf.page_transparent([mn, mx], skipping);
                 let samples: u64 = r.iter().map(|(lo, hi)| hi - lo).product();
                 let factor = if transparent { TRANSPARENT_FACTOR } else { 1.0 };
                 out.push(CostBox {

@@ -168,7 +168,7 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
                 Some(c) => c.clone(),
                 None => {
                     let data = strata_worker::dataset::SceneData::open(&scene)?;
-                    strata_worker::camera::default_camera(&data.bounds(), &scene.render)
+                    strata_common::camera::default_camera(&data.bounds(), &scene.render)
                 }
             };
             let r = cluster

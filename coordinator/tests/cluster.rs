@@ -414,25 +414,11 @@ fn a_killed_worker_fails_the_frame_with_an_error_naming_it() {
 }
 
 /// The survey's seismic volume alone (the GPU caster does not render horizons yet).
-fn volume_only_scene(dir: &Path) -> PathBuf {
-    let src = survey().join("scene.toml");
-    let mut s =
-        strata_common::scene::Scene::parse(&src, &std::fs::read_to_string(&src).unwrap()).unwrap();
-    s.horizons.clear();
-    for v in &mut s.volumes {
-        if v.store.is_relative() {
-            v.store = survey().join(&v.store);
-        }
-    }
-    let p = dir.join("volume-only.toml");
-    std::fs::write(&p, toml::to_string(&s).unwrap()).unwrap();
-    p
-}
-
 #[test]
 fn gpu_workers_equal_the_in_process_cpu_image() {
-    // Three worker processes, each casting on its own wgpu device (lavapipe in CI), composite
-    // to the single-process CPU image. Skipped without an adapter unless one is required.
+    // Three worker processes, each casting the survey's volume and horizons on its own wgpu
+    // device (lavapipe in CI), composite to the single-process CPU image. Skipped without an
+    // adapter unless one is required.
     if strata_worker::gpu::list_adapters().is_empty() {
         assert_ne!(
             std::env::var("STRATA_REQUIRE_GPU_ADAPTER").as_deref(),
@@ -443,7 +429,7 @@ fn gpu_workers_equal_the_in_process_cpu_image() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let scene = volume_only_scene(dir.path());
+    let scene = survey().join("scene.toml");
     let go = |name: &str, extra: &[&str]| {
         let out = dir.path().join(format!("{name}.exr"));
         let stats = out.with_extension("jsonl");
@@ -466,7 +452,7 @@ fn gpu_workers_equal_the_in_process_cpu_image() {
         "3 GPU workers against the in-process CPU image: {d}"
     );
     let alpha: f32 = cpu.iter().map(|p| p[3]).sum();
-    assert!(alpha > 100.0, "the image shows the volume");
+    assert!(alpha > 100.0, "the image shows the data");
     let workers = gpu_stats
         .lines()
         .filter(|l| l.contains("\"kind\":\"worker\""))

@@ -432,7 +432,7 @@ fn grazing_rays_on_a_plane() {
     let px = render_on_both(&s, 1e-4, "grazing rays on a plane");
     assert_clean(&px);
     // Analytic: the ray hits z = 10 at distance 0.5/(-dz); it counts if that lands on the grid.
-    let view = strata_worker::camera::View::new(&cam, &s.render, 97, 33).unwrap();
+    let view = strata_common::camera::View::new(&cam, &s.render, 97, 33).unwrap();
     let mut hits = 0;
     for y in 0..33 {
         for x in 0..97 {

@@ -10,6 +10,7 @@
 
 use std::path::Path;
 use strata_common::kd::KdTree;
+use strata_common::sample::SampleType;
 use strata_common::scene::{Backend, Scene};
 use strata_tests::scenes::*;
 use strata_worker::engine::{Engine, Outcome};
@@ -297,5 +298,129 @@ fn gpu_region_split_with_horizons_is_seamless() {
             "{} GPU regions with horizons: max difference {d}",
             tree.leaves.len()
         );
+    }
+}
+
+/// A 40×36×32 volume of type `t`: a smooth pattern over the type's range, quantized, with
+/// every 53rd sample no-data when the type has a sentinel.
+fn typed_volume(
+    dir: &Path,
+    name: &str,
+    t: SampleType,
+    no_data: Option<f32>,
+    page: u32,
+) -> std::path::PathBuf {
+    let dims = [40u64, 36, 32];
+    let (lo, hi) = match t {
+        SampleType::F32 => (-1.0, 1.0),
+        _ => t.range(),
+    };
+    let data: Vec<f32> = (0..dims.iter().product::<u64>())
+        .map(|i| {
+            if no_data.is_some() && i % 53 == 7 {
+                return f32::NAN;
+            }
+            let (x, y, z) = (i % 40, i / 40 % 36, i / (40 * 36));
+            let u = 0.5
+                + 0.45
+                    * (x as f32 * 0.31).sin()
+                    * (y as f32 * 0.17).cos()
+                    * (z as f32 * 0.23 + 0.4).sin();
+            let v = lo + (hi - lo) * u;
+            if t == SampleType::F32 {
+                v
+            } else {
+                v.round().clamp(lo + 1.0, hi - 1.0) // keep clear of the sentinels
+            }
+        })
+        .collect();
+    let path = dir.join(format!("{name}.strata"));
+    let mut o = strata_coordinator::builder::BuildOptions::volume(name, t);
+    o.page_size = page;
+    o.no_data = no_data;
+    strata_coordinator::builder::build_store(
+        &strata_coordinator::source::MemorySource { dims, data },
+        &path,
+        &o,
+        &indicatif::ProgressBar::hidden(),
+    )
+    .unwrap();
+    path
+}
+
+fn typed_scene(stores: Vec<(std::path::PathBuf, [f64; 2])>) -> Scene {
+    let camera = strata_common::scene::Camera {
+        eye: [-30.0, -45.0, 60.0],
+        target: [19.5, 17.5, 15.5],
+        up: [0.0, 0.0, 1.0],
+        fov_deg: 40.0,
+    };
+    let vols = stores
+        .into_iter()
+        .map(|(p, w)| volume_layer(p, "viridis", w, vec![[0.0, 0.0], [0.3, 0.05], [1.0, 0.4]]))
+        .collect();
+    scene(vols, vec![], camera, exact_settings(64, 48))
+}
+
+#[test]
+fn gpu_pools_keep_8_and_16_bit_samples_narrow_and_equal_the_cpu() {
+    if !gpu_available() {
+        return;
+    }
+    use SampleType::*;
+    let dir = TempDir::new().unwrap();
+    let f32_store = typed_volume(dir.path(), "f32", F32, None, 32);
+    let batch = |s: &Scene| {
+        let mut e = Engine::new(&on(s, Backend::Gpu)).unwrap();
+        let view = e.view(64, 48).unwrap();
+        let region = e.scene_region();
+        let r = e.render_batch(&view, &region).unwrap();
+        assert_eq!(r.outcome, Outcome::Converged);
+        (e.gpu_pool_bits(), r.uploaded_bytes)
+    };
+    let (bits32, up32) = batch(&typed_scene(vec![(f32_store.clone(), [-1.0, 1.0])]));
+    assert_eq!(bits32, Some(32));
+    for (t, nd, want_bits) in [
+        (U8, None, 8),
+        (U8, Some(255.0), 8),
+        (I8, Some(-128.0), 8),
+        (U16, Some(65535.0), 16),
+        (I16, Some(-32768.0), 16),
+    ] {
+        let name = format!("{t:?}-{}", nd.is_some());
+        let store = typed_volume(dir.path(), &name, t, nd, 32);
+        let (lo, hi) = t.range();
+        let s = typed_scene(vec![(store, [lo as f64, hi as f64])]);
+        assert_gpu_matches_cpu(&s, 1e-4, &name);
+        let (bits, up) = batch(&s);
+        assert_eq!(bits, Some(want_bits), "{name}");
+        // Pages dominate the upload: a byte per sample is about a quarter of f32's.
+        let ratio = up as f64 / up32 as f64;
+        let want = want_bits as f64 / 32.0;
+        assert!(
+            ratio < want * 1.15 && ratio > want * 0.85,
+            "{name}: uploaded {up} bytes against {up32} for f32 ({ratio:.3})"
+        );
+    }
+    // Mixed types share one pool in the widest width, each decoding its own signedness and
+    // sentinel: u8 with i16 (16-bit), u8 with f32 (32-bit).
+    let u8s = typed_volume(dir.path(), "u8b", U8, Some(0.0), 32);
+    let i16s = typed_volume(dir.path(), "i16b", I16, Some(-32768.0), 32);
+    let f32b = typed_volume(dir.path(), "f32b", F32, None, 32);
+    for (what, stores, bits) in [
+        (
+            "u8 + i16",
+            vec![(u8s.clone(), [0.0, 255.0]), (i16s, [-32768.0, 32767.0])],
+            16,
+        ),
+        (
+            "u8 + f32",
+            vec![(u8s, [0.0, 255.0]), (f32b, [-1.0, 1.0])],
+            32,
+        ),
+    ] {
+        let s = typed_scene(stores);
+        assert_gpu_matches_cpu(&s, 1e-4, what);
+        assert_eq!(batch(&s).0, Some(bits), "{what}");
     }
 }

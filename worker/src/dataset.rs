@@ -2,7 +2,6 @@
 //! bounds (from the store index, so known without loading a page) that drive empty-space
 //! skipping for volumes and the min-max quadtree for horizons.
 
-use crate::tf::{ColorMap, TransferFunction};
 use anyhow::{bail, Context, Result};
 use std::sync::Arc;
 use strata_common::geo::Affine3;
@@ -10,6 +9,7 @@ use strata_common::kd::Region;
 use strata_common::pyramid::Pyramid;
 use strata_common::scene::{HorizonLayer, Scene, VolumeLayer};
 use strata_common::store::{DataKind, PageStore, PAGE_EMPTY};
+use strata_common::tf::{ColorMap, TransferFunction};
 
 /// A volume to draw.
 pub struct Volume {
@@ -86,17 +86,6 @@ fn open(path: &std::path::Path, kind: DataKind) -> Result<Arc<PageStore>> {
 }
 
 impl Volume {
-    /// Whether a page with index bounds `[min, max]` contributes nothing: no valid value,
-    /// or (with empty-space skipping) values the transfer function makes transparent.
-    /// The renderer skips such bricks and the decomposition weighs them down.
-    pub fn page_transparent(&self, b: [f32; 2], skipping: bool) -> bool {
-        if skipping {
-            self.tf.max_alpha(b[0], b[1]) <= 0.0
-        } else {
-            !(b[0] <= b[1])
-        }
-    }
-
     /// Opens a volume layer as data set `ds`.
     pub fn open(layer: &VolumeLayer, ds: u16) -> Result<Self> {
         let store = open(&layer.store, DataKind::Volume)?;

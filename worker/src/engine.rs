@@ -2,7 +2,6 @@
 
 use crate::atlas::{PageTable, PlaceError, Pool};
 use crate::cache::{CacheStats, Class, PageCache};
-use crate::camera::{default_camera, invert_affine, View};
 use crate::dataset::SceneData;
 use crate::feedback::Feedback;
 use crate::gpu::backend::{GpuBackend, GpuFrameStats};
@@ -13,6 +12,7 @@ use crate::volume::VolFrame;
 use anyhow::{bail, Context, Result};
 use std::collections::HashSet;
 use std::time::{Duration, Instant};
+use strata_common::camera::{default_camera, View};
 use strata_common::geo::Affine3;
 use strata_common::image::{PartialImage, Rect};
 use strata_common::kd::Region;
@@ -142,6 +142,12 @@ fn open_backend(s: &RenderSettings, data: &SceneData) -> Result<Option<GpuBacken
             .and_then(|v| v.parse().ok()),
     };
     let nv = data.volumes.len();
+    let types = || {
+        data.volumes
+            .iter()
+            .map(|v| (v.store.header().sample_type, v.store.header().no_data))
+            .collect()
+    };
     let pyramids = || {
         (0..nv + data.horizons.len())
             .map(|ds| data.pyramid(ds as u16).clone())
@@ -153,7 +159,7 @@ fn open_backend(s: &RenderSettings, data: &SceneData) -> Result<Option<GpuBacken
             if let Some(why) = gpu_unfit(data) {
                 bail!("render.backend = \"gpu\": {why}; use \"cpu\" or \"auto\"");
             }
-            GpuBackend::new(&choice(true), pyramids(), nv)
+            GpuBackend::new(&choice(true), pyramids(), types())
                 .map(Some)
                 .context("render.backend = \"gpu\"")
         }
@@ -162,7 +168,7 @@ fn open_backend(s: &RenderSettings, data: &SceneData) -> Result<Option<GpuBacken
                 tracing::info!("backend auto: CPU caster ({why})");
                 return Ok(None);
             }
-            match GpuBackend::new(&choice(false), pyramids(), nv) {
+            match GpuBackend::new(&choice(false), pyramids(), types()) {
                 Ok(g) => Ok(Some(g)),
                 Err(e) => {
                     tracing::info!("backend auto: CPU caster ({e:#})");
@@ -232,10 +238,10 @@ impl Engine {
             (None, _) => None,
             (Some(n), None) => Some(Pool::new(n, s.atlas_mb << 20)),
             (Some(n), Some(g)) => {
-                // The samples live in one device buffer: as many slots as the budget and the
-                // adapter's largest binding allow.
-                let want = Pool::slots_for(n, s.atlas_mb << 20);
-                let slots = want.min(g.max_slots(n));
+                // The samples live in one device buffer in their own width (8-bit data takes
+                // a byte per sample): as many slots as the budget and the adapter's largest
+                // binding allow.
+                let (want, slots) = g.volume_slots(n, s.atlas_mb << 20);
                 if slots < want {
                     tracing::warn!(
                         want,
@@ -251,7 +257,8 @@ impl Engine {
             (None, _) => None,
             (Some(n), None) => Some(Pool::new(n, s.horizon_atlas_mb << 20)),
             (Some(n), Some(g)) => {
-                let slots = Pool::slots_for(n, s.horizon_atlas_mb << 20).min(g.max_slots(n));
+                let slots =
+                    Pool::slots_for(n, s.horizon_atlas_mb << 20).min(g.max_horizon_slots(n));
                 g.alloc_horizon_pool(slots, n)?;
                 Some(Pool::bookkeeping(n, slots))
             }
@@ -275,7 +282,11 @@ impl Engine {
             gpu,
         };
         if let Some(g) = &e.gpu {
-            tracing::info!(adapter = %g.adapter_name(), "GPU caster");
+            tracing::info!(
+                adapter = %g.adapter_name(),
+                pool_bits = g.pool_format().bits,
+                "GPU caster"
+            );
         }
         e.pin_roots()?;
         Ok(e)
@@ -346,6 +357,14 @@ impl Engine {
         }
     }
 
+    /// Bits per sample of the GPU's volume pool (8, 16 or 32; `None` on the CPU).
+    pub fn gpu_pool_bits(&self) -> Option<u32> {
+        self.gpu
+            .as_ref()
+            .filter(|_| !self.data.volumes.is_empty())
+            .map(|g| g.pool_format().bits)
+    }
+
     /// The camera (the scene's, or one that frames the data).
     pub fn camera(&self) -> &Camera {
         &self.camera
@@ -363,7 +382,7 @@ impl Engine {
 
     /// The view of the scene camera at `width`×`height`.
     pub fn view(&self, width: u32, height: u32) -> Result<View> {
-        View::new(&self.camera, &self.settings, width, height)
+        Ok(View::new(&self.camera, &self.settings, width, height)?)
     }
 
     /// Page-cache counters.
@@ -387,7 +406,7 @@ impl Engine {
         let mut vmin = f64::INFINITY;
         let mut max_levels = 1;
         let mut vols = Vec::new();
-        let tf_tables_for = |exps: &[f32], tf: &crate::tf::TransferFunction| {
+        let tf_tables_for = |exps: &[f32], tf: &strata_common::tf::TransferFunction| {
             exps.iter().map(|&e| tf.step_table(e)).collect::<Vec<_>>()
         };
         let rel: Vec<Affine3> = self
@@ -425,7 +444,8 @@ impl Engine {
             .map(|b| (s.step as f32) * (1u64 << b) as f32)
             .collect();
         for (i, v) in self.data.volumes.iter().enumerate() {
-            let inv = invert_affine(&rel[i])
+            let inv = rel[i]
+                .inverse()
                 .expect("stores with singular transforms are refused at open, z_scale > 0");
             let (m, c) = rows_f32(&inv);
             let vsize = (0..3).map(|k| col_len(&rel[i], k)).fold(0.0, f64::max);
@@ -434,7 +454,7 @@ impl Engine {
             let transparent = v
                 .bounds
                 .iter()
-                .map(|&b| v.page_transparent(b, s.empty_space_skipping))
+                .map(|&b| v.tf.page_transparent(b, s.empty_space_skipping))
                 .collect();
             let d = v.dims();
             vols.push(VolFrame {
@@ -456,7 +476,8 @@ impl Engine {
         let mut hors = Vec::new();
         for h in &self.data.horizons {
             let rel = view.relative_affine(&h.to_world);
-            let inv = invert_affine(&rel)
+            let inv = rel
+                .inverse()
                 .expect("stores with singular transforms are refused at open, z_scale > 0");
             let (m, c) = rows_f32(&inv);
             let cell = col_len(&rel, 0).max(col_len(&rel, 1));

@@ -12,8 +12,8 @@
 //! neither hit nor leave cracks between valid cells (valid neighbours share edge heights).
 
 use crate::atlas::{PageTable, Pool, NOT_RESIDENT, SLOT_MASK};
-use crate::tf::ColorMap;
 use strata_common::pyramid::Pyramid;
+use strata_common::tf::ColorMap;
 
 /// A horizon prepared for one frame.
 pub struct HorFrame<'a> {

@@ -10,17 +10,18 @@
 //! * [`atlas`]: the virtualized atlas: fixed pools of page slots and per-data-set page
 //!   tables, in the `#[repr(C)]` layout of `strata_common::gpu` that both backends read.
 //! * [`feedback`]: per-ray page requests, reduced to priorities.
-//! * [`camera`]: f64 camera and data transforms, camera-relative f32 rays.
-//! * [`tf`]: colour maps and transfer functions (opacity-corrected step tables).
 //! * [`volume`], [`horizon`], [`raycast`]: the CPU ray caster.
-//! * [`gpu`]: the wgpu backend: atlas pool and page tables in GPU buffers, the WGSL caster
-//!   of volumes, feedback counted and compacted on the GPU (`render.backend`).
+//! * [`gpu`]: the wgpu backend: atlas pools and page tables in GPU buffers, the WGSL caster
+//!   of volumes and horizons, feedback counted and compacted on the GPU (`render.backend`).
+//!
+//! The maths both backends and the coordinator use (the camera and view, transfer
+//! functions and colour maps, page transparency, affine inverses) lives in
+//! `strata_common` (`camera`, `tf`, `geo`).
 //! * [`engine`]: frames, feedback → loads → atlas updates, batch convergence.
 #![deny(missing_docs)]
 
 pub mod atlas;
 pub mod cache;
-pub mod camera;
 pub mod cli;
 pub mod dataset;
 pub mod engine;
@@ -29,5 +30,4 @@ pub mod gpu;
 pub mod horizon;
 pub mod node;
 pub mod raycast;
-pub mod tf;
 pub mod volume;

@@ -8,13 +8,13 @@
 //! vanishes is detected by the QUIC idle timeout (keep-alives run underneath) and turns
 //! into an error that names it.
 
-use crate::camera::View;
 use crate::engine::{Engine, Outcome};
 use anyhow::{anyhow, bail, Context, Result};
 use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
+use strata_common::camera::View;
 use strata_common::composite::{build_plan, Interlace, Plan, RankCompositor, SparsePiece};
 use strata_common::image::{composite_front_to_back, PartialImage, Rect, Rgba};
 use strata_common::scene::Scene;

@@ -5,8 +5,8 @@
 //! ray therefore takes exactly the samples that rendering the ray whole would take.
 
 use crate::atlas::{PageTable, Pool, NOT_RESIDENT, SLOT_MASK};
-use crate::tf::StepTable;
 use strata_common::pyramid::Pyramid;
+use strata_common::tf::StepTable;
 
 /// A volume prepared for one frame.
 pub struct VolFrame<'a> {

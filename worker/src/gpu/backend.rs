@@ -8,11 +8,12 @@ use crate::feedback::Feedback;
 use crate::raycast::{CastStats, FrameSetup};
 use anyhow::{bail, Result};
 use strata_common::gpu::{
-    FrameParams, HorizonParams, VolumeParams, HORIZON_DEPTH_MAP, HORIZON_LIGHTING, MAX_BANDS,
-    MAX_HORIZONS, MAX_LEVELS, TF_SIZE,
+    FrameParams, HorizonParams, PoolFormat, VolumeParams, HORIZON_DEPTH_MAP, HORIZON_LIGHTING,
+    MAX_BANDS, MAX_HORIZONS, MAX_LEVELS, TF_SIZE,
 };
 use strata_common::image::PartialImage;
 use strata_common::pyramid::Pyramid;
+use strata_common::sample::SampleType;
 
 /// The GPU caster plus where each data set's page table lives in the global tables.
 pub struct GpuBackend {
@@ -27,6 +28,11 @@ pub struct GpuBackend {
     entries: u32,
     pyramids: Vec<Pyramid>,
     global: Vec<u32>,
+    /// How the volume pool stores samples.
+    format: PoolFormat,
+    /// Each volume's sample type and no-data sentinel.
+    types: Vec<(SampleType, Option<f32>)>,
+    scratch: Vec<u8>,
 }
 
 /// What a GPU frame adds to the CPU's counters.
@@ -41,9 +47,14 @@ pub struct GpuFrameStats {
 }
 
 impl GpuBackend {
-    /// Opens the adapter for data sets with these pyramids, in data-set order: `volumes`
-    /// volumes, then horizons.
-    pub fn new(choice: &AdapterChoice, pyramids: Vec<Pyramid>, volumes: usize) -> Result<Self> {
+    /// Opens the adapter for data sets with these pyramids, in data-set order: the volumes
+    /// (with their sample types and no-data sentinels in `types`), then horizons.
+    pub fn new(
+        choice: &AdapterChoice,
+        pyramids: Vec<Pyramid>,
+        types: Vec<(SampleType, Option<f32>)>,
+    ) -> Result<Self> {
+        let volumes = types.len();
         let horizons = pyramids.len().saturating_sub(volumes);
         if pyramids.is_empty() || volumes > MAX_VOLUMES || horizons > MAX_HORIZONS {
             bail!(
@@ -74,6 +85,9 @@ impl GpuBackend {
             bail!("the scene's page tables ({n} entries) exceed the GPU caster's u32 indices");
         }
         Ok(GpuBackend {
+            format: PoolFormat::for_types(types.iter().map(|t| t.0)),
+            types,
+            scratch: Vec::new(),
             caster,
             volumes,
             table_base,
@@ -89,14 +103,31 @@ impl GpuBackend {
         self.caster.adapter_name()
     }
 
-    /// Pool slots the adapter can bind for pages of `page_samples` samples.
-    pub fn max_slots(&self, page_samples: usize) -> usize {
-        self.caster.max_slots(page_samples)
+    /// The volume pool's element format.
+    pub fn pool_format(&self) -> PoolFormat {
+        self.format
     }
 
-    /// Allocates the device pool.
+    /// Volume-pool slots for pages of `page_samples` samples: as many as `budget_bytes` holds
+    /// in the pool's format and the adapter can bind (at least one).
+    pub fn volume_slots(&self, page_samples: usize, budget_bytes: u64) -> (usize, usize) {
+        let slot = self.format.slot_bytes(page_samples);
+        let want = ((budget_bytes / slot) as usize).clamp(1, strata_common::gpu::MAX_SLOTS);
+        (want, want.min(self.caster.max_slots(slot)))
+    }
+
+    /// Horizon-pool slots (f32 heights) the adapter can bind.
+    pub fn max_horizon_slots(&self, page_samples: usize) -> usize {
+        self.caster.max_slots(page_samples as u64 * 4)
+    }
+
+    /// Allocates the device's volume pool.
     pub fn alloc_pool(&mut self, slots: usize, page_samples: usize) -> Result<()> {
-        self.caster.alloc_pool(slots, page_samples)
+        self.caster.alloc_pool(
+            slots,
+            self.format.slot_bytes(page_samples),
+            self.format.bits,
+        )
     }
 
     /// Allocates the device's horizon pool.
@@ -107,8 +138,10 @@ impl GpuBackend {
     /// Writes a newly resident page of data set `ds` into its slot (of the volume or the
     /// horizon pool).
     pub fn write_page(&mut self, ds: u16, slot: u32, samples: &[f32]) {
-        if (ds as usize) < self.volumes {
-            self.caster.write_page(slot, samples);
+        if let Some(&(t, no_data)) = self.types.get(ds as usize) {
+            self.scratch.clear();
+            self.format.encode(samples, t, no_data, &mut self.scratch);
+            self.caster.write_page(slot, &self.scratch);
         } else {
             self.caster.write_horizon_page(slot, samples);
         }
@@ -192,6 +225,8 @@ impl GpuBackend {
                 tf.extend_from_slice(&t.entries);
             }
             let base = self.table_base[i];
+            let (t, no_data) = self.types[i];
+            let (vflags, vno_data) = self.format.volume_flags(t, no_data);
             for (j, &tr) in v.transparent.iter().enumerate() {
                 if tr {
                     let g = base as usize + j;
@@ -221,7 +256,8 @@ impl GpuBackend {
                 tf_offset: t0.offset,
                 tf_last: t0.last,
                 pool_base: 0,
-                _pad: [0; 2],
+                flags: vflags,
+                no_data: vno_data,
                 level_t,
             });
         }

@@ -35,6 +35,10 @@ const STACK: u32 = 52u;
 override SHADING: bool = false;
 override MULTI: bool = false;
 override HORIZONS: bool = false;
+// Bits per element of the volume pool (strata_common::gpu::PoolFormat): 8, 16 or 32.
+override POOL_BITS: u32 = 32u;
+const VOLUME_SIGNED: u32 = 1u;
+const VOLUME_NO_DATA: u32 = 2u;
 
 struct Frame {
     dir00: vec3<f32>,
@@ -76,8 +80,8 @@ struct Volume {
     tf_offset: f32,
     tf_last: f32,
     pool_base: u32,
-    _pad0: u32,
-    _pad1: u32,
+    flags: u32,
+    no_data: i32,
     level_t: array<f32, 16>,
 }
 
@@ -123,7 +127,8 @@ struct Cursor {
 // One bit per page-table entry: nothing in the page is visible under the transfer function.
 @group(0) @binding(4) var<storage, read> transparent: array<u32>;
 @group(0) @binding(5) var<storage, read> tf: array<vec4<f32>>;
-@group(0) @binding(6) var<storage, read> pool: array<f32>;
+// The volume pool: slots of page³ elements of POOL_BITS bits (x fastest), packed in words.
+@group(0) @binding(6) var<storage, read> pool: array<u32>;
 @group(0) @binding(7) var<storage, read_write> feedback: array<atomic<u32>>;
 @group(0) @binding(8) var<storage, read_write> out_px: array<vec4<f32>>;
 // samples lo/hi, skipped lo/hi, terminated, rays, hits.
@@ -282,7 +287,7 @@ fn locate(vi: u32, cur: ptr<function, Cursor>, t: f32, q: vec3<f32>, md: vec3<f3
     let sr = ldexp(1.0, -i32(r));
     let k = r - level;
     let p = vols[vi].page;
-    (*cur).base = vols[vi].pool_base + slot * p * p * p;
+    (*cur).base = vols[vi].pool_base + slot * slot_elems(p);
     (*cur).s = sr;
     let border = vols[vi].border;
     for (var a = 0u; a < 3u; a = a + 1u) {
@@ -291,8 +296,37 @@ fn locate(vi: u32, cur: ptr<function, Cursor>, t: f32, q: vec3<f32>, md: vec3<f3
     }
 }
 
+// Elements of a slot: page³ rounded up to whole words (strata_common::gpu::PoolFormat).
+fn slot_elems(p: u32) -> u32 {
+    let per_word = 32u / POOL_BITS;
+    return (p * p * p + per_word - 1u) / per_word * per_word;
+}
+
+// Pool element i as the f32 of the host's decoded page (PoolFormat::decode).
+fn fetch(i: u32, flags: u32, nd: i32) -> f32 {
+    if (POOL_BITS == 32u) {
+        return bitcast<f32>(pool[i]);
+    }
+    // Element i of POOL_BITS bits inside its word, sign- or zero-extended.
+    let per_word = 32u / POOL_BITS;
+    let w = pool[i / per_word];
+    let off = (i % per_word) * POOL_BITS;
+    var raw: i32;
+    if ((flags & VOLUME_SIGNED) != 0u) {
+        raw = extractBits(bitcast<i32>(w), off, POOL_BITS);
+    } else {
+        raw = i32(extractBits(w, off, POOL_BITS));
+    }
+    if ((flags & VOLUME_NO_DATA) != 0u && raw == nd) {
+        return nan_f32();
+    }
+    return f32(raw);
+}
+
 // Trilinear interpolation in a p³ page at local coordinates within [0, p − 1).
-fn trilinear(base: u32, p: u32, x: f32, y: f32, z: f32) -> f32 {
+fn trilinear(vi: u32, base: u32, p: u32, x: f32, y: f32, z: f32) -> f32 {
+    let fl = vols[vi].flags;
+    let nd = vols[vi].no_data;
     let xi = u32(x);
     let yi = u32(y);
     let zi = u32(z);
@@ -302,10 +336,18 @@ fn trilinear(base: u32, p: u32, x: f32, y: f32, z: f32) -> f32 {
     let i = base + (zi * p + yi) * p + xi;
     let sy = p;
     let sz = p * p;
-    let c00 = pool[i] + fx * (pool[i + 1u] - pool[i]);
-    let c10 = pool[i + sy] + fx * (pool[i + sy + 1u] - pool[i + sy]);
-    let c01 = pool[i + sz] + fx * (pool[i + sz + 1u] - pool[i + sz]);
-    let c11 = pool[i + sz + sy] + fx * (pool[i + sz + sy + 1u] - pool[i + sz + sy]);
+    let v000 = fetch(i, fl, nd);
+    let v100 = fetch(i + 1u, fl, nd);
+    let v010 = fetch(i + sy, fl, nd);
+    let v110 = fetch(i + sy + 1u, fl, nd);
+    let v001 = fetch(i + sz, fl, nd);
+    let v101 = fetch(i + sz + 1u, fl, nd);
+    let v011 = fetch(i + sz + sy, fl, nd);
+    let v111 = fetch(i + sz + sy + 1u, fl, nd);
+    let c00 = v000 + fx * (v100 - v000);
+    let c10 = v010 + fx * (v110 - v010);
+    let c01 = v001 + fx * (v101 - v001);
+    let c11 = v011 + fx * (v111 - v011);
     let c0 = c00 + fy * (c10 - c00);
     let c1 = c01 + fy * (c11 - c01);
     return c0 + fz * (c1 - c0);
@@ -318,13 +360,13 @@ fn local(vi: u32, cur: ptr<function, Cursor>, q: vec3<f32>, dx: vec3<f32>) -> ve
 
 fn sample_at(vi: u32, cur: ptr<function, Cursor>, q: vec3<f32>) -> f32 {
     let l = local(vi, cur, q, vec3<f32>(0.0));
-    return trilinear((*cur).base, vols[vi].page, l.x, l.y, l.z);
+    return trilinear(vi, (*cur).base, vols[vi].page, l.x, l.y, l.z);
 }
 
 fn tap(vi: u32, cur: ptr<function, Cursor>, q: vec3<f32>, dx: vec3<f32>) -> f32 {
     let maxc = f32(vols[vi].page - 1u) - 1e-3;
     let l = clamp(q * (*cur).s + (*cur).o + dx, vec3<f32>(0.0), vec3<f32>(maxc));
-    return trilinear((*cur).base, vols[vi].page, l.x, l.y, l.z);
+    return trilinear(vi, (*cur).base, vols[vi].page, l.x, l.y, l.z);
 }
 
 // Premultiplied, step-corrected RGBA of value s in band b.

@@ -114,8 +114,8 @@ pub struct GpuCaster {
     info: wgpu::AdapterInfo,
     limits: wgpu::Limits,
     module: wgpu::ShaderModule,
-    /// Cast pipelines by effect set (shading, several volumes, horizons).
-    pipelines: HashMap<(bool, bool, bool), wgpu::ComputePipeline>,
+    /// Cast pipelines by effect set (shading, several volumes, horizons) and pool width.
+    pipelines: HashMap<(bool, bool, bool, u32), wgpu::ComputePipeline>,
     compact: wgpu::ComputePipeline,
     frame: wgpu::Buffer,
     vols: wgpu::Buffer,
@@ -139,6 +139,7 @@ pub struct GpuCaster {
     levels_mirror: Vec<[u32; 4]>,
     hbounds_mirror: Vec<[f32; 2]>,
     page_bytes: u64,
+    pool_bits: u32,
     hpage_bytes: u64,
     /// Bytes written to the device since the last [`take_uploaded`](Self::take_uploaded).
     uploaded: u64,
@@ -376,6 +377,7 @@ impl GpuCaster {
             levels_mirror: Vec::new(),
             hbounds_mirror: Vec::new(),
             page_bytes: 0,
+            pool_bits: 32,
             hpage_bytes: 0,
             uploaded: 0,
             uncaptured,
@@ -392,26 +394,30 @@ impl GpuCaster {
         self.info.device_type == wgpu::DeviceType::Cpu
     }
 
-    /// Pool slots of `page_samples` f32 samples the adapter can bind in one buffer.
-    pub fn max_slots(&self, page_samples: usize) -> usize {
+    /// Pool slots of `slot_bytes` the adapter can bind in one buffer.
+    pub fn max_slots(&self, slot_bytes: u64) -> usize {
         let bind =
             (self.limits.max_storage_buffer_binding_size as u64).min(self.limits.max_buffer_size);
-        (bind / (page_samples as u64 * 4)) as usize
+        (bind / slot_bytes.max(1)) as usize
     }
 
-    /// Allocates the atlas pool: `slots` slots of `page_samples` f32 samples.
-    pub fn alloc_pool(&mut self, slots: usize, page_samples: usize) -> Result<()> {
-        let bytes = slots as u64 * page_samples as u64 * 4;
-        self.page_bytes = page_samples as u64 * 4;
+    /// Allocates the volume pool: `slots` slots of `slot_bytes`, elements of `bits` bits
+    /// (`strata_common::gpu::PoolFormat`).
+    pub fn alloc_pool(&mut self, slots: usize, slot_bytes: u64, bits: u32) -> Result<()> {
+        if !matches!(bits, 8 | 16 | 32) || slot_bytes % 4 != 0 {
+            bail!("GPU pool: {bits}-bit elements in slots of {slot_bytes} bytes");
+        }
+        let bytes = slots as u64 * slot_bytes;
+        self.page_bytes = slot_bytes;
+        self.pool_bits = bits;
         let (device, pool) = (&self.device, &mut self.pool);
         checked(device, "allocating the atlas pool", || {
             pool.ensure(device, bytes);
         })
     }
 
-    /// Writes a page into its pool slot.
-    pub fn write_page(&mut self, slot: u32, samples: &[f32]) {
-        let bytes: &[u8] = bytemuck::cast_slice(samples);
+    /// Writes a page, encoded in the pool's format, into its slot.
+    pub fn write_page(&mut self, slot: u32, bytes: &[u8]) {
         debug_assert_eq!(bytes.len() as u64, self.page_bytes);
         self.queue
             .write_buffer(self.pool.get(), slot as u64 * self.page_bytes, bytes);
@@ -558,7 +564,7 @@ impl GpuCaster {
         multi: bool,
         horizons: bool,
     ) -> Result<wgpu::ComputePipeline> {
-        let key = (shading, multi, horizons);
+        let key = (shading, multi, horizons, self.pool_bits);
         if let Some(p) = self.pipelines.get(&key) {
             return Ok(p.clone());
         }
@@ -568,6 +574,7 @@ impl GpuCaster {
                 ("SHADING", if shading { 1.0 } else { 0.0 }),
                 ("MULTI", if multi { 1.0 } else { 0.0 }),
                 ("HORIZONS", if horizons { 1.0 } else { 0.0 }),
+                ("POOL_BITS", self.pool_bits as f64),
             ];
             device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some("cast"),

@@ -7,11 +7,23 @@
 //! sample. Empty-space skipping asks [`TransferFunction::max_alpha`] whether any value in a
 //! brick's [min, max] can be visible.
 
-use anyhow::{bail, Result};
-use strata_common::scene::VolumeLayer;
+use crate::scene::VolumeLayer;
 
-/// Entries per table.
-pub const TF_SIZE: usize = 1024;
+/// A transfer function or colour map that cannot be built, with the reason.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{0}")]
+pub struct TfError(pub String);
+
+type Result<T> = std::result::Result<T, TfError>;
+
+macro_rules! bail {
+    ($($t:tt)*) => {
+        return Err(TfError(format!($($t)*)))
+    };
+}
+
+/// Entries per table (the GPU caster's tables have the same size).
+pub use crate::gpu::TF_SIZE;
 
 /// sRGB-encoded control points of the built-in maps, converted to linear when sampled.
 fn map_points(name: &str) -> Option<&'static [[f32; 3]]> {
@@ -214,6 +226,17 @@ impl TransferFunction {
     fn pos(&self, v: f32) -> f32 {
         let n = (self.table.len() - 1) as f32;
         ((v - self.lo) / (self.hi - self.lo)).clamp(0.0, 1.0) * n
+    }
+
+    /// Whether a page with value bounds `[min, max]` contributes nothing: no valid value
+    /// (NaN bounds), or (with empty-space skipping) only values this function makes
+    /// transparent. Both casters skip such bricks and the decomposition weighs them down.
+    pub fn page_transparent(&self, b: [f32; 2], skipping: bool) -> bool {
+        if skipping {
+            self.max_alpha(b[0], b[1]) <= 0.0
+        } else {
+            !(b[0] <= b[1])
+        }
     }
 
     /// Largest alpha any value in `[vmin, vmax]` can map to (interpolation included).

@@ -6,10 +6,29 @@
 //! relative to the eye before it is rounded to f32. A survey at UTM coordinates renders the
 //! same as the same survey moved to the origin.
 
-use anyhow::{ensure, Result};
-use strata_common::geo::Affine3;
-use strata_common::kd::Region;
-use strata_common::scene::{Camera, RenderSettings};
+use crate::geo::Affine3;
+use crate::kd::Region;
+use crate::scene::{Camera, RenderSettings};
+
+/// Why a camera cannot be made into a view.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum ViewError {
+    /// A zero image dimension.
+    #[error("image size must be positive, got {0}×{1}")]
+    Size(u32, u32),
+    /// Field of view out of range.
+    #[error("camera.fov_deg must lie in (0, 179), got {0}")]
+    Fov(f64),
+    /// Vertical exaggeration not positive.
+    #[error("render.z_scale must be positive, got {0}")]
+    ZScale(f64),
+    /// No viewing direction.
+    #[error("camera.eye and camera.target coincide")]
+    EyeIsTarget,
+    /// No image orientation.
+    #[error("camera.up is parallel to the viewing direction")]
+    UpParallel,
+}
 
 /// Display-space transform of world points: `(x, y, ±z · z_scale)`.
 #[derive(Copy, Clone, Debug, PartialEq)]
@@ -95,26 +114,27 @@ fn norm(a: [f64; 3]) -> Option<[f64; 3]> {
 
 impl View {
     /// Builds the view of `camera` (world coordinates) at `width`×`height`.
-    pub fn new(camera: &Camera, render: &RenderSettings, width: u32, height: u32) -> Result<Self> {
-        ensure!(width > 0 && height > 0, "image size must be positive");
-        ensure!(
-            camera.fov_deg > 0.0 && camera.fov_deg < 179.0,
-            "camera.fov_deg must lie in (0, 179), got {}",
-            camera.fov_deg
-        );
-        ensure!(
-            render.z_scale > 0.0 && render.z_scale.is_finite(),
-            "render.z_scale must be positive, got {}",
-            render.z_scale
-        );
+    pub fn new(
+        camera: &Camera,
+        render: &RenderSettings,
+        width: u32,
+        height: u32,
+    ) -> Result<Self, ViewError> {
+        if width == 0 || height == 0 {
+            return Err(ViewError::Size(width, height));
+        }
+        if !(camera.fov_deg > 0.0 && camera.fov_deg < 179.0) {
+            return Err(ViewError::Fov(camera.fov_deg));
+        }
+        if !(render.z_scale > 0.0 && render.z_scale.is_finite()) {
+            return Err(ViewError::ZScale(render.z_scale));
+        }
         let display = DisplayMap::new(render);
         let eye = display.apply(camera.eye);
         let target = display.apply(camera.target);
         let up = display.apply_dir(camera.up);
-        let f = norm(sub(target, eye))
-            .ok_or_else(|| anyhow::anyhow!("camera.eye and camera.target coincide"))?;
-        let r = norm(cross(f, up))
-            .ok_or_else(|| anyhow::anyhow!("camera.up is parallel to the viewing direction"))?;
+        let f = norm(sub(target, eye)).ok_or(ViewError::EyeIsTarget)?;
+        let r = norm(cross(f, up)).ok_or(ViewError::UpParallel)?;
         let u = cross(r, f);
         let tan = (camera.fov_deg.to_radians() / 2.0).tan();
         let aspect = width as f64 / height as f64;
@@ -182,61 +202,9 @@ pub fn default_camera(bounds: &Region, render: &RenderSettings) -> Camera {
     }
 }
 
-/// Inverse of an affine map (f64), or `None` if it is singular.
-pub fn invert_affine(a: &Affine3) -> Option<Affine3> {
-    let m = |r: usize, c: usize| a.rows[r][c];
-    let det = m(0, 0) * (m(1, 1) * m(2, 2) - m(1, 2) * m(2, 1))
-        - m(0, 1) * (m(1, 0) * m(2, 2) - m(1, 2) * m(2, 0))
-        + m(0, 2) * (m(1, 0) * m(2, 1) - m(1, 1) * m(2, 0));
-    if det.abs() < 1e-300 || !det.is_finite() {
-        return None;
-    }
-    let inv = [
-        [
-            (m(1, 1) * m(2, 2) - m(1, 2) * m(2, 1)) / det,
-            (m(0, 2) * m(2, 1) - m(0, 1) * m(2, 2)) / det,
-            (m(0, 1) * m(1, 2) - m(0, 2) * m(1, 1)) / det,
-        ],
-        [
-            (m(1, 2) * m(2, 0) - m(1, 0) * m(2, 2)) / det,
-            (m(0, 0) * m(2, 2) - m(0, 2) * m(2, 0)) / det,
-            (m(0, 2) * m(1, 0) - m(0, 0) * m(1, 2)) / det,
-        ],
-        [
-            (m(1, 0) * m(2, 1) - m(1, 1) * m(2, 0)) / det,
-            (m(0, 1) * m(2, 0) - m(0, 0) * m(2, 1)) / det,
-            (m(0, 0) * m(1, 1) - m(0, 1) * m(1, 0)) / det,
-        ],
-    ];
-    let t = [a.rows[0][3], a.rows[1][3], a.rows[2][3]];
-    let mut rows = [[0.0; 4]; 3];
-    for r in 0..3 {
-        rows[r][..3].copy_from_slice(&inv[r]);
-        rows[r][3] = -(inv[r][0] * t[0] + inv[r][1] * t[1] + inv[r][2] * t[2]);
-    }
-    Some(Affine3 { rows })
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn inverse_round_trips() {
-        let a = Affine3 {
-            rows: [
-                [2.0, 0.3, 0.0, 605000.0],
-                [-0.3, 2.0, 0.0, 6075000.0],
-                [0.0, 0.0, 4.0, 12.0],
-            ],
-        };
-        let i = invert_affine(&a).unwrap();
-        let p = [3.0, 7.0, 11.0];
-        let q = i.apply(a.apply(p));
-        for k in 0..3 {
-            assert!((q[k] - p[k]).abs() < 1e-6, "{q:?}");
-        }
-    }
 
     #[test]
     fn centre_ray_is_forward_and_not_mirrored() {
