@@ -256,7 +256,7 @@ fn survey_scene(cli: &Cli, size: [u64; 3], w: u32, h: u32) -> Result<(Scene, boo
 }
 
 fn cpu_vs_gpu(cli: &Cli) -> Result<()> {
-    use strata_common::scene::Backend;
+    use strata_common::scene::{Backend, GpuFilter};
     let store = bonsai_store(cli)?;
     let ss = [
         cli.backends_survey_size[0],
@@ -270,12 +270,17 @@ fn cpu_vs_gpu(cli: &Cli) -> Result<()> {
     for name in ["bonsai", "survey"] {
         for (w, h) in [(1920u32, 1080u32), (3840, 2160)] {
             let mut cpu_row: Option<(f64, Vec<Rgba>)> = None;
-            for backend in [Backend::Cpu, Backend::Gpu] {
+            for (backend, filter) in [
+                (Backend::Cpu, GpuFilter::Exact),
+                (Backend::Gpu, GpuFilter::Exact),
+                (Backend::Gpu, GpuFilter::Hardware),
+            ] {
                 let mut scene = match name {
                     "bonsai" => bonsai_scene(&store, w, h),
                     _ => survey_scene(cli, ss, w, h)?.0,
                 };
                 scene.render.backend = backend;
+                scene.render.gpu_filter = filter;
                 let mut e = match Engine::new(&scene) {
                     Ok(e) => e,
                     Err(err) => {
@@ -301,7 +306,11 @@ fn cpu_vs_gpu(cli: &Cli) -> Result<()> {
                 let img = f.image.to_full();
                 let (diff, speed) = match &cpu_row {
                     Some((cpu_t, cpu_img)) => (
-                        format!("{:.2e}", rmse(&img, cpu_img).1),
+                        format!(
+                            "{:.2e} (RMSE {:.2e})",
+                            rmse(&img, cpu_img).1,
+                            rmse(&img, cpu_img).0
+                        ),
                         format!("{:.2}×", cpu_t / med),
                     ),
                     None => ("–".into(), "1×".into()),

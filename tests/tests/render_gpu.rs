@@ -424,3 +424,53 @@ fn gpu_pools_keep_8_and_16_bit_samples_narrow_and_equal_the_cpu() {
         assert_eq!(batch(&s).0, Some(bits), "{what}");
     }
 }
+
+/// The largest and the mean channel difference between two images.
+fn diff_stats(a: &[[f32; 4]], b: &[[f32; 4]]) -> (f32, f64) {
+    let max = max_diff(a, b);
+    let sum: f64 = a
+        .iter()
+        .zip(b)
+        .flat_map(|(p, q)| (0..4).map(move |c| (p[c] - q[c]).abs() as f64))
+        .sum();
+    (max, sum / (a.len() * 4) as f64)
+}
+
+#[test]
+fn gpu_hardware_filter_stays_within_its_bound_of_the_cpu() {
+    if !gpu_available() {
+        return;
+    }
+    use strata_common::scene::GpuFilter;
+    use SampleType::*;
+    let dir = TempDir::new().unwrap();
+    let mut cases = vec![(
+        "survey f32".to_string(),
+        survey_volume(dir.path(), [72, 56, 48], 64, 96, 64),
+    )];
+    for (t, nd) in [(U8, None), (I8, None), (U16, None), (I16, Some(-32768.0))] {
+        let name = format!("{t:?}");
+        let store = typed_volume(dir.path(), &name, t, nd, 32);
+        let (lo, hi) = t.range();
+        cases.push((name, typed_scene(vec![(store, [lo as f64, hi as f64])])));
+    }
+    for (name, s) in cases {
+        let cpu = render_whole(&on(&s, Backend::Cpu));
+        let mut hw = on(&s, Backend::Gpu);
+        hw.render.gpu_filter = GpuFilter::Hardware;
+        let e = Engine::new(&hw).unwrap();
+        assert!(
+            e.backend_name().ends_with("hardware filter"),
+            "{}",
+            e.backend_name()
+        );
+        let img = render_whole(&hw);
+        assert_clean(&img);
+        let (max, mean) = diff_stats(&cpu, &img);
+        eprintln!("{name}: hardware filter vs CPU: max {max:.3e}, mean {mean:.3e}");
+        assert!(
+            max <= 2e-2 && mean <= 1e-3,
+            "{name}: max {max}, mean {mean}"
+        );
+    }
+}

@@ -159,7 +159,7 @@ fn open_backend(s: &RenderSettings, data: &SceneData) -> Result<Option<GpuBacken
             if let Some(why) = gpu_unfit(data) {
                 bail!("render.backend = \"gpu\": {why}; use \"cpu\" or \"auto\"");
             }
-            GpuBackend::new(&choice(true), pyramids(), types())
+            GpuBackend::new(&choice(true), pyramids(), types(), s.gpu_filter)
                 .map(Some)
                 .context("render.backend = \"gpu\"")
         }
@@ -168,7 +168,7 @@ fn open_backend(s: &RenderSettings, data: &SceneData) -> Result<Option<GpuBacken
                 tracing::info!("backend auto: CPU caster ({why})");
                 return Ok(None);
             }
-            match GpuBackend::new(&choice(false), pyramids(), types()) {
+            match GpuBackend::new(&choice(false), pyramids(), types(), s.gpu_filter) {
                 Ok(g) => Ok(Some(g)),
                 Err(e) => {
                     tracing::info!("backend auto: CPU caster ({e:#})");
@@ -285,6 +285,7 @@ impl Engine {
             tracing::info!(
                 adapter = %g.adapter_name(),
                 pool_bits = g.pool_format().bits,
+                filter = ?g.filter(),
                 "GPU caster"
             );
         }
@@ -352,6 +353,9 @@ impl Engine {
     /// `gpu: NVIDIA H100 80GB HBM3 (Vulkan)`.
     pub fn backend_name(&self) -> String {
         match &self.gpu {
+            Some(g) if g.filter() == strata_common::scene::GpuFilter::Hardware => {
+                format!("gpu: {}, hardware filter", g.adapter_name())
+            }
             Some(g) => format!("gpu: {}", g.adapter_name()),
             None => format!("cpu ({} threads)", rayon::current_num_threads()),
         }

@@ -14,6 +14,7 @@ use strata_common::gpu::{
 use strata_common::image::PartialImage;
 use strata_common::pyramid::Pyramid;
 use strata_common::sample::SampleType;
+use strata_common::scene::GpuFilter;
 
 /// The GPU caster plus where each data set's page table lives in the global tables.
 pub struct GpuBackend {
@@ -30,6 +31,8 @@ pub struct GpuBackend {
     global: Vec<u32>,
     /// How the volume pool stores samples.
     format: PoolFormat,
+    /// Shader trilinear over a buffer pool, or the texture unit over a texture pool.
+    filter: GpuFilter,
     /// Each volume's sample type and no-data sentinel.
     types: Vec<(SampleType, Option<f32>)>,
     scratch: Vec<u8>,
@@ -53,6 +56,7 @@ impl GpuBackend {
         choice: &AdapterChoice,
         pyramids: Vec<Pyramid>,
         types: Vec<(SampleType, Option<f32>)>,
+        filter: GpuFilter,
     ) -> Result<Self> {
         let volumes = types.len();
         let horizons = pyramids.len().saturating_sub(volumes);
@@ -84,8 +88,25 @@ impl GpuBackend {
         if n >= u32::MAX as u64 / 2 {
             bail!("the scene's page tables ({n} entries) exceed the GPU caster's u32 indices");
         }
+        let mut format = PoolFormat::for_types(types.iter().map(|t| t.0));
+        if filter == GpuFilter::Hardware {
+            // Unsigned-normalized texels, signed values biased; a 16-bit pool the adapter
+            // cannot filter widens to f32 texels (which must then be filterable).
+            format.biased = true;
+            if !caster.can_filter(format.bits) {
+                format.bits = 32;
+            }
+            if !caster.can_filter(format.bits) {
+                bail!(
+                    "render.gpu_filter = \"hardware\": adapter {} cannot filter this pool's \
+                     textures; use \"exact\"",
+                    caster.adapter_name()
+                );
+            }
+        }
         Ok(GpuBackend {
-            format: PoolFormat::for_types(types.iter().map(|t| t.0)),
+            filter,
+            format,
             types,
             scratch: Vec::new(),
             caster,
@@ -113,7 +134,21 @@ impl GpuBackend {
     pub fn volume_slots(&self, page_samples: usize, budget_bytes: u64) -> (usize, usize) {
         let slot = self.format.slot_bytes(page_samples);
         let want = ((budget_bytes / slot) as usize).clamp(1, strata_common::gpu::MAX_SLOTS);
-        (want, want.min(self.caster.max_slots(slot)))
+        let fit = match self.filter {
+            GpuFilter::Exact => self.caster.max_slots(slot),
+            GpuFilter::Hardware => self.caster.max_texture_slots(self.volume_page()),
+        };
+        (want, want.min(fit))
+    }
+
+    /// Samples per volume-page axis.
+    fn volume_page(&self) -> u32 {
+        self.pyramids.first().map_or(1, |p| p.page())
+    }
+
+    /// The volume filter in use.
+    pub fn filter(&self) -> GpuFilter {
+        self.filter
     }
 
     /// Horizon-pool slots (f32 heights) the adapter can bind.
@@ -123,11 +158,17 @@ impl GpuBackend {
 
     /// Allocates the device's volume pool.
     pub fn alloc_pool(&mut self, slots: usize, page_samples: usize) -> Result<()> {
-        self.caster.alloc_pool(
-            slots,
-            self.format.slot_bytes(page_samples),
-            self.format.bits,
-        )
+        match self.filter {
+            GpuFilter::Exact => self.caster.alloc_pool(
+                slots,
+                self.format.slot_bytes(page_samples),
+                self.format.bits,
+            ),
+            GpuFilter::Hardware => {
+                self.caster
+                    .alloc_texture_pool(slots, self.volume_page(), self.format.bits)
+            }
+        }
     }
 
     /// Allocates the device's horizon pool.

@@ -37,6 +37,9 @@ override MULTI: bool = false;
 override HORIZONS: bool = false;
 // Bits per element of the volume pool (strata_common::gpu::PoolFormat): 8, 16 or 32.
 override POOL_BITS: u32 = 32u;
+// Volume samples through the texture unit's filter (render.gpu_filter = "hardware") from the
+// 3D-texture pool, instead of the shader's trilinear from the storage-buffer pool.
+override HW_FILTER: bool = false;
 const VOLUME_SIGNED: u32 = 1u;
 const VOLUME_NO_DATA: u32 = 2u;
 
@@ -117,6 +120,8 @@ struct Cursor {
     base: u32,
     s: f32,
     o: vec3<f32>,
+    // First texel of the slot in the texture pool (HW_FILTER).
+    tex_o: vec3<f32>,
 }
 
 @group(0) @binding(0) var<uniform> F: Frame;
@@ -138,6 +143,11 @@ struct Cursor {
 @group(0) @binding(13) var<storage, read> hbounds: array<vec2<f32>>;
 // The horizon pool: slots of page² heights (i fastest), NaN = hole.
 @group(0) @binding(14) var<storage, read> hpool: array<f32>;
+// The volume pool as a 3D texture (HW_FILTER): slot s is the page³ block at grid position
+// (s mod gx, s / gx mod gy, s / (gx·gy)); unsigned-normalized texels hold signed values
+// biased by 2^(POOL_BITS−1), f32 texels the values themselves.
+@group(0) @binding(15) var pool_tex: texture_3d<f32>;
+@group(0) @binding(16) var pool_samp: sampler;
 
 // A ray's surface crossings, nearest first.
 var<private> n_hits: u32;
@@ -288,6 +298,11 @@ fn locate(vi: u32, cur: ptr<function, Cursor>, t: f32, q: vec3<f32>, md: vec3<f3
     let k = r - level;
     let p = vols[vi].page;
     (*cur).base = vols[vi].pool_base + slot * slot_elems(p);
+    if (HW_FILTER) {
+        let grid = textureDimensions(pool_tex) / p;
+        let g = vec3<u32>(slot % grid.x, slot / grid.x % grid.y, slot / (grid.x * grid.y));
+        (*cur).tex_o = vec3<f32>(g * p);
+    }
     (*cur).s = sr;
     let border = vols[vi].border;
     for (var a = 0u; a < 3u; a = a + 1u) {
@@ -323,34 +338,72 @@ fn fetch(i: u32, flags: u32, nd: i32) -> f32 {
     return f32(raw);
 }
 
-// Trilinear interpolation in a p³ page at local coordinates within [0, p − 1).
-fn trilinear(vi: u32, base: u32, p: u32, x: f32, y: f32, z: f32) -> f32 {
+// Trilinear blend of a cell's corner values v[x + 2y + 4z] at fractions f (the CPU's
+// operation order).
+fn blend8(v: array<f32, 8>, f: vec3<f32>) -> f32 {
+    let c00 = v[0] + f.x * (v[1] - v[0]);
+    let c10 = v[2] + f.x * (v[3] - v[2]);
+    let c01 = v[4] + f.x * (v[5] - v[4]);
+    let c11 = v[6] + f.x * (v[7] - v[6]);
+    let c0 = c00 + f.y * (c10 - c00);
+    let c1 = c01 + f.y * (c11 - c01);
+    return c0 + f.z * (c1 - c0);
+}
+
+// Trilinear interpolation in a p³ page of the buffer pool at local coordinates l within
+// [0, p − 1).
+fn trilinear(vi: u32, base: u32, p: u32, l: vec3<f32>) -> f32 {
     let fl = vols[vi].flags;
     let nd = vols[vi].no_data;
-    let xi = u32(x);
-    let yi = u32(y);
-    let zi = u32(z);
-    let fx = x - f32(xi);
-    let fy = y - f32(yi);
-    let fz = z - f32(zi);
-    let i = base + (zi * p + yi) * p + xi;
-    let sy = p;
-    let sz = p * p;
-    let v000 = fetch(i, fl, nd);
-    let v100 = fetch(i + 1u, fl, nd);
-    let v010 = fetch(i + sy, fl, nd);
-    let v110 = fetch(i + sy + 1u, fl, nd);
-    let v001 = fetch(i + sz, fl, nd);
-    let v101 = fetch(i + sz + 1u, fl, nd);
-    let v011 = fetch(i + sz + sy, fl, nd);
-    let v111 = fetch(i + sz + sy + 1u, fl, nd);
-    let c00 = v000 + fx * (v100 - v000);
-    let c10 = v010 + fx * (v110 - v010);
-    let c01 = v001 + fx * (v101 - v001);
-    let c11 = v011 + fx * (v111 - v011);
-    let c0 = c00 + fy * (c10 - c00);
-    let c1 = c01 + fy * (c11 - c01);
-    return c0 + fz * (c1 - c0);
+    let c = vec3<u32>(l);
+    let i = base + (c.z * p + c.y) * p + c.x;
+    var v: array<f32, 8>;
+    for (var k = 0u; k < 8u; k = k + 1u) {
+        v[k] = fetch(i + (k & 1u) + ((k >> 1u) & 1u) * p + (k >> 2u) * p * p, fl, nd);
+    }
+    return blend8(v, l - vec3<f32>(c));
+}
+
+// A texel (normalized or f32) as the value the host's decoded page holds.
+fn texel_value(vi: u32, t: f32) -> f32 {
+    if (POOL_BITS == 32u) {
+        return t;
+    }
+    // exp2 of a small integer is exact (and a shift by 32 would not compile for f32 pools).
+    var bias = 0.0;
+    if ((vols[vi].flags & VOLUME_SIGNED) != 0u) {
+        bias = exp2(f32(POOL_BITS - 1u));
+    }
+    return t * (exp2(f32(POOL_BITS)) - 1.0) - bias;
+}
+
+// Trilinear in the shader from the texture pool's texels, the no-data sentinel becoming NaN:
+// the texture unit would blend the sentinel into its neighbours.
+fn tex_trilinear(vi: u32, cur: ptr<function, Cursor>, l: vec3<f32>) -> f32 {
+    let c = vec3<u32>(l);
+    let o = vec3<i32>((*cur).tex_o) + vec3<i32>(c);
+    let nd = vols[vi].no_data;
+    var v: array<f32, 8>;
+    for (var k = 0u; k < 8u; k = k + 1u) {
+        let d = vec3<i32>(i32(k & 1u), i32((k >> 1u) & 1u), i32(k >> 2u));
+        let raw = round(texel_value(vi, textureLoad(pool_tex, o + d, 0).x));
+        v[k] = select(raw, nan_f32(), i32(raw) == nd);
+    }
+    return blend8(v, l - vec3<f32>(c));
+}
+
+// The volume's value at page-local position l: the shader's trilinear, or the texture
+// unit's filter (HW_FILTER; many GPUs use 8-bit weights there).
+fn filtered(vi: u32, cur: ptr<function, Cursor>, l: vec3<f32>) -> f32 {
+    if (!HW_FILTER) {
+        return trilinear(vi, (*cur).base, vols[vi].page, l);
+    }
+    if ((vols[vi].flags & VOLUME_NO_DATA) != 0u) {
+        return tex_trilinear(vi, cur, l);
+    }
+    let dims = vec3<f32>(textureDimensions(pool_tex));
+    let uvw = ((*cur).tex_o + l + vec3<f32>(0.5)) / dims;
+    return texel_value(vi, textureSampleLevel(pool_tex, pool_samp, uvw, 0.0).x);
 }
 
 fn local(vi: u32, cur: ptr<function, Cursor>, q: vec3<f32>, dx: vec3<f32>) -> vec3<f32> {
@@ -359,14 +412,11 @@ fn local(vi: u32, cur: ptr<function, Cursor>, q: vec3<f32>, dx: vec3<f32>) -> ve
 }
 
 fn sample_at(vi: u32, cur: ptr<function, Cursor>, q: vec3<f32>) -> f32 {
-    let l = local(vi, cur, q, vec3<f32>(0.0));
-    return trilinear(vi, (*cur).base, vols[vi].page, l.x, l.y, l.z);
+    return filtered(vi, cur, local(vi, cur, q, vec3<f32>(0.0)));
 }
 
 fn tap(vi: u32, cur: ptr<function, Cursor>, q: vec3<f32>, dx: vec3<f32>) -> f32 {
-    let maxc = f32(vols[vi].page - 1u) - 1e-3;
-    let l = clamp(q * (*cur).s + (*cur).o + dx, vec3<f32>(0.0), vec3<f32>(maxc));
-    return trilinear(vi, (*cur).base, vols[vi].page, l.x, l.y, l.z);
+    return filtered(vi, cur, local(vi, cur, q, dx));
 }
 
 // Premultiplied, step-corrected RGBA of value s in band b.
@@ -1003,7 +1053,7 @@ fn add64(lo: u32, v: u32) {
 }
 
 fn new_cursor() -> Cursor {
-    return Cursor(0u, -BIG, true, 0u, 1.0, vec3<f32>(0.0));
+    return Cursor(0u, -BIG, true, 0u, 1.0, vec3<f32>(0.0), vec3<f32>(0.0));
 }
 
 @compute @workgroup_size(8, 8, 1)

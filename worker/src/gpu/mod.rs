@@ -107,6 +107,16 @@ impl Grow {
     }
 }
 
+/// The volume pool as a 3D texture, for the texture unit's filter: slots are `page³` blocks
+/// on a `grid` of pages.
+struct TexturePool {
+    texture: wgpu::Texture,
+    view: wgpu::TextureView,
+    grid: [u32; 3],
+    page: u32,
+    texel_bytes: u32,
+}
+
 /// The GPU caster: device, pipelines and the buffers kept between frames.
 pub struct GpuCaster {
     device: wgpu::Device,
@@ -114,8 +124,9 @@ pub struct GpuCaster {
     info: wgpu::AdapterInfo,
     limits: wgpu::Limits,
     module: wgpu::ShaderModule,
-    /// Cast pipelines by effect set (shading, several volumes, horizons) and pool width.
-    pipelines: HashMap<(bool, bool, bool, u32), wgpu::ComputePipeline>,
+    /// Cast pipelines by effect set (shading, several volumes, horizons), pool width and
+    /// filter (texture unit or shader).
+    pipelines: HashMap<(bool, bool, bool, u32, bool), wgpu::ComputePipeline>,
     compact: wgpu::ComputePipeline,
     frame: wgpu::Buffer,
     vols: wgpu::Buffer,
@@ -141,6 +152,10 @@ pub struct GpuCaster {
     page_bytes: u64,
     pool_bits: u32,
     hpage_bytes: u64,
+    /// The texture pool (`render.gpu_filter = "hardware"`), else a 1-texel stand-in is bound.
+    tex: Option<TexturePool>,
+    dummy_tex: wgpu::TextureView,
+    sampler: wgpu::Sampler,
     /// Bytes written to the device since the last [`take_uploaded`](Self::take_uploaded).
     uploaded: u64,
     uncaptured: Arc<Mutex<Option<String>>>,
@@ -285,9 +300,13 @@ impl GpuCaster {
                 limits.max_storage_buffers_per_shader_stage
             );
         }
+        // Filterable 16-bit normalized and f32 textures, where the adapter has them (the
+        // hardware filter of 16-bit and f32 pools needs them).
+        let features = adapter.features()
+            & (wgpu::Features::TEXTURE_FORMAT_16BIT_NORM | wgpu::Features::FLOAT32_FILTERABLE);
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("strata-gpu-caster"),
-            required_features: wgpu::Features::empty(),
+            required_features: features,
             required_limits: limits.clone(),
             ..Default::default()
         }))
@@ -344,6 +363,28 @@ impl GpuCaster {
         };
         let fb_len = small("feedback length");
         let stats = small("counters");
+        let dummy_tex = device
+            .create_texture(&wgpu::TextureDescriptor {
+                label: Some("no texture pool"),
+                size: wgpu::Extent3d {
+                    width: 1,
+                    height: 1,
+                    depth_or_array_layers: 1,
+                },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D3,
+                format: wgpu::TextureFormat::R8Unorm,
+                usage: wgpu::TextureUsages::TEXTURE_BINDING,
+                view_formats: &[],
+            })
+            .create_view(&Default::default());
+        let sampler = device.create_sampler(&wgpu::SamplerDescriptor {
+            label: Some("pool filter"),
+            mag_filter: wgpu::FilterMode::Linear,
+            min_filter: wgpu::FilterMode::Linear,
+            ..Default::default()
+        });
         Ok(GpuCaster {
             device,
             queue,
@@ -379,6 +420,9 @@ impl GpuCaster {
             page_bytes: 0,
             pool_bits: 32,
             hpage_bytes: 0,
+            tex: None,
+            dummy_tex,
+            sampler,
             uploaded: 0,
             uncaptured,
         })
@@ -418,10 +462,109 @@ impl GpuCaster {
 
     /// Writes a page, encoded in the pool's format, into its slot.
     pub fn write_page(&mut self, slot: u32, bytes: &[u8]) {
+        if let Some(t) = &self.tex {
+            let [gx, gy, _] = t.grid;
+            let p = t.page;
+            // A slot's bytes may be padded to whole words; the texture takes p³ texels.
+            let bytes = &bytes[..(p as usize).pow(3) * t.texel_bytes as usize];
+            self.queue.write_texture(
+                wgpu::TexelCopyTextureInfo {
+                    texture: &t.texture,
+                    mip_level: 0,
+                    origin: wgpu::Origin3d {
+                        x: slot % gx * p,
+                        y: slot / gx % gy * p,
+                        z: slot / (gx * gy) * p,
+                    },
+                    aspect: wgpu::TextureAspect::All,
+                },
+                bytes,
+                wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(p * t.texel_bytes),
+                    rows_per_image: Some(p),
+                },
+                wgpu::Extent3d {
+                    width: p,
+                    height: p,
+                    depth_or_array_layers: p,
+                },
+            );
+            self.uploaded += bytes.len() as u64;
+            return;
+        }
         debug_assert_eq!(bytes.len() as u64, self.page_bytes);
         self.queue
             .write_buffer(self.pool.get(), slot as u64 * self.page_bytes, bytes);
         self.uploaded += bytes.len() as u64;
+    }
+
+    /// Whether the adapter can filter a texture pool of `bits`-bit elements.
+    pub fn can_filter(&self, bits: u32) -> bool {
+        let f = self.device.features();
+        match bits {
+            8 => true,
+            16 => f.contains(wgpu::Features::TEXTURE_FORMAT_16BIT_NORM),
+            _ => f.contains(wgpu::Features::FLOAT32_FILTERABLE),
+        }
+    }
+
+    /// Slots of `page`³ texels a 3D texture pool can hold on this adapter.
+    pub fn max_texture_slots(&self, page: u32) -> usize {
+        let per = (self.limits.max_texture_dimension_3d / page.max(1)) as usize;
+        per * per * per
+    }
+
+    /// Allocates the volume pool as a 3D texture of `slots` pages of `page`³ texels of `bits`
+    /// bits (unsigned normalized for 8 and 16 bits, f32 for 32), for the texture unit's filter.
+    pub fn alloc_texture_pool(&mut self, slots: usize, page: u32, bits: u32) -> Result<()> {
+        let format = match bits {
+            8 => wgpu::TextureFormat::R8Unorm,
+            16 => wgpu::TextureFormat::R16Unorm,
+            32 => wgpu::TextureFormat::R32Float,
+            _ => bail!("texture pool: {bits}-bit texels"),
+        };
+        if !self.can_filter(bits) {
+            bail!(
+                "adapter {} cannot filter {format:?} textures; use render.gpu_filter = \"exact\"",
+                self.info.name
+            );
+        }
+        let per = self.limits.max_texture_dimension_3d / page.max(1);
+        let slots = slots.max(1) as u32;
+        let gx = slots.min(per);
+        let gy = slots.div_ceil(gx).min(per);
+        let gz = slots.div_ceil(gx * gy);
+        if gz > per {
+            bail!("{slots} texture-pool slots of {page}³ exceed the adapter's 3D texture size");
+        }
+        let device = &self.device;
+        let texture = checked(device, "allocating the texture pool", || {
+            device.create_texture(&wgpu::TextureDescriptor {
+                label: Some("atlas texture pool"),
+                size: wgpu::Extent3d {
+                    width: gx * page,
+                    height: gy * page,
+                    depth_or_array_layers: gz * page,
+                },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D3,
+                format,
+                usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+                view_formats: &[],
+            })
+        })?;
+        let view = texture.create_view(&Default::default());
+        self.pool_bits = bits;
+        self.tex = Some(TexturePool {
+            texture,
+            view,
+            grid: [gx, gy, gz],
+            page,
+            texel_bytes: bits / 8,
+        });
+        Ok(())
     }
 
     /// Allocates the horizon pool: `slots` tiles of `page_samples` f32 heights.
@@ -564,7 +707,8 @@ impl GpuCaster {
         multi: bool,
         horizons: bool,
     ) -> Result<wgpu::ComputePipeline> {
-        let key = (shading, multi, horizons, self.pool_bits);
+        let hw = self.tex.is_some();
+        let key = (shading, multi, horizons, self.pool_bits, hw);
         if let Some(p) = self.pipelines.get(&key) {
             return Ok(p.clone());
         }
@@ -575,6 +719,7 @@ impl GpuCaster {
                 ("MULTI", if multi { 1.0 } else { 0.0 }),
                 ("HORIZONS", if horizons { 1.0 } else { 0.0 }),
                 ("POOL_BITS", self.pool_bits as f64),
+                ("HW_FILTER", if hw { 1.0 } else { 0.0 }),
             ];
             device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some("cast"),
@@ -613,7 +758,7 @@ impl GpuCaster {
         if self.table.buf.is_none() || self.tf.buf.is_none() {
             bail!("GPU caster: the tables must be uploaded before a frame");
         }
-        if (!vols.is_empty() && self.pool.buf.is_none())
+        if (!vols.is_empty() && self.pool.buf.is_none() && self.tex.is_none())
             || (!hors.is_empty() && self.hpool.buf.is_none())
         {
             bail!("GPU caster: the pools must be allocated before a frame");
@@ -664,6 +809,16 @@ impl GpuCaster {
                     entry(12, &self.hors),
                     entry(13, self.hbounds.get()),
                     entry(14, self.hpool.get()),
+                    wgpu::BindGroupEntry {
+                        binding: 15,
+                        resource: wgpu::BindingResource::TextureView(
+                            self.tex.as_ref().map_or(&self.dummy_tex, |t| &t.view),
+                        ),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 16,
+                        resource: wgpu::BindingResource::Sampler(&self.sampler),
+                    },
                 ],
             });
             let fb_counts = wgpu::BindGroupEntry {
