@@ -340,14 +340,17 @@ impl<'a> HorFrame<'a> {
                         let qa = -c * dr[0] * dr[1];
                         let qb = dr[2] - a * dr[0] - bb * dr[1] - c * (u0 * dr[1] + v0 * dr[0]);
                         let qc = z0 - h00 - a * u0 - bb * v0 - c * u0 * v0;
+                        // Every root, then one test on the crossing's absolute t. Testing the
+                        // root against bounds relative to t_org and then forming t_org + s can
+                        // disagree by a rounding: a crossing on a region's face was then
+                        // rejected by both regions (or, the other way round, kept by both).
+                        // t itself is the same in every region, and so is the face value two
+                        // adjacent regions compare it with, so exactly one of them keeps it.
                         let mut roots = [0.0f32; 2];
-                        let n = roots_in(qa, qb, qc, t_cell - t_org, t_next - t_org, &mut roots);
+                        let n = roots_in(qa, qb, qc, f32::NEG_INFINITY, f32::INFINITY, &mut roots);
                         for &sroot in &roots[..n] {
                             let t = t_org + sroot;
-                            if t < t_cell || t >= t_next {
-                                continue;
-                            }
-                            if t < ta || t >= *limit {
+                            if t < t_cell || t >= t_next || t < ta || t >= *limit {
                                 continue;
                             }
                             let u = (u0 + sroot * dr[0]).clamp(0.0, 1.0);
@@ -405,6 +408,147 @@ impl<'a> HorFrame<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::collections::HashSet;
+    use strata_common::pyramid::Dim;
+
+    /// A wavy horizon of `n`×`n` nodes, every tile of every level resident, seen from `eye`
+    /// (index coordinates; camera-relative space is index space moved by the eye).
+    struct Fixture {
+        pyramid: Pyramid,
+        table: PageTable,
+        pool: Pool,
+        bounds: Vec<[f32; 2]>,
+        eye: [f32; 3],
+    }
+
+    fn height(i: f64, j: f64) -> f32 {
+        (10.0 + 1.5 * (i * 0.37).sin() + 1.1 * (j * 0.23 + 0.5).cos() + 0.013 * i * j) as f32
+    }
+
+    fn fixture(n: u64, eye: [f32; 3]) -> Fixture {
+        let pyramid = Pyramid::new(Dim::Two, [n, n, 1], 16, 1).unwrap();
+        let (p, core, border) = (16i64, pyramid.core() as i64, 1i64);
+        let mut pool = Pool::new(pyramid.page_samples(), 64 << 20);
+        let mut bounds = Vec::new();
+        let keep = HashSet::new();
+        for (l, lev) in pyramid.levels().iter().enumerate() {
+            let dims = lev.dims;
+            for by in 0..lev.bricks[1] {
+                for bx in 0..lev.bricks[0] {
+                    // Level-l node (i, j) sits at level-0 position (i + ½)·2^l − ½.
+                    let s = (1u64 << l) as f64;
+                    let mut page = vec![f32::NAN; (p * p) as usize];
+                    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+                    for lj in 0..p {
+                        for li in 0..p {
+                            let i = bx as i64 * core - border + li;
+                            let j = by as i64 * core - border + lj;
+                            if i < 0 || j < 0 || i >= dims[0] as i64 || j >= dims[1] as i64 {
+                                continue;
+                            }
+                            let h = height((i as f64 + 0.5) * s - 0.5, (j as f64 + 0.5) * s - 0.5);
+                            page[(lj * p + li) as usize] = h;
+                            lo = lo.min(h);
+                            hi = hi.max(h);
+                        }
+                    }
+                    // Coarse levels bound their descendants too: widen to the whole surface.
+                    bounds.push([lo.min(7.0), hi.max(16.0)]);
+                    let key = pyramid.id(l, [bx, by, 0]).with_dataset(0).0;
+                    pool.place(key, &page, 0, true, &keep).unwrap();
+                }
+            }
+        }
+        let mut table = PageTable::new(&pyramid);
+        table.rebuild(pool.resident_of(0, &pyramid));
+        Fixture {
+            pyramid,
+            table,
+            pool,
+            bounds,
+            eye,
+        }
+    }
+
+    impl Fixture {
+        fn frame(&self) -> HorFrame<'_> {
+            let mut level_t = vec![0.0f32; self.pyramid.level_count()];
+            for t in level_t.iter_mut().skip(1) {
+                *t = f32::INFINITY; // level 0 everywhere
+            }
+            let d = self.pyramid.level(0).dims;
+            HorFrame {
+                ds: 0,
+                m: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+                c: self.eye,
+                dims: [d[0] as u32, d[1] as u32],
+                level_t,
+                core: self.pyramid.core(),
+                border: self.pyramid.border(),
+                page: self.pyramid.page() as usize,
+                table: &self.table,
+                pool: &self.pool,
+                bounds: &self.bounds,
+                color: [1.0, 0.0, 0.0],
+                depth_map: None,
+                opacity: 0.5,
+                lighting: false,
+                pyramid: &self.pyramid,
+            }
+        }
+    }
+
+    fn next_f32(t: f32, k: i32) -> f32 {
+        f32::from_bits((t.to_bits() as i64 + k as i64) as u32)
+    }
+
+    /// Regression (issue 10): a crossing that lies on a region's face, within a few ulps,
+    /// must be kept by exactly one of the two regions. The demo at 1920×1080 lost such a
+    /// crossing to both at pixel (910, 469): each region tested the root against its bounds
+    /// relative to the cell's entry and then rounded t_org + s to the other side.
+    #[test]
+    fn a_crossing_on_a_region_face_is_kept_by_exactly_one_region() {
+        let f = fixture(64, [-20.0, -13.0, 40.0]);
+        let h = f.frame();
+        let mut rng = 0x2545_f491_4f6c_dd1du64;
+        let mut next = || {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            (rng >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let (mut crossings, mut splits) = (0, 0);
+        for _ in 0..400 {
+            // A ray from the eye towards a random point of the grid.
+            let target = [next() * 63.0, next() * 63.0, 10.0];
+            let d = [0, 1, 2].map(|a| target[a] as f32 - f.eye[a]);
+            let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            let d = d.map(|v| v / l);
+            let (mut whole, mut fb) = (Vec::new(), Vec::new());
+            h.intersect(d, 0.0, f32::INFINITY, &mut whole, &mut fb);
+            for hit in whole.clone() {
+                crossings += 1;
+                for k in -4..=4 {
+                    let split = next_f32(hit.t, k);
+                    let (mut a, mut b) = (Vec::new(), Vec::new());
+                    h.intersect(d, 0.0, split, &mut a, &mut fb);
+                    h.intersect(d, split, f32::INFINITY, &mut b, &mut fb);
+                    let near = |v: &[Hit]| v.iter().filter(|x| (x.t - hit.t).abs() < 1e-3).count();
+                    assert_eq!(
+                        near(&a) + near(&b),
+                        near(&whole),
+                        "ray {d:?}: crossing at t = {} split at {split} ({k} ulps): kept {} times \
+                         in front, {} behind",
+                        hit.t,
+                        near(&a),
+                        near(&b)
+                    );
+                    splits += 1;
+                }
+            }
+        }
+        assert!(crossings > 300 && splits > 2700, "{crossings} crossings");
+    }
 
     #[test]
     fn quadratic_roots() {

@@ -136,7 +136,9 @@ impl GpuBackend {
         let want = ((budget_bytes / slot) as usize).clamp(1, strata_common::gpu::MAX_SLOTS);
         let fit = match self.filter {
             GpuFilter::Exact => self.caster.max_slots(slot),
-            GpuFilter::Hardware => self.caster.max_texture_slots(self.volume_page()),
+            GpuFilter::Hardware => self
+                .caster
+                .max_texture_slots(self.volume_page(), self.format.bits / 8),
         };
         (want, want.min(fit))
     }

@@ -357,10 +357,18 @@ fn trilinear(vi: u32, base: u32, p: u32, l: vec3<f32>) -> f32 {
     let nd = vols[vi].no_data;
     let c = vec3<u32>(l);
     let i = base + (c.z * p + c.y) * p + c.x;
-    var v: array<f32, 8>;
-    for (var k = 0u; k < 8u; k = k + 1u) {
-        v[k] = fetch(i + (k & 1u) + ((k >> 1u) & 1u) * p + (k >> 2u) * p * p, fl, nd);
-    }
+    let sy = p;
+    let sz = p * p;
+    let v = array<f32, 8>(
+        fetch(i, fl, nd),
+        fetch(i + 1u, fl, nd),
+        fetch(i + sy, fl, nd),
+        fetch(i + sy + 1u, fl, nd),
+        fetch(i + sz, fl, nd),
+        fetch(i + sz + 1u, fl, nd),
+        fetch(i + sz + sy, fl, nd),
+        fetch(i + sz + sy + 1u, fl, nd),
+    );
     return blend8(v, l - vec3<f32>(c));
 }
 
@@ -929,7 +937,10 @@ fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f3
                     let qa = -cc * dr.x * dr.y;
                     let qb = dr.z - a * dr.x - bb * dr.y - cc * (u0 * dr.y + v0 * dr.x);
                     let qc = zo - h00 - a * u0 - bb * v0 - cc * u0 * v0;
-                    let roots = roots_in(qa, qb, qc, t_cell - t_org, t_next - t_org);
+                    // Every root, then one test on the absolute t (as on the CPU: bounds
+                    // relative to t_org can disagree with t_org + s by a rounding, and a
+                    // crossing on a region face was lost to both regions).
+                    let roots = roots_in(qa, qb, qc, -BIG, BIG);
                     for (var q = 0u; q < roots.n; q = q + 1u) {
                         let sroot = roots.r[q];
                         let t = t_org + sroot;

@@ -509,10 +509,12 @@ impl GpuCaster {
         }
     }
 
-    /// Slots of `page`³ texels a 3D texture pool can hold on this adapter.
-    pub fn max_texture_slots(&self, page: u32) -> usize {
+    /// Slots of `page`³ texels of `texel_bytes` a 3D texture pool can hold on this adapter:
+    /// within its largest 3D texture, and (as for buffers) its largest allocation.
+    pub fn max_texture_slots(&self, page: u32, texel_bytes: u32) -> usize {
         let per = (self.limits.max_texture_dimension_3d / page.max(1)) as usize;
-        per * per * per
+        let bytes = (page as u64).pow(3) * texel_bytes as u64;
+        (per * per * per).min((self.limits.max_buffer_size / bytes.max(1)) as usize)
     }
 
     /// Allocates the volume pool as a 3D texture of `slots` pages of `page`³ texels of `bits`
