@@ -202,9 +202,52 @@ pub fn default_camera(bounds: &Region, render: &RenderSettings) -> Camera {
     }
 }
 
+/// Frame `i` of `frames` on a circle around the camera's target: the eye turned about the
+/// vertical (world z) axis through the target by `i / frames` of a full turn, counter-
+/// clockwise seen from above; distance, height and `up` are kept. Frame 0 is the camera.
+pub fn orbit(camera: &Camera, frames: u32, i: u32) -> Camera {
+    let a = std::f64::consts::TAU * i as f64 / frames.max(1) as f64;
+    let (s, c) = a.sin_cos();
+    let [tx, ty, _] = camera.target;
+    let (dx, dy) = (camera.eye[0] - tx, camera.eye[1] - ty);
+    Camera {
+        eye: [tx + c * dx - s * dy, ty + s * dx + c * dy, camera.eye[2]],
+        ..camera.clone()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn orbit_turns_the_eye_about_the_target() {
+        let cam = Camera {
+            eye: [605_100.0, 6_075_000.0, 900.0],
+            target: [605_000.0, 6_075_000.0, 1500.0],
+            up: [0.0, 0.0, -1.0],
+            fov_deg: 35.0,
+        };
+        assert_eq!(orbit(&cam, 8, 0), cam);
+        let quarter = orbit(&cam, 4, 1);
+        assert!(
+            (quarter.eye[0] - 605_000.0).abs() < 1e-6,
+            "{:?}",
+            quarter.eye
+        );
+        assert!(
+            (quarter.eye[1] - 6_075_100.0).abs() < 1e-6,
+            "{:?}",
+            quarter.eye
+        );
+        assert_eq!(quarter.eye[2], 900.0);
+        assert_eq!((quarter.target, quarter.up), (cam.target, cam.up));
+        for i in 0..7 {
+            let e = orbit(&cam, 7, i).eye;
+            let r = ((e[0] - 605_000.0).powi(2) + (e[1] - 6_075_000.0).powi(2)).sqrt();
+            assert!((r - 100.0).abs() < 1e-6, "frame {i}: radius {r}");
+        }
+    }
 
     #[test]
     fn centre_ray_is_forward_and_not_mirrored() {

@@ -24,5 +24,6 @@ pub mod inspect;
 pub mod overrides;
 pub mod render;
 pub mod segy;
+pub mod sequence;
 pub mod source;
 pub mod synth;

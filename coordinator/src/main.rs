@@ -71,6 +71,10 @@ struct RenderArgs {
     /// Write per-worker frame stats and the render summary as JSON lines to this file.
     #[arg(long, value_name = "FILE")]
     stats: Option<PathBuf>,
+    /// Render N frames on a circle around the camera's target with the same workers and
+    /// resident data; a %05d in -o and --exr numbers the frames (e.g. -o out/frame_%05d.png).
+    #[arg(long, value_name = "N")]
+    orbit: Option<u32>,
 }
 
 #[derive(Subcommand)]
@@ -474,6 +478,7 @@ fn run(cli: Cli) -> Result<()> {
                 sets: a.sets.clone(),
                 size,
                 workers: a.workers,
+                orbit: a.orbit,
             };
             let pb = progress(cli.quiet, "synth");
             let s = if a.in_process {
@@ -513,9 +518,28 @@ fn run(cli: Cli) -> Result<()> {
                     100.0 * s.cache_hit_rate
                 );
             }
-            println!("wrote {}", a.output.display());
-            if let Some(e) = &a.exr {
-                println!("wrote {}", e.display());
+            if s.sequence.len() > 1 {
+                let secs: Vec<f64> = s.sequence.iter().map(|f| f.seconds).collect();
+                let first = secs[0];
+                let rest = &secs[1..];
+                let mean = rest.iter().sum::<f64>() / rest.len() as f64;
+                println!(
+                    "{} frames: first {:.2} s (cold), then {:.2} s per frame on average ({:.2} frames/s)",
+                    secs.len(),
+                    first,
+                    mean,
+                    1.0 / mean.max(1e-9)
+                );
+                println!(
+                    "wrote {} … {}",
+                    s.sequence[0].output,
+                    s.sequence[s.sequence.len() - 1].output
+                );
+            } else {
+                println!("wrote {}", a.output.display());
+                if let Some(e) = &a.exr {
+                    println!("wrote {}", e.display());
+                }
             }
             if let Some(p) = &a.stats {
                 synth::write_atomically(p, s.json_lines()?.as_bytes())?;

@@ -5,6 +5,10 @@
 //! composited by exchange among the workers. In-process rendering runs the worker engine
 //! in this process over the whole scene as one region, in batch mode (frame → feedback →
 //! load until converged). It is the reference that distributed rendering must match.
+//!
+//! `--orbit N` renders a sequence of N frames around the scene's target with the same
+//! workers (or the same in-process engine) throughout, so stores stay open and resident pages
+//! stay resident between frames; each frame's output path is numbered by its `%05d`.
 
 use crate::cluster::{Cluster, ClusterOptions};
 use crate::{demo, image_out, overrides};
@@ -12,7 +16,7 @@ use anyhow::{Context, Result};
 use indicatif::ProgressBar;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-use strata_common::scene::Scene;
+use strata_common::scene::{Camera, Scene};
 use strata_common::wire::{CompositeChoice, FrameSource, WorkerFrameStats};
 use strata_worker::engine::Engine;
 use tracing::info;
@@ -32,6 +36,84 @@ pub struct RenderOptions {
     pub size: Option<(u32, u32)>,
     /// `--workers N` (None: the scene's `cluster.workers`).
     pub workers: Option<usize>,
+    /// `--orbit N`: N frames on a circle around the scene camera's target.
+    pub orbit: Option<u32>,
+}
+
+/// One frame of a sequence: its camera and output paths.
+struct FramePlan {
+    camera: Camera,
+    png: PathBuf,
+    exr: Option<PathBuf>,
+}
+
+/// The most frames one `--orbit` may ask for.
+const MAX_FRAMES: u32 = 1_000_000;
+
+/// The run's frames: the camera alone, or `--orbit N` frames around it with numbered paths.
+fn plan_frames(opts: &RenderOptions, camera: &Camera) -> Result<Vec<FramePlan>> {
+    let Some(n) = opts.orbit else {
+        return Ok(vec![FramePlan {
+            camera: camera.clone(),
+            png: opts.output.clone(),
+            exr: opts.exr.clone(),
+        }]);
+    };
+    anyhow::ensure!(
+        (1..=MAX_FRAMES).contains(&n),
+        "--orbit {n}: the frame count must lie in 1..={MAX_FRAMES}"
+    );
+    for p in std::iter::once(&opts.output).chain(&opts.exr) {
+        anyhow::ensure!(
+            crate::sequence::is_numbered(p)?,
+            "--orbit {n}: the output {} needs a frame-number pattern, e.g. frames/frame_%05d.png",
+            p.display()
+        );
+    }
+    (0..n)
+        .map(|i| {
+            Ok(FramePlan {
+                camera: strata_common::camera::orbit(camera, n, i),
+                png: crate::sequence::numbered(&opts.output, i)?,
+                exr: opts
+                    .exr
+                    .as_ref()
+                    .map(|e| crate::sequence::numbered(e, i))
+                    .transpose()?,
+            })
+        })
+        .collect()
+}
+
+/// Turns the run's progress bar into a frame counter for sequences.
+fn frame_progress(progress: &ProgressBar, frames: usize) {
+    if frames > 1 {
+        progress.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{msg:>14} [{elapsed_precise}] {wide_bar:.cyan/blue} {pos}/{len} frames ({per_sec}, {eta})",
+            )
+            .expect("template"),
+        );
+        progress.set_length(frames as u64);
+        progress.set_position(0);
+    }
+}
+
+/// One frame of a run, as `--stats` reports it (`"kind": "frame"`).
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct FrameSummary {
+    /// Frame number.
+    pub frame: u32,
+    /// The PNG written.
+    pub output: String,
+    /// Wall time of the frame (render, composite, write).
+    pub seconds: f64,
+    /// Feedback rounds (the most of any worker).
+    pub rounds: u32,
+    /// "converged", "round-limit" or "atlas-full" (the worst of any worker).
+    pub outcome: String,
+    /// Trilinear samples of the frame's final round (all workers).
+    pub samples: u64,
 }
 
 /// What a render did.
@@ -82,13 +164,24 @@ pub struct RenderSummary {
     /// Per-worker stats of each frame (distributed runs).
     #[serde(skip)]
     pub frames: Vec<Vec<WorkerFrameStats>>,
+    /// Each frame of the run.
+    #[serde(skip)]
+    pub sequence: Vec<FrameSummary>,
+    /// Frames rendered.
+    pub frame_count: usize,
 }
 
 impl RenderSummary {
-    /// `--stats` output: one JSON object per line, first one per worker and frame
-    /// (`"kind": "worker"`), then the summary (`"kind": "summary"`).
+    /// `--stats` output: one JSON object per line: per frame (`"kind": "frame"`), per worker
+    /// and frame (`"kind": "worker"`), then the summary (`"kind": "summary"`).
     pub fn json_lines(&self) -> Result<String> {
         let mut out = String::new();
+        for f in &self.sequence {
+            let mut v = serde_json::to_value(f)?;
+            v["kind"] = "frame".into();
+            out += &serde_json::to_string(&v)?;
+            out.push('\n');
+        }
         for (frame, workers) in self.frames.iter().enumerate() {
             for w in workers {
                 let mut v = serde_json::to_value(w)?;
@@ -171,11 +264,37 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
                     strata_common::camera::default_camera(&data.bounds(), &scene.render)
                 }
             };
-            let r = cluster
-                .frame(&camera, w, h, &choice, FrameSource::Render)
-                .await;
+            let plan = plan_frames(opts, &camera)?;
+            frame_progress(progress, plan.len());
+            let mut done = Vec::with_capacity(plan.len());
+            let mut sequence = Vec::with_capacity(plan.len());
+            for (i, f) in plan.iter().enumerate() {
+                let t = Instant::now();
+                let fr = cluster
+                    .frame(&f.camera, w, h, &choice, FrameSource::Render)
+                    .await
+                    .with_context(|| format!("frame {i}"))?;
+                tokio::task::block_in_place(|| -> Result<()> {
+                    let bg = scene.render.background.map(|c| c as f32);
+                    image_out::write_png(&f.png, w, h, &fr.image, bg)?;
+                    if let Some(exr) = &f.exr {
+                        image_out::write_exr(exr, w, h, &fr.image)?;
+                    }
+                    Ok(())
+                })?;
+                sequence.push(FrameSummary {
+                    frame: i as u32,
+                    output: display(&f.png),
+                    seconds: t.elapsed().as_secs_f64(),
+                    rounds: fr.stats.iter().map(|s| s.render_rounds).max().unwrap_or(0),
+                    outcome: worst_outcome(fr.stats.iter().map(|s| s.outcome.as_str())),
+                    samples: fr.stats.iter().map(|s| s.samples).sum(),
+                });
+                progress.inc(1);
+                done.push(fr);
+            }
             cluster.shutdown().await;
-            r
+            anyhow::Ok((done, sequence))
         };
         tokio::select! {
             r = run => r,
@@ -184,12 +303,8 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
     });
     // Dropping the runtime kills any worker still running (kill_on_drop).
     drop(rt);
-    let fr = result?;
-    let bg = scene.render.background.map(|c| c as f32);
-    image_out::write_png(&opts.output, w, h, &fr.image, bg)?;
-    if let Some(exr) = &opts.exr {
-        image_out::write_exr(exr, w, h, &fr.image)?;
-    }
+    let (mut done, sequence) = result?;
+    let fr = done.pop().context("no frame rendered")?;
     for s in &fr.stats {
         info!(
             rank = s.rank,
@@ -205,21 +320,13 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
             "worker frame stats"
         );
     }
-    let worst = |a: &str, b: &str| {
-        if b != "converged" {
-            b.to_string()
-        } else {
-            a.to_string()
-        }
-    };
+    let mut frames: Vec<Vec<WorkerFrameStats>> = done.into_iter().map(|f| f.stats).collect();
+    frames.push(fr.stats.clone());
     Ok(RenderSummary {
         width: w,
         height: h,
         rounds: fr.stats.iter().map(|s| s.render_rounds).max().unwrap_or(0),
-        outcome: fr
-            .stats
-            .iter()
-            .fold("converged".to_string(), |a, s| worst(&a, &s.outcome)),
+        outcome: worst_outcome(fr.stats.iter().map(|s| s.outcome.as_str())),
         samples: fr.stats.iter().map(|s| s.samples).sum(),
         last_frame_seconds: fr.stats.iter().map(|s| s.render_s).fold(0.0, f64::max),
         cast_seconds: fr.stats.iter().map(|s| s.render_s).sum(),
@@ -242,8 +349,17 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
         composite_seconds: fr.composite_s,
         exchange_bytes: fr.stats.iter().map(|s| s.bytes_sent).sum(),
         gather_bytes: fr.gather_bytes,
-        frames: vec![fr.stats],
+        frames,
+        frame_count: sequence.len(),
+        sequence,
     })
+}
+
+/// The worst of some outcomes: "converged" unless one is not.
+fn worst_outcome<'a>(outcomes: impl Iterator<Item = &'a str>) -> String {
+    outcomes
+        .fold("converged", |a, b| if b != "converged" { b } else { a })
+        .to_string()
 }
 
 /// Renders `opts.scene` in this process.
@@ -253,16 +369,39 @@ pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result
     let (w, h) = (scene.render.width, scene.render.height);
     let mut engine =
         Engine::new(&scene).with_context(|| format!("scene {}", opts.scene.display()))?;
-    let view = engine.view(w, h)?;
     let region = engine.scene_region();
+    let plan = plan_frames(opts, &engine.camera().clone())?;
     progress.set_message("rendering");
-    let result = engine.render_batch(&view, &region)?;
-    let full = result.image.to_full();
+    frame_progress(progress, plan.len());
     let bg = scene.render.background.map(|c| c as f32);
-    image_out::write_png(&opts.output, w, h, &full, bg)?;
-    if let Some(exr) = &opts.exr {
-        image_out::write_exr(exr, w, h, &full)?;
+    let (mut cast_seconds, mut load_seconds) = (0.0, 0.0);
+    let mut sequence = Vec::with_capacity(plan.len());
+    let mut last = None;
+    for (i, f) in plan.iter().enumerate() {
+        let t = Instant::now();
+        let view = strata_common::camera::View::new(&f.camera, &engine.settings, w, h)?;
+        let result = engine
+            .render_batch(&view, &region)
+            .with_context(|| format!("frame {i}"))?;
+        let full = result.image.to_full();
+        image_out::write_png(&f.png, w, h, &full, bg)?;
+        if let Some(exr) = &f.exr {
+            image_out::write_exr(exr, w, h, &full)?;
+        }
+        cast_seconds += result.cast_seconds;
+        load_seconds += result.load_seconds;
+        sequence.push(FrameSummary {
+            frame: i as u32,
+            output: display(&f.png),
+            seconds: t.elapsed().as_secs_f64(),
+            rounds: result.rounds,
+            outcome: result.outcome.clone().as_str().into(),
+            samples: result.last.samples,
+        });
+        progress.inc(1);
+        last = Some(result);
     }
+    let result = last.context("no frame rendered")?;
     let cs = engine.cache_stats();
     let lookups = (cs.hits + cs.misses).max(1);
     Ok(RenderSummary {
@@ -272,8 +411,8 @@ pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result
         outcome: result.outcome.as_str().into(),
         samples: result.last.samples,
         last_frame_seconds: result.last_seconds,
-        cast_seconds: result.cast_seconds,
-        load_seconds: result.load_seconds,
+        cast_seconds,
+        load_seconds,
         cache_hit_rate: cs.hits as f64 / lookups as f64,
         pages_read: cs.pages_read,
         bytes_read: cs.bytes_read,
@@ -288,6 +427,8 @@ pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result
         exchange_bytes: 0,
         gather_bytes: 0,
         frames: vec![],
+        frame_count: sequence.len(),
+        sequence,
     })
 }
 

@@ -462,3 +462,66 @@ fn gpu_workers_equal_the_in_process_cpu_image() {
         assert!(l.contains("\"backend\":\"gpu: "), "{l}");
     }
 }
+
+#[test]
+fn an_orbit_renders_every_frame_on_one_set_of_workers_like_in_process() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = survey().join("scene.toml");
+    let go = |name: &str, extra: &[&str]| {
+        let out = dir.path().join(format!("{name}_%03d.exr"));
+        let stats = dir.path().join(format!("{name}.jsonl"));
+        let mut args = vec!["--orbit", "3", "--stats", stats.to_str().unwrap()];
+        args.extend_from_slice(extra);
+        let o = render_scene(&scene, &out, &args, &[("RUST_LOG", "info")]);
+        assert!(
+            o.status.success(),
+            "{name}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        (
+            std::fs::read_to_string(&stats).unwrap(),
+            strip_ansi(&String::from_utf8_lossy(&o.stderr)),
+        )
+    };
+    let (in_stats, _) = go("in", &["--in-process"]);
+    let (dist_stats, log) = go("dist", &["--workers", "2"]);
+    let frame = |name: &str, i: u32| {
+        let p = dir.path().join(format!("{name}_{i:03}.png"));
+        assert!(p.exists(), "{} missing", p.display());
+        read_exr(&dir.path().join(format!("{name}_{i:03}.exr")))
+    };
+    for i in 0..3 {
+        let d = max_diff(&frame("in", i), &frame("dist", i));
+        assert!(d <= 1e-5, "frame {i}: distributed differs by {d}");
+    }
+    assert!(
+        max_diff(&frame("in", 0), &frame("in", 1)) > 0.01,
+        "the camera moves between frames"
+    );
+    let count = |s: &str, kind: &str| s.matches(&format!("\"kind\":\"{kind}\"")).count();
+    assert_eq!(count(&in_stats, "frame"), 3, "{in_stats}");
+    assert_eq!(count(&dist_stats, "frame"), 3, "{dist_stats}");
+    assert_eq!(count(&dist_stats, "worker"), 6, "{dist_stats}");
+    assert!(dist_stats.contains("\"frame_count\":3"), "{dist_stats}");
+    // One set of workers serves the whole sequence.
+    assert_eq!(log.matches("worker joined").count(), 2, "{log}");
+
+    // A sequence needs numbered outputs: refused before anything is rendered or written.
+    let plain = dir.path().join("plain.png");
+    let o = run(
+        &[
+            "render",
+            scene.to_str().unwrap(),
+            "-o",
+            plain.to_str().unwrap(),
+            "--orbit",
+            "2",
+            "--in-process",
+        ],
+        &[],
+    );
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("frame-number pattern"), "{err}");
+    assert!(!plain.exists());
+}

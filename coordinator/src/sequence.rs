@@ -1,0 +1,119 @@
+//! Frame sequences: the output paths of numbered frames.
+//!
+//! A `printf`-style `%d` or `%0Nd` (e.g. `frame_%05d.png`) in an output path is replaced by
+//! the frame number, as ffmpeg and most render farms expect. `%%` stands for a literal `%`.
+
+use anyhow::{bail, Context, Result};
+use std::path::{Path, PathBuf};
+
+/// Where the frame-number pattern sits in a path: byte range and zero-padded width.
+struct Pattern {
+    start: usize,
+    end: usize,
+    width: usize,
+}
+
+fn find(s: &str) -> Result<Option<Pattern>> {
+    let b = s.as_bytes();
+    let mut found = None;
+    let mut i = 0;
+    while i < b.len() {
+        if b[i] != b'%' {
+            i += 1;
+            continue;
+        }
+        if b.get(i + 1) == Some(&b'%') {
+            i += 2;
+            continue;
+        }
+        let mut j = i + 1;
+        while j < b.len() && b[j].is_ascii_digit() {
+            j += 1;
+        }
+        if b.get(j) != Some(&b'd') {
+            bail!("{s:?}: '%' at byte {i} must start %d or %0Nd (or be doubled, %%)");
+        }
+        let digits = &s[i + 1..j];
+        if !digits.is_empty() && !digits.starts_with('0') {
+            bail!("{s:?}: frame numbers are zero-padded (%0{digits}d), not {digits} wide");
+        }
+        let width: usize = if digits.is_empty() {
+            0
+        } else {
+            digits.parse().context("pattern width")?
+        };
+        if width > 12 {
+            bail!("{s:?}: a frame-number width of {width} is more than 12 digits");
+        }
+        if found.is_some() {
+            bail!("{s:?}: more than one frame-number pattern");
+        }
+        found = Some(Pattern {
+            start: i,
+            end: j + 1,
+            width,
+        });
+        i = j + 1;
+    }
+    Ok(found)
+}
+
+/// Whether the path holds a frame-number pattern (and is otherwise well formed).
+pub fn is_numbered(template: &Path) -> Result<bool> {
+    let s = template
+        .to_str()
+        .with_context(|| format!("{}: not UTF-8", template.display()))?;
+    Ok(find(s)?.is_some())
+}
+
+/// The path of frame `frame`: the pattern replaced by the zero-padded number, `%%` by `%`.
+pub fn numbered(template: &Path, frame: u32) -> Result<PathBuf> {
+    let s = template
+        .to_str()
+        .with_context(|| format!("{}: not UTF-8", template.display()))?;
+    let p = find(s)?
+        .with_context(|| format!("{s:?} has no frame-number pattern such as frame_%05d.png"))?;
+    let unescape = |t: &str| t.replace("%%", "%");
+    Ok(PathBuf::from(format!(
+        "{}{:0width$}{}",
+        unescape(&s[..p.start]),
+        frame,
+        unescape(&s[p.end..]),
+        width = p.width
+    )))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn patterns_number_frames() {
+        let n = |t: &str, f| numbered(Path::new(t), f).unwrap();
+        assert_eq!(
+            n("out/frame_%05d.png", 42),
+            Path::new("out/frame_00042.png")
+        );
+        assert_eq!(n("f%d.exr", 7), Path::new("f7.exr"));
+        assert_eq!(n("f%03d.png", 12345), Path::new("f12345.png"));
+        assert_eq!(n("100%%_%04d.png", 3), Path::new("100%_0003.png"));
+        assert!(is_numbered(Path::new("a_%05d.png")).unwrap());
+        assert!(!is_numbered(Path::new("a.png")).unwrap());
+        assert!(!is_numbered(Path::new("100%%.png")).unwrap());
+    }
+
+    #[test]
+    fn bad_patterns_are_refused() {
+        for bad in [
+            "a_%5d.png",
+            "a_%s.png",
+            "a_%05d_%05d.png",
+            "a_%099d.png",
+            "a_%",
+        ] {
+            assert!(is_numbered(Path::new(bad)).is_err(), "{bad}");
+        }
+        let e = numbered(Path::new("plain.png"), 1).unwrap_err();
+        assert!(format!("{e}").contains("frame_%05d"), "{e}");
+    }
+}
