@@ -16,7 +16,8 @@
 //!   brick size, compression or source byte order.
 //! * [`geo`]: f64 affine transforms (and their inverses) and the lateral survey grid.
 //! * [`camera`]: the view: f64 camera and data transforms, camera-relative f32 rays, the
-//!   default camera that frames a scene.
+//!   default camera that frames a scene, and orbits around it.
+//! * [`camera_path`]: keyframed camera paths for frame sequences (linear or smooth).
 //! * [`tf`]: colour maps and transfer functions (opacity-corrected step tables, page
 //!   transparency for empty-space skipping).
 //! * [`gpu`]: the `#[repr(C)]` tables both ray-casting backends read (page-table entries,
@@ -33,6 +34,7 @@
 #![deny(missing_docs)]
 
 pub mod camera;
+pub mod camera_path;
 pub mod composite;
 pub mod digest;
 pub mod filter;

@@ -348,11 +348,30 @@ pub struct WorkerFrameStats {
     pub rank: u32,
     /// Position in this frame's visibility order.
     pub position: u32,
-    /// Seconds rendering (all feedback rounds, all leaves).
+    /// Seconds rendering (all feedback rounds, all leaves, loads included).
     pub render_s: f64,
-    /// When rendering ended (µs since the Unix epoch): with the arrival of the last piece
-    /// at the coordinator it spans the whole compositing on one machine.
+    /// When rendering ended (µs since the Unix epoch, this worker's clock). A timestamp for
+    /// logs only: no duration is computed across two hosts' clocks.
     pub render_end_us: u64,
+    /// Seconds casting rays over all feedback rounds (all leaves).
+    pub cast_s: f64,
+    /// Seconds loading pages and updating the atlas between rounds.
+    pub load_s: f64,
+    /// Seconds of the final round's cast (all leaves): the converged frame's cost, what the
+    /// in-process summary calls the last frame.
+    pub last_round_s: f64,
+    /// Pages read from disk since this worker opened the scene (its root pages included),
+    /// as the in-process engine counts them.
+    pub pages_read: u64,
+    /// Stored bytes read from disk since this worker opened the scene.
+    pub bytes_read: u64,
+    /// Page-cache lookups that hit since this worker opened the scene.
+    pub cache_hits: u64,
+    /// Page-cache lookups since this worker opened the scene.
+    pub cache_lookups: u64,
+    /// Seconds from the end of rendering to the final piece written for the coordinator
+    /// (encode, exchange, blend, final encode), on this worker's clock.
+    pub composite_s: f64,
     /// Seconds encoding pieces (active-pixel runs, f16 conversion).
     pub encode_s: f64,
     /// Seconds in the exchange: sending and waiting for pieces.

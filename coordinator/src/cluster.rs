@@ -152,8 +152,10 @@ pub struct FrameResult {
     pub stats: Vec<WorkerFrameStats>,
     /// Coordinator's wall time for the frame.
     pub wall_s: f64,
-    /// From the last worker finishing its render to the last piece arriving here:
-    /// the whole compositing (exchange + gather), as IceT's frame time measures it.
+    /// The whole compositing (exchange + gather), as IceT's frame time measures it: this
+    /// coordinator's time from sending the frame to the last final piece, less the slowest
+    /// worker's render time. Both are durations, each on one clock; no timestamp of one
+    /// host is subtracted from another's. It includes one request's latency.
     pub composite_s: f64,
     /// Bytes of final pieces received.
     pub gather_bytes: u64,
@@ -552,7 +554,7 @@ impl Cluster {
         let n = self.workers.len();
         let mut stats: Vec<Option<WorkerFrameStats>> = vec![None; n];
         let mut pieces: Vec<Option<SparsePiece>> = vec![None; n];
-        let mut last_arrival = 0u64;
+        let mut last_arrival = t0;
         let mut gather_bytes = 0u64;
         let deadline = t0 + self.opts.frame_timeout;
         while stats.iter().any(Option::is_none) {
@@ -587,7 +589,7 @@ impl Cluster {
                             let piece = SparsePiece::parse(&f.bulk, width * height)
                                 .with_context(|| format!("final piece from {who}"))?;
                             gather_bytes += f.wire_len();
-                            last_arrival = strata_net::unix_us();
+                            last_arrival = Instant::now();
                             pieces[rank as usize] = Some(piece);
                             stats[rank as usize] = Some(s);
                         }
@@ -605,10 +607,10 @@ impl Cluster {
         let pieces: Vec<SparsePiece> = pieces.into_iter().map(Option::unwrap).collect();
         let interlace = Interlace::new(width, height, n as u32, composite.interlace);
         let image = tokio::task::block_in_place(|| assemble(width, height, &interlace, &pieces))?;
-        let render_end = stats.iter().map(|s| s.render_end_us).max().unwrap_or(0);
+        let slowest_render = stats.iter().map(|s| s.render_s).fold(0.0, f64::max);
         Ok(FrameResult {
             image,
-            composite_s: last_arrival.saturating_sub(render_end) as f64 * 1e-6,
+            composite_s: ((last_arrival - t0).as_secs_f64() - slowest_render).max(0.0),
             stats,
             wall_s: t0.elapsed().as_secs_f64(),
             gather_bytes,

@@ -510,14 +510,14 @@ fn run(cli: Cli) -> Result<()> {
                 s.samples as f64 / s.last_frame_seconds.max(1e-9) / 1e6
             );
             println!("backend: {}", s.backend);
-            if s.workers == 0 {
-                println!(
-                    "pages read {} ({:.1} MiB), cache hit rate {:.1}%",
-                    s.pages_read,
-                    s.bytes_read as f64 / (1 << 20) as f64,
-                    100.0 * s.cache_hit_rate
-                );
-            }
+            println!(
+                "cast {:.2} s, load {:.2} s; pages read {} ({:.1} MiB), cache hit rate {:.1}%",
+                s.cast_seconds,
+                s.load_seconds,
+                s.pages_read,
+                s.bytes_read as f64 / (1 << 20) as f64,
+                100.0 * s.cache_hit_rate
+            );
             if s.sequence.len() > 1 {
                 let secs: Vec<f64> = s.sequence.iter().map(|f| f.seconds).collect();
                 let first = secs[0];

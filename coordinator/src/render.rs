@@ -129,11 +129,12 @@ pub struct RenderSummary {
     pub outcome: String,
     /// Trilinear samples of the final frame.
     pub samples: u64,
-    /// Seconds of the final frame's cast.
+    /// Seconds of the final round's cast of the last frame (distributed: the slowest
+    /// worker's, all its leaves).
     pub last_frame_seconds: f64,
-    /// Seconds casting over all rounds.
+    /// Seconds casting over all rounds and frames (distributed: summed over the workers).
     pub cast_seconds: f64,
-    /// Seconds loading pages and updating the atlas.
+    /// Seconds loading pages and updating the atlas (distributed: summed over the workers).
     pub load_seconds: f64,
     /// Cache hits / lookups.
     pub cache_hit_rate: f64,
@@ -328,12 +329,22 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
         rounds: fr.stats.iter().map(|s| s.render_rounds).max().unwrap_or(0),
         outcome: worst_outcome(fr.stats.iter().map(|s| s.outcome.as_str())),
         samples: fr.stats.iter().map(|s| s.samples).sum(),
-        last_frame_seconds: fr.stats.iter().map(|s| s.render_s).fold(0.0, f64::max),
-        cast_seconds: fr.stats.iter().map(|s| s.render_s).sum(),
-        load_seconds: 0.0,
-        cache_hit_rate: f64::NAN,
-        pages_read: 0,
-        bytes_read: 0,
+        // The same quantities as in-process, under the same names: the final round's cast
+        // (of the slowest worker), casting and loading summed over the engines and the run's
+        // frames, reads and cache lookups over the engines since they opened the scene.
+        last_frame_seconds: fr.stats.iter().map(|s| s.last_round_s).fold(0.0, f64::max),
+        cast_seconds: frames.iter().flatten().map(|s| s.cast_s).sum(),
+        load_seconds: frames.iter().flatten().map(|s| s.load_s).sum(),
+        // Cache counters are per worker since it opened the scene: the last frame's.
+        cache_hit_rate: {
+            let (h, l) = fr
+                .stats
+                .iter()
+                .fold((0, 0), |(h, l), s| (h + s.cache_hits, l + s.cache_lookups));
+            h as f64 / l.max(1) as f64
+        },
+        pages_read: fr.stats.iter().map(|s| s.pages_read).sum(),
+        bytes_read: fr.stats.iter().map(|s| s.bytes_read).sum(),
         backend: {
             let mut b: Vec<&str> = fr.stats.iter().map(|s| s.backend.as_str()).collect();
             b.sort_unstable();

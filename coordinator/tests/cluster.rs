@@ -134,13 +134,14 @@ fn distributed_equals_in_process_for_every_algorithm_and_worker_count() {
                 d <= 1e-5,
                 "{algorithm} with {workers} workers differs by {d}"
             );
-            // One stats line per worker, then the summary.
+            // One stats line for the frame, one per worker, then the summary.
             let text = std::fs::read_to_string(&stats).unwrap();
-            let lines: Vec<serde_json::Value> = text
+            let mut lines: Vec<serde_json::Value> = text
                 .lines()
                 .map(|l| serde_json::from_str(l).unwrap())
                 .collect();
-            assert_eq!(lines.len(), workers + 1);
+            assert_eq!(lines.len(), workers + 2);
+            assert_eq!(lines.remove(0)["kind"], "frame");
             assert!(lines[..workers].iter().all(|l| l["kind"] == "worker"));
             assert_eq!(lines[workers]["kind"], "summary");
             assert_eq!(lines[workers]["workers"], workers);
@@ -505,6 +506,30 @@ fn an_orbit_renders_every_frame_on_one_set_of_workers_like_in_process() {
     assert!(dist_stats.contains("\"frame_count\":3"), "{dist_stats}");
     // One set of workers serves the whole sequence.
     assert_eq!(log.matches("worker joined").count(), 2, "{log}");
+    // Both summaries report the same quantities under the same names, filled in.
+    let summary = |s: &str| -> serde_json::Value {
+        let l = s
+            .lines()
+            .find(|l| l.contains("\"kind\":\"summary\""))
+            .unwrap();
+        serde_json::from_str(l).unwrap()
+    };
+    let (a, b) = (summary(&in_stats), summary(&dist_stats));
+    let keys = |v: &serde_json::Value| {
+        let mut k: Vec<String> = v.as_object().unwrap().keys().cloned().collect();
+        k.sort();
+        k
+    };
+    assert_eq!(keys(&a), keys(&b));
+    for v in [&a, &b] {
+        let f = |k: &str| v[k].as_f64().unwrap_or_else(|| panic!("{k} in {v}"));
+        assert!(f("pages_read") > 0.0 && f("bytes_read") > 0.0, "{v}");
+        assert!((0.0..=1.0).contains(&f("cache_hit_rate")), "{v}");
+        // The last frame is the final round's cast, a part of all casting.
+        assert!(f("last_frame_seconds") > 0.0, "{v}");
+        assert!(f("last_frame_seconds") < f("cast_seconds"), "{v}");
+        assert!(f("composite_seconds") >= 0.0, "{v}");
+    }
 
     // A sequence needs numbered outputs: refused before anything is rendered or written.
     let plain = dir.path().join("plain.png");

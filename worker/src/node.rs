@@ -446,6 +446,12 @@ impl Node {
         let image = tokio::task::block_in_place(|| self.image(req, &mut stats))?;
         stats.render_s = t.elapsed().as_secs_f64();
         stats.render_end_us = strata_net::unix_us();
+        let cache = self.engine.cache_stats();
+        stats.pages_read = cache.pages_read;
+        stats.bytes_read = cache.bytes_read;
+        stats.cache_hits = cache.hits;
+        stats.cache_lookups = cache.hits + cache.misses;
+        let composite_start = Instant::now();
 
         // Test hook: `STRATA_TEST_KILL_RANK=R` makes rank R die by SIGKILL between its
         // render and the exchange, the worst moment for its peers, so tests can check that
@@ -558,6 +564,7 @@ impl Node {
         result.write(&mut bytes);
         stats.gather_s = t.elapsed().as_secs_f64();
         stats.gather_bytes = bytes.len() as u64;
+        stats.composite_s = composite_start.elapsed().as_secs_f64();
         Ok((stats, bytes))
     }
 
@@ -637,6 +644,9 @@ impl Node {
                         .ok_or_else(|| anyhow!("leaf {leaf} is not one of this worker's"))?;
                     let r = self.engine.render_batch(&view, &region)?;
                     stats.render_rounds = stats.render_rounds.max(r.rounds);
+                    stats.cast_s += r.cast_seconds;
+                    stats.load_s += r.load_seconds;
+                    stats.last_round_s += r.last_seconds;
                     stats.backend = r.backend.clone();
                     stats.samples += r.last.samples;
                     if r.outcome != Outcome::Converged {
