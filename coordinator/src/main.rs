@@ -73,8 +73,16 @@ struct RenderArgs {
     stats: Option<PathBuf>,
     /// Render N frames on a circle around the camera's target with the same workers and
     /// resident data; a %05d in -o and --exr numbers the frames (e.g. -o out/frame_%05d.png).
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", conflicts_with = "path")]
     orbit: Option<u32>,
+    /// Render the frames of a camera path (TOML, or JSON by the .json extension: keyframes
+    /// of time, eye, target, up, fov_deg; interpolation linear or smooth; fps).
+    #[arg(long, value_name = "CAMERA_PATH")]
+    path: Option<PathBuf>,
+    /// Only frames A to B−1 of the sequence (A..B; A..=B includes B), e.g. to split a
+    /// sequence over the jobs of an array. Outputs keep the sequence's frame numbers.
+    #[arg(long, value_name = "A..B")]
+    frames: Option<String>,
 }
 
 #[derive(Subcommand)]
@@ -479,6 +487,8 @@ fn run(cli: Cli) -> Result<()> {
                 size,
                 workers: a.workers,
                 orbit: a.orbit,
+                path: a.path.clone(),
+                frames: a.frames.as_deref().map(render::parse_frames).transpose()?,
             };
             let pb = progress(cli.quiet, "synth");
             let s = if a.in_process {
@@ -497,6 +507,13 @@ fn run(cli: Cli) -> Result<()> {
                     s.exchange_bytes as f64 / (1 << 20) as f64,
                     s.gather_bytes as f64 / (1 << 20) as f64
                 );
+            }
+            if s.sequence.is_empty() {
+                println!(
+                    "nothing to render: all {} frame(s) of the range exist complete",
+                    s.skipped
+                );
+                return Ok(());
             }
             println!(
                 "rendered {}x{} in {:.2} s: {} after {} round(s); last frame {:.3} s, {} samples ({:.1} M samples/s)",
@@ -518,18 +535,26 @@ fn run(cli: Cli) -> Result<()> {
                 s.bytes_read as f64 / (1 << 20) as f64,
                 100.0 * s.cache_hit_rate
             );
-            if s.sequence.len() > 1 {
-                let secs: Vec<f64> = s.sequence.iter().map(|f| f.seconds).collect();
-                let first = secs[0];
-                let rest = &secs[1..];
-                let mean = rest.iter().sum::<f64>() / rest.len() as f64;
+            if s.skipped > 0 {
                 println!(
-                    "{} frames: first {:.2} s (cold), then {:.2} s per frame on average ({:.2} frames/s)",
-                    secs.len(),
-                    first,
-                    mean,
-                    1.0 / mean.max(1e-9)
+                    "{} frame(s) skipped: their outputs exist and are complete",
+                    s.skipped
                 );
+            }
+            if s.sequence.len() > 1 || a.orbit.is_some() || a.path.is_some() {
+                let secs: Vec<f64> = s.sequence.iter().map(|f| f.seconds).collect();
+                if let [first, rest @ ..] = &secs[..] {
+                    if rest.is_empty() {
+                        println!("1 frame: {first:.2} s");
+                    } else {
+                        let mean = rest.iter().sum::<f64>() / rest.len() as f64;
+                        println!(
+                            "{} frames: first {first:.2} s (cold), then {mean:.2} s per frame on average ({:.2} frames/s)",
+                            secs.len(),
+                            1.0 / mean.max(1e-9)
+                        );
+                    }
+                }
                 println!(
                     "wrote {} … {}",
                     s.sequence[0].output,

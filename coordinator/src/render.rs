@@ -38,10 +38,80 @@ pub struct RenderOptions {
     pub workers: Option<usize>,
     /// `--orbit N`: N frames on a circle around the scene camera's target.
     pub orbit: Option<u32>,
+    /// `--path FILE`: the frames of a camera path.
+    pub path: Option<PathBuf>,
+    /// `--frames A..B`: only sequence frames `A..B` (end exclusive).
+    pub frames: Option<(u32, u32)>,
 }
 
-/// One frame of a sequence: its camera and output paths.
+/// Parses `--frames`: `A..B` (B excluded) or `A..=B` (B included).
+pub fn parse_frames(s: &str) -> Result<(u32, u32)> {
+    let err = || {
+        anyhow::anyhow!(
+            "--frames {s:?}: expected A..B (frames A to B−1) or A..=B, e.g. --frames 0..100"
+        )
+    };
+    let (a, b, inclusive) = match s.split_once("..=") {
+        Some((a, b)) => (a, b, true),
+        None => {
+            let (a, b) = s.split_once("..").ok_or_else(err)?;
+            (a, b, false)
+        }
+    };
+    let a: u32 = a.trim().parse().map_err(|_| err())?;
+    let b: u32 = b.trim().parse().map_err(|_| err())?;
+    let b = if inclusive {
+        b.checked_add(1).ok_or_else(err)?
+    } else {
+        b
+    };
+    anyhow::ensure!(a < b, "--frames {s:?} holds no frame");
+    Ok((a, b))
+}
+
+/// Reads a camera path: JSON by the `.json` extension, TOML otherwise; errors name the file
+/// and, for syntax, line and column.
+fn load_path(p: &Path) -> Result<strata_common::camera_path::CameraPath> {
+    use strata_common::camera_path::CameraPath;
+    let text = std::fs::read_to_string(p)
+        .with_context(|| format!("reading camera path {}", p.display()))?;
+    let path = if p
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("json"))
+    {
+        let c: CameraPath =
+            serde_json::from_str(&text).with_context(|| format!("camera path {}", p.display()))?;
+        c.check()
+            .with_context(|| format!("camera path {}", p.display()))?;
+        c
+    } else {
+        CameraPath::from_toml(&text).with_context(|| format!("camera path {}", p.display()))?
+    };
+    Ok(path)
+}
+
+/// Whether frame outputs already exist complete (a PNG of the right size that decodes, and
+/// the EXR when one is asked for), so a resumed job skips the frame. Outputs are written
+/// atomically, so a killed job leaves no half-written file under these names.
+fn complete(f: &FramePlan, width: u32, height: u32) -> bool {
+    let png_ok = (|| -> Option<()> {
+        let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&f.png).ok()?));
+        let mut reader = decoder.read_info().ok()?;
+        let info = reader.info();
+        if (info.width, info.height) != (width, height) {
+            return None;
+        }
+        let mut buf = vec![0; reader.output_buffer_size()?];
+        reader.next_frame(&mut buf).ok()?;
+        Some(())
+    })()
+    .is_some();
+    png_ok && f.exr.as_ref().is_none_or(|e| e.is_file())
+}
+
+/// One frame of a sequence: its number, camera and output paths.
 struct FramePlan {
+    index: u32,
     camera: Camera,
     png: PathBuf,
     exr: Option<PathBuf>,
@@ -50,39 +120,83 @@ struct FramePlan {
 /// The most frames one `--orbit` may ask for.
 const MAX_FRAMES: u32 = 1_000_000;
 
-/// The run's frames: the camera alone, or `--orbit N` frames around it with numbered paths.
-fn plan_frames(opts: &RenderOptions, camera: &Camera) -> Result<Vec<FramePlan>> {
-    let Some(n) = opts.orbit else {
-        return Ok(vec![FramePlan {
-            camera: camera.clone(),
-            png: opts.output.clone(),
-            exr: opts.exr.clone(),
-        }]);
+/// The run's frames: the camera alone, `--orbit N` frames around it, or a camera path's
+/// frames, with numbered paths, cut to `--frames`. Also returns how many frames of the range
+/// were skipped because their outputs are complete already.
+fn plan_frames(
+    opts: &RenderOptions,
+    camera: &Camera,
+    width: u32,
+    height: u32,
+) -> Result<(Vec<FramePlan>, usize)> {
+    let (n, what, at): (u32, String, Box<dyn Fn(u32) -> Camera>) = match (&opts.path, opts.orbit) {
+        (Some(p), _) => {
+            let path = load_path(p)?;
+            let n = path.frame_count();
+            (
+                n,
+                format!("--path {}", p.display()),
+                Box::new(move |i| path.frame(i)),
+            )
+        }
+        (None, Some(n)) => {
+            anyhow::ensure!(
+                (1..=MAX_FRAMES).contains(&n),
+                "--orbit {n}: the frame count must lie in 1..={MAX_FRAMES}"
+            );
+            let c = camera.clone();
+            (
+                n,
+                format!("--orbit {n}"),
+                Box::new(move |i| strata_common::camera::orbit(&c, n, i)),
+            )
+        }
+        (None, None) => {
+            anyhow::ensure!(
+                opts.frames.is_none(),
+                "--frames needs a sequence (--orbit N or --path FILE)"
+            );
+            let one = FramePlan {
+                index: 0,
+                camera: camera.clone(),
+                png: opts.output.clone(),
+                exr: opts.exr.clone(),
+            };
+            return Ok((vec![one], 0));
+        }
     };
-    anyhow::ensure!(
-        (1..=MAX_FRAMES).contains(&n),
-        "--orbit {n}: the frame count must lie in 1..={MAX_FRAMES}"
-    );
     for p in std::iter::once(&opts.output).chain(&opts.exr) {
         anyhow::ensure!(
             crate::sequence::is_numbered(p)?,
-            "--orbit {n}: the output {} needs a frame-number pattern, e.g. frames/frame_%05d.png",
+            "{what}: the output {} needs a frame-number pattern, e.g. frames/frame_%05d.png",
             p.display()
         );
     }
-    (0..n)
-        .map(|i| {
-            Ok(FramePlan {
-                camera: strata_common::camera::orbit(camera, n, i),
-                png: crate::sequence::numbered(&opts.output, i)?,
-                exr: opts
-                    .exr
-                    .as_ref()
-                    .map(|e| crate::sequence::numbered(e, i))
-                    .transpose()?,
-            })
-        })
-        .collect()
+    let (a, b) = opts.frames.unwrap_or((0, n));
+    anyhow::ensure!(
+        a < n,
+        "--frames {a}..{b}: the sequence has frames 0..{n} ({what})"
+    );
+    let mut plan = Vec::new();
+    let mut skipped = 0;
+    for i in a..b.min(n) {
+        let f = FramePlan {
+            index: i,
+            camera: at(i),
+            png: crate::sequence::numbered(&opts.output, i)?,
+            exr: opts
+                .exr
+                .as_ref()
+                .map(|e| crate::sequence::numbered(e, i))
+                .transpose()?,
+        };
+        if complete(&f, width, height) {
+            skipped += 1;
+        } else {
+            plan.push((i, f));
+        }
+    }
+    Ok((plan.into_iter().map(|(_, f)| f).collect(), skipped))
 }
 
 /// Turns the run's progress bar into a frame counter for sequences.
@@ -170,9 +284,42 @@ pub struct RenderSummary {
     pub sequence: Vec<FrameSummary>,
     /// Frames rendered.
     pub frame_count: usize,
+    /// Frames of the range skipped because their outputs were complete (resume).
+    pub skipped: usize,
 }
 
 impl RenderSummary {
+    /// The summary of a run with nothing left to render (every frame complete already).
+    fn nothing(width: u32, height: u32, skipped: usize, generated: bool, t0: Instant) -> Self {
+        RenderSummary {
+            width,
+            height,
+            rounds: 0,
+            outcome: "converged".into(),
+            samples: 0,
+            last_frame_seconds: 0.0,
+            cast_seconds: 0.0,
+            load_seconds: 0.0,
+            cache_hit_rate: 0.0,
+            pages_read: 0,
+            bytes_read: 0,
+            backend: "none".into(),
+            gpu_uploaded_bytes: 0,
+            gpu_feedback_bytes: 0,
+            generated_synthetic: generated,
+            seconds: t0.elapsed().as_secs_f64(),
+            workers: 0,
+            algorithm: None,
+            composite_seconds: 0.0,
+            exchange_bytes: 0,
+            gather_bytes: 0,
+            frames: vec![],
+            sequence: vec![],
+            frame_count: 0,
+            skipped,
+        }
+    }
+
     /// `--stats` output: one JSON object per line: per frame (`"kind": "frame"`), per worker
     /// and frame (`"kind": "worker"`), then the summary (`"kind": "summary"`).
     pub fn json_lines(&self) -> Result<String> {
@@ -250,6 +397,17 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
     let copts = ClusterOptions::from_scene(&scene, opts.workers)?;
     let n = copts.workers;
     let choice = composite_choice(&scene, n)?;
+    let camera = match &scene.camera {
+        Some(c) => c.clone(),
+        None => {
+            let data = strata_worker::dataset::SceneData::open(&scene)?;
+            strata_common::camera::default_camera(&data.bounds(), &scene.render)
+        }
+    };
+    let (plan, skipped) = plan_frames(opts, &camera, w, h)?;
+    if plan.is_empty() {
+        return Ok(RenderSummary::nothing(w, h, skipped, generated, t0));
+    }
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
@@ -258,18 +416,11 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
     let result = rt.block_on(async {
         let run = async {
             let mut cluster = Cluster::start(&scene, copts).await?;
-            let camera = match &scene.camera {
-                Some(c) => c.clone(),
-                None => {
-                    let data = strata_worker::dataset::SceneData::open(&scene)?;
-                    strata_common::camera::default_camera(&data.bounds(), &scene.render)
-                }
-            };
-            let plan = plan_frames(opts, &camera)?;
             frame_progress(progress, plan.len());
             let mut done = Vec::with_capacity(plan.len());
             let mut sequence = Vec::with_capacity(plan.len());
-            for (i, f) in plan.iter().enumerate() {
+            for f in &plan {
+                let i = f.index;
                 let t = Instant::now();
                 let fr = cluster
                     .frame(&f.camera, w, h, &choice, FrameSource::Render)
@@ -284,7 +435,7 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
                     Ok(())
                 })?;
                 sequence.push(FrameSummary {
-                    frame: i as u32,
+                    frame: i,
                     output: display(&f.png),
                     seconds: t.elapsed().as_secs_f64(),
                     rounds: fr.stats.iter().map(|s| s.render_rounds).max().unwrap_or(0),
@@ -363,6 +514,7 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
         frames,
         frame_count: sequence.len(),
         sequence,
+        skipped,
     })
 }
 
@@ -381,14 +533,18 @@ pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result
     let mut engine =
         Engine::new(&scene).with_context(|| format!("scene {}", opts.scene.display()))?;
     let region = engine.scene_region();
-    let plan = plan_frames(opts, &engine.camera().clone())?;
+    let (plan, skipped) = plan_frames(opts, &engine.camera().clone(), w, h)?;
+    if plan.is_empty() {
+        return Ok(RenderSummary::nothing(w, h, skipped, generated, t0));
+    }
     progress.set_message("rendering");
     frame_progress(progress, plan.len());
     let bg = scene.render.background.map(|c| c as f32);
     let (mut cast_seconds, mut load_seconds) = (0.0, 0.0);
     let mut sequence = Vec::with_capacity(plan.len());
     let mut last = None;
-    for (i, f) in plan.iter().enumerate() {
+    for f in &plan {
+        let i = f.index;
         let t = Instant::now();
         let view = strata_common::camera::View::new(&f.camera, &engine.settings, w, h)?;
         let result = engine
@@ -402,7 +558,7 @@ pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result
         cast_seconds += result.cast_seconds;
         load_seconds += result.load_seconds;
         sequence.push(FrameSummary {
-            frame: i as u32,
+            frame: i,
             output: display(&f.png),
             seconds: t.elapsed().as_secs_f64(),
             rounds: result.rounds,
@@ -440,6 +596,7 @@ pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result
         frames: vec![],
         frame_count: sequence.len(),
         sequence,
+        skipped,
     })
 }
 

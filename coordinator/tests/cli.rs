@@ -233,3 +233,138 @@ fn example_scene_parses() {
     assert_eq!((s.volumes.len(), s.horizons.len()), (1, 3));
     assert_eq!(s.render.cache_mb, 1024);
 }
+
+#[test]
+fn camera_path_sequences_split_into_ranges_and_resume() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let survey = d.join("survey");
+    let o = coordinator(&[
+        "synth",
+        "-o",
+        survey.to_str().unwrap(),
+        "--size",
+        "40",
+        "32",
+        "24",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let scene = survey.join("scene.toml");
+    // The survey spans about 1000 × 800 m from (605000, 6075000); z grows downward.
+    let toml = r#"
+interpolation = "smooth"
+fps = 3
+[[keyframes]]
+time = 0.0
+eye = [604200.0, 6074000.0, -1500.0]
+target = [605500.0, 6075400.0, 300.0]
+up = [0.0, 0.0, -1.0]
+[[keyframes]]
+time = 1.0
+eye = [606800.0, 6074200.0, -1500.0]
+target = [605500.0, 6075400.0, 300.0]
+up = [0.0, 0.0, -1.0]
+"#;
+    let path = d.join("path.toml");
+    std::fs::write(&path, toml).unwrap();
+    let out = d.join("out");
+    std::fs::create_dir(&out).unwrap();
+    let pattern = out.join("f_%02d.png");
+    let render = |extra: &[&str]| {
+        let mut args = vec![
+            "render",
+            scene.to_str().unwrap(),
+            "--in-process",
+            "--size",
+            "48x32",
+            "-o",
+            pattern.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        coordinator(&args)
+    };
+    let path_arg = path.to_str().unwrap();
+    // Frames 1 and 2 of the 4 (0, ⅓, ⅔, 1 s): one job of an array.
+    let o = render(&["--path", path_arg, "--frames", "1..3"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(only_files(&out), ["f_01.png", "f_02.png"]);
+    let f1 = std::fs::read(out.join("f_01.png")).unwrap();
+    // The rest, resumed: 1 and 2 are complete and skipped; a damaged frame 3 is redone.
+    std::fs::write(out.join("f_03.png"), b"\x89PNG truncated").unwrap();
+    let o = render(&["--path", path_arg, "--frames", "0..=3"]);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(stdout.contains("2 frame(s) skipped"), "{stdout}");
+    assert_eq!(
+        only_files(&out),
+        ["f_00.png", "f_01.png", "f_02.png", "f_03.png"]
+    );
+    assert_eq!(std::fs::read(out.join("f_01.png")).unwrap(), f1);
+    let frames: Vec<Vec<u8>> = (0..4)
+        .map(|i| std::fs::read(out.join(format!("f_{i:02}.png"))).unwrap())
+        .collect();
+    assert!(frames.windows(2).all(|w| w[0] != w[1]), "the camera moves");
+    // All complete: nothing rendered.
+    let o = render(&["--path", path_arg]);
+    assert!(o.status.success());
+    assert!(String::from_utf8_lossy(&o.stdout).contains("nothing to render"));
+
+    // The same path in JSON renders the same frames.
+    let json = d.join("path.json");
+    std::fs::write(
+        &json,
+        r#"{"interpolation": "smooth", "fps": 3, "keyframes": [
+            {"time": 0.0, "eye": [604200.0, 6074000.0, -1500.0], "target": [605500.0, 6075400.0, 300.0], "up": [0.0, 0.0, -1.0]},
+            {"time": 1.0, "eye": [606800.0, 6074200.0, -1500.0], "target": [605500.0, 6075400.0, 300.0], "up": [0.0, 0.0, -1.0]}]}"#,
+    )
+    .unwrap();
+    let jpattern = out.join("j_%02d.png");
+    let o = coordinator(&[
+        "render",
+        scene.to_str().unwrap(),
+        "--in-process",
+        "--size",
+        "48x32",
+        "-o",
+        jpattern.to_str().unwrap(),
+        "--path",
+        json.to_str().unwrap(),
+        "--frames",
+        "2..3",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(std::fs::read(out.join("j_02.png")).unwrap(), frames[2]);
+
+    // Bad paths and ranges: clear errors naming the file, non-zero exit, nothing written.
+    let bad = d.join("bad.toml");
+    std::fs::write(&bad, toml.replace("time = 1.0", "time = 0.0")).unwrap();
+    let empty = d.join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    let epattern = empty.join("e_%02d.png");
+    for (args, want) in [
+        (vec!["--path", bad.to_str().unwrap()], "keyframe 1"),
+        (
+            vec!["--path", "/nonexistent/path.toml"],
+            "/nonexistent/path.toml",
+        ),
+        (vec!["--path", path_arg, "--frames", "3..1"], "no frame"),
+        (vec!["--path", path_arg, "--frames", "7..9"], "0..4"),
+        (vec!["--frames", "0..2"], "--orbit N or --path"),
+    ] {
+        let mut a = vec![
+            "render",
+            scene.to_str().unwrap(),
+            "--in-process",
+            "--size",
+            "48x32",
+            "-o",
+            epattern.to_str().unwrap(),
+        ];
+        a.extend_from_slice(&args);
+        let o = coordinator(&a);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "{args:?}");
+        assert!(err.contains(want), "{args:?}: {err}");
+        assert!(only_files(&empty).is_empty(), "{args:?}");
+    }
+}
