@@ -48,6 +48,14 @@ pub enum PyramidError {
         /// Border.
         border: u32,
     },
+    /// A page too large to allocate for (a crafted or corrupt header).
+    #[error("page size {page} exceeds the largest supported, {max} samples per axis")]
+    PageTooLarge {
+        /// Page size.
+        page: u32,
+        /// Largest allowed.
+        max: u32,
+    },
     /// Too many bricks for the id's Morton field.
     #[error("{bricks} pages along one axis exceed the page-id limit of {limit}")]
     TooManyBricks {
@@ -57,6 +65,11 @@ pub enum PyramidError {
         limit: u64,
     },
 }
+
+/// Largest brick edge of a volume page (256³ f32 = 64 MiB).
+pub const MAX_PAGE_3D: u32 = 256;
+/// Largest tile edge of a horizon page (4096² f32 = 64 MiB).
+pub const MAX_PAGE_2D: u32 = 4096;
 
 /// One level of the tree.
 #[derive(Copy, Clone, Debug, PartialEq, Eq)]
@@ -95,6 +108,15 @@ impl Pyramid {
         }
         if dim == Dim::Two && dims[2] != 1 {
             return Err(PyramidError::FlatZ(dims[2]));
+        }
+        // Bounded before anything is sized from it: caches, atlas slots and decoders
+        // allocate whole pages (at most 64 MiB of f32 either way).
+        let max = match dim {
+            Dim::Two => MAX_PAGE_2D,
+            Dim::Three => MAX_PAGE_3D,
+        };
+        if page > max {
+            return Err(PyramidError::PageTooLarge { page, max });
         }
         if page <= 2 * border {
             return Err(PyramidError::NoCore { page, border });
@@ -332,6 +354,24 @@ mod tests {
             Pyramid::new(Dim::Three, [u32::MAX as u64, 4, 4], 64, 1),
             Err(PyramidError::TooManyBricks { .. })
         ));
+        // Untrusted page sizes are bounded before anything allocates a page (a crafted
+        // header once asked for u32::MAX³ samples).
+        for (dim, page) in [(Dim::Three, 257), (Dim::Three, u32::MAX), (Dim::Two, 4097)] {
+            let dims = if dim == Dim::Two {
+                [8, 8, 1]
+            } else {
+                [8, 8, 8]
+            };
+            assert!(
+                matches!(
+                    Pyramid::new(dim, dims, page, 1),
+                    Err(PyramidError::PageTooLarge { .. })
+                ),
+                "{page}"
+            );
+        }
+        assert!(Pyramid::new(Dim::Three, [8, 8, 8], 256, 1).is_ok());
+        assert!(Pyramid::new(Dim::Two, [8, 8, 1], 4096, 1).is_ok());
     }
 
     proptest! {

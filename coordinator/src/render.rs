@@ -231,7 +231,7 @@ pub struct FrameSummary {
 }
 
 /// What a render did.
-#[derive(Clone, Debug, serde::Serialize)]
+#[derive(Clone, Debug, Default, serde::Serialize)]
 pub struct RenderSummary {
     /// Image width.
     pub width: u32,
@@ -294,29 +294,12 @@ impl RenderSummary {
         RenderSummary {
             width,
             height,
-            rounds: 0,
             outcome: "converged".into(),
-            samples: 0,
-            last_frame_seconds: 0.0,
-            cast_seconds: 0.0,
-            load_seconds: 0.0,
-            cache_hit_rate: 0.0,
-            pages_read: 0,
-            bytes_read: 0,
             backend: "none".into(),
-            gpu_uploaded_bytes: 0,
-            gpu_feedback_bytes: 0,
             generated_synthetic: generated,
             seconds: t0.elapsed().as_secs_f64(),
-            workers: 0,
-            algorithm: None,
-            composite_seconds: 0.0,
-            exchange_bytes: 0,
-            gather_bytes: 0,
-            frames: vec![],
-            sequence: vec![],
-            frame_count: 0,
             skipped,
+            ..RenderSummary::default()
         }
     }
 
@@ -588,15 +571,10 @@ pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result
         gpu_feedback_bytes: result.last_gpu.feedback_bytes,
         generated_synthetic: generated,
         seconds: t0.elapsed().as_secs_f64(),
-        workers: 0,
-        algorithm: None,
-        composite_seconds: 0.0,
-        exchange_bytes: 0,
-        gather_bytes: 0,
-        frames: vec![],
         frame_count: sequence.len(),
         sequence,
         skipped,
+        ..RenderSummary::default()
     })
 }
 

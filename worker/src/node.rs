@@ -422,6 +422,15 @@ impl Node {
             req.height,
             self.setup.max_pixels
         );
+        // One checked pixel count: the run's limit comes over the network too.
+        let px = u32::try_from(pixels).map_err(|_| {
+            anyhow!(
+                "frame of {}x{} has more than {} pixels",
+                req.width,
+                req.height,
+                u32::MAX
+            )
+        })?;
         let mut seen = vec![false; n];
         for &r in &req.order {
             anyhow::ensure!(
@@ -456,7 +465,11 @@ impl Node {
         // Test hook: `STRATA_TEST_KILL_RANK=R` makes rank R die by SIGKILL between its
         // render and the exchange, the worst moment for its peers, so tests can check that
         // a vanished worker fails the frame with a clear error instead of a hang.
-        if std::env::var("STRATA_TEST_KILL_RANK").ok().as_deref() == Some(&self.rank.to_string()) {
+        // Debug builds only (what the tests run): release binaries ignore the variable.
+        if cfg!(debug_assertions)
+            && std::env::var("STRATA_TEST_KILL_RANK").ok().as_deref()
+                == Some(&self.rank.to_string())
+        {
             warn!(
                 rank = self.rank,
                 "STRATA_TEST_KILL_RANK: killing this worker"
@@ -467,14 +480,14 @@ impl Node {
             }
         }
         // 2. The exchange.
-        let key = (n, req.width * req.height, req.composite.clone());
+        let key = (n, px, req.composite.clone());
         let plan = match self.plans.get(&key) {
             Some(p) => p.clone(),
             None => {
                 let k: Vec<usize> = req.composite.k.iter().map(|&k| k as usize).collect();
                 let p = Arc::new(build_plan(
                     n,
-                    req.width * req.height,
+                    px,
                     req.composite.algorithm,
                     (!k.is_empty()).then_some(&k[..]),
                 )?);
@@ -528,13 +541,12 @@ impl Node {
                     .wait_piece(req, round as u32, from as u32, deadline, events)
                     .await?;
                 stats.bytes_received += len;
-                let piece =
-                    SparsePiece::parse(&bulk, req.width * req.height).with_context(|| {
-                        format!(
-                            "piece from {}",
-                            describe(&self.setup.peers, req.order[from])
-                        )
-                    })?;
+                let piece = SparsePiece::parse(&bulk, px).with_context(|| {
+                    format!(
+                        "piece from {}",
+                        describe(&self.setup.peers, req.order[from])
+                    )
+                })?;
                 rc.receive(from, piece).with_context(|| {
                     format!(
                         "piece from {}",

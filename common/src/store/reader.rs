@@ -163,7 +163,11 @@ impl PageStore {
                     ));
                 }
                 if e.has_payload() {
-                    let end = e.offset + e.stored_len as u64;
+                    // Checked: a crafted offset must not wrap around past the bound.
+                    let end = e
+                        .offset
+                        .checked_add(e.stored_len as u64)
+                        .unwrap_or(u64::MAX);
                     if e.offset < PREAMBLE_LEN || end > pre.header_offset.min(pre.index_offset) {
                         return Err(fmt(
                             at + 8,
