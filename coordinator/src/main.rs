@@ -83,6 +83,10 @@ struct RenderArgs {
     /// sequence over the jobs of an array. Outputs keep the sequence's frame numbers.
     #[arg(long, value_name = "A..B")]
     frames: Option<String>,
+    /// After a sequence, also encode its PNG frames into this MP4 (H.264) with ffmpeg, if
+    /// ffmpeg is on the PATH; without it the frames stand alone and a note says so.
+    #[arg(long, value_name = "FILE")]
+    mp4: Option<PathBuf>,
 }
 
 #[derive(Subcommand)]
@@ -322,6 +326,22 @@ fn file_name(p: &Path) -> String {
         .unwrap_or_default()
 }
 
+/// `--mp4`: encodes the sequence's frames if asked, or says why it could not.
+fn mp4_step(opts: &render::RenderOptions, mp4: Option<&Path>) -> Result<()> {
+    use strata_coordinator::sequence::Mp4;
+    let Some(mp4) = mp4 else {
+        return Ok(());
+    };
+    match render::write_mp4(opts, mp4)? {
+        Mp4::Written => println!("wrote {}", mp4.display()),
+        Mp4::NoFfmpeg => eprintln!(
+            "note: ffmpeg is not on the PATH, so no {} was written; the PNG frames are complete",
+            mp4.display()
+        ),
+    }
+    Ok(())
+}
+
 fn run(cli: Cli) -> Result<()> {
     let t0 = std::time::Instant::now();
     match cli.command {
@@ -490,6 +510,10 @@ fn run(cli: Cli) -> Result<()> {
                 path: a.path.clone(),
                 frames: a.frames.as_deref().map(render::parse_frames).transpose()?,
             };
+            anyhow::ensure!(
+                a.mp4.is_none() || a.orbit.is_some() || a.path.is_some(),
+                "--mp4 needs a sequence (--orbit N or --path FILE)"
+            );
             let pb = progress(cli.quiet, "synth");
             let s = if a.in_process {
                 render::render_in_process(&opts, &pb)
@@ -513,6 +537,7 @@ fn run(cli: Cli) -> Result<()> {
                     "nothing to render: all {} frame(s) of the range exist complete",
                     s.skipped
                 );
+                mp4_step(&opts, a.mp4.as_deref())?;
                 return Ok(());
             }
             println!(
@@ -569,6 +594,7 @@ fn run(cli: Cli) -> Result<()> {
             if let Some(p) = &a.stats {
                 synth::write_atomically(p, s.json_lines()?.as_bytes())?;
             }
+            mp4_step(&opts, a.mp4.as_deref())?;
         }
         Command::Worker(a) => {
             strata_worker::cli::join(a)?;

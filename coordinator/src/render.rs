@@ -44,6 +44,21 @@ pub struct RenderOptions {
     pub frames: Option<(u32, u32)>,
 }
 
+/// `--mp4 FILE` after a sequence: the frames `--frames` asked for (all of them when
+/// resumed), at the camera path's fps or 24 for an orbit.
+pub fn write_mp4(opts: &RenderOptions, out: &Path) -> Result<crate::sequence::Mp4> {
+    let fps = match &opts.path {
+        Some(p) => load_path(p)?.fps,
+        None => 24.0,
+    };
+    anyhow::ensure!(
+        opts.path.is_some() || opts.orbit.is_some(),
+        "--mp4 needs a sequence (--orbit N or --path FILE)"
+    );
+    let first = opts.frames.map_or(0, |f| f.0);
+    crate::sequence::encode_mp4(&opts.output, first, fps, out)
+}
+
 /// Parses `--frames`: `A..B` (B excluded) or `A..=B` (B included).
 pub fn parse_frames(s: &str) -> Result<(u32, u32)> {
     let err = || {

@@ -5,6 +5,7 @@
 
 use anyhow::{bail, Context, Result};
 use std::path::{Path, PathBuf};
+use std::process::Command;
 
 /// Where the frame-number pattern sits in a path: byte range and zero-padded width.
 struct Pattern {
@@ -81,6 +82,69 @@ pub fn numbered(template: &Path, frame: u32) -> Result<PathBuf> {
         unescape(&s[p.end..]),
         width = p.width
     )))
+}
+
+/// What became of an MP4 request.
+#[derive(Debug, PartialEq, Eq)]
+pub enum Mp4 {
+    /// Written.
+    Written,
+    /// `ffmpeg` is not on the PATH; the frames stand alone.
+    NoFfmpeg,
+}
+
+/// Encodes the numbered PNG frames `first..` of `pattern` into an H.264 MP4 at `fps`, with
+/// `ffmpeg` from the PATH (never required: without it nothing is written and
+/// [`Mp4::NoFfmpeg`] says so). The file appears atomically: ffmpeg writes a temporary file
+/// beside it, renamed when it succeeds.
+pub fn encode_mp4(pattern: &Path, first: u32, fps: f64, out: &Path) -> Result<Mp4> {
+    anyhow::ensure!(
+        fps > 0.0 && fps.is_finite(),
+        "MP4 frame rate must be positive, got {fps}"
+    );
+    let dir = out.parent().filter(|p| !p.as_os_str().is_empty());
+    let name = out
+        .file_name()
+        .with_context(|| format!("{}: not a file name", out.display()))?
+        .to_string_lossy()
+        .into_owned();
+    let tmp = dir
+        .map_or_else(PathBuf::new, Path::to_path_buf)
+        .join(format!(".{name}.partial.mp4"));
+    let run = Command::new("ffmpeg")
+        .args(["-y", "-loglevel", "error", "-framerate"])
+        .arg(format!("{fps}"))
+        .args(["-start_number", &first.to_string(), "-i"])
+        .arg(pattern)
+        .args([
+            "-c:v",
+            "libx264",
+            "-pix_fmt",
+            "yuv420p",
+            "-movflags",
+            "+faststart",
+        ])
+        .arg(&tmp)
+        .output();
+    let o = match run {
+        Ok(o) => o,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Mp4::NoFfmpeg),
+        Err(e) => return Err(e).context("running ffmpeg"),
+    };
+    if !o.status.success() || !tmp.is_file() {
+        let _ = std::fs::remove_file(&tmp);
+        let err = String::from_utf8_lossy(&o.stderr);
+        let tail: Vec<&str> = err.lines().rev().take(5).collect();
+        bail!(
+            "ffmpeg could not encode {} into {} ({}): {}",
+            pattern.display(),
+            out.display(),
+            o.status,
+            tail.into_iter().rev().collect::<Vec<_>>().join(" | ")
+        );
+    }
+    std::fs::rename(&tmp, out).with_context(|| format!("writing {}", out.display()))?;
+    Ok(Mp4::Written)
 }
 
 #[cfg(test)]

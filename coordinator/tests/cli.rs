@@ -368,3 +368,82 @@ up = [0.0, 0.0, -1.0]
         assert!(only_files(&empty).is_empty(), "{args:?}");
     }
 }
+
+#[test]
+fn mp4_uses_ffmpeg_when_there_is_one_and_says_so_when_not() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let survey = d.join("survey");
+    let o = coordinator(&[
+        "synth",
+        "-o",
+        survey.to_str().unwrap(),
+        "--size",
+        "40",
+        "32",
+        "24",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = d.join("out");
+    std::fs::create_dir(&out).unwrap();
+    let bin = d.join("bin");
+    std::fs::create_dir(&bin).unwrap();
+    let mp4 = d.join("seq.mp4");
+    let run = |path_env: &Path, frames: &str| {
+        Command::new(env!("CARGO_BIN_EXE_coordinator"))
+            .env("PATH", path_env)
+            .args(["-q", "render"])
+            .arg(survey.join("scene.toml"))
+            .args([
+                "--in-process",
+                "--size",
+                "32x24",
+                "--orbit",
+                "4",
+                "--frames",
+                frames,
+            ])
+            .arg("-o")
+            .arg(out.join("f_%03d.png"))
+            .arg("--mp4")
+            .arg(&mp4)
+            .output()
+            .unwrap()
+    };
+    // No ffmpeg: the frames are written, the run succeeds, and a note says why no MP4.
+    let o = run(&bin, "1..3");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("ffmpeg is not on the PATH"), "{err}");
+    assert!(!mp4.exists());
+    assert_eq!(only_files(&out), ["f_001.png", "f_002.png"]);
+    // A stand-in ffmpeg that records its arguments and writes the output it is given.
+    let fake = bin.join("ffmpeg");
+    std::fs::write(
+        &fake,
+        format!(
+            "#!/bin/sh\necho \"$@\" > {}\nfor a; do last=$a; done\necho mp4 > \"$last\"\n",
+            d.join("args").display()
+        ),
+    )
+    .unwrap();
+    std::fs::set_permissions(&fake, std::fs::Permissions::from_mode(0o755)).unwrap();
+    let o = run(&bin, "1..3");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("nothing to render"));
+    assert_eq!(std::fs::read_to_string(&mp4).unwrap(), "mp4\n");
+    let args = std::fs::read_to_string(d.join("args")).unwrap();
+    assert!(
+        args.contains("-framerate 24 -start_number 1 -i") && args.contains("f_%03d.png"),
+        "{args}"
+    );
+    assert!(!only_files(d).iter().any(|f| f.contains("partial")));
+    // A failing ffmpeg fails the run with its message, and leaves no MP4 behind.
+    std::fs::write(&fake, "#!/bin/sh\necho 'codec not found' >&2\nexit 1\n").unwrap();
+    std::fs::remove_file(&mp4).unwrap();
+    let o = run(&bin, "1..3");
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("codec not found"));
+    assert!(!mp4.exists());
+}
