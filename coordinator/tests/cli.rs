@@ -234,11 +234,9 @@ fn example_scene_parses() {
     assert_eq!(s.render.cache_mb, 1024);
 }
 
-#[test]
-fn camera_path_sequences_split_into_ranges_and_resume() {
-    let dir = tempfile::tempdir().unwrap();
-    let d = dir.path();
-    let survey = d.join("survey");
+/// A 40×32×24 synthetic survey (volume and three horizons) in `dir/survey`.
+fn small_survey(dir: &Path) -> PathBuf {
+    let survey = dir.join("survey");
     let o = coordinator(&[
         "synth",
         "-o",
@@ -249,6 +247,14 @@ fn camera_path_sequences_split_into_ranges_and_resume() {
         "24",
     ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    survey
+}
+
+#[test]
+fn camera_path_sequences_split_into_ranges_and_resume() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let survey = small_survey(d);
     let scene = survey.join("scene.toml");
     // The survey spans about 1000 × 800 m from (605000, 6075000); z grows downward.
     let toml = r#"
@@ -374,17 +380,7 @@ fn mp4_uses_ffmpeg_when_there_is_one_and_says_so_when_not() {
     use std::os::unix::fs::PermissionsExt;
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let survey = d.join("survey");
-    let o = coordinator(&[
-        "synth",
-        "-o",
-        survey.to_str().unwrap(),
-        "--size",
-        "40",
-        "32",
-        "24",
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let survey = small_survey(d);
     let out = d.join("out");
     std::fs::create_dir(&out).unwrap();
     let bin = d.join("bin");
