@@ -489,6 +489,72 @@ impl Decomposition {
             .collect()
     }
 
+    /// Largest worker time over the mean, from `measured` seconds per leaf (1 when nothing
+    /// was measured).
+    pub fn measured_imbalance(&self, measured: &[f64]) -> f64 {
+        let mut w = vec![0.0; self.workers];
+        for (l, &o) in self.owner.iter().enumerate() {
+            if let (Some(s), Some(&m)) = (w.get_mut(o), measured.get(l)) {
+                if m.is_finite() && m > 0.0 {
+                    *s += m;
+                }
+            }
+        }
+        let mean = w.iter().sum::<f64>() / self.workers.max(1) as f64;
+        if !(mean > 0.0) {
+            return 1.0;
+        }
+        w.iter().copied().fold(0.0, f64::max) / mean
+    }
+
+    /// The cost boxes re-weighted by what the leaves measured: a box in leaf `l` (by its
+    /// centre) costs its estimate times `(measured_l / leaf_cost_l) / (Σ measured / Σ
+    /// leaf_cost)`, raised to `damping` in (0, 1] so that one noisy frame moves the split
+    /// only part of the way. Leaves with no estimate or no measurement keep their weights.
+    /// Balancing these boxes re-splits the tree by the view's real work.
+    pub fn reweighted(&self, boxes: &[CostBox], measured: &[f64], damping: f64) -> Vec<CostBox> {
+        let n = self.tree.leaves.len();
+        let ok = |v: f64| v.is_finite() && v > 0.0;
+        let (mut sm, mut se) = (0.0, 0.0);
+        for l in 0..n {
+            let (m, e) = (measured.get(l).copied().unwrap_or(0.0), self.leaf_cost[l]);
+            if ok(m) && ok(e) {
+                sm += m;
+                se += e;
+            }
+        }
+        let d = if damping.is_finite() {
+            damping.clamp(0.0, 1.0)
+        } else {
+            1.0
+        };
+        let ratio: Vec<f64> = (0..n)
+            .map(|l| {
+                let (m, e) = (measured.get(l).copied().unwrap_or(0.0), self.leaf_cost[l]);
+                if ok(m) && ok(e) && ok(sm) && ok(se) {
+                    ((m / e) / (sm / se)).powf(d)
+                } else {
+                    1.0
+                }
+            })
+            .collect();
+        boxes
+            .iter()
+            .map(|b| {
+                let c = [0, 1, 2].map(|a| 0.5 * (b.region.lo[a] + b.region.hi[a]));
+                let leaf = self
+                    .tree
+                    .leaves
+                    .iter()
+                    .position(|r| (0..3).all(|a| r.lo[a] <= c[a] && c[a] < r.hi[a]));
+                CostBox {
+                    region: b.region,
+                    cost: b.cost * leaf.map_or(1.0, |l| ratio[l]),
+                }
+            })
+            .collect()
+    }
+
     /// Largest worker cost over the mean worker cost (1 when nothing costs anything).
     pub fn imbalance(&self) -> f64 {
         let c = self.worker_costs();
@@ -577,6 +643,50 @@ impl Decomposition {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn reweighting_by_measured_time_moves_the_split_toward_the_slow_side() {
+        let root = Region {
+            lo: [0.0; 3],
+            hi: [100.0, 10.0, 10.0],
+        };
+        // A uniform slab of 100 unit boxes along x: the estimate splits it at x = 50.
+        let boxes: Vec<CostBox> = (0..100)
+            .map(|i| CostBox {
+                region: Region {
+                    lo: [i as f64, 0.0, 0.0],
+                    hi: [i as f64 + 1.0, 10.0, 10.0],
+                },
+                cost: 1.0,
+            })
+            .collect();
+        let none = [vec![], vec![], vec![]];
+        let d = Decomposition::balanced(root, &boxes, 2, 1, &none);
+        let split = |d: &Decomposition| d.tree.leaves[0].hi[0];
+        assert!((split(&d) - 50.0).abs() < 1e-9);
+        // The left half measured 3× slower than the right (say, it is where the view looks):
+        // densities 3:1, so half the work lies left of x = 100/3.
+        let measured = [3.0, 1.0];
+        assert!((d.measured_imbalance(&measured) - 1.5).abs() < 1e-12);
+        let full =
+            Decomposition::balanced(root, &d.reweighted(&boxes, &measured, 1.0), 2, 1, &none);
+        assert!(
+            (split(&full) - 100.0 / 3.0).abs() < 1e-6,
+            "{}",
+            split(&full)
+        );
+        // Damped: part of the way.
+        let half =
+            Decomposition::balanced(root, &d.reweighted(&boxes, &measured, 0.5), 2, 1, &none);
+        assert!(
+            split(&half) > 100.0 / 3.0 + 1.0 && split(&half) < 49.0,
+            "{}",
+            split(&half)
+        );
+        // Nothing measured: unchanged weights.
+        assert_eq!(d.reweighted(&boxes, &[0.0, 0.0], 1.0), boxes);
+        assert_eq!(d.measured_imbalance(&[]), 1.0);
+    }
 
     #[test]
     fn splits_and_order() {

@@ -130,6 +130,22 @@ pub struct ClusterSettings {
     /// `worker --fingerprint-file`.
     #[serde(default)]
     pub fingerprint_file: Option<PathBuf>,
+    /// Between the frames of a sequence, re-split the k-d tree from the measured per-leaf
+    /// render times when the workers' imbalance (slowest / mean) exceeds
+    /// `rebalance_threshold`. 0 turns re-splitting off.
+    #[serde(default = "default_rebalance_threshold")]
+    pub rebalance_threshold: f64,
+    /// How far a re-split follows the measurement, in (0, 1]: each leaf's cost per unit of
+    /// estimate is raised to this power (1: all the way; smaller: damped).
+    #[serde(default = "default_rebalance_damping")]
+    pub rebalance_damping: f64,
+}
+
+fn default_rebalance_threshold() -> f64 {
+    1.25
+}
+fn default_rebalance_damping() -> f64 {
+    0.5
 }
 
 impl Default for ClusterSettings {
@@ -145,6 +161,8 @@ impl Default for ClusterSettings {
             worker_threads: 0,
             secret_file: None,
             fingerprint_file: None,
+            rebalance_threshold: default_rebalance_threshold(),
+            rebalance_damping: default_rebalance_damping(),
         }
     }
 }

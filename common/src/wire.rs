@@ -302,7 +302,14 @@ pub struct FrameRequest {
     pub composite: CompositeChoice,
     /// Where the partial images come from.
     pub source: FrameSource,
+    /// This worker's new leaves after a re-split of the k-d tree (from this frame on; at
+    /// most [`MAX_LEAVES_PER_WORKER`]); `None` keeps the current ones. `leaf_order`
+    /// indexes the leaves in force for the frame.
+    pub leaves: Option<Vec<Region>>,
 }
+
+/// Leaves one worker may be given.
+pub const MAX_LEAVES_PER_WORKER: usize = 64;
 
 /// What a worker composites.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -372,6 +379,9 @@ pub struct WorkerFrameStats {
     /// Seconds from the end of rendering to the final piece written for the coordinator
     /// (encode, exchange, blend, final encode), on this worker's clock.
     pub composite_s: f64,
+    /// Seconds of each leaf's final-round cast, in the order of this worker's leaves (for
+    /// re-splitting by measured cost).
+    pub leaf_cast_s: Vec<f64>,
     /// Seconds encoding pieces (active-pixel runs, f16 conversion).
     pub encode_s: f64,
     /// Seconds in the exchange: sending and waiting for pieces.

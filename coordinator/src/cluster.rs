@@ -57,6 +57,25 @@ pub struct ClusterOptions {
     pub max_pixels: u64,
     /// Executable for spawned workers (None: this executable's `worker` subcommand).
     pub worker_exe: Option<PathBuf>,
+    /// Re-split when the measured imbalance exceeds this (0: never).
+    pub rebalance_threshold: f64,
+    /// How far a re-split follows the measurement, in (0, 1].
+    pub rebalance_damping: f64,
+}
+
+/// A re-split of the k-d tree between two frames of a sequence.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct Rebalance {
+    /// The frame whose measurement triggered it (the new split applies from the next).
+    pub after_frame: u64,
+    /// Slowest worker's render time over the mean, measured on that frame.
+    pub measured_imbalance: f64,
+    /// The same measurement re-weighted onto the new split (what the cost model expects).
+    pub expected_imbalance: f64,
+    /// Leaf regions before and after.
+    pub old_leaves: Vec<strata_common::kd::Region>,
+    /// After.
+    pub new_leaves: Vec<strata_common::kd::Region>,
 }
 
 impl ClusterOptions {
@@ -77,6 +96,17 @@ impl ClusterOptions {
             c.leaves_per_worker >= 1 && c.leaves_per_worker <= 64,
             "cluster.leaves_per_worker must lie in 1..=64, got {}",
             c.leaves_per_worker
+        );
+        anyhow::ensure!(
+            c.rebalance_threshold == 0.0
+                || (c.rebalance_threshold >= 1.0 && c.rebalance_threshold.is_finite()),
+            "cluster.rebalance_threshold must be 0 (off) or at least 1, got {}",
+            c.rebalance_threshold
+        );
+        anyhow::ensure!(
+            c.rebalance_damping > 0.0 && c.rebalance_damping <= 1.0,
+            "cluster.rebalance_damping must lie in (0, 1], got {}",
+            c.rebalance_damping
         );
         for (k, v) in [
             ("connect_timeout_s", c.connect_timeout_s),
@@ -113,6 +143,8 @@ impl ClusterOptions {
             secret,
             fingerprint_file: c.fingerprint_file.clone(),
             max_pixels: scene.render.width as u64 * scene.render.height as u64,
+            rebalance_threshold: c.rebalance_threshold,
+            rebalance_damping: c.rebalance_damping,
             worker_exe: std::env::var_os("STRATA_WORKER_BIN").map(PathBuf::from),
         })
     }
@@ -170,14 +202,24 @@ pub struct Cluster {
     opts: ClusterOptions,
     frame_no: u64,
     child_pids: Vec<u32>,
+    /// The cost boxes the decomposition balances (re-weighted by each re-split).
+    costs: decompose::SceneCosts,
+    /// New leaves to hand each worker with its next frame request.
+    new_leaves: Vec<Option<Vec<strata_common::kd::Region>>>,
 }
 
 impl Cluster {
     /// Decomposes the scene, starts (or awaits) the workers and sets them up.
     pub async fn start(scene: &Scene, opts: ClusterOptions) -> Result<Cluster> {
         let n = opts.workers;
-        let decomposition =
-            tokio::task::block_in_place(|| decompose::decompose(scene, n, opts.leaves_per_worker))?;
+        let costs = tokio::task::block_in_place(|| decompose::scene_costs(scene))?;
+        let decomposition = Decomposition::balanced(
+            costs.root,
+            &costs.boxes,
+            n,
+            opts.leaves_per_worker,
+            &costs.planes,
+        );
         info!(
             workers = n,
             leaves = decomposition.tree.leaves.len(),
@@ -272,6 +314,8 @@ impl Cluster {
             opts,
             frame_no: 0,
             child_pids,
+            costs,
+            new_leaves: vec![None; n],
         };
         cluster.gather_workers(&secret, &tx).await?;
         cluster.setup(scene).await?;
@@ -542,6 +586,7 @@ impl Cluster {
                 leaf_order,
                 composite: composite.clone(),
                 source: source.clone(),
+                leaves: self.new_leaves[w.rank as usize].take(),
             });
             let what = w.describe();
             with_timeout(
@@ -615,6 +660,60 @@ impl Cluster {
             wall_s: t0.elapsed().as_secs_f64(),
             gather_bytes,
         })
+    }
+
+    /// After a frame of a sequence: when the workers' measured imbalance exceeds
+    /// `cluster.rebalance_threshold`, re-splits the tree from the measured per-leaf times
+    /// (damped by `cluster.rebalance_damping`) and hands each worker its new leaves with the
+    /// next frame. The workers keep their engines and resident pages.
+    pub fn rebalance(&mut self, done: &FrameResult, frame: u64) -> Option<Rebalance> {
+        let t = self.opts.rebalance_threshold;
+        if t <= 0.0 || self.workers.len() < 2 {
+            return None;
+        }
+        let d = &self.decomposition;
+        let mut measured = vec![0.0; d.tree.leaves.len()];
+        for s in &done.stats {
+            for (i, &l) in d.worker_leaves(s.rank as usize).iter().enumerate() {
+                measured[l] = s.leaf_cast_s.get(i).copied().unwrap_or(0.0);
+            }
+        }
+        let imbalance = d.measured_imbalance(&measured);
+        if !(imbalance > t) {
+            return None;
+        }
+        self.costs.boxes = d.reweighted(&self.costs.boxes, &measured, self.opts.rebalance_damping);
+        let new = Decomposition::balanced(
+            self.costs.root,
+            &self.costs.boxes,
+            self.workers.len(),
+            self.opts.leaves_per_worker,
+            &self.costs.planes,
+        );
+        if new.tree.leaves == d.tree.leaves && new.owner == d.owner {
+            // The split planes snapped back to the same brick boundaries: nothing to send.
+            debug!(frame, "re-split leaves the regions as they are");
+            return None;
+        }
+        let r = Rebalance {
+            after_frame: frame,
+            measured_imbalance: imbalance,
+            expected_imbalance: new.imbalance(),
+            old_leaves: d.tree.leaves.clone(),
+            new_leaves: new.tree.leaves.clone(),
+        };
+        info!(
+            frame,
+            measured = format!("{imbalance:.3}"),
+            expected = format!("{:.3}", r.expected_imbalance),
+            "re-split the k-d tree from measured render times"
+        );
+        for w in 0..self.workers.len() {
+            let leaves = new.worker_leaves(w);
+            self.new_leaves[w] = Some(leaves.iter().map(|&l| new.tree.leaves[l]).collect());
+        }
+        self.decomposition = new;
+        Some(r)
     }
 
     /// Tells every worker to exit and waits (briefly) for them; stragglers are killed

@@ -301,6 +301,9 @@ pub struct RenderSummary {
     pub frame_count: usize,
     /// Frames of the range skipped because their outputs were complete (resume).
     pub skipped: usize,
+    /// Re-splits of the k-d tree between frames (distributed sequences).
+    #[serde(skip)]
+    pub rebalances: Vec<crate::cluster::Rebalance>,
 }
 
 impl RenderSummary {
@@ -325,6 +328,12 @@ impl RenderSummary {
         for f in &self.sequence {
             let mut v = serde_json::to_value(f)?;
             v["kind"] = "frame".into();
+            out += &serde_json::to_string(&v)?;
+            out.push('\n');
+        }
+        for r in &self.rebalances {
+            let mut v = serde_json::to_value(r)?;
+            v["kind"] = "rebalance".into();
             out += &serde_json::to_string(&v)?;
             out.push('\n');
         }
@@ -416,6 +425,7 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
             let mut cluster = Cluster::start(&scene, copts).await?;
             frame_progress(progress, plan.len());
             let mut done = Vec::with_capacity(plan.len());
+            let mut rebalances = Vec::new();
             let mut sequence = Vec::with_capacity(plan.len());
             for f in &plan {
                 let i = f.index;
@@ -441,10 +451,15 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
                     samples: fr.stats.iter().map(|s| s.samples).sum(),
                 });
                 progress.inc(1);
+                if f.index != plan.last().map_or(f.index, |l| l.index) {
+                    if let Some(r) = cluster.rebalance(&fr, i as u64) {
+                        rebalances.push(r);
+                    }
+                }
                 done.push(fr);
             }
             cluster.shutdown().await;
-            anyhow::Ok((done, sequence))
+            anyhow::Ok((done, sequence, rebalances))
         };
         tokio::select! {
             r = run => r,
@@ -453,7 +468,7 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
     });
     // Dropping the runtime kills any worker still running (kill_on_drop).
     drop(rt);
-    let (mut done, sequence) = result?;
+    let (mut done, sequence, rebalances) = result?;
     let fr = done.pop().context("no frame rendered")?;
     for s in &fr.stats {
         info!(
@@ -513,6 +528,7 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
         frame_count: sequence.len(),
         sequence,
         skipped,
+        rebalances,
     })
 }
 

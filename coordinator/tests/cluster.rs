@@ -550,3 +550,81 @@ fn an_orbit_renders_every_frame_on_one_set_of_workers_like_in_process() {
     assert!(err.contains("frame-number pattern"), "{err}");
     assert!(!plain.exists());
 }
+
+#[test]
+fn a_sequence_that_re_splits_the_tree_still_equals_in_process_frame_by_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    // 5×5×2 bricks: fine enough that measured costs move the split planes off the
+    // estimate's brick boundaries.
+    let big = dir.path().join("big");
+    let o = run(
+        &[
+            "synth",
+            "-o",
+            big.to_str().unwrap(),
+            "--size",
+            "256",
+            "256",
+            "64",
+            "--seed",
+            "3",
+        ],
+        &[],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let scene = big.join("scene.toml");
+    let go = |name: &str, extra: &[&str]| {
+        let out = dir.path().join(format!("{name}_%02d.exr"));
+        let stats = dir.path().join(format!("{name}.jsonl"));
+        let mut args = vec!["--orbit", "4", "--stats", stats.to_str().unwrap()];
+        args.extend_from_slice(extra);
+        let o = render_scene(&scene, &out, &args, &[("RUST_LOG", "info")]);
+        assert!(
+            o.status.success(),
+            "{name}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        (
+            std::fs::read_to_string(&stats).unwrap(),
+            strip_ansi(&String::from_utf8_lossy(&o.stderr)),
+        )
+    };
+    go("in", &["--in-process"]);
+    // Threshold 1: any measured imbalance re-splits; 2 leaves per worker, full steps.
+    let (stats, log) = go(
+        "re",
+        &[
+            "--workers",
+            "3",
+            "--set",
+            "cluster.rebalance_threshold=1.0",
+            "--set",
+            "cluster.rebalance_damping=1.0",
+            "--set",
+            "cluster.leaves_per_worker=2",
+        ],
+    );
+    let rebalances: Vec<serde_json::Value> = stats
+        .lines()
+        .filter(|l| l.contains("\"kind\":\"rebalance\""))
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert!(!rebalances.is_empty(), "no re-split: {stats}");
+    for r in &rebalances {
+        assert!(r["measured_imbalance"].as_f64().unwrap() > 1.0, "{r}");
+        assert_ne!(r["old_leaves"], r["new_leaves"], "{r}");
+    }
+    assert!(log.contains("new regions after a re-split"), "{log}");
+    for i in 0..4 {
+        let a = read_exr(&dir.path().join(format!("in_{i:02}.exr")));
+        let b = read_exr(&dir.path().join(format!("re_{i:02}.exr")));
+        let d = max_diff(&a, &b);
+        assert!(d <= 1e-5, "frame {i} after re-splits differs by {d}");
+    }
+    // Off: no re-split.
+    let (stats, _) = go(
+        "off",
+        &["--workers", "3", "--set", "cluster.rebalance_threshold=0"],
+    );
+    assert!(!stats.contains("\"kind\":\"rebalance\""), "{stats}");
+}

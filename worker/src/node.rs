@@ -408,6 +408,30 @@ impl Node {
         req: &FrameRequest,
         events: &mut mpsc::UnboundedReceiver<PeerEvent>,
     ) -> Result<(WorkerFrameStats, Vec<u8>)> {
+        if let Some(leaves) = &req.leaves {
+            // A re-split: new regions from this frame on. The engine keeps its resident
+            // pages; those the new regions need are still there.
+            anyhow::ensure!(
+                !leaves.is_empty() && leaves.len() <= wire::MAX_LEAVES_PER_WORKER,
+                "frame {}: {} leaves (expected 1..={})",
+                req.frame,
+                leaves.len(),
+                wire::MAX_LEAVES_PER_WORKER
+            );
+            for r in leaves {
+                anyhow::ensure!(
+                    (0..3).all(|a| r.lo[a].is_finite() && r.hi[a].is_finite() && r.lo[a] < r.hi[a]),
+                    "frame {}: a leaf region {r:?} is empty or not finite",
+                    req.frame
+                );
+            }
+            info!(
+                frame = req.frame,
+                leaves = leaves.len(),
+                "new regions after a re-split"
+            );
+            self.setup.leaves = leaves.clone();
+        }
         let n = self.setup.peers.len();
         anyhow::ensure!(
             req.order.len() == n,
@@ -648,6 +672,7 @@ impl Node {
                 let view = View::new(&req.camera, &self.engine.settings, req.width, req.height)?;
                 let mut images = Vec::new();
                 let mut outcome = Outcome::Converged;
+                stats.leaf_cast_s = vec![0.0; self.setup.leaves.len()];
                 for &leaf in &req.leaf_order {
                     let region = *self
                         .setup
@@ -659,6 +684,7 @@ impl Node {
                     stats.cast_s += r.cast_seconds;
                     stats.load_s += r.load_seconds;
                     stats.last_round_s += r.last_seconds;
+                    stats.leaf_cast_s[leaf as usize] = r.last_seconds;
                     stats.backend = r.backend.clone();
                     stats.samples += r.last.samples;
                     if r.outcome != Outcome::Converged {
