@@ -464,26 +464,37 @@ fn gpu_workers_equal_the_in_process_cpu_image() {
     }
 }
 
+/// Renders an `--orbit frames` sequence of `scene` into `dir/{name}_%03d.exr` (+ PNG) with
+/// info logs; returns the `--stats` text and the log.
+fn orbit_run(
+    scene: &Path,
+    dir: &Path,
+    name: &str,
+    frames: u32,
+    extra: &[&str],
+) -> (String, String) {
+    let out = dir.join(format!("{name}_%03d.exr"));
+    let stats = dir.join(format!("{name}.jsonl"));
+    let n = frames.to_string();
+    let mut args = vec!["--orbit", &n, "--stats", stats.to_str().unwrap()];
+    args.extend_from_slice(extra);
+    let o = render_scene(scene, &out, &args, &[("RUST_LOG", "info")]);
+    assert!(
+        o.status.success(),
+        "{name}: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    (
+        std::fs::read_to_string(&stats).unwrap(),
+        strip_ansi(&String::from_utf8_lossy(&o.stderr)),
+    )
+}
+
 #[test]
 fn an_orbit_renders_every_frame_on_one_set_of_workers_like_in_process() {
     let dir = tempfile::tempdir().unwrap();
     let scene = survey().join("scene.toml");
-    let go = |name: &str, extra: &[&str]| {
-        let out = dir.path().join(format!("{name}_%03d.exr"));
-        let stats = dir.path().join(format!("{name}.jsonl"));
-        let mut args = vec!["--orbit", "3", "--stats", stats.to_str().unwrap()];
-        args.extend_from_slice(extra);
-        let o = render_scene(&scene, &out, &args, &[("RUST_LOG", "info")]);
-        assert!(
-            o.status.success(),
-            "{name}: {}",
-            String::from_utf8_lossy(&o.stderr)
-        );
-        (
-            std::fs::read_to_string(&stats).unwrap(),
-            strip_ansi(&String::from_utf8_lossy(&o.stderr)),
-        )
-    };
+    let go = |name: &str, extra: &[&str]| orbit_run(&scene, dir.path(), name, 3, extra);
     let (in_stats, _) = go("in", &["--in-process"]);
     let (dist_stats, log) = go("dist", &["--workers", "2"]);
     let frame = |name: &str, i: u32| {
@@ -573,22 +584,7 @@ fn a_sequence_that_re_splits_the_tree_still_equals_in_process_frame_by_frame() {
     );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let scene = big.join("scene.toml");
-    let go = |name: &str, extra: &[&str]| {
-        let out = dir.path().join(format!("{name}_%02d.exr"));
-        let stats = dir.path().join(format!("{name}.jsonl"));
-        let mut args = vec!["--orbit", "4", "--stats", stats.to_str().unwrap()];
-        args.extend_from_slice(extra);
-        let o = render_scene(&scene, &out, &args, &[("RUST_LOG", "info")]);
-        assert!(
-            o.status.success(),
-            "{name}: {}",
-            String::from_utf8_lossy(&o.stderr)
-        );
-        (
-            std::fs::read_to_string(&stats).unwrap(),
-            strip_ansi(&String::from_utf8_lossy(&o.stderr)),
-        )
-    };
+    let go = |name: &str, extra: &[&str]| orbit_run(&scene, dir.path(), name, 4, extra);
     go("in", &["--in-process"]);
     // Threshold 1: any measured imbalance re-splits; 2 leaves per worker, full steps.
     let (stats, log) = go(
@@ -616,8 +612,8 @@ fn a_sequence_that_re_splits_the_tree_still_equals_in_process_frame_by_frame() {
     }
     assert!(log.contains("new regions after a re-split"), "{log}");
     for i in 0..4 {
-        let a = read_exr(&dir.path().join(format!("in_{i:02}.exr")));
-        let b = read_exr(&dir.path().join(format!("re_{i:02}.exr")));
+        let a = read_exr(&dir.path().join(format!("in_{i:03}.exr")));
+        let b = read_exr(&dir.path().join(format!("re_{i:03}.exr")));
         let d = max_diff(&a, &b);
         assert!(d <= 1e-5, "frame {i} after re-splits differs by {d}");
     }
