@@ -310,6 +310,11 @@ pub struct RenderSettings {
     /// Batch rendering: frame -> feedback -> load rounds at most.
     #[serde(default = "default_rounds")]
     pub max_rounds: u32,
+    /// Frame sequences: rounds each frame after an engine's first may take (0: every frame
+    /// converges, up to `max_rounds`). The pages the last round asked for are loaded before
+    /// the next frame, so each frame starts from the previous one's feedback.
+    #[serde(default)]
+    pub rounds_per_frame: u32,
     /// Page-loader threads.
     #[serde(default = "default_loaders")]
     pub loader_threads: u32,
@@ -392,6 +397,7 @@ impl Default for RenderSettings {
             horizon_atlas_mb: default_hatlas(),
             upload_pages_per_frame: default_upload(),
             max_rounds: default_rounds(),
+            rounds_per_frame: 0,
             loader_threads: default_loaders(),
             background: [0.0; 3],
             backend: Backend::Auto,

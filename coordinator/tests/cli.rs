@@ -443,3 +443,85 @@ fn mp4_uses_ffmpeg_when_there_is_one_and_says_so_when_not() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("codec not found"));
     assert!(!mp4.exists());
 }
+
+#[test]
+fn rounds_per_frame_bounds_the_refinement_of_later_frames() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let survey = d.join("survey");
+    let o = coordinator(&[
+        "synth",
+        "-o",
+        survey.to_str().unwrap(),
+        "--size",
+        "128",
+        "128",
+        "64",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // Frame 0 from far away (the root pages suffice), frame 1 close (level-0 pages needed).
+    let path = d.join("p.toml");
+    std::fs::write(
+        &path,
+        r#"
+interpolation = "linear"
+fps = 1
+[[keyframes]]
+time = 0.0
+eye = [500000.0, 6000000.0, -60000.0]
+target = [606062.0, 6076997.0, 128.0]
+up = [0.0, 0.0, -1.0]
+[[keyframes]]
+time = 1.0
+eye = [601989.0, 6074282.0, -777.0]
+target = [606062.0, 6076997.0, 128.0]
+up = [0.0, 0.0, -1.0]
+"#,
+    )
+    .unwrap();
+    let frames = |rpf: &str| -> Vec<serde_json::Value> {
+        let out = d.join(format!("out{rpf}"));
+        std::fs::create_dir(&out).unwrap();
+        let stats = d.join(format!("s{rpf}.jsonl"));
+        let set = format!("render.rounds_per_frame={rpf}");
+        let o = coordinator(&[
+            "render",
+            survey.join("scene.toml").to_str().unwrap(),
+            "--in-process",
+            "--path",
+            path.to_str().unwrap(),
+            "-o",
+            out.join("f_%d.png").to_str().unwrap(),
+            "--size",
+            "160x120",
+            "--set",
+            &set,
+            "--stats",
+            stats.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        std::fs::read_to_string(&stats)
+            .unwrap()
+            .lines()
+            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+            .filter(|v| v["kind"] == "frame")
+            .collect()
+    };
+    // Unbounded: the close frame loads its pages and converges in a second round.
+    let free = frames("0");
+    assert_eq!(
+        (free[1]["rounds"].as_u64(), free[1]["outcome"].as_str()),
+        (Some(2), Some("converged"))
+    );
+    // Bounded to one round: it renders with what the previous frame left resident; its
+    // requests are loaded for the frame after.
+    let bounded = frames("1");
+    assert_eq!(bounded[0]["outcome"], "converged");
+    assert_eq!(
+        (
+            bounded[1]["rounds"].as_u64(),
+            bounded[1]["outcome"].as_str()
+        ),
+        (Some(1), Some("round-limit"))
+    );
+}

@@ -109,6 +109,9 @@ pub struct Engine {
     hpool: Option<Pool>,
     tables: Vec<PageTable>,
     frame_no: u32,
+    /// Regions rendered in batch mode so far: a region's first batch converges whatever
+    /// `render.rounds_per_frame` says.
+    seen_regions: HashSet<[u64; 6]>,
     gpu: Option<GpuBackend>,
 }
 
@@ -279,6 +282,7 @@ impl Engine {
             hpool,
             tables,
             frame_no: 0,
+            seen_regions: HashSet::new(),
             gpu,
         };
         if let Some(g) = &e.gpu {
@@ -675,9 +679,24 @@ impl Engine {
     }
 
     /// Batch mode: frame → feedback → load, repeated until every page the last frame asked
-    /// for was resident at its requested level (converged) or `render.max_rounds` is hit.
+    /// for was resident at its requested level (converged) or `render.max_rounds` is hit
+    /// (`render.rounds_per_frame` when set, for a region this engine rendered before).
     pub fn render_batch(&mut self, view: &View, region: &Region) -> Result<BatchResult> {
-        let max_rounds = self.settings.max_rounds.max(1);
+        let key = [0, 1, 2, 3, 4, 5].map(|i| {
+            if i < 3 {
+                region.lo[i].to_bits()
+            } else {
+                region.hi[i - 3].to_bits()
+            }
+        });
+        let seen = !self.seen_regions.insert(key);
+        let rpf = self.settings.rounds_per_frame;
+        let max_rounds = if seen && rpf > 0 {
+            rpf.min(self.settings.max_rounds)
+        } else {
+            self.settings.max_rounds
+        }
+        .max(1);
         let mut reports = Vec::new();
         let mut total = CastStats::default();
         let (mut cast_s, mut load_s) = (0.0, 0.0);
