@@ -134,8 +134,9 @@ pub struct TransferFunction {
 const BLOCK: usize = 16;
 
 impl TransferFunction {
-    /// Builds the transfer function of a volume layer; `range` is the store's value range,
-    /// used when the layer has no window.
+    /// Builds the transfer function of a volume layer; `range` is the window used when the
+    /// layer sets none (the store's value range, or a seismic clip; see the worker's
+    /// `dataset::Volume::open`).
     pub fn from_layer(layer: &VolumeLayer, range: [f64; 2]) -> Result<Self> {
         let cmap = ColorMap::named(&layer.colormap)?;
         let [lo, hi] = layer.window.unwrap_or(range);

@@ -524,3 +524,51 @@ fn utm_survey_renders_like_the_same_survey_at_the_origin() {
         "the view shows the data"
     );
 }
+
+#[test]
+fn seismic_default_window_is_symmetric_and_clips_at_the_99_5th_percentile() {
+    let dir = TempDir::new().unwrap();
+    let out = strata_coordinator::synth::synth(
+        dir.path(),
+        [96, 80, 48],
+        7,
+        false,
+        &indicatif::ProgressBar::hidden(),
+    )
+    .unwrap();
+    let scene = strata_common::scene::Scene::parse(
+        &out.scene,
+        &std::fs::read_to_string(&out.scene).unwrap(),
+    )
+    .unwrap();
+    let layer = &scene.volumes[0];
+    assert_eq!((layer.colormap.as_str(), layer.window), ("seismic", None));
+    let v = strata_worker::dataset::Volume::open(layer, 0).unwrap();
+    let range = v.store.header().value_range;
+    // White exactly at zero: the window is symmetric.
+    assert!(
+        v.tf.lo < 0.0 && (v.tf.lo + v.tf.hi).abs() < 1e-6 * v.tf.hi,
+        "{} {}",
+        v.tf.lo,
+        v.tf.hi
+    );
+    // Clipped inside the amplitude range, with 99.5 % of the root page's amplitudes inside.
+    assert!(
+        (v.tf.hi as f64) < range[0].abs().max(range[1]),
+        "{} vs {range:?}",
+        v.tf.hi
+    );
+    let p = v.store.pyramid();
+    let root = v
+        .store
+        .read_page(p.id(p.level_count() - 1, [0, 0, 0]))
+        .unwrap();
+    let inside = root.samples.iter().filter(|s| s.abs() <= v.tf.hi).count();
+    let frac = inside as f64 / root.samples.len() as f64;
+    assert!((0.994..0.9999).contains(&frac), "{frac}");
+    // An explicit window is kept as given.
+    let mut set = layer.clone();
+    set.window = Some([-5.0, 7.0]);
+    let v = strata_worker::dataset::Volume::open(&set, 0).unwrap();
+    assert_eq!((v.tf.lo, v.tf.hi), (-5.0, 7.0));
+}

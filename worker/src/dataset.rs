@@ -85,12 +85,50 @@ fn open(path: &std::path::Path, kind: DataKind) -> Result<Arc<PageStore>> {
     Ok(Arc::new(s))
 }
 
+/// Percentile of |amplitude| at which a seismic volume's default window clips (the usual
+/// default of seismic interpretation tools).
+pub const SEISMIC_CLIP_PERCENTILE: f64 = 99.5;
+
+/// The value window of a layer that sets none. For the diverging `seismic` map over signed
+/// data: ±the [`SEISMIC_CLIP_PERCENTILE`]th percentile of |amplitude|, so white sits exactly
+/// at zero and rare spikes do not wash the section out; the percentile is taken over the
+/// root page's valid samples (the whole volume, coarsened, one page read). Otherwise the
+/// store's value range.
+fn default_window(store: &PageStore, layer: &VolumeLayer) -> Result<[f64; 2]> {
+    let range = store.header().value_range;
+    if layer.colormap != "seismic" || !(range[0] < 0.0) {
+        return Ok(range);
+    }
+    let p = store.pyramid();
+    let top = p.level_count() - 1;
+    let root = store
+        .read_page(p.id(top, [0, 0, 0]))
+        .with_context(|| format!("volume {}: reading the root page", layer.store.display()))?;
+    let mut mag: Vec<f32> = root
+        .samples
+        .iter()
+        .filter(|v| v.is_finite())
+        .map(|v| v.abs())
+        .collect();
+    if mag.is_empty() {
+        return Ok(range);
+    }
+    let k = ((mag.len() - 1) as f64 * SEISMIC_CLIP_PERCENTILE / 100.0).round() as usize;
+    let (_, c, _) = mag.select_nth_unstable_by(k, f32::total_cmp);
+    let c = *c as f64;
+    Ok(if c > 0.0 { [-c, c] } else { range })
+}
+
 impl Volume {
     /// Opens a volume layer as data set `ds`.
     pub fn open(layer: &VolumeLayer, ds: u16) -> Result<Self> {
         let store = open(&layer.store, DataKind::Volume)?;
         let h = store.header();
-        let tf = TransferFunction::from_layer(layer, h.value_range)
+        let window = match layer.window {
+            Some(w) => w,
+            None => default_window(&store, layer)?,
+        };
+        let tf = TransferFunction::from_layer(layer, window)
             .with_context(|| format!("volume {}", layer.store.display()))?;
         Ok(Volume {
             ds,
