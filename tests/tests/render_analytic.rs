@@ -572,3 +572,51 @@ fn seismic_default_window_is_symmetric_and_clips_at_the_99_5th_percentile() {
     let v = strata_worker::dataset::Volume::open(&set, 0).unwrap();
     assert_eq!((v.tf.lo, v.tf.hi), (-5.0, 7.0));
 }
+
+#[test]
+fn empty_space_skipping_changes_samples_not_pixels() {
+    let dir = TempDir::new().unwrap();
+    // 64³ in 32³ bricks (cores of 30): zero up to z = 30, the border of the lowest bricks,
+    // and 100 above, so the lowest bricks are transparent and skipped whole, and the first
+    // samples past their exit can already be visible.
+    let n = 64u64;
+    let data: Vec<f32> = (0..n * n * n)
+        .map(|i| if i / (n * n) <= 30 { 0.0 } else { 100.0 })
+        .collect();
+    let store = volume_store(dir.path(), "step", [n, n, n], data, Affine3::IDENTITY, 32);
+    let mut r = exact_settings(W, W);
+    r.adaptive_step = false;
+    let s = scene(
+        vec![volume_layer(
+            store,
+            "viridis",
+            [0.0, 100.0],
+            vec![[0.0, 0.0], [0.05, 0.2], [1.0, 0.2]],
+        )],
+        vec![],
+        axis_camera([5.5, 9.5, -60.0], [31.5, 35.5, 40.0]),
+        r,
+    );
+    let run = |skipping: bool| {
+        let mut s = s.clone();
+        s.render.empty_space_skipping = skipping;
+        let px = render_on_both(&s, 1e-4, &format!("skipping {skipping}"));
+        let mut e = strata_worker::engine::Engine::new(&s).unwrap();
+        let view = e.view(W, W).unwrap();
+        let region = e.scene_region();
+        (px, e.render_batch(&view, &region).unwrap().last)
+    };
+    let (on, stats_on) = run(true);
+    let (off, stats_off) = run(false);
+    assert_clean(&on);
+    assert!(
+        on.iter().filter(|p| p[3] > 0.01).count() > 100,
+        "the view shows the data"
+    );
+    let d = max_diff(&on, &off);
+    assert!(d <= 1e-6, "skipping on and off differ by {d}");
+    assert!(
+        stats_on.skipped > 0 && stats_on.samples < stats_off.samples,
+        "on: {stats_on:?}, off: {stats_off:?}"
+    );
+}
