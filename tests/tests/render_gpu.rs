@@ -20,6 +20,29 @@ fn on(s: &Scene, b: Backend) -> Scene {
     on_backend(s, b)
 }
 
+/// Opens the scene on the GPU backend (asserting it took a GPU adapter) and converges one
+/// batch of the whole scene at its render size.
+fn gpu_batch(
+    s: &Scene,
+) -> (
+    Engine,
+    strata_common::camera::View,
+    strata_common::kd::Region,
+    strata_worker::engine::BatchResult,
+) {
+    let mut e = Engine::new(&on(s, Backend::Gpu)).unwrap();
+    assert!(
+        e.backend_name().starts_with("gpu: "),
+        "{}",
+        e.backend_name()
+    );
+    let view = e.view(s.render.width, s.render.height).unwrap();
+    let region = e.scene_region();
+    let r = e.render_batch(&view, &region).unwrap();
+    assert_eq!(r.outcome, Outcome::Converged, "{:?}", r.reports);
+    (e, view, region, r)
+}
+
 /// A synthetic survey's seismic volume alone (UTM coordinates, z down).
 fn survey_volume(dir: &Path, size: [u64; 3], page: u32, w: u32, h: u32) -> Scene {
     let out =
@@ -121,16 +144,7 @@ fn gpu_region_split_is_seamless_across_lod_levels_and_step_bands() {
         &survey_volume(dir.path(), [128, 128, 128], 32, 48, 36),
         Backend::Gpu,
     );
-    let mut e = Engine::new(&s).unwrap();
-    assert!(
-        e.backend_name().starts_with("gpu: "),
-        "{}",
-        e.backend_name()
-    );
-    let view = e.view(48, 36).unwrap();
-    let region = e.scene_region();
-    let r = e.render_batch(&view, &region).unwrap();
-    assert_eq!(r.outcome, Outcome::Converged);
+    let (mut e, view, region, _) = gpu_batch(&s);
     // What the frame provably used: levels from the GPU feedback, bands from the step table.
     let f = e.render_frame(&view, &region).unwrap();
     let levels: std::collections::BTreeSet<u8> = f
@@ -228,16 +242,7 @@ fn gpu_equals_cpu_for_volume_and_horizons_in_one_pass() {
     }
     let dir = TempDir::new().unwrap();
     let s = survey_with_horizons(dir.path(), 96, 64);
-    let mut e = Engine::new(&on(&s, Backend::Gpu)).unwrap();
-    assert!(
-        e.backend_name().starts_with("gpu: "),
-        "{}",
-        e.backend_name()
-    );
-    let view = e.view(96, 64).unwrap();
-    let region = e.scene_region();
-    let r = e.render_batch(&view, &region).unwrap();
-    assert_eq!(r.outcome, Outcome::Converged);
+    let (mut e, view, region, r) = gpu_batch(&s);
     assert!(r.last.hits > 500, "the horizons are hit: {:?}", r.last);
     // The feedback asked for horizon tiles (data sets after the volume).
     let f = e.render_frame(&view, &region).unwrap();
@@ -371,11 +376,7 @@ fn gpu_pools_keep_8_and_16_bit_samples_narrow_and_equal_the_cpu() {
     let dir = TempDir::new().unwrap();
     let f32_store = typed_volume(dir.path(), "f32", F32, None, 32);
     let batch = |s: &Scene| {
-        let mut e = Engine::new(&on(s, Backend::Gpu)).unwrap();
-        let view = e.view(64, 48).unwrap();
-        let region = e.scene_region();
-        let r = e.render_batch(&view, &region).unwrap();
-        assert_eq!(r.outcome, Outcome::Converged);
+        let (e, _, _, r) = gpu_batch(s);
         (e.gpu_pool_bits(), r.uploaded_bytes)
     };
     let (bits32, up32) = batch(&typed_scene(vec![(f32_store.clone(), [-1.0, 1.0])]));

@@ -49,6 +49,20 @@ pub struct GpuFrameStats {
     pub uploaded_bytes: u64,
 }
 
+/// LOD distances padded to the shader's fixed array (levels are checked at open).
+fn level_t_array(t: &[f32]) -> [f32; MAX_LEVELS] {
+    let mut a = [0f32; MAX_LEVELS];
+    a[..t.len()].copy_from_slice(t);
+    a
+}
+
+/// A page table's level records as the shader reads them: first entry, bricks per axis.
+fn level_records(t: &PageTable) -> impl Iterator<Item = [u32; 4]> + '_ {
+    t.levels
+        .iter()
+        .map(|l| [l.offset, l.bricks[0], l.bricks[1], l.bricks[2]])
+}
+
 impl GpuBackend {
     /// Opens the adapter for data sets with these pyramids, in data-set order: the volumes
     /// (with their sample types and no-data sentinels in `types`), then horizons.
@@ -255,8 +269,7 @@ impl GpuBackend {
         for (i, v) in setup.vols.iter().enumerate() {
             debug_assert_eq!(v.ds as usize, i);
             let nl = v.level_t.len();
-            let mut level_t = [0f32; MAX_LEVELS];
-            level_t[..nl].copy_from_slice(&v.level_t);
+            let level_t = level_t_array(&v.level_t);
             let t0 = &v.tables[0];
             for t in &v.tables {
                 if t.entries.len() != TF_SIZE {
@@ -276,12 +289,7 @@ impl GpuBackend {
                     bits[g / 32] |= 1 << (g % 32);
                 }
             }
-            levels.extend(
-                v.table
-                    .levels
-                    .iter()
-                    .map(|l| [l.offset, l.bricks[0], l.bricks[1], l.bricks[2]]),
-            );
+            levels.extend(level_records(v.table));
             vols.push(VolumeParams {
                 m0: v.m[0],
                 core: v.core,
@@ -310,14 +318,8 @@ impl GpuBackend {
             let ds = self.volumes + j;
             debug_assert_eq!(h.ds as usize, ds);
             let nl = h.level_t.len();
-            let mut level_t = [0f32; MAX_LEVELS];
-            level_t[..nl].copy_from_slice(&h.level_t);
-            levels.extend(
-                h.table
-                    .levels
-                    .iter()
-                    .map(|l| [l.offset, l.bricks[0], l.bricks[1], l.bricks[2]]),
-            );
+            let level_t = level_t_array(&h.level_t);
+            levels.extend(level_records(h.table));
             let bounds_base = hbounds.len() as u32;
             // All-hole tiles (NaN bounds) become min > max: the shader skips them without
             // comparing NaNs, which GPU compilers may assume away.

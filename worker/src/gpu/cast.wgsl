@@ -214,13 +214,26 @@ fn clip_region(lo: vec3<f32>, hi: vec3<f32>, d: vec3<f32>) -> vec2<f32> {
     return vec2<f32>(t0, t1);
 }
 
-fn index_dir(vi: u32, d: vec3<f32>) -> vec3<f32> {
-    let v = &vols[vi];
+// M·v for the 3×3 matrix with rows m0, m1, m2 (the CPU's operation order).
+fn mul_rows(m0: vec3<f32>, m1: vec3<f32>, m2: vec3<f32>, v: vec3<f32>) -> vec3<f32> {
     return vec3<f32>(
-        (*v).m0.x * d.x + (*v).m0.y * d.y + (*v).m0.z * d.z,
-        (*v).m1.x * d.x + (*v).m1.y * d.y + (*v).m1.z * d.z,
-        (*v).m2.x * d.x + (*v).m2.y * d.y + (*v).m2.z * d.z,
+        m0.x * v.x + m0.y * v.y + m0.z * v.z,
+        m1.x * v.x + m1.y * v.y + m1.z * v.z,
+        m2.x * v.x + m2.y * v.y + m2.z * v.z,
     );
+}
+
+// Mᵀ·v: an index-space gradient or normal to camera space.
+fn mul_cols(m0: vec3<f32>, m1: vec3<f32>, m2: vec3<f32>, v: vec3<f32>) -> vec3<f32> {
+    return vec3<f32>(
+        m0.x * v.x + m1.x * v.y + m2.x * v.z,
+        m0.y * v.x + m1.y * v.y + m2.y * v.z,
+        m0.z * v.x + m1.z * v.y + m2.z * v.z,
+    );
+}
+
+fn index_dir(vi: u32, d: vec3<f32>) -> vec3<f32> {
+    return mul_rows(vols[vi].m0, vols[vi].m1, vols[vi].m2, d);
 }
 
 // [t0, t1) of the ray inside the volume's index box [-0.5, hi).
@@ -446,14 +459,7 @@ fn shade(vi: u32, cur: ptr<function, Cursor>, q: vec3<f32>, d: vec3<f32>, rgba: 
         tap(vi, cur, q, vec3<f32>(0.0, 1.0, 0.0)) - tap(vi, cur, q, vec3<f32>(0.0, -1.0, 0.0)),
         tap(vi, cur, q, vec3<f32>(0.0, 0.0, 1.0)) - tap(vi, cur, q, vec3<f32>(0.0, 0.0, -1.0)),
     );
-    let m0 = vols[vi].m0;
-    let m1 = vols[vi].m1;
-    let m2 = vols[vi].m2;
-    let n = vec3<f32>(
-        m0.x * g.x + m1.x * g.y + m2.x * g.z,
-        m0.y * g.x + m1.y * g.y + m2.y * g.z,
-        m0.z * g.x + m1.z * g.y + m2.z * g.z,
-    );
+    let n = mul_cols(vols[vi].m0, vols[vi].m1, vols[vi].m2, g);
     let len = sqrt(n.x * n.x + n.y * n.y + n.z * n.z);
     if (!(len > 1e-12) || !is_finite(len)) {
         return rgba;
@@ -811,14 +817,7 @@ fn shade_horizon(hi: u32, d: vec3<f32>, hu: f32, hv: f32, sr: f32, h: f32) -> ve
     }
     // Normal in index space (per level-0 node), then to camera space by Mᵀ.
     let ni = vec3<f32>(-hu * sr, -hv * sr, 1.0);
-    let m0 = (*hz).m0;
-    let m1 = (*hz).m1;
-    let m2 = (*hz).m2;
-    let n = vec3<f32>(
-        m0.x * ni.x + m1.x * ni.y + m2.x * ni.z,
-        m0.y * ni.x + m1.y * ni.y + m2.y * ni.z,
-        m0.z * ni.x + m1.z * ni.y + m2.z * ni.z,
-    );
+    let n = mul_cols((*hz).m0, (*hz).m1, (*hz).m2, ni);
     let len = sqrt(n.x * n.x + n.y * n.y + n.z * n.z);
     var cosv = 1.0;
     if (len > 0.0 && is_finite(len)) {
@@ -974,14 +973,7 @@ fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f3
 // counted in the feedback.
 fn intersect_horizon(hi: u32, d: vec3<f32>, ta: f32, tb: f32) {
     let hz = &hors[hi];
-    let m0 = (*hz).m0;
-    let m1 = (*hz).m1;
-    let m2 = (*hz).m2;
-    let md = vec3<f32>(
-        m0.x * d.x + m0.y * d.y + m0.z * d.z,
-        m1.x * d.x + m1.y * d.y + m1.z * d.z,
-        m2.x * d.x + m2.y * d.y + m2.z * d.z,
-    );
+    let md = mul_rows((*hz).m0, (*hz).m1, (*hz).m2, d);
     let c = (*hz).c;
     var limit = tb;
     var stack: array<vec3<u32>, STACK>;
