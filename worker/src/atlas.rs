@@ -3,9 +3,11 @@
 //! Everything the ray casters read is a flat `#[repr(C)]` array whose records live in
 //! [`strata_common::gpu`], so the CPU caster and the wgpu backend read one layout:
 //!
-//! * the **pool**: `slots × page_samples` f32 (page samples x fastest, border included).
-//!   The CPU backend keeps it in host memory; the GPU backend keeps only the bookkeeping
-//!   here ([`Pool::bookkeeping`]) and the samples in a GPU buffer, slot for slot;
+//! * the **pool**: `slots × page_samples` samples (x fastest, border included). The CPU
+//!   backend keeps them as f32 in host memory; the GPU backend keeps only the bookkeeping
+//!   here ([`Pool::bookkeeping`]) and the samples on the device, slot for slot, in the
+//!   data's own width (`strata_common::gpu::PoolFormat`: a storage buffer, or a 3D texture
+//!   for `render.gpu_filter = "hardware"`);
 //! * **slot records** ([`SlotInfo`]): which page a slot holds and when it was last used;
 //! * **page tables**: one `u32` per virtual page of every level of a data set, concatenated
 //!   level by level (level 0 first, bricks x fastest), with per-level offsets and brick

@@ -1,11 +1,13 @@
-//! The wgpu backend of the engine: the atlas pool, the page tables and the transfer-function
-//! tables live in GPU buffers, a WGSL compute shader ([`SHADER`]) casts the rays with the CPU
+//! The wgpu backend of the engine: the atlas pools (volume bricks in their own sample width,
+//! in a storage buffer or a filterable 3D texture; horizon tiles), the page tables and the
+//! transfer-function tables live on the GPU, a WGSL compute shader ([`SHADER`]) casts the rays with the CPU
 //! caster's semantics, and the feedback is counted and compacted on the GPU.
 //!
 //! The engine keeps the bookkeeping (which page is in which slot, the page tables) on the
 //! host, exactly as for the CPU backend, and hands this module:
 //!
-//! * newly resident pages ([`GpuCaster::write_page`]), written into their slot;
+//! * newly resident pages ([`GpuCaster::write_page`]), encoded in the pool's format and
+//!   written into their slot;
 //! * the page tables ([`GpuCaster::sync_table`]): only the runs of entries that changed
 //!   since the last frame are written;
 //! * newly resident horizon tiles ([`GpuCaster::write_horizon_page`]) into the horizon pool;
