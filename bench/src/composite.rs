@@ -2,7 +2,8 @@
 //! side by side with the loopback QUIC throughput measured in the same run and with IceT
 //! 2.2's numbers on this machine (`../shared/baselines/RESULTS.md`).
 //!
-//! For each process count p, one cluster of p local worker processes is started once;
+//! For each process count p and transport (shared memory or loopback QUIC,
+//! `--transports`), one cluster of p local worker processes is started once;
 //! every configuration (algorithm × wire format × density) then runs `--frames` frames
 //! (plus one warm-up). Workers draw IceT `SimpleTiming`-like images instead of rendering:
 //! dense (every pixel active, no interlacing, as `-dense-images`) or sparse (each rank's
@@ -20,7 +21,7 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 use strata_common::composite::{Algorithm, WireFormat};
-use strata_common::scene::Scene;
+use strata_common::scene::{Scene, Transport};
 use strata_common::wire::{CompositeChoice, FrameSource};
 use strata_coordinator::cluster::{Cluster, ClusterOptions};
 use strata_net::{transport, Identity, NetConfig};
@@ -40,6 +41,10 @@ struct Cli {
     /// Timed frames per configuration (the median is reported).
     #[arg(long, default_value_t = 10)]
     frames: usize,
+    /// Transports to compare (`cluster.transport`): `shm` (shared memory between the
+    /// local processes) and `quic` (loopback QUIC).
+    #[arg(long, value_delimiter = ',', default_values_t = ["shm".to_string(), "quic".to_string()])]
+    transports: Vec<String>,
     /// Fraction of the frame each rank's box covers in the sparse case.
     #[arg(long, default_value_t = 0.2)]
     sparse_coverage: f32,
@@ -67,6 +72,7 @@ const ICET: [(usize, f64, f64); 3] = [(2, 20.89, 6.74), (4, 26.82, 9.83), (8, 49
 #[derive(serde::Serialize, Clone)]
 struct Row {
     procs: usize,
+    transport: String,
     density: &'static str,
     algorithm: String,
     wire: &'static str,
@@ -128,6 +134,7 @@ async fn loopback_rate(net: &NetConfig) -> Result<f64> {
 
 fn main() -> Result<()> {
     let cli = Cli::parse();
+    strata_worker::node::retain_freed_memory();
     if let Some(Sub::Worker(a)) = cli.worker {
         tracing_subscriber::fmt()
             .with_env_filter(tracing_subscriber::EnvFilter::new("warn"))
@@ -158,10 +165,23 @@ fn main() -> Result<()> {
     let rate = rt.block_on(loopback_rate(&net))?;
     println!("loopback QUIC, one stream, 256 MiB: {rate:.0} MiB/s");
     let mut rows = Vec::new();
+    let transports: Vec<Transport> = cli
+        .transports
+        .iter()
+        .map(|t| match t.as_str() {
+            "shm" => Ok(Transport::Shm),
+            "quic" => Ok(Transport::Quic),
+            "auto" => Ok(Transport::Auto),
+            other => anyhow::bail!("--transports: {other:?} is not shm, quic or auto"),
+        })
+        .collect::<Result<_>>()?;
     for &p in &cli.procs {
-        let mut opts = ClusterOptions::from_scene(&scene, Some(p))?;
-        opts.worker_threads = 1;
-        let rows_p = rt.block_on(async {
+        for &transport in &transports {
+            let tname = format!("{transport:?}").to_lowercase();
+            let mut opts = ClusterOptions::from_scene(&scene, Some(p))?;
+            opts.worker_threads = 1;
+            opts.transport = transport;
+            let rows_p = rt.block_on(async {
             let mut cluster = Cluster::start(&scene, opts).await?;
             let mut rows = Vec::new();
             for (density, coverage, interlace) in [
@@ -220,6 +240,7 @@ fn main() -> Result<()> {
                             .map_or(f64::NAN, |i| if coverage >= 1.0 { i.1 } else { i.2 });
                         let row = Row {
                             procs: p,
+                            transport: tname.clone(),
                             density,
                             algorithm: algorithm.to_string(),
                             wire: if wire == WireFormat::F32 { "f32" } else { "f16" },
@@ -234,7 +255,7 @@ fn main() -> Result<()> {
                             icet_ms: icet,
                         };
                         eprintln!(
-                            "p={p} {density} {} {}: {:.1} ms (exchange {:.1} ms, bound {:.1} ms), {:.1} MB/rank",
+                            "p={p} {tname} {density} {} {}: {:.1} ms (exchange {:.1} ms, bound {:.1} ms), {:.1} MB/rank",
                             row.algorithm, row.wire, row.composite_ms, row.exchange_ms, row.bound_ms,
                             row.bytes_per_rank / 1e6
                         );
@@ -245,18 +266,20 @@ fn main() -> Result<()> {
             cluster.shutdown().await;
             anyhow::Ok(rows)
         })?;
-        rows.extend(rows_p);
+            rows.extend(rows_p);
+        }
     }
     drop(rt);
 
     println!(
-        "\n| p | image | algorithm | wire | compositing ms | exchange ms (slowest rank) | encode ms | blend ms | MB sent/rank | bound N(1-1/p) MB | bound at loopback rate ms | MB gathered | IceT ms | ours / IceT |"
+        "\n| p | transport | image | algorithm | wire | compositing ms | exchange ms (slowest rank) | encode ms | blend ms | MB sent/rank | bound N(1-1/p) MB | bound at loopback rate ms | MB gathered | IceT ms | ours / IceT |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for r in &rows {
         println!(
-            "| {} | {} | {} | {} | {:.1} | {:.1} | {:.1} | {:.1} | {:.2} | {} | {} | {:.2} | {:.1} | {:.2} |",
+            "| {} | {} | {} | {} | {} | {:.1} | {:.1} | {:.1} | {:.1} | {:.2} | {} | {} | {:.2} | {:.1} | {:.2} |",
             r.procs,
+            r.transport,
             r.density,
             r.algorithm,
             r.wire,
@@ -273,18 +296,20 @@ fn main() -> Result<()> {
         );
     }
     // Sparse against dense, same p / algorithm / wire.
-    println!("\n| p | algorithm | wire | dense ms | sparse ms | dense / sparse |");
-    println!("|---|---|---|---|---|---|");
+    println!("\n| p | transport | algorithm | wire | dense ms | sparse ms | dense / sparse |");
+    println!("|---|---|---|---|---|---|---|");
     for d in rows.iter().filter(|r| r.density == "dense") {
         if let Some(s) = rows.iter().find(|s| {
             s.density == "sparse"
                 && s.procs == d.procs
+                && s.transport == d.transport
                 && s.algorithm == d.algorithm
                 && s.wire == d.wire
         }) {
             println!(
-                "| {} | {} | {} | {:.1} | {:.1} | {:.2} |",
+                "| {} | {} | {} | {} | {:.1} | {:.1} | {:.2} |",
                 d.procs,
+                d.transport,
                 d.algorithm,
                 d.wire,
                 d.composite_ms,
@@ -331,19 +356,23 @@ fn svg(rows: &[Row]) -> String {
         _ => "#98df8a",
     };
     let mut group_start = x;
-    let mut last: Option<(usize, &str)> = None;
+    let mut last: Option<(usize, &str, &str)> = None;
     for r in rows {
-        if last.is_some() && last != Some((r.procs, r.density)) {
+        let key = Some((r.procs, r.transport.as_str(), r.density));
+        if last.is_some() && last != key {
             x += gap;
             group_start = x;
         }
-        if last != Some((r.procs, r.density)) {
+        if last != key {
             body += &format!(
-                "<text x='{:.1}' y='{:.1}' font-size='10'>p={} {}</text>\n",
+                "<text x='{:.1}' y='{:.1}' font-size='9'>p={} {}</text><text x='{:.1}' y='{:.1}' font-size='9'>{}</text>\n",
                 group_start,
                 top + height + 14.0,
                 r.procs,
-                r.density
+                r.density,
+                group_start,
+                top + height + 25.0,
+                r.transport
             );
             if r.icet_ms.is_finite() {
                 let y = top + height - r.icet_ms / max * height;
@@ -366,7 +395,7 @@ fn svg(rows: &[Row]) -> String {
             r.composite_ms
         );
         x += bar;
-        last = Some((r.procs, r.density));
+        last = key;
     }
     let width = x + 200.0;
     let mut axis = String::new();

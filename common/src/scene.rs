@@ -139,6 +139,24 @@ pub struct ClusterSettings {
     /// estimate is raised to this power (1: all the way; smaller: damped).
     #[serde(default = "default_rebalance_damping")]
     pub rebalance_damping: f64,
+    /// How image pieces travel between processes: `auto` (shared memory between processes
+    /// on one host, QUIC between hosts), `quic` (QUIC everywhere) or `shm` (shared memory
+    /// everywhere; an error when the processes are not all on one host).
+    #[serde(default)]
+    pub transport: Transport,
+}
+
+/// `cluster.transport`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Transport {
+    /// Shared memory between processes that share a host, QUIC otherwise.
+    #[default]
+    Auto,
+    /// QUIC between every pair, even on one host.
+    Quic,
+    /// Shared memory between every pair; refused when some are on another host.
+    Shm,
 }
 
 fn default_rebalance_threshold() -> f64 {
@@ -163,6 +181,7 @@ impl Default for ClusterSettings {
             fingerprint_file: None,
             rebalance_threshold: default_rebalance_threshold(),
             rebalance_damping: default_rebalance_damping(),
+            transport: Transport::Auto,
         }
     }
 }

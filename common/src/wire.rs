@@ -27,7 +27,7 @@ use serde::{de::DeserializeOwned, Deserialize, Serialize};
 /// Frame magic.
 pub const MAGIC: [u8; 4] = *b"STRF";
 /// Protocol version; bumped on any incompatible change of the header or the messages.
-pub const PROTOCOL_VERSION: u16 = 1;
+pub const PROTOCOL_VERSION: u16 = 2;
 /// Size of the frame header.
 pub const HEADER_LEN: usize = 24;
 /// Largest meta message any endpoint accepts (control messages are small; the scene text
@@ -218,15 +218,29 @@ pub enum WorkerMsg {
         pid: u32,
         /// Fingerprint of the worker's own certificate, which its peers will pin.
         fingerprint: Fingerprint,
+        /// Where the worker could share memory: its host's boot id and shared-memory
+        /// folder (`strata_net::shm::host_id`); `None` where it has none. Two processes
+        /// with the same id can exchange pieces through shared memory.
+        host: Option<String>,
+    },
+    /// The shared-memory segment (a file name in the host's shared-memory folder) that
+    /// this worker's final pieces will be written to; sent before `Ready` when
+    /// `Setup::shm_gather` asks for it.
+    ShmSegment {
+        /// File name, `strata-shm-` and 32 hex digits.
+        name: String,
     },
     /// Peer connections are up; ready for frames.
     Ready,
-    /// A frame's result: the final piece follows as bulk.
+    /// A frame's result: the final piece follows as bulk, or lies in the worker's
+    /// shared-memory segment at `shm`.
     FrameDone {
         /// Frame number.
         frame: u64,
         /// What it cost.
         stats: WorkerFrameStats,
+        /// Where the final piece lies in the segment (`None`: it follows as bulk).
+        shm: Option<ShmRef>,
     },
     /// The worker could not do what was asked.
     Failed {
@@ -281,6 +295,66 @@ pub struct Setup {
     pub max_pixels: u64,
     /// How long to wait for any one peer message.
     pub timeout_ms: u64,
+    /// By rank: whether pieces to and from that peer go through shared memory (both on
+    /// this host and `cluster.transport` allows it) instead of QUIC.
+    pub shm_peers: Vec<bool>,
+    /// Whether the final piece goes to the coordinator through shared memory.
+    pub shm_gather: bool,
+}
+
+/// Where a record lies in a shared-memory segment.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ShmRef {
+    /// Byte offset of the record header in the segment.
+    pub offset: u64,
+    /// Length of the payload after the header.
+    pub len: u64,
+}
+
+/// Size of the header in front of every record in a shared-memory segment.
+pub const SHM_RECORD_HEADER: usize = 32;
+/// Magic of a shared-memory record.
+pub const SHM_MAGIC: [u8; 8] = *b"STRATASH";
+
+/// The header written in front of a record: magic, frame, round, sender position and
+/// payload length, so the reader can tell a record from stale or foreign bytes.
+pub fn encode_shm_record(frame: u64, round: u32, from: u32, len: u64) -> [u8; SHM_RECORD_HEADER] {
+    let mut h = [0u8; SHM_RECORD_HEADER];
+    h[0..8].copy_from_slice(&SHM_MAGIC);
+    h[8..16].copy_from_slice(&frame.to_le_bytes());
+    h[16..20].copy_from_slice(&round.to_le_bytes());
+    h[20..24].copy_from_slice(&from.to_le_bytes());
+    h[24..32].copy_from_slice(&len.to_le_bytes());
+    h
+}
+
+/// Checks a record header read from a segment against what the announcing message said.
+pub fn check_shm_record(
+    h: &[u8; SHM_RECORD_HEADER],
+    frame: u64,
+    round: u32,
+    from: u32,
+    len: u64,
+) -> Result<(), String> {
+    if h[0..8] != SHM_MAGIC {
+        return Err(format!(
+            "bad record magic {:02x?} (expected \"STRATASH\")",
+            &h[0..8]
+        ));
+    }
+    let got = (
+        u64::from_le_bytes(h[8..16].try_into().unwrap()),
+        u32::from_le_bytes(h[16..20].try_into().unwrap()),
+        u32::from_le_bytes(h[20..24].try_into().unwrap()),
+        u64::from_le_bytes(h[24..32].try_into().unwrap()),
+    );
+    if got != (frame, round, from, len) {
+        return Err(format!(
+            "the record holds frame {}, round {}, position {}, {} bytes; the message announced frame {frame}, round {round}, position {from}, {len} bytes",
+            got.0, got.1, got.2, got.3
+        ));
+    }
+    Ok(())
 }
 
 /// One frame.
@@ -346,6 +420,23 @@ pub enum PeerMsg {
         /// Sender's position in the visibility order.
         from: u32,
     },
+    /// The shared-memory segment this peer writes its pieces for the receiver to (sent
+    /// once, before any `ShmPiece`, when `Setup::shm_peers` says so).
+    ShmSegment {
+        /// File name, `strata-shm-` and 32 hex digits.
+        name: String,
+    },
+    /// One piece of a compositing round, written to the sender's segment at `at`.
+    ShmPiece {
+        /// Frame number.
+        frame: u64,
+        /// Round of the plan.
+        round: u32,
+        /// Sender's position in the visibility order.
+        from: u32,
+        /// Where the record lies.
+        at: ShmRef,
+    },
 }
 
 /// What one frame cost one worker.
@@ -390,8 +481,10 @@ pub struct WorkerFrameStats {
     pub blend_s: f64,
     /// Seconds encoding and sending the final piece to the coordinator.
     pub gather_s: f64,
-    /// Bytes sent to peers.
+    /// Bytes sent to peers (both transports).
     pub bytes_sent: u64,
+    /// Of these, bytes that went through shared memory.
+    pub shm_bytes_sent: u64,
     /// Bytes received from peers.
     pub bytes_received: u64,
     /// Bytes of the final piece sent to the coordinator.
@@ -464,11 +557,32 @@ mod tests {
                 backend: "cpu (2 threads)".into(),
                 ..Default::default()
             },
+            shm: Some(ShmRef {
+                offset: 64,
+                len: 1000,
+            }),
         };
         assert_eq!(decode_meta::<WorkerMsg>(&encode_meta(&w)).unwrap(), w);
         let mut bytes = encode_meta(&m);
         bytes.push(0);
         assert!(decode_meta::<PeerMsg>(&bytes).is_err());
+    }
+
+    #[test]
+    fn shm_record_headers_are_checked_field_by_field() {
+        let h = encode_shm_record(7, 2, 3, 1000);
+        assert_eq!(check_shm_record(&h, 7, 2, 3, 1000), Ok(()));
+        assert!(check_shm_record(&h, 8, 2, 3, 1000)
+            .unwrap_err()
+            .contains("frame 7"));
+        assert!(check_shm_record(&h, 7, 1, 3, 1000).is_err());
+        assert!(check_shm_record(&h, 7, 2, 4, 1000).is_err());
+        assert!(check_shm_record(&h, 7, 2, 3, 999).is_err());
+        let mut bad = h;
+        bad[0] = b'X';
+        assert!(check_shm_record(&bad, 7, 2, 3, 1000)
+            .unwrap_err()
+            .contains("magic"));
     }
 
     proptest! {

@@ -20,12 +20,14 @@ use std::time::{Duration, Instant};
 use strata_common::composite::{assemble, Interlace, SparsePiece};
 use strata_common::image::Rgba;
 use strata_common::kd::Decomposition;
+use strata_common::scene::Transport;
 use strata_common::scene::{Camera, Scene};
 use strata_common::wire::{
     self, CompositeChoice, CoordMsg, FrameRequest, FrameSource, Limits, PeerInfo, Setup,
     WorkerFrameStats, WorkerMsg,
 };
 use strata_net::frame::{read_frame, with_timeout, write_frame, NetError};
+use strata_net::shm::ShmReader;
 use strata_net::{secret, tls, transport, Identity, NetConfig};
 use tokio::sync::mpsc;
 use tracing::{debug, info, warn};
@@ -61,6 +63,8 @@ pub struct ClusterOptions {
     pub rebalance_threshold: f64,
     /// How far a re-split follows the measurement, in (0, 1].
     pub rebalance_damping: f64,
+    /// `cluster.transport`: shared memory between processes on one host, or QUIC.
+    pub transport: Transport,
 }
 
 /// A re-split of the k-d tree between two frames of a sequence.
@@ -145,6 +149,7 @@ impl ClusterOptions {
             max_pixels: scene.render.width as u64 * scene.render.height as u64,
             rebalance_threshold: c.rebalance_threshold,
             rebalance_damping: c.rebalance_damping,
+            transport: c.transport,
             worker_exe: std::env::var_os("STRATA_WORKER_BIN").map(PathBuf::from),
         })
     }
@@ -159,6 +164,10 @@ struct Worker {
     fingerprint: wire::Fingerprint,
     conn: quinn::Connection,
     send: quinn::SendStream,
+    /// Its shared-memory host id (see `strata_net::shm::host_id`).
+    host: Option<String>,
+    /// Its segment for final pieces, when it shares this host.
+    shm: Option<ShmReader>,
 }
 
 impl Worker {
@@ -193,6 +202,39 @@ pub struct FrameResult {
     pub gather_bytes: u64,
 }
 
+/// Which pairs of processes exchange through shared memory.
+#[derive(Clone, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct TransportReport {
+    /// Worker pairs that exchange through shared memory.
+    pub shm_pairs: usize,
+    /// Worker pairs that exchange over QUIC.
+    pub quic_pairs: usize,
+    /// Workers whose final pieces reach the coordinator through shared memory.
+    pub shm_gather: usize,
+    /// Workers whose final pieces reach the coordinator over QUIC.
+    pub quic_gather: usize,
+}
+
+impl TransportReport {
+    /// One line for logs and summaries, e.g. `shared memory (3 pairs, 3 gathers)`.
+    pub fn describe(&self) -> String {
+        let part = |shm: usize, quic: usize, what: &str| match (shm, quic) {
+            (0, 0) => None,
+            (s, 0) => Some(format!("{s} {what} over shared memory")),
+            (0, q) => Some(format!("{q} {what} over QUIC")),
+            (s, q) => Some(format!("{s} {what} over shared memory, {q} over QUIC")),
+        };
+        [
+            part(self.shm_pairs, self.quic_pairs, "pairs"),
+            part(self.shm_gather, self.quic_gather, "gathers"),
+        ]
+        .into_iter()
+        .flatten()
+        .collect::<Vec<_>>()
+        .join("; ")
+    }
+}
+
 /// A running set of workers.
 pub struct Cluster {
     ep: quinn::Endpoint,
@@ -206,6 +248,8 @@ pub struct Cluster {
     costs: decompose::SceneCosts,
     /// New leaves to hand each worker with its next frame request.
     new_leaves: Vec<Option<Vec<strata_common::kd::Region>>>,
+    /// The transports chosen at set-up.
+    transport: TransportReport,
 }
 
 impl Cluster {
@@ -316,6 +360,7 @@ impl Cluster {
             child_pids,
             costs,
             new_leaves: vec![None; n],
+            transport: TransportReport::default(),
         };
         cluster.gather_workers(&secret, &tx).await?;
         cluster.setup(scene).await?;
@@ -369,7 +414,7 @@ impl Cluster {
             let left = deadline.saturating_duration_since(Instant::now());
             tokio::select! {
                 w = auth_rx.recv() => {
-                    let (name, pid, fingerprint, conn, send, recv) = w.ok_or_else(|| anyhow!("the listener stopped"))?;
+                    let (name, pid, fingerprint, host, conn, send, recv) = w.ok_or_else(|| anyhow!("the listener stopped"))?;
                     let rank = self.workers.len() as u32;
                     transport::trust(&conn);
                     // Peers dial this address; an IPv4 worker on a dual-stack listener
@@ -378,7 +423,7 @@ impl Cluster {
                     let addr = SocketAddr::new(remote.ip().to_canonical(), remote.port());
                     info!(rank, %name, pid, %addr, "worker joined");
                     spawn_reader(rank, conn.clone(), recv, Limits::for_pixels(self.opts.max_pixels), tx.clone());
-                    self.workers.push(Worker { rank, name, pid, addr, fingerprint, conn, send });
+                    self.workers.push(Worker { rank, name, pid, addr, fingerprint, conn, send, host, shm: None });
                 }
                 ev = self.events.recv() => {
                     acceptor.abort();
@@ -419,7 +464,7 @@ impl Cluster {
         acceptor.abort();
         // The run is full: no new connections; authenticated extras are told why.
         self.ep.set_server_config(None);
-        while let Ok((name, pid, _, conn, mut send, _)) = auth_rx.try_recv() {
+        while let Ok((name, pid, _, _, conn, mut send, _)) = auth_rx.try_recv() {
             warn!(%name, pid, "refused a worker: the run already has {n}");
             let msg = wire::encode_meta(&CoordMsg::Refused {
                 reason: format!("the run already has its {n} workers"),
@@ -445,6 +490,37 @@ impl Cluster {
             .collect();
         let token = secret::random_bytes::<32>();
         let scene_toml = scene.to_toml();
+        let shm = self.plan_transport()?;
+        let own_host = strata_net::shm::host_id();
+        let gather: Vec<bool> = self
+            .workers
+            .iter()
+            .map(|w| {
+                self.opts.transport != Transport::Quic && own_host.is_some() && w.host == own_host
+            })
+            .collect();
+        if self.opts.transport == Transport::Shm {
+            if let Some(w) = self.workers.iter().find(|w| !gather[w.rank as usize]) {
+                bail!(
+                    "cluster.transport = \"shm\" needs every process on one host, but {} does not share this coordinator's shared memory",
+                    w.describe()
+                );
+            }
+        }
+        let n = self.workers.len();
+        self.transport = TransportReport {
+            shm_pairs: (0..n)
+                .flat_map(|a| (a + 1..n).map(move |b| (a, b)))
+                .filter(|&(a, b)| shm[a][b])
+                .count(),
+            quic_pairs: (0..n)
+                .flat_map(|a| (a + 1..n).map(move |b| (a, b)))
+                .filter(|&(a, b)| !shm[a][b])
+                .count(),
+            shm_gather: gather.iter().filter(|&&g| g).count(),
+            quic_gather: gather.iter().filter(|&&g| !g).count(),
+        };
+        info!(transport = %self.transport.describe(), "transports chosen");
         for w in &mut self.workers {
             let leaves = self
                 .decomposition
@@ -460,6 +536,8 @@ impl Cluster {
                 run_token: token,
                 max_pixels: self.opts.max_pixels,
                 timeout_ms: self.opts.frame_timeout.as_millis() as u64,
+                shm_peers: shm[w.rank as usize].clone(),
+                shm_gather: gather[w.rank as usize],
             }));
             let what = w.describe();
             with_timeout(
@@ -481,7 +559,25 @@ impl Cluster {
             })?;
             match ev {
                 Event::Msg { rank, frame } => match wire::decode_meta::<WorkerMsg>(&frame.meta) {
-                    Ok(WorkerMsg::Ready) => ready[rank as usize] = true,
+                    Ok(WorkerMsg::Ready) => {
+                        let w = &self.workers[rank as usize];
+                        anyhow::ensure!(
+                            !gather[rank as usize] || w.shm.is_some(),
+                            "{} is ready without announcing its shared-memory segment",
+                            w.describe()
+                        );
+                        ready[rank as usize] = true
+                    }
+                    Ok(WorkerMsg::ShmSegment { name })
+                        if gather[rank as usize] && self.workers[rank as usize].shm.is_none() =>
+                    {
+                        let w = &mut self.workers[rank as usize];
+                        let r = tokio::task::block_in_place(|| ShmReader::open(&name))
+                            .with_context(|| {
+                                format!("the shared-memory segment of {}", w.describe())
+                            })?;
+                        w.shm = Some(r);
+                    }
                     Ok(WorkerMsg::Failed { message, .. }) => bail!(
                         "{} failed to set up: {message}",
                         self.workers[rank as usize].describe()
@@ -534,9 +630,45 @@ impl Cluster {
         }
     }
 
+    /// Per pair of workers (by rank): whether they exchange through shared memory. Both
+    /// must report the same host id and `cluster.transport` must not be `quic`; with
+    /// `shm`, every pair must qualify.
+    fn plan_transport(&self) -> Result<Vec<Vec<bool>>> {
+        let n = self.workers.len();
+        let mut shm = vec![vec![false; n]; n];
+        if self.opts.transport == Transport::Quic {
+            return Ok(shm);
+        }
+        for a in 0..n {
+            for b in 0..n {
+                let (wa, wb) = (&self.workers[a], &self.workers[b]);
+                let same = a != b && wa.host.is_some() && wa.host == wb.host;
+                if a != b && !same && self.opts.transport == Transport::Shm {
+                    bail!(
+                        "cluster.transport = \"shm\" needs every process on one host, but {} and {} do not share memory",
+                        wa.describe(),
+                        wb.describe()
+                    );
+                }
+                shm[a][b] = same;
+            }
+        }
+        Ok(shm)
+    }
+
+    /// The transports chosen at set-up.
+    pub fn transport(&self) -> &TransportReport {
+        &self.transport
+    }
+
     /// Number of workers.
     pub fn workers(&self) -> usize {
         self.workers.len()
+    }
+
+    /// Largest final piece a worker may send.
+    fn piece_limit(&self) -> u64 {
+        Limits::for_pixels(self.opts.max_pixels).max_bulk
     }
 
     /// The decomposition in use.
@@ -630,10 +762,30 @@ impl Cluster {
                         Ok(WorkerMsg::FrameDone {
                             frame: fno,
                             stats: s,
+                            shm,
                         }) if fno == frame => {
-                            let piece = SparsePiece::parse(&f.bulk, width * height)
-                                .with_context(|| format!("final piece from {who}"))?;
                             gather_bytes += f.wire_len();
+                            let bulk = match (shm, &self.workers[rank as usize].shm) {
+                                (None, _) => f.bulk,
+                                (Some(at), Some(r)) => {
+                                    anyhow::ensure!(
+                                        f.bulk.is_empty(),
+                                        "{who} sent its final piece both inline and in shared memory"
+                                    );
+                                    gather_bytes += wire::SHM_RECORD_HEADER as u64 + at.len;
+                                    tokio::task::block_in_place(|| {
+                                        r.read(at, self.piece_limit(), frame, GATHER_ROUND, rank)
+                                    })
+                                    .with_context(|| {
+                                        format!("the final piece of {who} in shared memory")
+                                    })?
+                                }
+                                (Some(_), None) => bail!(
+                                    "{who} announced its final piece in shared memory, which it was not given"
+                                ),
+                            };
+                            let piece = SparsePiece::parse(&bulk, width * height)
+                                .with_context(|| format!("final piece from {who}"))?;
                             last_arrival = Instant::now();
                             pieces[rank as usize] = Some(piece);
                             stats[rank as usize] = Some(s);
@@ -754,6 +906,7 @@ type Authenticated = (
     String,
     u32,
     wire::Fingerprint,
+    Option<String>,
     quinn::Connection,
     quinn::SendStream,
     quinn::RecvStream,
@@ -779,6 +932,7 @@ async fn authenticate(incoming: quinn::Incoming, secret: &[u8]) -> Result<Authen
             name,
             pid,
             fingerprint,
+            host,
         }) => {
             if !secret::ct_eq(&s, secret) {
                 let msg = wire::encode_meta(&CoordMsg::Refused {
@@ -790,7 +944,7 @@ async fn authenticate(incoming: quinn::Incoming, secret: &[u8]) -> Result<Authen
                 conn.close(5u32.into(), b"wrong secret");
                 bail!("worker {name:?} (pid {pid}) presented the wrong shared secret");
             }
-            Ok((name, pid, fingerprint, conn, send, recv))
+            Ok((name, pid, fingerprint, host, conn, send, recv))
         }
         Ok(other) => {
             conn.close(4u32.into(), b"expected hello");
@@ -834,6 +988,10 @@ fn spawn_reader(
         }
     });
 }
+
+/// The round number of a final piece's record in a gather segment (the worker's rank is
+/// the sender field).
+const GATHER_ROUND: u32 = u32::MAX;
 
 fn describe_status(s: std::process::ExitStatus) -> String {
     use std::os::unix::process::ExitStatusExt;

@@ -524,12 +524,13 @@ fn run(cli: Cli) -> Result<()> {
             let s = s?;
             if s.workers > 0 {
                 println!(
-                    "{} workers, {}: compositing {:.1} ms, {:.1} MiB exchanged, {:.1} MiB gathered",
+                    "{} workers, {}: compositing {:.1} ms, {:.1} MiB exchanged, {:.1} MiB gathered; transport: {}",
                     s.workers,
                     s.algorithm.as_deref().unwrap_or("?"),
                     s.composite_seconds * 1e3,
                     s.exchange_bytes as f64 / (1 << 20) as f64,
-                    s.gather_bytes as f64 / (1 << 20) as f64
+                    s.gather_bytes as f64 / (1 << 20) as f64,
+                    s.transport.as_ref().map_or("?".into(), |t| t.describe())
                 );
             }
             if s.sequence.is_empty() {
@@ -611,6 +612,7 @@ fn run(cli: Cli) -> Result<()> {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    strata_worker::node::retain_freed_memory();
     let level = match cli.verbose {
         0 => "info",
         1 => "debug",

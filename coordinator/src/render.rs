@@ -291,6 +291,11 @@ pub struct RenderSummary {
     pub exchange_bytes: u64,
     /// Bytes of the final pieces sent to the coordinator.
     pub gather_bytes: u64,
+    /// Of the exchanged bytes, those that went through shared memory.
+    pub exchange_shm_bytes: u64,
+    /// How pieces travelled (distributed runs): pairs and gathers over shared memory and
+    /// over QUIC (`cluster.transport`).
+    pub transport: Option<crate::cluster::TransportReport>,
     /// Per-worker stats of each frame (distributed runs).
     #[serde(skip)]
     pub frames: Vec<Vec<WorkerFrameStats>>,
@@ -458,8 +463,9 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
                 }
                 done.push(fr);
             }
+            let transport = cluster.transport().clone();
             cluster.shutdown().await;
-            anyhow::Ok((done, sequence, rebalances))
+            anyhow::Ok((done, sequence, rebalances, transport))
         };
         tokio::select! {
             r = run => r,
@@ -468,7 +474,7 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
     });
     // Dropping the runtime kills any worker still running (kill_on_drop).
     drop(rt);
-    let (mut done, sequence, rebalances) = result?;
+    let (mut done, sequence, rebalances, transport) = result?;
     let fr = done.pop().context("no frame rendered")?;
     for s in &fr.stats {
         info!(
@@ -524,6 +530,8 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
         composite_seconds: fr.composite_s,
         exchange_bytes: fr.stats.iter().map(|s| s.bytes_sent).sum(),
         gather_bytes: fr.gather_bytes,
+        exchange_shm_bytes: fr.stats.iter().map(|s| s.shm_bytes_sent).sum(),
+        transport: Some(transport),
         frames,
         frame_count: sequence.len(),
         sequence,

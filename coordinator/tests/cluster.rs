@@ -218,6 +218,66 @@ fn options_that_change_bytes_not_pixels() {
     assert!(!dir.path().join("bad.png").exists());
 }
 
+#[test]
+fn shared_memory_and_forced_quic_give_identical_images_and_report_their_transport() {
+    let reference = reference();
+    let dir = tempfile::tempdir().unwrap();
+    let go = |name: &str, transport: &str, algorithm: &str| {
+        let out = dir.path().join(format!("{name}.exr"));
+        let stats = dir.path().join(format!("{name}.jsonl"));
+        let t = format!("cluster.transport={transport}");
+        let a = format!("composite.algorithm={algorithm}");
+        let o = render(
+            &out,
+            &[
+                "--workers",
+                "4",
+                "--set",
+                &t,
+                "--set",
+                &a,
+                "--set",
+                "composite.k=2",
+                "--stats",
+                stats.to_str().unwrap(),
+            ],
+            &[],
+        );
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let text = std::fs::read_to_string(&stats).unwrap();
+        let summary: serde_json::Value =
+            serde_json::from_str(text.lines().last().unwrap()).unwrap();
+        (read_exr(&out), summary)
+    };
+    let shm_host = strata_net::shm::host_id().is_some();
+    for algorithm in ["binary-swap", "radix-k"] {
+        let (quic, qs) = go(&format!("quic-{algorithm}"), "quic", algorithm);
+        assert_eq!(qs["transport"]["quic_pairs"], 6, "{qs}");
+        assert_eq!(qs["transport"]["quic_gather"], 4, "{qs}");
+        assert_eq!(qs["exchange_shm_bytes"], 0, "{qs}");
+        let (auto, s) = go(&format!("auto-{algorithm}"), "auto", algorithm);
+        assert!(quic == auto, "{algorithm}: the transport changed pixels");
+        assert!(max_diff(reference, &auto) <= 1e-5);
+        if shm_host {
+            // Four processes on one host: every pair and gather through shared memory,
+            // and the same bytes moved as over QUIC (payload and record headers).
+            assert_eq!(s["transport"]["shm_pairs"], 6, "{s}");
+            assert_eq!(s["transport"]["shm_gather"], 4, "{s}");
+            let shm = s["exchange_shm_bytes"].as_u64().unwrap();
+            assert!(
+                shm > 0 && shm <= s["exchange_bytes"].as_u64().unwrap(),
+                "{s}"
+            );
+        }
+    }
+    if shm_host {
+        // `shm` forced on one host works as `auto` does.
+        let (forced, s) = go("shm-forced", "shm", "radix-k");
+        assert_eq!(s["transport"]["shm_pairs"], 6, "{s}");
+        assert!(max_diff(reference, &forced) <= 1e-5);
+    }
+}
+
 /// A coordinator in cluster mode (`cluster.spawn = false`) waiting for one worker.
 struct Waiting {
     child: Child,
@@ -625,4 +685,216 @@ fn a_sequence_that_re_splits_the_tree_still_equals_in_process_frame_by_frame() {
         &["--workers", "3", "--set", "cluster.rebalance_threshold=0"],
     );
     assert!(!stats.contains("\"kind\":\"rebalance\""), "{stats}");
+}
+
+/// A hand-driven worker for hostile-peer tests: connects to a waiting coordinator with the
+/// run's secret, claims this host for shared memory, and returns its endpoint, control
+/// stream and set-up.
+async fn fake_worker(
+    w: &Waiting,
+) -> (
+    quinn::Endpoint,
+    quinn::Connection,
+    quinn::SendStream,
+    quinn::RecvStream,
+    strata_common::wire::Setup,
+) {
+    use strata_common::wire::{self, CoordMsg, Limits, WorkerMsg};
+    let pinned = strata_net::tls::parse_fingerprint(&w.fingerprint).unwrap();
+    let addr: std::net::SocketAddr = format!("127.0.0.1:{}", w.port).parse().unwrap();
+    let id = strata_net::Identity::generate().unwrap();
+    let net = strata_net::NetConfig::default();
+    let ep = strata_net::transport::endpoint("127.0.0.1:0".parse().unwrap(), &id, &net).unwrap();
+    let conn = strata_net::transport::connect(&ep, addr, pinned, &net, Duration::from_secs(10))
+        .await
+        .unwrap();
+    strata_net::transport::trust(&conn);
+    let (mut send, mut recv) = conn.open_bi().await.unwrap();
+    let hello = WorkerMsg::Hello {
+        secret: b"correct-horse-battery-staple-42".to_vec(),
+        name: "fake".into(),
+        pid: std::process::id(),
+        fingerprint: id.fingerprint,
+        host: strata_net::shm::host_id(),
+    };
+    strata_net::write_frame(&mut send, &wire::encode_meta(&hello), &[])
+        .await
+        .unwrap();
+    let limits = Limits {
+        max_meta: wire::MAX_META,
+        max_bulk: 0,
+    };
+    let f = strata_net::read_frame(&mut recv, &limits).await.unwrap();
+    let CoordMsg::Setup(setup) = wire::decode_meta::<CoordMsg>(&f.meta).unwrap() else {
+        panic!("expected the set-up")
+    };
+    (ep, conn, send, recv, *setup)
+}
+
+/// Waits for the coordinator to exit and returns its status and log.
+fn finish(mut w: Waiting) -> (std::process::ExitStatus, String) {
+    let status = w.child.wait().unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+    let log = std::fs::read_to_string(w.dir.path().join("coordinator.log")).unwrap();
+    (status, log)
+}
+
+#[test]
+fn a_bad_shared_memory_segment_of_a_worker_is_refused_naming_it() {
+    use strata_common::wire::{self, CoordMsg, Limits, ShmRef, WorkerMsg};
+    if strata_net::shm::host_id().is_none() {
+        eprintln!("skipped: this host has no /dev/shm");
+        return;
+    }
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .unwrap();
+
+    // 1. A segment that does not exist, announced at set-up.
+    let w = start_waiting_coordinator(1, &[]);
+    rt.block_on(async {
+        let (_ep, _conn, mut send, _recv, setup) = fake_worker(&w).await;
+        assert!(
+            setup.shm_gather,
+            "a worker on this host gathers through shared memory"
+        );
+        let msg = WorkerMsg::ShmSegment {
+            name: format!("strata-shm-{}", "0f".repeat(16)),
+        };
+        strata_net::write_frame(&mut send, &wire::encode_meta(&msg), &[])
+            .await
+            .unwrap();
+        tokio::time::sleep(Duration::from_secs(2)).await;
+    });
+    let (status, log) = finish(w);
+    assert!(!status.success());
+    let last = log.lines().last().unwrap_or_default();
+    assert!(
+        last.contains("the shared-memory segment of worker 0 (fake"),
+        "{log}"
+    );
+
+    // 2. A real segment, but the final piece's size runs past its end.
+    let w = start_waiting_coordinator(1, &[]);
+    rt.block_on(async {
+        let (_ep, _conn, mut send, mut recv, _setup) = fake_worker(&w).await;
+        let mut seg = strata_net::shm::ShmWriter::create().unwrap();
+        let msg = WorkerMsg::ShmSegment {
+            name: seg.name().to_string(),
+        };
+        strata_net::write_frame(&mut send, &wire::encode_meta(&msg), &[])
+            .await
+            .unwrap();
+        strata_net::write_frame(&mut send, &wire::encode_meta(&WorkerMsg::Ready), &[])
+            .await
+            .unwrap();
+        let limits = Limits {
+            max_meta: wire::MAX_META,
+            max_bulk: 0,
+        };
+        let f = strata_net::read_frame(&mut recv, &limits).await.unwrap();
+        let CoordMsg::Frame(req) = wire::decode_meta::<CoordMsg>(&f.meta).unwrap() else {
+            panic!("expected a frame")
+        };
+        let at = seg.write(req.frame, u32::MAX, 0, &[0u8; 16]).unwrap();
+        let msg = WorkerMsg::FrameDone {
+            frame: req.frame,
+            stats: Default::default(),
+            shm: Some(ShmRef {
+                offset: at.offset,
+                len: 1000,
+            }),
+        };
+        strata_net::write_frame(&mut send, &wire::encode_meta(&msg), &[])
+            .await
+            .unwrap();
+        tokio::time::sleep(Duration::from_secs(2)).await;
+    });
+    let (status, log) = finish(w);
+    assert!(!status.success());
+    let last = log.lines().last().unwrap_or_default();
+    assert!(
+        last.contains("the final piece of worker 0 (fake")
+            && last.contains("runs past the segment's end"),
+        "{log}"
+    );
+}
+
+#[test]
+fn a_bad_segment_from_a_peer_fails_the_frame_naming_that_peer() {
+    use strata_common::wire::{self, PeerMsg, WorkerMsg};
+    if strata_net::shm::host_id().is_none() {
+        eprintln!("skipped: this host has no /dev/shm");
+        return;
+    }
+    let w = start_waiting_coordinator(2, &[]);
+    // A real worker joins first (rank 0) and will dial the fake (rank 1).
+    let mut real = Command::new(BIN)
+        .args(["worker", "--connect"])
+        .arg(format!("127.0.0.1:{}", w.port))
+        .args(["--fingerprint", &w.fingerprint, "--connect-timeout-s", "20"])
+        .env("STRATA_SECRET", "correct-horse-battery-staple-42")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let log = w.dir.path().join("coordinator.log");
+    let t = Instant::now();
+    while !std::fs::read_to_string(&log)
+        .unwrap_or_default()
+        .contains("worker joined")
+    {
+        assert!(
+            t.elapsed() < Duration::from_secs(30),
+            "the worker never joined"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(async {
+        let (ep, _conn, mut send, _recv, setup) = fake_worker(&w).await;
+        assert_eq!(setup.rank, 1);
+        assert!(setup.shm_peers[0], "peers on one host share memory");
+        // Rank 0 dials us; answer its hello with a segment that does not exist.
+        let incoming = tokio::time::timeout(Duration::from_secs(20), ep.accept())
+            .await
+            .unwrap()
+            .unwrap();
+        let peer = incoming.await.unwrap();
+        strata_net::transport::trust(&peer);
+        let _hello = peer.accept_uni().await.unwrap();
+        let msg = PeerMsg::ShmSegment {
+            name: format!("strata-shm-{}", "ab".repeat(16)),
+        };
+        strata_net::send_uni(&peer, &wire::encode_meta(&msg), &[])
+            .await
+            .unwrap();
+        let gather = strata_net::shm::ShmWriter::create().unwrap();
+        let msg = WorkerMsg::ShmSegment {
+            name: gather.name().to_string(),
+        };
+        strata_net::write_frame(&mut send, &wire::encode_meta(&msg), &[])
+            .await
+            .unwrap();
+        strata_net::write_frame(&mut send, &wire::encode_meta(&WorkerMsg::Ready), &[])
+            .await
+            .unwrap();
+        tokio::time::sleep(Duration::from_secs(3)).await;
+    });
+    let (status, log) = finish(w);
+    let _ = real.kill();
+    let _ = real.wait();
+    assert!(!status.success());
+    let last = log.lines().last().unwrap_or_default();
+    assert!(
+        last.contains("failed on worker 0")
+            && last.contains("shared-memory segment of worker 1 (fake"),
+        "{log}"
+    );
 }

@@ -11,9 +11,12 @@
 //!   timeout on every wait.
 //! * [`secret`]: the run's shared secret (file or environment), random tokens and a
 //!   constant-time comparison.
+//! * [`shm`]: shared-memory segments between processes on one host (files in
+//!   `/dev/shm` read with `pread`), announced over the authenticated connection.
 
 pub mod frame;
 pub mod secret;
+pub mod shm;
 pub mod tls;
 pub mod transport;
 
