@@ -82,6 +82,12 @@ struct Row {
     exchange_ms: f64,
     encode_ms: f64,
     blend_ms: f64,
+    /// Median of the slowest rank's final encode and hand-off, ms.
+    final_ms: f64,
+    /// Median coordinator time reading and checking the final pieces, ms.
+    collect_ms: f64,
+    /// Median coordinator time assembling the image (not in the compositing time), ms.
+    assemble_ms: f64,
     /// Mean bytes a rank sent in the exchange.
     bytes_per_rank: f64,
     /// Lower bound N(1 - 1/p) with N the dense image in this wire format.
@@ -200,6 +206,9 @@ fn main() -> Result<()> {
                         let mut exch = Vec::new();
                         let mut enc = Vec::new();
                         let mut blend = Vec::new();
+                        let mut fin = Vec::new();
+                        let mut collect = Vec::new();
+                        let mut asm = Vec::new();
                         let mut bytes = 0.0;
                         let mut gather = 0.0;
                         for f in 0..=cli.frames {
@@ -227,6 +236,9 @@ fn main() -> Result<()> {
                             exch.push(slowest * 1e3);
                             enc.push(r.stats.iter().map(|s| s.encode_s).fold(0.0, f64::max) * 1e3);
                             blend.push(r.stats.iter().map(|s| s.blend_s).fold(0.0, f64::max) * 1e3);
+                            fin.push(r.stats.iter().map(|s| s.gather_s).fold(0.0, f64::max) * 1e3);
+                            collect.push(r.collect_s * 1e3);
+                            asm.push(r.assemble_s * 1e3);
                             bytes += r.stats.iter().map(|s| s.bytes_sent as f64).sum::<f64>()
                                 / p as f64;
                             gather += r.gather_bytes as f64;
@@ -248,6 +260,9 @@ fn main() -> Result<()> {
                             exchange_ms: median(exch),
                             encode_ms: median(enc),
                             blend_ms: median(blend),
+                            final_ms: median(fin),
+                            collect_ms: median(collect),
+                            assemble_ms: median(asm),
                             bytes_per_rank: bytes / n,
                             bound_bytes: bound,
                             gather_bytes: gather / n,
@@ -255,8 +270,8 @@ fn main() -> Result<()> {
                             icet_ms: icet,
                         };
                         eprintln!(
-                            "p={p} {tname} {density} {} {}: {:.1} ms (exchange {:.1} ms, bound {:.1} ms), {:.1} MB/rank",
-                            row.algorithm, row.wire, row.composite_ms, row.exchange_ms, row.bound_ms,
+                            "p={p} {tname} {density} {} {}: {:.1} ms (exchange {:.1} ms [encode {:.1}, blend {:.1}], final {:.1} ms, collect {:.1} ms, assemble {:.1} ms, bound {:.1} ms), {:.1} MB/rank",
+                            row.algorithm, row.wire, row.composite_ms, row.exchange_ms, row.encode_ms, row.blend_ms, row.final_ms, row.collect_ms, row.assemble_ms, row.bound_ms,
                             row.bytes_per_rank / 1e6
                         );
                         rows.push(row);

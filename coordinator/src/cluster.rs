@@ -200,6 +200,11 @@ pub struct FrameResult {
     pub composite_s: f64,
     /// Bytes of final pieces received.
     pub gather_bytes: u64,
+    /// Seconds this coordinator spent reading and checking final pieces (shared-memory
+    /// reads and parsing; part of `composite_s`).
+    pub collect_s: f64,
+    /// Seconds assembling the final image from the pieces (after `composite_s`).
+    pub assemble_s: f64,
 }
 
 /// Which pairs of processes exchange through shared memory.
@@ -733,6 +738,7 @@ impl Cluster {
         let mut pieces: Vec<Option<SparsePiece>> = vec![None; n];
         let mut last_arrival = t0;
         let mut gather_bytes = 0u64;
+        let mut collect_s = 0.0;
         let deadline = t0 + self.opts.frame_timeout;
         while stats.iter().any(Option::is_none) {
             let ev = self.next_event(deadline).await.map_err(|_| {
@@ -764,9 +770,12 @@ impl Cluster {
                             stats: s,
                             shm,
                         }) if fno == frame => {
+                            let t = Instant::now();
                             gather_bytes += f.wire_len();
-                            let bulk = match (shm, &self.workers[rank as usize].shm) {
-                                (None, _) => f.bulk,
+                            let limit = self.piece_limit();
+                            let piece = match (shm, &mut self.workers[rank as usize].shm) {
+                                (None, _) => SparsePiece::parse(&f.bulk, width * height)
+                                    .with_context(|| format!("final piece from {who}"))?,
                                 (Some(at), Some(r)) => {
                                     anyhow::ensure!(
                                         f.bulk.is_empty(),
@@ -774,7 +783,14 @@ impl Cluster {
                                     );
                                     gather_bytes += wire::SHM_RECORD_HEADER as u64 + at.len;
                                     tokio::task::block_in_place(|| {
-                                        r.read(at, self.piece_limit(), frame, GATHER_ROUND, rank)
+                                        r.read_piece(
+                                            at,
+                                            limit,
+                                            frame,
+                                            GATHER_ROUND,
+                                            rank,
+                                            width * height,
+                                        )
                                     })
                                     .with_context(|| {
                                         format!("the final piece of {who} in shared memory")
@@ -784,11 +800,10 @@ impl Cluster {
                                     "{who} announced its final piece in shared memory, which it was not given"
                                 ),
                             };
-                            let piece = SparsePiece::parse(&bulk, width * height)
-                                .with_context(|| format!("final piece from {who}"))?;
                             last_arrival = Instant::now();
                             pieces[rank as usize] = Some(piece);
                             stats[rank as usize] = Some(s);
+                            collect_s += t.elapsed().as_secs_f64();
                         }
                         Ok(WorkerMsg::Failed { message, .. }) => {
                             bail!("frame {frame} failed on {who}: {message}")
@@ -803,7 +818,9 @@ impl Cluster {
         let stats: Vec<WorkerFrameStats> = stats.into_iter().map(Option::unwrap).collect();
         let pieces: Vec<SparsePiece> = pieces.into_iter().map(Option::unwrap).collect();
         let interlace = Interlace::new(width, height, n as u32, composite.interlace);
+        let t = Instant::now();
         let image = tokio::task::block_in_place(|| assemble(width, height, &interlace, &pieces))?;
+        let assemble_s = t.elapsed().as_secs_f64();
         let slowest_render = stats.iter().map(|s| s.render_s).fold(0.0, f64::max);
         Ok(FrameResult {
             image,
@@ -811,6 +828,8 @@ impl Cluster {
             stats,
             wall_s: t0.elapsed().as_secs_f64(),
             gather_bytes,
+            collect_s,
+            assemble_s,
         })
     }
 

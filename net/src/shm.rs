@@ -22,6 +22,7 @@
 use std::fs::{File, OpenOptions};
 use std::os::unix::fs::{FileExt, MetadataExt, OpenOptionsExt};
 use std::path::{Path, PathBuf};
+use strata_common::composite::SparsePiece;
 use strata_common::wire::{check_shm_record, encode_shm_record, ShmRef, SHM_RECORD_HEADER};
 
 /// The host's shared-memory folder.
@@ -73,6 +74,14 @@ pub enum ShmError {
         len: u64,
         /// The segment's length.
         size: u64,
+    },
+    /// The record is not a valid image piece.
+    #[error("record at offset {offset}: {source}")]
+    Piece {
+        /// Announced offset.
+        offset: u64,
+        /// What is wrong.
+        source: strata_common::composite::PieceError,
     },
     /// The record's header does not match the announcement.
     #[error("record at offset {offset}: {why}")]
@@ -163,9 +172,21 @@ impl ShmWriter {
         from: u32,
         payload: &[u8],
     ) -> Result<ShmRef, ShmError> {
+        self.write_parts(frame, round, from, &[payload])
+    }
+
+    /// Appends one record whose payload is `parts` one after the other (written straight
+    /// from where they lie, never joined first).
+    pub fn write_parts(
+        &mut self,
+        frame: u64,
+        round: u32,
+        from: u32,
+        parts: &[&[u8]],
+    ) -> Result<ShmRef, ShmError> {
         let at = ShmRef {
             offset: self.cursor,
-            len: payload.len() as u64,
+            len: parts.iter().map(|p| p.len() as u64).sum(),
         };
         let header = encode_shm_record(frame, round, from, at.len);
         let io = |source| ShmError::Io {
@@ -173,10 +194,12 @@ impl ShmWriter {
             source,
         };
         self.file.write_all_at(&header, at.offset).map_err(io)?;
-        self.file
-            .write_all_at(payload, at.offset + SHM_RECORD_HEADER as u64)
-            .map_err(io)?;
-        self.cursor = (at.offset + SHM_RECORD_HEADER as u64 + at.len).next_multiple_of(ALIGN);
+        let mut pos = at.offset + SHM_RECORD_HEADER as u64;
+        for part in parts {
+            self.file.write_all_at(part, pos).map_err(io)?;
+            pos += part.len() as u64;
+        }
+        self.cursor = pos.next_multiple_of(ALIGN);
         Ok(at)
     }
 }
@@ -246,13 +269,62 @@ impl ShmReader {
     /// Reads the record at `at`, checking its header against the announced frame, round
     /// and sender position, and its length against `limit` and the segment's end.
     pub fn read(
-        &self,
+        &mut self,
         at: ShmRef,
         limit: u64,
         frame: u64,
         round: u32,
         from: u32,
     ) -> Result<Vec<u8>, ShmError> {
+        let mut rec = self.record(at, limit, frame, round, from)?;
+        rec.read(0, at.len)
+    }
+
+    /// Reads the image piece in the record at `at` (checked as [`record`](Self::record)
+    /// does, then as [`SparsePiece::parse`] does, with spans up to `max_pixels`): header
+    /// and run lengths first, then the pixel data straight into the piece's own buffer,
+    /// so the piece costs one copy out of the segment.
+    pub fn read_piece(
+        &mut self,
+        at: ShmRef,
+        limit: u64,
+        frame: u64,
+        round: u32,
+        from: u32,
+        max_pixels: u32,
+    ) -> Result<SparsePiece, ShmError> {
+        let mut rec = self.record(at, limit, frame, round, from)?;
+        let h = SparsePiece::HEADER_BYTES as u64;
+        let header = rec.read(0, h.min(rec.len()))?;
+        let bad = |source| ShmError::Piece {
+            offset: at.offset,
+            source,
+        };
+        let Ok(header) = <&[u8; SparsePiece::HEADER_BYTES]>::try_from(header.as_slice()) else {
+            // Shorter than a header: let the parser say so.
+            return SparsePiece::parse(&header, max_pixels).map_err(bad);
+        };
+        let head_len = h.saturating_add(SparsePiece::runs_bytes_in_header(header));
+        if head_len > rec.len() {
+            let all = rec.read(0, rec.len())?;
+            return SparsePiece::parse(&all, max_pixels).map_err(bad);
+        }
+        let head = rec.read(0, head_len)?;
+        let data = rec.read(head_len, rec.len() - head_len)?;
+        SparsePiece::parse_split(&head, data, max_pixels).map_err(bad)
+    }
+
+    /// Checks the record at `at` (length against `limit` and the segment's end, header
+    /// against the announced frame, round and sender position) and returns it for reading
+    /// in parts.
+    pub fn record(
+        &mut self,
+        at: ShmRef,
+        limit: u64,
+        frame: u64,
+        round: u32,
+        from: u32,
+    ) -> Result<ShmRecord<'_>, ShmError> {
         if at.len > limit {
             return Err(ShmError::TooLarge { len: at.len, limit });
         }
@@ -264,45 +336,87 @@ impl ShmReader {
                 source,
             })?
             .len();
-        let past = ShmError::PastEnd {
-            offset: at.offset,
-            len: at.len,
-            size,
-        };
         let end = at
             .offset
             .checked_add(SHM_RECORD_HEADER as u64)
             .and_then(|e| e.checked_add(at.len));
-        match end {
-            Some(e) if e <= size => {}
-            _ => return Err(past),
+        if !matches!(end, Some(e) if e <= size) {
+            return Err(ShmError::PastEnd {
+                offset: at.offset,
+                len: at.len,
+                size,
+            });
         }
-        let short = |e: std::io::Error| {
-            if e.kind() == std::io::ErrorKind::UnexpectedEof {
-                ShmError::PastEnd {
-                    offset: at.offset,
-                    len: at.len,
-                    size,
-                }
-            } else {
-                ShmError::Io {
-                    path: self.path.clone(),
-                    source: e,
-                }
-            }
+        let mut rec = ShmRecord {
+            reader: self,
+            at,
+            size,
         };
-        let mut header = [0u8; SHM_RECORD_HEADER];
-        self.file
-            .read_exact_at(&mut header, at.offset)
-            .map_err(short)?;
-        check_shm_record(&header, frame, round, from, at.len).map_err(|why| ShmError::Header {
+        let header = rec.read_raw(at.offset, SHM_RECORD_HEADER as u64)?;
+        let header: &[u8; SHM_RECORD_HEADER] = header.as_slice().try_into().unwrap();
+        check_shm_record(header, frame, round, from, at.len).map_err(|why| ShmError::Header {
             offset: at.offset,
             why,
         })?;
-        let mut out = vec![0u8; at.len as usize];
-        self.file
-            .read_exact_at(&mut out, at.offset + SHM_RECORD_HEADER as u64)
-            .map_err(short)?;
+        Ok(rec)
+    }
+}
+
+/// A checked record of a segment, read in parts.
+#[derive(Debug)]
+pub struct ShmRecord<'a> {
+    reader: &'a mut ShmReader,
+    at: ShmRef,
+    size: u64,
+}
+
+impl ShmRecord<'_> {
+    /// The payload's length.
+    pub fn len(&self) -> u64 {
+        self.at.len
+    }
+
+    /// Whether the payload is empty.
+    pub fn is_empty(&self) -> bool {
+        self.at.len == 0
+    }
+
+    /// Reads `len` payload bytes from `offset` (within the payload) into a new buffer,
+    /// without zero-filling it first.
+    pub fn read(&mut self, offset: u64, len: u64) -> Result<Vec<u8>, ShmError> {
+        match offset.checked_add(len) {
+            Some(e) if e <= self.at.len => {}
+            _ => {
+                return Err(ShmError::PastEnd {
+                    offset: (self.at.offset + SHM_RECORD_HEADER as u64).saturating_add(offset),
+                    len,
+                    size: self.at.offset + SHM_RECORD_HEADER as u64 + self.at.len,
+                })
+            }
+        }
+        self.read_raw(self.at.offset + SHM_RECORD_HEADER as u64 + offset, len)
+    }
+
+    fn read_raw(&mut self, pos: u64, len: u64) -> Result<Vec<u8>, ShmError> {
+        use std::io::{Read, Seek, SeekFrom};
+        let io = |source| ShmError::Io {
+            path: self.reader.path.clone(),
+            source,
+        };
+        let mut f = &self.reader.file;
+        f.seek(SeekFrom::Start(pos)).map_err(io)?;
+        // `read_to_end` fills the spare capacity without zeroing it first (a fresh 16 MB
+        // zero-fill costs as much as the copy).
+        let mut out = Vec::with_capacity(len as usize);
+        f.take(len).read_to_end(&mut out).map_err(io)?;
+        if out.len() as u64 != len {
+            // The segment shrank under us.
+            return Err(ShmError::PastEnd {
+                offset: pos,
+                len,
+                size: self.size.min(pos + out.len() as u64),
+            });
+        }
         Ok(out)
     }
 }
@@ -320,7 +434,7 @@ mod tests {
     #[test]
     fn records_round_trip_and_the_name_is_gone_once_open() {
         let dir = tempfile::tempdir().unwrap();
-        let (mut w, r) = pair(dir.path());
+        let (mut w, mut r) = pair(dir.path());
         assert!(
             std::fs::read_dir(dir.path()).unwrap().next().is_none(),
             "the receiver unlinks the name"
@@ -346,7 +460,7 @@ mod tests {
     #[test]
     fn sizes_past_the_end_or_the_limit_are_refused_before_allocating() {
         let dir = tempfile::tempdir().unwrap();
-        let (mut w, r) = pair(dir.path());
+        let (mut w, mut r) = pair(dir.path());
         let a = w.write(1, 0, 0, &[1u8; 100]).unwrap();
         let long = ShmRef { len: 101, ..a };
         let e = r.read(long, 1 << 20, 1, 0, 0).unwrap_err();
@@ -370,9 +484,56 @@ mod tests {
     }
 
     #[test]
+    fn records_read_in_parts_stay_inside_the_record() {
+        let dir = tempfile::tempdir().unwrap();
+        let (mut w, mut r) = pair(dir.path());
+        let payload: Vec<u8> = (0..200u8).collect();
+        let a = w.write(1, 0, 0, &payload).unwrap();
+        let _next = w.write(1, 1, 0, &[9u8; 64]).unwrap();
+        let mut rec = r.record(a, 1 << 20, 1, 0, 0).unwrap();
+        assert_eq!(rec.len(), 200);
+        assert_eq!(rec.read(10, 5).unwrap(), payload[10..15]);
+        assert_eq!(rec.read(0, 200).unwrap(), payload);
+        // Not a byte beyond the record, though the segment goes on.
+        assert!(matches!(rec.read(150, 51), Err(ShmError::PastEnd { .. })));
+        assert!(matches!(
+            rec.read(u64::MAX, 2),
+            Err(ShmError::PastEnd { .. })
+        ));
+    }
+
+    #[test]
+    fn pieces_read_from_records_equal_the_written_ones_and_bad_ones_are_refused() {
+        use strata_common::composite::{Span, WireFormat};
+        let dir = tempfile::tempdir().unwrap();
+        let (mut w, mut r) = pair(dir.path());
+        let z = [0.0f32; 4];
+        let px = [0.5f32, 0.25, 0.125, 0.5];
+        let piece = SparsePiece::encode(&[z, px, px, z, px], Span::new(10, 15), WireFormat::F32);
+        let parts = piece.wire_parts();
+        let refs: Vec<&[u8]> = parts.iter().map(|p| &**p).collect();
+        let a = w.write_parts(2, 1, 3, &refs).unwrap();
+        assert_eq!(r.read_piece(a, 1 << 20, 2, 1, 3, 100).unwrap(), piece);
+        // The span must fit the frame.
+        let e = r.read_piece(a, 1 << 20, 2, 1, 3, 12).unwrap_err();
+        assert!(matches!(e, ShmError::Piece { .. }), "{e}");
+        // Not a piece: garbage, a short record, runs announced past the record.
+        for junk in [vec![0xEEu8; 40], vec![b'S'; 3], {
+            let mut b = Vec::new();
+            piece.write(&mut b);
+            b[12] = 200;
+            b
+        }] {
+            let a = w.write(2, 2, 3, &junk).unwrap();
+            let e = r.read_piece(a, 1 << 20, 2, 2, 3, 100).unwrap_err();
+            assert!(matches!(e, ShmError::Piece { .. }), "{e}");
+        }
+    }
+
+    #[test]
     fn a_malformed_record_is_refused() {
         let dir = tempfile::tempdir().unwrap();
-        let (mut w, r) = pair(dir.path());
+        let (mut w, mut r) = pair(dir.path());
         let a = w.write(1, 0, 0, &[1u8; 100]).unwrap();
         // Another sender position, round or frame than announced.
         for (f, round, from) in [(2, 0, 0), (1, 1, 0), (1, 0, 1)] {

@@ -79,7 +79,7 @@ enum PeerEvent {
         frame: u64,
         round: u32,
         from: u32,
-        bulk: Vec<u8>,
+        piece: SparsePiece,
         wire_len: u64,
     },
     Lost {
@@ -188,21 +188,31 @@ async fn node(opts: NodeOptions) -> Result<()> {
                     e = conn.closed() => bail!("lost the coordinator during frame {frame}: {e}"),
                 };
                 match result {
-                    Ok((stats, piece)) => {
-                        // Through shared memory when the coordinator shares this host;
-                        // QUIC when not, or when the segment cannot take it (a full
-                        // /dev/shm).
+                    Ok((mut stats, piece, composite_start)) => {
+                        // Through shared memory when the coordinator shares this host
+                        // (written straight from the piece); QUIC when not, or when the
+                        // segment cannot take it (a full /dev/shm).
+                        let t = Instant::now();
                         let shm = node.gather_shm.as_mut().and_then(|w| {
                             w.reset();
                             tokio::task::block_in_place(|| {
-                                w.write(frame, GATHER_ROUND, rank, &piece)
+                                let parts = piece.wire_parts();
+                                let refs: Vec<&[u8]> = parts.iter().map(|p| &**p).collect();
+                                w.write_parts(frame, GATHER_ROUND, rank, &refs)
                             })
                             .map_err(|e| warn!(frame, "final piece over QUIC instead: {e}"))
                             .ok()
                         });
-                        let bulk: &[u8] = if shm.is_some() { &[] } else { &piece };
+                        let mut bulk = Vec::new();
+                        if shm.is_none() {
+                            bulk.reserve_exact(piece.byte_len());
+                            piece.write(&mut bulk);
+                        }
+                        stats.gather_s += t.elapsed().as_secs_f64();
+                        stats.gather_bytes = piece.byte_len() as u64;
+                        stats.composite_s = composite_start.elapsed().as_secs_f64();
                         let msg = WorkerMsg::FrameDone { frame, stats, shm };
-                        write_frame(&mut csend, &wire::encode_meta(&msg), bulk).await?;
+                        write_frame(&mut csend, &wire::encode_meta(&msg), &bulk).await?;
                     }
                     Err(e) => {
                         warn!(frame, "frame failed: {e:#}");
@@ -357,6 +367,7 @@ async fn mesh(
                 what,
                 c.clone(),
                 limits,
+                u32::try_from(setup.max_pixels).unwrap_or(u32::MAX),
                 setup.shm_peers[r],
                 ev_tx.clone(),
             ));
@@ -435,13 +446,17 @@ async fn accept_peers(
     }
 }
 
-/// Reads a peer's pieces until its connection ends: inline on QUIC streams, or, for a
-/// peer on this host, announced on a stream and read from its shared-memory segment.
+/// Reads and parses a peer's pieces until its connection ends: inline on QUIC streams,
+/// or, for a peer on this host, announced on a stream and read from its shared-memory
+/// segment. Parsing here, off the frame's critical path, overlaps it with the frame's
+/// waits; a malformed piece ends the connection with an error naming the peer.
+#[allow(clippy::too_many_arguments)]
 async fn read_peer(
     rank: u32,
     what: String,
     conn: quinn::Connection,
     limits: Limits,
+    max_pixels: u32,
     shm_allowed: bool,
     out: mpsc::UnboundedSender<PeerEvent>,
 ) {
@@ -459,8 +474,16 @@ async fn read_peer(
             }
         };
         let wire_len = f.wire_len();
-        let (frame, round, from, bulk, wire_len) = match wire::decode_meta::<PeerMsg>(&f.meta) {
-            Ok(PeerMsg::Piece { frame, round, from }) => (frame, round, from, f.bulk, wire_len),
+        let (frame, round, from, piece, wire_len) = match wire::decode_meta::<PeerMsg>(&f.meta) {
+            Ok(PeerMsg::Piece { frame, round, from }) => {
+                match tokio::task::block_in_place(|| SparsePiece::parse(&f.bulk, max_pixels)) {
+                    Ok(p) => (frame, round, from, p, wire_len),
+                    Err(e) => {
+                        conn.close(3u32.into(), b"malformed piece");
+                        break format!("a malformed piece from {what}: {e}");
+                    }
+                }
+            }
             Ok(PeerMsg::ShmSegment { name }) if shm_allowed && shm.is_none() => {
                 match tokio::task::block_in_place(|| ShmReader::open(&name)) {
                     Ok(r) => {
@@ -480,9 +503,9 @@ async fn read_peer(
                 from,
                 at,
             }) if shm.is_some() => {
-                let reader = shm.as_ref().unwrap();
+                let reader = shm.as_mut().unwrap();
                 match tokio::task::block_in_place(|| {
-                    reader.read(at, limits.max_bulk, frame, round, from)
+                    reader.read_piece(at, limits.max_bulk, frame, round, from, max_pixels)
                 }) {
                     Ok(b) => (
                         frame,
@@ -511,7 +534,7 @@ async fn read_peer(
             frame,
             round,
             from,
-            bulk,
+            piece,
             wire_len,
         };
         if out.send(piece).is_err() {
@@ -527,7 +550,7 @@ struct Node {
     peers: Vec<Option<quinn::Connection>>,
     engine: Engine,
     /// Pieces that arrived before they were needed: (frame, round, from position).
-    pending: HashMap<(u64, u32, u32), (Vec<u8>, u64)>,
+    pending: HashMap<(u64, u32, u32), (SparsePiece, u64)>,
     plans: HashMap<(usize, u32, CompositeChoice), Arc<Plan>>,
     timeout: Duration,
     /// By rank: this worker's segment for that peer (peers on this host).
@@ -546,7 +569,7 @@ impl Node {
         &mut self,
         req: &FrameRequest,
         events: &mut mpsc::UnboundedReceiver<PeerEvent>,
-    ) -> Result<(WorkerFrameStats, Vec<u8>)> {
+    ) -> Result<(WorkerFrameStats, SparsePiece, Instant)> {
         if let Some(leaves) = &req.leaves {
             // A re-split: new regions from this frame on. The engine keeps its resident
             // pages; those the new regions need are still there.
@@ -673,25 +696,22 @@ impl Node {
             stats.rounds += 1;
             let t = Instant::now();
             let outgoing = rc.outgoing(format);
-            let mut encoded = Vec::with_capacity(outgoing.len());
-            for (to, piece) in outgoing {
-                let mut bytes = Vec::with_capacity(piece.byte_len());
-                piece.write(&mut bytes);
-                encoded.push((to, bytes));
-            }
             stats.encode_s += t.elapsed().as_secs_f64();
             let t = Instant::now();
             let mut sends = Vec::new();
-            for (to, bytes) in encoded {
+            for (to, piece) in outgoing {
                 let to_rank = req.order[to];
                 let conn = self.peers[to_rank as usize]
                     .clone()
                     .ok_or_else(|| anyhow!("no connection to rank {to_rank}"))?;
-                // Shared memory to a peer on this host; QUIC otherwise, or when the
-                // segment cannot take the piece (a full /dev/shm).
+                // Shared memory to a peer on this host, written straight from the piece;
+                // QUIC otherwise, or when the segment cannot take the piece (a full
+                // /dev/shm).
                 let shm = self.shm_out[to_rank as usize].as_mut().and_then(|w| {
                     tokio::task::block_in_place(|| {
-                        w.write(req.frame, round as u32, position as u32, &bytes)
+                        let parts = piece.wire_parts();
+                        let refs: Vec<&[u8]> = parts.iter().map(|p| &**p).collect();
+                        w.write_parts(req.frame, round as u32, position as u32, &refs)
                     })
                     .map_err(|e| warn!(peer = to_rank, "piece over QUIC instead: {e}"))
                     .ok()
@@ -709,14 +729,18 @@ impl Node {
                         });
                         (meta, Vec::new())
                     }
-                    None => (
-                        wire::encode_meta(&PeerMsg::Piece {
+                    None => {
+                        let te = Instant::now();
+                        let mut bytes = Vec::with_capacity(piece.byte_len());
+                        piece.write(&mut bytes);
+                        stats.encode_s += te.elapsed().as_secs_f64();
+                        let meta = wire::encode_meta(&PeerMsg::Piece {
                             frame: req.frame,
                             round: round as u32,
                             from: position as u32,
-                        }),
-                        bytes,
-                    ),
+                        });
+                        (meta, bytes)
+                    }
                 };
                 let what = describe(&self.setup.peers, to_rank);
                 let task_what = what.clone();
@@ -731,16 +755,10 @@ impl Node {
             }
             let expected = rc.expected();
             for from in expected {
-                let (bulk, len) = self
+                let (piece, len) = self
                     .wait_piece(req, round as u32, from as u32, deadline, events)
                     .await?;
                 stats.bytes_received += len;
-                let piece = SparsePiece::parse(&bulk, px).with_context(|| {
-                    format!(
-                        "piece from {}",
-                        describe(&self.setup.peers, req.order[from])
-                    )
-                })?;
                 rc.receive(from, piece).with_context(|| {
                     format!(
                         "piece from {}",
@@ -766,12 +784,8 @@ impl Node {
         }
         let t = Instant::now();
         let result = rc.result(format);
-        let mut bytes = Vec::with_capacity(result.byte_len());
-        result.write(&mut bytes);
         stats.gather_s = t.elapsed().as_secs_f64();
-        stats.gather_bytes = bytes.len() as u64;
-        stats.composite_s = composite_start.elapsed().as_secs_f64();
-        Ok((stats, bytes))
+        Ok((stats, result, composite_start))
     }
 
     async fn wait_piece(
@@ -781,7 +795,7 @@ impl Node {
         from: u32,
         deadline: Instant,
         events: &mut mpsc::UnboundedReceiver<PeerEvent>,
-    ) -> Result<(Vec<u8>, u64)> {
+    ) -> Result<(SparsePiece, u64)> {
         loop {
             if let Some(p) = self.pending.remove(&(req.frame, round, from)) {
                 return Ok(p);
@@ -793,7 +807,7 @@ impl Node {
                     frame,
                     round,
                     from,
-                    bulk,
+                    piece,
                     wire_len,
                 })) => {
                     // A piece must come from the rank at the position it claims.
@@ -804,7 +818,7 @@ impl Node {
                         );
                     }
                     if frame >= req.frame {
-                        self.pending.insert((frame, round, from), (bulk, wire_len));
+                        self.pending.insert((frame, round, from), (piece, wire_len));
                     }
                 }
                 Ok(Some(PeerEvent::Lost { rank, error })) => {

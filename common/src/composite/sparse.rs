@@ -292,18 +292,67 @@ impl SparsePiece {
     /// Appends the wire form (layout in the [type docs](SparsePiece)) to `out`.
     pub fn write(&self, out: &mut Vec<u8>) {
         out.reserve(self.byte_len());
-        out.extend_from_slice(&[b'S', b'P', 1, self.format.tag()]);
-        out.extend_from_slice(&self.span.start.to_le_bytes());
-        out.extend_from_slice(&self.span.end.to_le_bytes());
-        out.extend_from_slice(&(self.runs.len() as u32).to_le_bytes());
-        if cfg!(target_endian = "little") {
-            out.extend_from_slice(bytemuck::cast_slice(&self.runs));
-        } else {
-            for r in &self.runs {
-                out.extend_from_slice(&r.to_le_bytes());
-            }
+        for part in self.wire_parts() {
+            out.extend_from_slice(&part);
         }
-        out.extend_from_slice(&self.data);
+    }
+
+    /// The wire form in three parts (header, run lengths, pixel data), to be written one
+    /// after the other without first joining them (a shared-memory segment takes them
+    /// straight from the piece).
+    pub fn wire_parts(&self) -> [std::borrow::Cow<'_, [u8]>; 3] {
+        use std::borrow::Cow;
+        let mut head = Vec::with_capacity(Self::HEADER_BYTES);
+        head.extend_from_slice(&[b'S', b'P', 1, self.format.tag()]);
+        head.extend_from_slice(&self.span.start.to_le_bytes());
+        head.extend_from_slice(&self.span.end.to_le_bytes());
+        head.extend_from_slice(&(self.runs.len() as u32).to_le_bytes());
+        let runs: Cow<'_, [u8]> = if cfg!(target_endian = "little") {
+            Cow::Borrowed(bytemuck::cast_slice(&self.runs))
+        } else {
+            Cow::Owned(self.runs.iter().flat_map(|r| r.to_le_bytes()).collect())
+        };
+        [Cow::Owned(head), runs, Cow::Borrowed(&self.data)]
+    }
+
+    /// Bytes of run lengths announced by a piece's header (the first
+    /// [`HEADER_BYTES`](Self::HEADER_BYTES) bytes), so a reader can fetch header and runs
+    /// first and the pixel data straight into its own buffer. Unchecked: the parse that
+    /// follows checks everything.
+    pub fn runs_bytes_in_header(header: &[u8; Self::HEADER_BYTES]) -> u64 {
+        4 * read_u32(header, 12) as u64
+    }
+
+    /// Parses a piece whose header and run lengths are `head` (exactly) and whose pixel
+    /// data is `data` (exactly), taking `data` as the piece's without a copy. The same
+    /// checks as [`parse`](Self::parse).
+    pub fn parse_split(
+        head: &[u8],
+        data: Vec<u8>,
+        max_pixels: u32,
+    ) -> Result<SparsePiece, PieceError> {
+        let (span, format, runs, active, used) = Self::parse_head(head, max_pixels)?;
+        if used != head.len() {
+            return Err(PieceError::TrailingBytes {
+                offset: used,
+                extra: head.len() - used,
+            });
+        }
+        let data_bytes = active * format.bytes_per_pixel() as u64;
+        if data.len() as u64 != data_bytes {
+            return Err(PieceError::Truncated {
+                what: "pixel data",
+                offset: used,
+                needed: data_bytes,
+                available: data.len(),
+            });
+        }
+        Ok(SparsePiece {
+            span,
+            format,
+            runs,
+            data,
+        })
     }
 
     /// Parses exactly one piece from `bytes` (untrusted input): every count is checked
@@ -322,6 +371,36 @@ impl SparsePiece {
 
     /// Parses one piece from the start of `bytes`, returning it and the bytes it used.
     pub fn parse_prefix(bytes: &[u8], max_pixels: u32) -> Result<(SparsePiece, usize), PieceError> {
+        let (span, format, runs, active, data_at) = Self::parse_head(bytes, max_pixels)?;
+        let rest = &bytes[data_at..];
+        let data_bytes = active * format.bytes_per_pixel() as u64;
+        if data_bytes > rest.len() as u64 {
+            return Err(PieceError::Truncated {
+                what: "pixel data",
+                offset: data_at,
+                needed: data_bytes,
+                available: rest.len(),
+            });
+        }
+        let data = rest[..data_bytes as usize].to_vec();
+        Ok((
+            SparsePiece {
+                span,
+                format,
+                runs,
+                data,
+            },
+            data_at + data_bytes as usize,
+        ))
+    }
+
+    /// Checks the header and run lengths at the start of `bytes`: span, format, runs,
+    /// active pixel count, and where the pixel data starts.
+    #[allow(clippy::type_complexity)]
+    fn parse_head(
+        bytes: &[u8],
+        max_pixels: u32,
+    ) -> Result<(Span, WireFormat, Vec<u32>, u64, usize), PieceError> {
         let h = Self::HEADER_BYTES;
         if bytes.len() < h {
             return Err(PieceError::Truncated {
@@ -382,27 +461,7 @@ impl SparsePiece {
                 len,
             });
         }
-        let data_at = h + runs_bytes as usize;
-        let rest = &bytes[data_at..];
-        let data_bytes = active * format.bytes_per_pixel() as u64;
-        if data_bytes > rest.len() as u64 {
-            return Err(PieceError::Truncated {
-                what: "pixel data",
-                offset: data_at,
-                needed: data_bytes,
-                available: rest.len(),
-            });
-        }
-        let data = rest[..data_bytes as usize].to_vec();
-        Ok((
-            SparsePiece {
-                span,
-                format,
-                runs,
-                data,
-            },
-            data_at + data_bytes as usize,
-        ))
+        Ok((span, format, runs, active, h + runs_bytes as usize))
     }
 
     /// Checks an in-memory piece's invariants (even run list summing to the span
@@ -826,6 +885,24 @@ mod tests {
             ],
             0..300,
         )
+    }
+
+    #[test]
+    fn split_parse_matches_the_whole_parse() {
+        let bytes = valid_bytes();
+        let whole = SparsePiece::parse(&bytes, 1 << 20).unwrap();
+        let head_len = SparsePiece::HEADER_BYTES
+            + SparsePiece::runs_bytes_in_header(&bytes[..16].try_into().unwrap()) as usize;
+        let data = bytes[head_len..].to_vec();
+        let split = SparsePiece::parse_split(&bytes[..head_len], data.clone(), 1 << 20).unwrap();
+        assert_eq!(split, whole);
+        // Data one byte short or long, or head with a trailing byte: refused.
+        let short = data[..data.len() - 1].to_vec();
+        assert!(SparsePiece::parse_split(&bytes[..head_len], short, 1 << 20).is_err());
+        let mut long = data.clone();
+        long.push(0);
+        assert!(SparsePiece::parse_split(&bytes[..head_len], long, 1 << 20).is_err());
+        assert!(SparsePiece::parse_split(&bytes[..head_len + 1], data, 1 << 20).is_err());
     }
 
     proptest! {
