@@ -82,7 +82,7 @@ struct Row {
     exchange_ms: f64,
     encode_ms: f64,
     blend_ms: f64,
-    /// Median of the slowest rank's final encode and hand-off, ms.
+    /// Median of the slowest rank's final hand-off (the final encode counts in encode_ms), ms.
     final_ms: f64,
     /// Median coordinator time reading and checking the final pieces, ms.
     collect_ms: f64,

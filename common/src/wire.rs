@@ -473,13 +473,15 @@ pub struct WorkerFrameStats {
     /// Seconds of each leaf's final-round cast, in the order of this worker's leaves (for
     /// re-splitting by measured cost).
     pub leaf_cast_s: Vec<f64>,
-    /// Seconds encoding pieces (active-pixel runs, f16 conversion).
+    /// Seconds encoding pieces, the outgoing ones and the final one (active-pixel runs,
+    /// f16 conversion).
     pub encode_s: f64,
     /// Seconds in the exchange: sending and waiting for pieces.
     pub exchange_s: f64,
     /// Seconds blending received pieces.
     pub blend_s: f64,
-    /// Seconds encoding and sending the final piece to the coordinator.
+    /// Seconds handing the final piece to the coordinator's transport (written to the
+    /// shared-memory segment, or serialized for QUIC).
     pub gather_s: f64,
     /// Bytes sent to peers (both transports).
     pub bytes_sent: u64,

@@ -15,7 +15,10 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use strata_common::camera::View;
-use strata_common::composite::{build_plan, Interlace, Plan, RankCompositor, SparsePiece};
+use strata_common::composite::{
+    build_plan, Exchange, ExchangeError, ExchangeEvent, ExchangeLimits, Interlace, Outgoing, Plan,
+    RankCompositor, SparsePiece,
+};
 use strata_common::image::{composite_front_to_back, PartialImage, Rect, Rgba};
 use strata_common::scene::Scene;
 use strata_common::wire::{
@@ -241,7 +244,7 @@ async fn mesh(
     setup: Setup,
     net: &NetConfig,
     connect_timeout: Duration,
-) -> Result<(Node, mpsc::UnboundedReceiver<PeerEvent>)> {
+) -> Result<(Node, mpsc::Receiver<PeerEvent>)> {
     let rank = setup.rank;
     anyhow::ensure!(
         (rank as usize) < setup.peers.len(),
@@ -358,7 +361,9 @@ async fn mesh(
         quic_peers = n as usize - 1 - shm_count,
         "peer transports"
     );
-    let (ev_tx, ev_rx) = mpsc::unbounded_channel();
+    // Bounded: a peer that floods pieces stalls its own reader (and through QUIC flow
+    // control, itself) instead of growing this worker's memory.
+    let (ev_tx, ev_rx) = mpsc::channel(PEER_EVENTS);
     for (r, c) in peers.iter().enumerate() {
         if let Some(c) = c {
             let what = describe(&setup.peers, r as u32);
@@ -380,7 +385,11 @@ async fn mesh(
         setup,
         peers,
         engine,
-        pending: HashMap::new(),
+        exchange: Exchange::new(
+            rank,
+            n as usize,
+            ExchangeLimits::for_ranks(n as usize, limits.max_bulk),
+        ),
         plans: HashMap::new(),
         timeout,
         shm_out,
@@ -458,7 +467,7 @@ async fn read_peer(
     limits: Limits,
     max_pixels: u32,
     shm_allowed: bool,
-    out: mpsc::UnboundedSender<PeerEvent>,
+    out: mpsc::Sender<PeerEvent>,
 ) {
     let mut shm: Option<ShmReader> = None;
     let err = loop {
@@ -537,11 +546,11 @@ async fn read_peer(
             piece,
             wire_len,
         };
-        if out.send(piece).is_err() {
+        if out.send(piece).await.is_err() {
             return;
         }
     };
-    let _ = out.send(PeerEvent::Lost { rank, error: err });
+    let _ = out.send(PeerEvent::Lost { rank, error: err }).await;
 }
 
 struct Node {
@@ -549,8 +558,8 @@ struct Node {
     setup: Setup,
     peers: Vec<Option<quinn::Connection>>,
     engine: Engine,
-    /// Pieces that arrived before they were needed: (frame, round, from position).
-    pending: HashMap<(u64, u32, u32), (SparsePiece, u64)>,
+    /// The compositing exchange across frames (early pieces, sender checks, deadlines).
+    exchange: Exchange,
     plans: HashMap<(usize, u32, CompositeChoice), Arc<Plan>>,
     timeout: Duration,
     /// By rank: this worker's segment for that peer (peers on this host).
@@ -558,6 +567,9 @@ struct Node {
     /// The segment for the final pieces (a coordinator on this host).
     gather_shm: Option<ShmWriter>,
 }
+
+/// Parsed pieces and losses queued between the peer readers and the frame loop.
+const PEER_EVENTS: usize = 64;
 
 /// The round number of a final piece's record in the gather segment.
 const GATHER_ROUND: u32 = u32::MAX;
@@ -568,7 +580,7 @@ impl Node {
     async fn frame(
         &mut self,
         req: &FrameRequest,
-        events: &mut mpsc::UnboundedReceiver<PeerEvent>,
+        events: &mut mpsc::Receiver<PeerEvent>,
     ) -> Result<(WorkerFrameStats, SparsePiece, Instant)> {
         if let Some(leaves) = &req.leaves {
             // A re-split: new regions from this frame on. The engine keeps its resident
@@ -625,7 +637,7 @@ impl Node {
                 req.order
             );
         }
-        let deadline = Instant::now() + self.timeout;
+        let frame_start = Instant::now();
         let position = req
             .order
             .iter()
@@ -683,161 +695,169 @@ impl Node {
         };
         let interlace = Interlace::new(req.width, req.height, n as u32, req.composite.interlace);
         let format = req.composite.format;
-        let mut rc = RankCompositor::new(plan.clone(), position, &image, &interlace)?;
+        let rc = RankCompositor::new(plan.clone(), position, &image, &interlace)?;
         drop(image);
-        // Forget pieces of frames that are over.
-        self.pending.retain(|k, _| k.0 >= req.frame);
         // Every record of the last frame has been read (the frame completed only once
         // every rank had all its pieces): the segments start over.
         for w in self.shm_out.iter_mut().flatten() {
             w.reset();
         }
-        while let Some(round) = rc.round() {
-            stats.rounds += 1;
-            let t = Instant::now();
-            let outgoing = rc.outgoing(format);
-            stats.encode_s += t.elapsed().as_secs_f64();
-            let t = Instant::now();
-            let mut sends = Vec::new();
-            for (to, piece) in outgoing {
-                let to_rank = req.order[to];
-                let conn = self.peers[to_rank as usize]
-                    .clone()
-                    .ok_or_else(|| anyhow!("no connection to rank {to_rank}"))?;
-                // Shared memory to a peer on this host, written straight from the piece;
-                // QUIC otherwise, or when the segment cannot take the piece (a full
-                // /dev/shm).
-                let shm = self.shm_out[to_rank as usize].as_mut().and_then(|w| {
-                    tokio::task::block_in_place(|| {
-                        let parts = piece.wire_parts();
-                        let refs: Vec<&[u8]> = parts.iter().map(|p| &**p).collect();
-                        w.write_parts(req.frame, round as u32, position as u32, &refs)
-                    })
-                    .map_err(|e| warn!(peer = to_rank, "piece over QUIC instead: {e}"))
-                    .ok()
-                });
-                let (meta, bytes) = match shm {
-                    Some(at) => {
-                        let moved = wire::SHM_RECORD_HEADER as u64 + at.len;
-                        stats.shm_bytes_sent += moved;
-                        stats.bytes_sent += moved;
-                        let meta = wire::encode_meta(&PeerMsg::ShmPiece {
-                            frame: req.frame,
-                            round: round as u32,
-                            from: position as u32,
-                            at,
-                        });
-                        (meta, Vec::new())
-                    }
-                    None => {
-                        let te = Instant::now();
-                        let mut bytes = Vec::with_capacity(piece.byte_len());
-                        piece.write(&mut bytes);
-                        stats.encode_s += te.elapsed().as_secs_f64();
-                        let meta = wire::encode_meta(&PeerMsg::Piece {
-                            frame: req.frame,
-                            round: round as u32,
-                            from: position as u32,
-                        });
-                        (meta, bytes)
-                    }
-                };
-                let what = describe(&self.setup.peers, to_rank);
-                let task_what = what.clone();
-                sends.push((
-                    what,
-                    tokio::spawn(async move {
-                        send_uni(&conn, &meta, &bytes)
-                            .await
-                            .map_err(|e| anyhow!("sending to {task_what}: {e}"))
-                    }),
-                ));
+        // The exchange itself is the sans-IO state machine; this loop only moves its
+        // pieces and the time.
+        let t_exchange = Instant::now();
+        self.exchange.start_frame(
+            req.frame,
+            req.order.clone(),
+            rc,
+            format,
+            frame_start,
+            self.timeout,
+        );
+        let mut sends = Vec::new();
+        let result = loop {
+            while let Some(out) = self.exchange.poll_send() {
+                sends.push(self.send_piece(out, &mut stats)?);
             }
-            let expected = rc.expected();
-            for from in expected {
-                let (piece, len) = self
-                    .wait_piece(req, round as u32, from as u32, deadline, events)
-                    .await?;
-                stats.bytes_received += len;
-                rc.receive(from, piece).with_context(|| {
-                    format!(
-                        "piece from {}",
-                        describe(&self.setup.peers, req.order[from])
-                    )
-                })?;
+            match self.exchange.poll_event() {
+                Some(ExchangeEvent::Done { result, .. }) => break result,
+                Some(ExchangeEvent::Failed { error, .. }) => bail!("{}", self.explain(&error)),
+                None => {}
             }
-            for (what, s) in sends {
-                let left = deadline.saturating_duration_since(Instant::now());
-                match tokio::time::timeout(left, s).await {
-                    Ok(Ok(r)) => stats.bytes_sent += r?,
-                    Ok(Err(e)) => bail!("sending to {what}: {e}"),
-                    Err(_) => bail!(
-                        "sending to {what} did not finish within the frame timeout of {:.1} s",
-                        self.timeout.as_secs_f64()
-                    ),
+            let deadline = self
+                .exchange
+                .poll_timeout()
+                .unwrap_or_else(|| Instant::now() + self.timeout);
+            tokio::select! {
+                ev = events.recv() => match ev {
+                    Some(PeerEvent::Piece { rank, frame, round, from, piece, wire_len }) => {
+                        tokio::task::block_in_place(|| {
+                            self.exchange.handle_piece(rank, frame, round, from, piece, wire_len)
+                        });
+                    }
+                    Some(PeerEvent::Lost { rank, error }) => self.exchange.handle_lost(rank, error),
+                    None => bail!("peer readers stopped"),
+                },
+                _ = tokio::time::sleep_until(deadline.into()) => {
+                    self.exchange.handle_timeout(Instant::now());
                 }
             }
-            stats.exchange_s += t.elapsed().as_secs_f64();
-            let t = Instant::now();
-            tokio::task::block_in_place(|| rc.finish_round())?;
-            stats.blend_s += t.elapsed().as_secs_f64();
+        };
+        for (what, s) in sends {
+            let left = (frame_start + self.timeout).saturating_duration_since(Instant::now());
+            match tokio::time::timeout(left, s).await {
+                Ok(Ok(r)) => stats.bytes_sent += r?,
+                Ok(Err(e)) => bail!("sending to {what}: {e}"),
+                Err(_) => bail!(
+                    "sending to {what} did not finish within the frame timeout of {:.1} s",
+                    self.timeout.as_secs_f64()
+                ),
+            }
         }
-        let t = Instant::now();
-        let result = rc.result(format);
-        stats.gather_s = t.elapsed().as_secs_f64();
+        let x = self.exchange.stats();
+        stats.rounds = x.rounds;
+        stats.encode_s += x.encode_s;
+        stats.blend_s = x.blend_s;
+        stats.bytes_received = x.bytes_received;
+        stats.exchange_s =
+            (t_exchange.elapsed().as_secs_f64() - stats.encode_s - stats.blend_s).max(0.0);
         Ok((stats, result, composite_start))
     }
 
-    async fn wait_piece(
+    /// Hands one outgoing piece to its transport: written to the peer's shared-memory
+    /// segment and announced, or sent inline over QUIC; returns the send task.
+    #[allow(clippy::type_complexity)]
+    fn send_piece(
         &mut self,
-        req: &FrameRequest,
-        round: u32,
-        from: u32,
-        deadline: Instant,
-        events: &mut mpsc::UnboundedReceiver<PeerEvent>,
-    ) -> Result<(SparsePiece, u64)> {
-        loop {
-            if let Some(p) = self.pending.remove(&(req.frame, round, from)) {
-                return Ok(p);
+        out: Outgoing,
+        stats: &mut WorkerFrameStats,
+    ) -> Result<(String, tokio::task::JoinHandle<Result<u64>>)> {
+        let to_rank = out.to_rank;
+        let conn = self
+            .peers
+            .get(to_rank as usize)
+            .cloned()
+            .flatten()
+            .ok_or_else(|| anyhow!("no connection to rank {to_rank}"))?;
+        // Shared memory to a peer on this host, written straight from the piece; QUIC
+        // otherwise, or when the segment cannot take the piece (a full /dev/shm).
+        let shm = self.shm_out[to_rank as usize].as_mut().and_then(|w| {
+            tokio::task::block_in_place(|| {
+                let parts = out.piece.wire_parts();
+                let refs: Vec<&[u8]> = parts.iter().map(|p| &**p).collect();
+                w.write_parts(out.frame, out.round, out.from, &refs)
+            })
+            .map_err(|e| warn!(peer = to_rank, "piece over QUIC instead: {e}"))
+            .ok()
+        });
+        let (meta, bytes) = match shm {
+            Some(at) => {
+                let moved = wire::SHM_RECORD_HEADER as u64 + at.len;
+                stats.shm_bytes_sent += moved;
+                stats.bytes_sent += moved;
+                let meta = wire::encode_meta(&PeerMsg::ShmPiece {
+                    frame: out.frame,
+                    round: out.round,
+                    from: out.from,
+                    at,
+                });
+                (meta, Vec::new())
             }
-            let left = deadline.saturating_duration_since(Instant::now());
-            match tokio::time::timeout(left, events.recv()).await {
-                Ok(Some(PeerEvent::Piece {
-                    rank,
-                    frame,
-                    round,
-                    from,
-                    piece,
-                    wire_len,
-                })) => {
-                    // A piece must come from the rank at the position it claims.
-                    if frame == req.frame && req.order.get(from as usize) != Some(&rank) {
-                        bail!(
-                            "{} sent a piece as position {from}, which is not its position",
-                            describe(&self.setup.peers, rank)
-                        );
-                    }
-                    if frame >= req.frame {
-                        self.pending.insert((frame, round, from), (piece, wire_len));
-                    }
-                }
-                Ok(Some(PeerEvent::Lost { rank, error })) => {
-                    bail!(
-                        "lost the connection to {}: {error}",
-                        describe(&self.setup.peers, rank)
-                    )
-                }
-                Ok(None) => bail!("peer readers stopped"),
-                Err(_) => {
-                    let who = req.order.get(from as usize).copied().unwrap_or(u32::MAX);
-                    bail!(
-                        "no piece from {} (round {round} of frame {}) within the frame timeout of {:.1} s",
-                        describe(&self.setup.peers, who),
-                        req.frame,
-                        self.timeout.as_secs_f64()
-                    )
-                }
+            None => {
+                let te = Instant::now();
+                let mut bytes = Vec::with_capacity(out.piece.byte_len());
+                out.piece.write(&mut bytes);
+                stats.encode_s += te.elapsed().as_secs_f64();
+                let meta = wire::encode_meta(&PeerMsg::Piece {
+                    frame: out.frame,
+                    round: out.round,
+                    from: out.from,
+                });
+                (meta, bytes)
             }
+        };
+        let what = describe(&self.setup.peers, to_rank);
+        let task_what = what.clone();
+        Ok((
+            what,
+            tokio::spawn(async move {
+                send_uni(&conn, &meta, &bytes)
+                    .await
+                    .map_err(|e| anyhow!("sending to {task_what}: {e}"))
+            }),
+        ))
+    }
+
+    /// An exchange failure in words, with the peer it is about named.
+    fn explain(&self, error: &ExchangeError) -> String {
+        let peers = &self.setup.peers;
+        match error {
+            ExchangeError::WrongPosition { rank, claimed, frame } => format!(
+                "{} sent a piece as position {claimed} of frame {frame}, which is not its position",
+                describe(peers, *rank)
+            ),
+            ExchangeError::TooFarAhead { rank, frame, current, ahead } => format!(
+                "{} sent a piece for frame {frame}, more than {ahead} frames after frame {current}",
+                describe(peers, *rank)
+            ),
+            ExchangeError::PendingFull { rank, pieces, bytes } => format!(
+                "{} sent more early pieces than this worker buffers ({pieces} pieces, {bytes} bytes)",
+                describe(peers, *rank)
+            ),
+            ExchangeError::BadPiece { rank, source } => {
+                format!("piece from {}: {source}", describe(peers, *rank))
+            }
+            ExchangeError::Timeout { frame, round, missing, secs } => format!(
+                "no piece from {} (round {round} of frame {frame}) within the frame timeout of {secs:.1} s",
+                missing
+                    .iter()
+                    .map(|&r| describe(peers, r))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+            ExchangeError::PeerLost { rank, error } => {
+                format!("lost the connection to {}: {error}", describe(peers, *rank))
+            }
+            other => other.to_string(),
         }
     }
 

@@ -32,7 +32,8 @@
 //!   [`SparsePiece`] encoding sends only active pixels, as run lengths plus data.
 //!
 //! [`RankCompositor`] runs one rank's side of a plan (sans-IO: the caller moves the
-//! bytes), [`assemble`] builds the final image from the gathered result pieces and
+//! bytes), [`Exchange`] runs one rank's exchange across frames (early pieces, sender
+//! checks, duplicates, bounds, deadlines) around it, [`assemble`] builds the final image from the gathered result pieces and
 //! [`composite_in_memory`] runs a whole plan in one process, for tests and tools.
 //! Nothing here does I/O, spawns threads or is async.
 
@@ -42,12 +43,16 @@ use serde::{Deserialize, Serialize};
 
 mod binary_swap;
 mod direct_send;
+mod exchange;
 mod interlace;
 mod memory;
 mod radix_k;
 mod rank;
 mod sparse;
 
+pub use exchange::{
+    Exchange, ExchangeError, ExchangeEvent, ExchangeLimits, ExchangeStats, Outgoing,
+};
 pub use interlace::Interlace;
 pub use memory::{composite_in_memory, run_in_memory, MemoryRun};
 pub use radix_k::auto_factors;

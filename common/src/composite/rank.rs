@@ -320,6 +320,20 @@ impl RankCompositor {
         Ok(())
     }
 
+    /// The positions whose piece for this round has not arrived yet.
+    pub fn missing(&self) -> Vec<usize> {
+        match self.step() {
+            None => Vec::new(),
+            Some(step) => step
+                .blend
+                .iter()
+                .zip(&self.received)
+                .filter(|&(&q, r)| q != self.position && r.is_none())
+                .map(|(&q, _)| q)
+                .collect(),
+        }
+    }
+
     /// Whether every expected piece of this round has arrived (false when done).
     pub fn is_ready(&self) -> bool {
         match self.step() {

@@ -1,0 +1,562 @@
+//! One worker's side of the compositing exchange across frames, as a sans-IO state
+//! machine in the manner of quinn-proto.
+//!
+//! [`RankCompositor`] knows one frame's plan. This adds what lives between the network
+//! and the plan: which frame is running, which rank stands at which position in it,
+//! pieces that arrive early (a peer may already be in the next round, or the next frame),
+//! duplicates and stale pieces, bounds on what may be buffered, and the frame deadline.
+//! The driver (`strata_worker::node`) only moves bytes and time:
+//!
+//! * inputs: [`start_frame`](Exchange::start_frame), [`handle_piece`](Exchange::handle_piece)
+//!   (a parsed piece and the rank whose connection it came on),
+//!   [`handle_timeout`](Exchange::handle_timeout) (the current time),
+//!   [`handle_lost`](Exchange::handle_lost) (a peer's connection ended);
+//! * outputs: [`poll_send`](Exchange::poll_send) (pieces to send, by rank),
+//!   [`poll_event`](Exchange::poll_event) (the frame's result, or why it failed),
+//!   [`poll_timeout`](Exchange::poll_timeout) (when to call `handle_timeout`).
+//!
+//! Time is an argument, never read for decisions, so the tests drive many ranks through a
+//! simulated network in virtual time (latency, reordering, duplication, a silent rank, a
+//! rank lying about its position, pieces of later frames).
+//!
+//! **Sender checks.** A piece claims a frame, round and sender position; it must come on
+//! the connection of the rank at that position in that frame's visibility order. Pieces
+//! of the current frame are checked on arrival; pieces of a later frame are buffered and
+//! checked when that frame starts (its order is known only then), before any is used.
+//! **Bounds.** Pieces may run at most [`ExchangeLimits::frames_ahead`] frames ahead, and
+//! the buffer holds at most [`ExchangeLimits::pending_pieces`] pieces and
+//! [`ExchangeLimits::pending_bytes`] bytes; a peer past them fails the frame, naming it.
+//! **Duplicates** of a piece already received, and pieces of frames that are over, are
+//! dropped and counted.
+
+use std::collections::{BTreeMap, VecDeque};
+use std::time::{Duration, Instant};
+
+use super::{CompositeError, RankCompositor, SparsePiece, WireFormat};
+
+/// What a peer may make this rank buffer.
+#[derive(Copy, Clone, Debug, PartialEq, Eq)]
+pub struct ExchangeLimits {
+    /// How many frames past the current (or last) one a piece may belong to.
+    pub frames_ahead: u64,
+    /// Pieces buffered for later rounds and frames.
+    pub pending_pieces: usize,
+    /// Bytes (as received) buffered for later rounds and frames.
+    pub pending_bytes: u64,
+}
+
+impl ExchangeLimits {
+    /// Room for two frames of pieces from every peer, each at most `max_piece_bytes`.
+    pub fn for_ranks(ranks: usize, max_piece_bytes: u64) -> ExchangeLimits {
+        ExchangeLimits {
+            frames_ahead: 2,
+            pending_pieces: 64 * ranks.max(1) + 64,
+            pending_bytes: 2 * max_piece_bytes.saturating_mul(ranks.max(1) as u64),
+        }
+    }
+}
+
+/// A piece to send.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Outgoing {
+    /// The receiving rank (not position).
+    pub to_rank: u32,
+    /// Frame number.
+    pub frame: u64,
+    /// Round of the plan.
+    pub round: u32,
+    /// This rank's position in the frame's visibility order.
+    pub from: u32,
+    /// The piece.
+    pub piece: SparsePiece,
+}
+
+/// What the exchange reports.
+#[derive(Clone, Debug, PartialEq)]
+pub enum ExchangeEvent {
+    /// The frame's rounds are done: this rank's final piece for the gather.
+    Done {
+        /// Frame number.
+        frame: u64,
+        /// The final piece (empty span if this rank keeps nothing).
+        result: SparsePiece,
+    },
+    /// The frame cannot complete.
+    Failed {
+        /// Frame number.
+        frame: u64,
+        /// Why.
+        error: ExchangeError,
+    },
+}
+
+/// Why a frame failed. Peers are named by rank; the driver maps ranks to names.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum ExchangeError {
+    /// A piece came on one rank's connection claiming another's position.
+    #[error("rank {rank} sent a piece as position {claimed} of frame {frame}, which is not its position")]
+    WrongPosition {
+        /// The sender.
+        rank: u32,
+        /// The position it claimed.
+        claimed: u32,
+        /// The frame.
+        frame: u64,
+    },
+    /// A piece for a frame too far ahead.
+    #[error("rank {rank} sent a piece for frame {frame}, more than {ahead} frames after frame {current}")]
+    TooFarAhead {
+        /// The sender.
+        rank: u32,
+        /// The piece's frame.
+        frame: u64,
+        /// The current (or last) frame.
+        current: u64,
+        /// The limit.
+        ahead: u64,
+    },
+    /// The early-piece buffer is full.
+    #[error("rank {rank} sent more early pieces than this rank buffers ({pieces} pieces, {bytes} bytes)")]
+    PendingFull {
+        /// The sender of the piece that did not fit.
+        rank: u32,
+        /// Pieces buffered.
+        pieces: usize,
+        /// Bytes buffered.
+        bytes: u64,
+    },
+    /// A piece that does not fit the plan (unexpected sender, wrong span, inconsistent).
+    #[error("a piece from rank {rank}: {source}")]
+    BadPiece {
+        /// The sender.
+        rank: u32,
+        /// What is wrong.
+        source: CompositeError,
+    },
+    /// The deadline passed with pieces missing.
+    #[error("no piece from ranks {missing:?} (round {round} of frame {frame}) within the frame timeout of {secs:.1} s")]
+    Timeout {
+        /// The frame.
+        frame: u64,
+        /// The round waited on.
+        round: u32,
+        /// Ranks whose piece is missing.
+        missing: Vec<u32>,
+        /// The timeout.
+        secs: f64,
+    },
+    /// A peer's connection ended.
+    #[error("lost the connection to rank {rank}: {error}")]
+    PeerLost {
+        /// The peer.
+        rank: u32,
+        /// Why.
+        error: String,
+    },
+    /// The frame request itself does not fit this run.
+    #[error("{0}")]
+    BadFrame(String),
+    /// Compositing failed locally (a bug or a corrupted piece found while blending).
+    #[error("{0}")]
+    Composite(CompositeError),
+}
+
+impl ExchangeError {
+    /// The peer the error is about, if any.
+    pub fn rank(&self) -> Option<u32> {
+        match self {
+            ExchangeError::WrongPosition { rank, .. }
+            | ExchangeError::TooFarAhead { rank, .. }
+            | ExchangeError::PendingFull { rank, .. }
+            | ExchangeError::BadPiece { rank, .. }
+            | ExchangeError::PeerLost { rank, .. } => Some(*rank),
+            ExchangeError::Timeout { missing, .. } => missing.first().copied(),
+            _ => None,
+        }
+    }
+}
+
+/// Counters and times of the frame in progress (reset by `start_frame`).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ExchangeStats {
+    /// Rounds completed.
+    pub rounds: u32,
+    /// Seconds encoding outgoing pieces (measured, never used for decisions).
+    pub encode_s: f64,
+    /// Seconds blending received pieces.
+    pub blend_s: f64,
+    /// Bytes of the pieces used (as received).
+    pub bytes_received: u64,
+    /// Duplicates dropped.
+    pub duplicates: u64,
+    /// Pieces of frames that were over, dropped.
+    pub stale: u64,
+}
+
+struct Pending {
+    rank: u32,
+    piece: SparsePiece,
+    len: u64,
+}
+
+struct Active {
+    frame: u64,
+    order: Vec<u32>,
+    rc: RankCompositor,
+    format: WireFormat,
+    deadline: Instant,
+    timeout: Duration,
+    /// Whether this round's pieces have been handed to `poll_send`.
+    sent: bool,
+}
+
+/// One rank's exchange state across frames.
+pub struct Exchange {
+    rank: u32,
+    ranks: usize,
+    limits: ExchangeLimits,
+    active: Option<Active>,
+    /// The latest frame started; pieces of earlier frames are stale.
+    last: Option<u64>,
+    /// Early pieces by (frame, round, sender position).
+    pending: BTreeMap<(u64, u32, u32), Pending>,
+    pending_bytes: u64,
+    /// A violation seen while no frame ran: the next frame fails with it.
+    poisoned: Option<ExchangeError>,
+    sends: VecDeque<Outgoing>,
+    events: VecDeque<ExchangeEvent>,
+    stats: ExchangeStats,
+}
+
+impl Exchange {
+    /// The exchange of rank `rank` of `ranks`.
+    pub fn new(rank: u32, ranks: usize, limits: ExchangeLimits) -> Exchange {
+        Exchange {
+            rank,
+            ranks,
+            limits,
+            active: None,
+            last: None,
+            pending: BTreeMap::new(),
+            pending_bytes: 0,
+            poisoned: None,
+            sends: VecDeque::new(),
+            events: VecDeque::new(),
+            stats: ExchangeStats::default(),
+        }
+    }
+
+    /// The frame in progress and the latest frame started.
+    pub fn current_frame(&self) -> Option<u64> {
+        self.active.as_ref().map(|a| a.frame)
+    }
+
+    /// Counters of the frame in progress (or the last one).
+    pub fn stats(&self) -> &ExchangeStats {
+        &self.stats
+    }
+
+    /// Pieces buffered for later rounds or frames.
+    pub fn pending(&self) -> usize {
+        self.pending.len()
+    }
+
+    /// Starts `frame`, whose visibility order (position → rank) is `order`, with this
+    /// rank's compositor (`rc`, already holding its image). Fails (as an event) if the
+    /// frame does not follow the last one, the order does not fit, or an early piece of
+    /// this frame came from the wrong rank.
+    pub fn start_frame(
+        &mut self,
+        frame: u64,
+        order: Vec<u32>,
+        rc: RankCompositor,
+        format: WireFormat,
+        now: Instant,
+        timeout: Duration,
+    ) {
+        self.stats = ExchangeStats::default();
+        self.sends.clear();
+        if let Some(a) = self.active.take() {
+            // The driver abandoned a frame (e.g. its request failed): it is over.
+            self.last = Some(a.frame);
+        }
+        let fail = |this: &mut Self, error| {
+            this.events
+                .push_back(ExchangeEvent::Failed { frame, error });
+        };
+        if let Some(e) = self.poisoned.take() {
+            return fail(self, e);
+        }
+        if self.last.is_some_and(|l| frame <= l) {
+            let last = self.last.unwrap();
+            return fail(
+                self,
+                ExchangeError::BadFrame(format!("frame {frame} does not follow frame {last}")),
+            );
+        }
+        let mut seen = vec![false; self.ranks];
+        let permutation = order.len() == self.ranks
+            && order.iter().all(|&r| {
+                (r as usize) < self.ranks && !std::mem::replace(&mut seen[r as usize], true)
+            });
+        if !permutation {
+            return fail(
+                self,
+                ExchangeError::BadFrame(format!(
+                    "the visibility order {order:?} is not a permutation of the {} ranks",
+                    self.ranks
+                )),
+            );
+        }
+        if order.get(rc.position()) != Some(&self.rank) {
+            return fail(
+                self,
+                ExchangeError::BadFrame(format!(
+                    "rank {} is not at position {} of the order {order:?}",
+                    self.rank,
+                    rc.position()
+                )),
+            );
+        }
+        self.last = Some(frame);
+        // Pieces of earlier frames will never be used.
+        let stale: Vec<_> = self
+            .pending
+            .range(..(frame, 0, 0))
+            .map(|(k, _)| *k)
+            .collect();
+        for k in stale {
+            let p = self.pending.remove(&k).unwrap();
+            self.pending_bytes -= p.len;
+            self.stats.stale += 1;
+        }
+        // Early pieces of this frame: now their senders can be checked.
+        let wrong = self
+            .pending
+            .range((frame, 0, 0)..=(frame, u32::MAX, u32::MAX))
+            .find(|(&(_, _, from), p)| order.get(from as usize) != Some(&p.rank))
+            .map(|(&(_, _, from), p)| (p.rank, from));
+        if let Some((rank, claimed)) = wrong {
+            return fail(
+                self,
+                ExchangeError::WrongPosition {
+                    rank,
+                    claimed,
+                    frame,
+                },
+            );
+        }
+        self.active = Some(Active {
+            frame,
+            order,
+            rc,
+            format,
+            deadline: now + timeout,
+            timeout,
+            sent: false,
+        });
+        self.advance();
+    }
+
+    /// A parsed piece that came on the connection of rank `sender`, claiming frame,
+    /// round and sender position `from`; `len` is what it took on the wire.
+    pub fn handle_piece(
+        &mut self,
+        sender: u32,
+        frame: u64,
+        round: u32,
+        from: u32,
+        piece: SparsePiece,
+        len: u64,
+    ) {
+        let current = self.active.as_ref().map(|a| a.frame);
+        if Some(frame) == current {
+            let a = self.active.as_mut().unwrap();
+            if a.order.get(from as usize) != Some(&sender) {
+                return self.fail(ExchangeError::WrongPosition {
+                    rank: sender,
+                    claimed: from,
+                    frame,
+                });
+            }
+            let now_round = a.rc.round().map_or(u32::MAX, |r| r as u32);
+            if round < now_round {
+                // A round already blended: a duplicate.
+                self.stats.duplicates += 1;
+                return;
+            }
+            if round == now_round {
+                return self.receive(sender, from as usize, piece, len);
+            }
+            // A later round of this frame: keep it (its sender is checked already).
+        } else if self.last.is_some_and(|l| frame <= l) {
+            // A frame that is over (or failed).
+            self.stats.stale += 1;
+            return;
+        } else {
+            let base = self.last.unwrap_or(0);
+            if frame > base + self.limits.frames_ahead {
+                return self.fail(ExchangeError::TooFarAhead {
+                    rank: sender,
+                    frame,
+                    current: base,
+                    ahead: self.limits.frames_ahead,
+                });
+            }
+        }
+        let key = (frame, round, from);
+        if self.pending.contains_key(&key) {
+            self.stats.duplicates += 1;
+            return;
+        }
+        if self.pending.len() >= self.limits.pending_pieces
+            || self.pending_bytes + len > self.limits.pending_bytes
+        {
+            return self.fail(ExchangeError::PendingFull {
+                rank: sender,
+                pieces: self.pending.len(),
+                bytes: self.pending_bytes,
+            });
+        }
+        self.pending_bytes += len;
+        self.pending.insert(
+            key,
+            Pending {
+                rank: sender,
+                piece,
+                len,
+            },
+        );
+    }
+
+    /// The time is `now`: fails the frame if its deadline has passed.
+    pub fn handle_timeout(&mut self, now: Instant) {
+        let Some(a) = &self.active else { return };
+        if now < a.deadline {
+            return;
+        }
+        let missing = a.rc.missing().into_iter().map(|q| a.order[q]).collect();
+        let error = ExchangeError::Timeout {
+            frame: a.frame,
+            round: a.rc.round().map_or(0, |r| r as u32),
+            missing,
+            secs: a.timeout.as_secs_f64(),
+        };
+        self.fail(error);
+    }
+
+    /// The connection to rank `rank` ended.
+    pub fn handle_lost(&mut self, rank: u32, error: String) {
+        self.fail(ExchangeError::PeerLost { rank, error });
+    }
+
+    /// The next piece to send.
+    pub fn poll_send(&mut self) -> Option<Outgoing> {
+        self.sends.pop_front()
+    }
+
+    /// The next result or failure.
+    pub fn poll_event(&mut self) -> Option<ExchangeEvent> {
+        self.events.pop_front()
+    }
+
+    /// When to call [`handle_timeout`](Self::handle_timeout) next.
+    pub fn poll_timeout(&self) -> Option<Instant> {
+        self.active.as_ref().map(|a| a.deadline)
+    }
+
+    /// Fails the frame in progress, or (between frames) the next one.
+    fn fail(&mut self, error: ExchangeError) {
+        match self.active.take() {
+            Some(a) => self.events.push_back(ExchangeEvent::Failed {
+                frame: a.frame,
+                error,
+            }),
+            None => {
+                if self.poisoned.is_none() {
+                    self.poisoned = Some(error);
+                }
+            }
+        }
+    }
+
+    /// Hands one piece of the current round to the compositor.
+    fn receive(&mut self, sender: u32, from: usize, piece: SparsePiece, len: u64) {
+        let a = self.active.as_mut().unwrap();
+        match a.rc.receive(from, piece) {
+            Ok(()) => {
+                self.stats.bytes_received += len;
+                self.advance();
+            }
+            Err(CompositeError::Duplicate { .. }) => self.stats.duplicates += 1,
+            Err(source) => self.fail(ExchangeError::BadPiece {
+                rank: sender,
+                source,
+            }),
+        }
+    }
+
+    /// Moves the frame as far as the pieces at hand allow: sends a round's pieces once,
+    /// feeds early pieces of the round, blends when all are in, and reports the result.
+    fn advance(&mut self) {
+        while let Some(a) = self.active.as_mut() {
+            let Some(round) = a.rc.round() else {
+                let a = self.active.take().unwrap();
+                let t = Instant::now();
+                let result = a.rc.result(a.format);
+                self.stats.encode_s += t.elapsed().as_secs_f64();
+                self.events.push_back(ExchangeEvent::Done {
+                    frame: a.frame,
+                    result,
+                });
+                return;
+            };
+            if !a.sent {
+                a.sent = true;
+                let t = Instant::now();
+                for (to, piece) in a.rc.outgoing(a.format) {
+                    self.sends.push_back(Outgoing {
+                        to_rank: a.order[to],
+                        frame: a.frame,
+                        round: round as u32,
+                        from: a.rc.position() as u32,
+                        piece,
+                    });
+                }
+                self.stats.encode_s += t.elapsed().as_secs_f64();
+                // Early pieces of this round (their senders were checked).
+                let keys: Vec<_> = self
+                    .pending
+                    .range((a.frame, round as u32, 0)..=(a.frame, round as u32, u32::MAX))
+                    .map(|(k, _)| *k)
+                    .collect();
+                for k in keys {
+                    let p = self.pending.remove(&k).unwrap();
+                    self.pending_bytes -= p.len;
+                    let a = self.active.as_mut().unwrap();
+                    match a.rc.receive(k.2 as usize, p.piece) {
+                        Ok(()) => self.stats.bytes_received += p.len,
+                        Err(CompositeError::Duplicate { .. }) => self.stats.duplicates += 1,
+                        Err(source) => {
+                            return self.fail(ExchangeError::BadPiece {
+                                rank: p.rank,
+                                source,
+                            })
+                        }
+                    }
+                }
+            }
+            let a = self.active.as_mut().unwrap();
+            if !a.rc.is_ready() {
+                return;
+            }
+            let t = Instant::now();
+            if let Err(e) = a.rc.finish_round() {
+                return self.fail(ExchangeError::Composite(e));
+            }
+            a.sent = false;
+            self.stats.blend_s += t.elapsed().as_secs_f64();
+            self.stats.rounds += 1;
+        }
+    }
+}
