@@ -144,6 +144,11 @@ pub struct ClusterSettings {
     /// everywhere; an error when the processes are not all on one host).
     #[serde(default)]
     pub transport: Transport,
+    /// Re-render a frame without a worker that was lost during it (process exit, dead
+    /// connection, no answer within `frame_timeout_s`, or its peers losing it), instead
+    /// of failing the frame. Its leaves go to the survivors.
+    #[serde(default = "yes")]
+    pub recover: bool,
 }
 
 /// `cluster.transport`.
@@ -182,6 +187,7 @@ impl Default for ClusterSettings {
             rebalance_threshold: default_rebalance_threshold(),
             rebalance_damping: default_rebalance_damping(),
             transport: Transport::Auto,
+            recover: true,
         }
     }
 }

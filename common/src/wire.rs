@@ -248,6 +248,8 @@ pub enum WorkerMsg {
         frame: Option<u64>,
         /// Why.
         message: String,
+        /// Peers (ranks) the failure is blamed on: lost connections, missing pieces.
+        suspects: Vec<u32>,
     },
 }
 

@@ -452,3 +452,34 @@ fn early_pieces_are_checked_when_their_frame_starts_and_bounded() {
         })
     ));
 }
+
+#[test]
+fn a_lost_peer_fails_the_frames_that_include_it_and_only_those() {
+    let t = Instant::now();
+    let limits = ExchangeLimits::for_ranks(3, 1 << 16);
+    let mut ex = Exchange::new(0, 3, limits);
+    // Lost between frames: nothing to fail yet.
+    ex.handle_lost(1, "connection reset".into());
+    assert!(ex.poll_event().is_none());
+    // A frame that still includes rank 1 fails at once, naming it.
+    one_rank_frame(&mut ex, 0, vec![0, 1], t);
+    match ex.poll_event() {
+        Some(ExchangeEvent::Failed {
+            error: ExchangeError::PeerLost { rank: 1, .. },
+            ..
+        }) => {}
+        other => panic!("{other:?}"),
+    }
+    // The re-run without it (ranks 0 and 2 of the 3) completes.
+    one_rank_frame(&mut ex, 1, vec![0, 2], t);
+    ex.handle_piece(2, 1, 0, 1, piece(0, 2), 100);
+    match ex.poll_event() {
+        Some(ExchangeEvent::Done { frame: 1, .. }) => {}
+        other => panic!("{other:?}"),
+    }
+    // Losing a rank that is not in the frame in progress does not fail it.
+    one_rank_frame(&mut ex, 2, vec![2, 0], t);
+    ex.handle_lost(1, "again".into());
+    assert!(ex.poll_event().is_none());
+    assert_eq!(ex.current_frame(), Some(2));
+}

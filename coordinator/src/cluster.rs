@@ -65,6 +65,8 @@ pub struct ClusterOptions {
     pub rebalance_damping: f64,
     /// `cluster.transport`: shared memory between processes on one host, or QUIC.
     pub transport: Transport,
+    /// `cluster.recover`: re-render a frame without a worker that was lost.
+    pub recover: bool,
 }
 
 /// A re-split of the k-d tree between two frames of a sequence.
@@ -150,6 +152,7 @@ impl ClusterOptions {
             rebalance_threshold: c.rebalance_threshold,
             rebalance_damping: c.rebalance_damping,
             transport: c.transport,
+            recover: c.recover,
             worker_exe: std::env::var_os("STRATA_WORKER_BIN").map(PathBuf::from),
         })
     }
@@ -205,6 +208,41 @@ pub struct FrameResult {
     pub collect_s: f64,
     /// Seconds assembling the final image from the pieces (after `composite_s`).
     pub assemble_s: f64,
+    /// Workers given up on during this frame (the frame was re-rendered without them).
+    pub lost: Vec<LostWorker>,
+}
+
+/// A worker given up on.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct LostWorker {
+    /// Its description (rank, name, pid, address).
+    pub worker: String,
+    /// Its rank.
+    pub rank: u32,
+    /// Why.
+    pub reason: String,
+}
+
+/// A failed attempt at a frame and the workers it blames.
+struct Failure {
+    error: anyhow::Error,
+    lost: Vec<u32>,
+}
+
+impl Failure {
+    fn of(error: anyhow::Error) -> Failure {
+        Failure {
+            error,
+            lost: Vec::new(),
+        }
+    }
+
+    fn blaming(error: anyhow::Error, rank: u32) -> Failure {
+        Failure {
+            error,
+            lost: vec![rank],
+        }
+    }
 }
 
 /// Which pairs of processes exchange through shared memory.
@@ -255,6 +293,9 @@ pub struct Cluster {
     new_leaves: Vec<Option<Vec<strata_common::kd::Region>>>,
     /// The transports chosen at set-up.
     transport: TransportReport,
+    /// The ranks still in the run, in the order of the decomposition's workers (slot →
+    /// rank); lost workers drop out.
+    slots: Vec<u32>,
 }
 
 impl Cluster {
@@ -366,6 +407,7 @@ impl Cluster {
             costs,
             new_leaves: vec![None; n],
             transport: TransportReport::default(),
+            slots: (0..n as u32).collect(),
         };
         cluster.gather_workers(&secret, &tx).await?;
         cluster.setup(scene).await?;
@@ -666,9 +708,9 @@ impl Cluster {
         &self.transport
     }
 
-    /// Number of workers.
+    /// Number of workers still in the run.
     pub fn workers(&self) -> usize {
-        self.workers.len()
+        self.slots.len()
     }
 
     /// Largest final piece a worker may send.
@@ -681,7 +723,12 @@ impl Cluster {
         &self.decomposition
     }
 
-    /// Renders and composites one frame.
+    /// Renders and composites one frame. With `cluster.recover`, a worker lost on the way
+    /// (its process exited, its connection died, it stopped answering within the frame
+    /// timeout, or its peers lost it mid-exchange) costs a re-render, not the frame: it is
+    /// killed (local) or disconnected, its leaves go to the survivors (a new k-d split
+    /// over them; they open the same stores), compositing is re-planned for the ranks
+    /// left, and the frame runs again. Later frames continue with the ranks left.
     pub async fn frame(
         &mut self,
         camera: &Camera,
@@ -691,26 +738,109 @@ impl Cluster {
         source: FrameSource,
     ) -> Result<FrameResult> {
         let t0 = Instant::now();
-        let pixels = width as u64 * height as u64;
-        anyhow::ensure!(
-            pixels <= self.opts.max_pixels,
-            "frame of {width}x{height} exceeds the run's {} pixels",
-            self.opts.max_pixels
+        let mut lost_here = Vec::new();
+        loop {
+            match self
+                .frame_once(camera, width, height, composite, source.clone())
+                .await
+            {
+                Ok(mut r) => {
+                    r.wall_s = t0.elapsed().as_secs_f64();
+                    r.lost = lost_here;
+                    return Ok(r);
+                }
+                Err(f) => {
+                    let lost: Vec<u32> = f
+                        .lost
+                        .iter()
+                        .copied()
+                        .filter(|r| self.slots.contains(r))
+                        .collect();
+                    if !self.opts.recover || lost.is_empty() || lost.len() >= self.slots.len() {
+                        return Err(f.error);
+                    }
+                    let names = self.list(lost.iter().map(|&r| r as usize));
+                    warn!("{:#}; re-rendering the frame without {names}", f.error);
+                    for &r in &lost {
+                        lost_here.push(LostWorker {
+                            worker: self.workers[r as usize].describe(),
+                            rank: r,
+                            reason: format!("{:#}", f.error),
+                        });
+                    }
+                    self.drop_workers(&lost);
+                }
+            }
+        }
+    }
+
+    /// Gives up on `lost` workers: kills (local) or disconnects them and splits the scene
+    /// over the ranks left.
+    fn drop_workers(&mut self, lost: &[u32]) {
+        for &r in lost {
+            let w = &self.workers[r as usize];
+            if self.child_pids.contains(&w.pid) {
+                // SAFETY: a plain syscall on our own child process (it may be stopped).
+                unsafe {
+                    libc::kill(w.pid as i32, libc::SIGKILL);
+                }
+            }
+            w.conn.close(7u32.into(), b"lost");
+        }
+        self.slots.retain(|r| !lost.contains(r));
+        let m = self.slots.len();
+        let new = Decomposition::balanced(
+            self.costs.root,
+            &self.costs.boxes,
+            m,
+            self.opts.leaves_per_worker,
+            &self.costs.planes,
         );
+        for (slot, &rank) in self.slots.iter().enumerate() {
+            let leaves = new.worker_leaves(slot);
+            self.new_leaves[rank as usize] =
+                Some(leaves.iter().map(|&l| new.tree.leaves[l]).collect());
+        }
+        info!(
+            workers = m,
+            imbalance = format!("{:.3}", new.imbalance()),
+            "re-split the scene over the workers left"
+        );
+        self.decomposition = new;
+    }
+
+    /// One attempt at a frame; a failure lists the workers it blames.
+    async fn frame_once(
+        &mut self,
+        camera: &Camera,
+        width: u32,
+        height: u32,
+        composite: &CompositeChoice,
+        source: FrameSource,
+    ) -> Result<FrameResult, Failure> {
+        let t0 = Instant::now();
+        let pixels = width as u64 * height as u64;
+        if pixels > self.opts.max_pixels {
+            return Err(Failure::of(anyhow!(
+                "frame of {width}x{height} exceeds the run's {} pixels",
+                self.opts.max_pixels
+            )));
+        }
         let frame = self.frame_no;
         self.frame_no += 1;
+        let slots = self.slots.clone();
         let order: Vec<u32> = self
             .decomposition
             .worker_order(camera.eye)
             .into_iter()
-            .map(|w| w as u32)
+            .map(|slot| slots[slot])
             .collect();
         debug!(frame, ?order, "visibility order");
-        for w in &mut self.workers {
-            let mine = self.decomposition.worker_leaves(w.rank as usize);
+        for (slot, &rank) in slots.iter().enumerate() {
+            let mine = self.decomposition.worker_leaves(slot);
             let leaf_order = self
                 .decomposition
-                .leaf_order_of(w.rank as usize, camera.eye)
+                .leaf_order_of(slot, camera.eye)
                 .into_iter()
                 .map(|l| mine.iter().position(|&m| m == l).unwrap() as u32)
                 .collect();
@@ -723,15 +853,17 @@ impl Cluster {
                 leaf_order,
                 composite: composite.clone(),
                 source: source.clone(),
-                leaves: self.new_leaves[w.rank as usize].take(),
+                leaves: self.new_leaves[rank as usize].take(),
             });
+            let w = &mut self.workers[rank as usize];
             let what = w.describe();
             with_timeout(
                 self.opts.frame_timeout,
                 format!("sending frame {frame} to {what}"),
                 write_frame(&mut w.send, &wire::encode_meta(&req), &[]),
             )
-            .await?;
+            .await
+            .map_err(|e| Failure::blaming(anyhow!(e), rank))?;
         }
         let n = self.workers.len();
         let mut stats: Vec<Option<WorkerFrameStats>> = vec![None; n];
@@ -740,23 +872,37 @@ impl Cluster {
         let mut gather_bytes = 0u64;
         let mut collect_s = 0.0;
         let deadline = t0 + self.opts.frame_timeout;
-        while stats.iter().any(Option::is_none) {
-            let ev = self.next_event(deadline).await.map_err(|_| {
-                anyhow!(
-                    "frame {frame}: no result from {} within {:.0} s (cluster.frame_timeout_s)",
-                    self.list(
-                        stats
-                            .iter()
-                            .enumerate()
-                            .filter(|s| s.1.is_none())
-                            .map(|s| s.0)
+        let missing = |stats: &Vec<Option<WorkerFrameStats>>| -> Vec<u32> {
+            slots
+                .iter()
+                .copied()
+                .filter(|&r| stats[r as usize].is_none())
+                .collect()
+        };
+        while !missing(&stats).is_empty() {
+            let Ok(ev) = self.next_event(deadline).await else {
+                let late = missing(&stats);
+                return Err(Failure {
+                    error: anyhow!(
+                        "frame {frame}: no result from {} within {:.0} s (cluster.frame_timeout_s)",
+                        self.list(late.iter().map(|&r| r as usize)),
+                        self.opts.frame_timeout.as_secs_f64()
                     ),
-                    self.opts.frame_timeout.as_secs_f64()
-                )
-            })?;
+                    lost: late,
+                });
+            };
             match ev {
+                Event::Msg { rank, .. } | Event::Lost { rank, .. } if !slots.contains(&rank) => {
+                    debug!(rank, "ignoring a worker given up on");
+                }
+                Event::Exited { child, .. }
+                    if !self.child_rank(child).is_some_and(|r| slots.contains(&r)) =>
+                {
+                    debug!(child, "a worker given up on has exited");
+                }
                 Event::Msg { rank, frame: f } => {
                     let who = self.workers[rank as usize].describe();
+                    let blame = |e: anyhow::Error| Failure::blaming(e, rank);
                     match wire::decode_meta::<WorkerMsg>(&f.meta) {
                         // Leftovers of an earlier (failed) frame are not this frame's.
                         Ok(WorkerMsg::FrameDone { frame: fno, .. })
@@ -775,12 +921,14 @@ impl Cluster {
                             let limit = self.piece_limit();
                             let piece = match (shm, &mut self.workers[rank as usize].shm) {
                                 (None, _) => SparsePiece::parse(&f.bulk, width * height)
-                                    .with_context(|| format!("final piece from {who}"))?,
+                                    .with_context(|| format!("final piece from {who}"))
+                                    .map_err(blame)?,
                                 (Some(at), Some(r)) => {
-                                    anyhow::ensure!(
-                                        f.bulk.is_empty(),
-                                        "{who} sent its final piece both inline and in shared memory"
-                                    );
+                                    if !f.bulk.is_empty() {
+                                        return Err(blame(anyhow!(
+                                            "{who} sent its final piece both inline and in shared memory"
+                                        )));
+                                    }
                                     gather_bytes += wire::SHM_RECORD_HEADER as u64 + at.len;
                                     tokio::task::block_in_place(|| {
                                         r.read_piece(
@@ -794,32 +942,71 @@ impl Cluster {
                                     })
                                     .with_context(|| {
                                         format!("the final piece of {who} in shared memory")
-                                    })?
+                                    })
+                                    .map_err(blame)?
                                 }
-                                (Some(_), None) => bail!(
-                                    "{who} announced its final piece in shared memory, which it was not given"
-                                ),
+                                (Some(_), None) => {
+                                    return Err(blame(anyhow!(
+                                        "{who} announced its final piece in shared memory, which it was not given"
+                                    )))
+                                }
                             };
                             last_arrival = Instant::now();
                             pieces[rank as usize] = Some(piece);
                             stats[rank as usize] = Some(s);
                             collect_s += t.elapsed().as_secs_f64();
                         }
-                        Ok(WorkerMsg::Failed { message, .. }) => {
-                            bail!("frame {frame} failed on {who}: {message}")
+                        Ok(WorkerMsg::Failed {
+                            message, suspects, ..
+                        }) => {
+                            // A worker that failed because peers vanished or stalled blames
+                            // them; only ranks of this frame count.
+                            let lost = suspects
+                                .into_iter()
+                                .filter(|r| slots.contains(r) && *r != rank)
+                                .collect();
+                            return Err(Failure {
+                                error: anyhow!("frame {frame} failed on {who}: {message}"),
+                                lost,
+                            });
                         }
-                        Ok(other) => bail!("{who} sent {other:?} during frame {frame}"),
-                        Err(e) => bail!("{who} sent a malformed message: {e}"),
+                        Ok(other) => {
+                            return Err(Failure::of(anyhow!(
+                                "{who} sent {other:?} during frame {frame}"
+                            )))
+                        }
+                        Err(e) => {
+                            return Err(Failure::of(anyhow!("{who} sent a malformed message: {e}")))
+                        }
                     }
                 }
-                ev => return Err(self.event_error(ev).context(format!("frame {frame}"))),
+                ev => {
+                    let lost = match &ev {
+                        Event::Lost { rank, .. } => vec![*rank],
+                        Event::Exited { child, .. } => {
+                            self.child_rank(*child).into_iter().collect()
+                        }
+                        Event::Msg { .. } => vec![],
+                    };
+                    return Err(Failure {
+                        error: self.event_error(ev).context(format!("frame {frame}")),
+                        lost,
+                    });
+                }
             }
         }
-        let stats: Vec<WorkerFrameStats> = stats.into_iter().map(Option::unwrap).collect();
-        let pieces: Vec<SparsePiece> = pieces.into_iter().map(Option::unwrap).collect();
-        let interlace = Interlace::new(width, height, n as u32, composite.interlace);
+        let stats: Vec<WorkerFrameStats> = slots
+            .iter()
+            .map(|&r| stats[r as usize].take().unwrap())
+            .collect();
+        let pieces: Vec<SparsePiece> = slots
+            .iter()
+            .map(|&r| pieces[r as usize].take().unwrap())
+            .collect();
+        let interlace = Interlace::new(width, height, slots.len() as u32, composite.interlace);
         let t = Instant::now();
-        let image = tokio::task::block_in_place(|| assemble(width, height, &interlace, &pieces))?;
+        let image = tokio::task::block_in_place(|| assemble(width, height, &interlace, &pieces))
+            .map_err(|e| Failure::of(e.into()))?;
         let assemble_s = t.elapsed().as_secs_f64();
         let slowest_render = stats.iter().map(|s| s.render_s).fold(0.0, f64::max);
         Ok(FrameResult {
@@ -830,7 +1017,14 @@ impl Cluster {
             gather_bytes,
             collect_s,
             assemble_s,
+            lost: Vec::new(),
         })
+    }
+
+    /// The rank of local worker process `child`, if it joined.
+    fn child_rank(&self, child: usize) -> Option<u32> {
+        let pid = *self.child_pids.get(child)?;
+        self.workers.iter().find(|w| w.pid == pid).map(|w| w.rank)
     }
 
     /// After a frame of a sequence: when the workers' measured imbalance exceeds
@@ -839,13 +1033,14 @@ impl Cluster {
     /// next frame. The workers keep their engines and resident pages.
     pub fn rebalance(&mut self, done: &FrameResult, frame: u64) -> Option<Rebalance> {
         let t = self.opts.rebalance_threshold;
-        if t <= 0.0 || self.workers.len() < 2 {
+        if t <= 0.0 || self.slots.len() < 2 || !done.lost.is_empty() {
             return None;
         }
         let d = &self.decomposition;
         let mut measured = vec![0.0; d.tree.leaves.len()];
-        for s in &done.stats {
-            for (i, &l) in d.worker_leaves(s.rank as usize).iter().enumerate() {
+        // The stats are in slot order (the decomposition's workers).
+        for (slot, s) in done.stats.iter().enumerate() {
+            for (i, &l) in d.worker_leaves(slot).iter().enumerate() {
                 measured[l] = s.leaf_cast_s.get(i).copied().unwrap_or(0.0);
             }
         }
@@ -857,7 +1052,7 @@ impl Cluster {
         let new = Decomposition::balanced(
             self.costs.root,
             &self.costs.boxes,
-            self.workers.len(),
+            self.slots.len(),
             self.opts.leaves_per_worker,
             &self.costs.planes,
         );
@@ -879,9 +1074,10 @@ impl Cluster {
             expected = format!("{:.3}", r.expected_imbalance),
             "re-split the k-d tree from measured render times"
         );
-        for w in 0..self.workers.len() {
-            let leaves = new.worker_leaves(w);
-            self.new_leaves[w] = Some(leaves.iter().map(|&l| new.tree.leaves[l]).collect());
+        for (slot, &rank) in self.slots.iter().enumerate() {
+            let leaves = new.worker_leaves(slot);
+            self.new_leaves[rank as usize] =
+                Some(leaves.iter().map(|&l| new.tree.leaves[l]).collect());
         }
         self.decomposition = new;
         Some(r)
@@ -890,7 +1086,8 @@ impl Cluster {
     /// Tells every worker to exit and waits (briefly) for them; stragglers are killed
     /// when the cluster is dropped.
     pub async fn shutdown(mut self) {
-        for w in &mut self.workers {
+        let slots = self.slots.clone();
+        for w in self.workers.iter_mut().filter(|w| slots.contains(&w.rank)) {
             let _ = tokio::time::timeout(
                 Duration::from_secs(2),
                 write_frame(&mut w.send, &wire::encode_meta(&CoordMsg::Shutdown), &[]),
@@ -900,10 +1097,16 @@ impl Cluster {
         }
         if !self.child_pids.is_empty() {
             let deadline = Instant::now() + Duration::from_secs(5);
+            // Only the workers still in the run (lost ones were killed already).
+            let alive =
+                |this: &Self, c: usize| this.child_rank(c).is_some_and(|r| slots.contains(&r));
+            let expected = (0..self.child_pids.len())
+                .filter(|&c| alive(&self, c))
+                .count();
             let mut exited = 0;
-            while exited < self.child_pids.len() {
+            while exited < expected {
                 match self.next_event(deadline).await {
-                    Ok(Event::Exited { .. }) => exited += 1,
+                    Ok(Event::Exited { child, .. }) if alive(&self, child) => exited += 1,
                     Ok(_) => {}
                     Err(()) => break,
                 }

@@ -533,6 +533,9 @@ fn run(cli: Cli) -> Result<()> {
                     s.transport.as_ref().map_or("?".into(), |t| t.describe())
                 );
             }
+            for l in &s.lost_workers {
+                println!("lost {} and re-rendered without it: {}", l.worker, l.reason);
+            }
             if s.sequence.is_empty() {
                 println!(
                     "nothing to render: all {} frame(s) of the range exist complete",

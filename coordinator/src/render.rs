@@ -296,6 +296,8 @@ pub struct RenderSummary {
     /// How pieces travelled (distributed runs): pairs and gathers over shared memory and
     /// over QUIC (`cluster.transport`).
     pub transport: Option<crate::cluster::TransportReport>,
+    /// Workers given up on during the run (their frames were re-rendered without them).
+    pub lost_workers: Vec<crate::cluster::LostWorker>,
     /// Per-worker stats of each frame (distributed runs).
     #[serde(skip)]
     pub frames: Vec<Vec<WorkerFrameStats>>,
@@ -475,6 +477,8 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
     // Dropping the runtime kills any worker still running (kill_on_drop).
     drop(rt);
     let (mut done, sequence, rebalances, transport) = result?;
+    let lost_workers: Vec<crate::cluster::LostWorker> =
+        done.iter().flat_map(|f| f.lost.iter().cloned()).collect();
     let fr = done.pop().context("no frame rendered")?;
     for s in &fr.stats {
         info!(
@@ -531,6 +535,7 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
         exchange_bytes: fr.stats.iter().map(|s| s.bytes_sent).sum(),
         gather_bytes: fr.gather_bytes,
         exchange_shm_bytes: fr.stats.iter().map(|s| s.shm_bytes_sent).sum(),
+        lost_workers: lost_workers.clone(),
         transport: Some(transport),
         frames,
         frame_count: sequence.len(),

@@ -437,13 +437,20 @@ fn bad_peers_are_refused_and_the_run_goes_on() {
 }
 
 #[test]
-fn a_killed_worker_fails_the_frame_with_an_error_naming_it() {
+fn a_killed_worker_fails_the_frame_with_an_error_naming_it_when_recovery_is_off() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("killed.exr");
     let t = Instant::now();
     let o = render(
         &out,
-        &["--workers", "3", "--set", "cluster.idle_timeout_s=3"],
+        &[
+            "--workers",
+            "3",
+            "--set",
+            "cluster.idle_timeout_s=3",
+            "--set",
+            "cluster.recover=false",
+        ],
         &[("STRATA_TEST_KILL_RANK", "1"), ("RUST_LOG", "info")],
     );
     let took = t.elapsed();
@@ -475,6 +482,92 @@ fn a_killed_worker_fails_the_frame_with_an_error_naming_it() {
             "worker {pid} still running: {stat}"
         );
     }
+}
+
+/// A run's `--stats` text and its summary's `lost_workers`.
+fn lost_workers(stats: &Path) -> (String, Vec<serde_json::Value>) {
+    let text = std::fs::read_to_string(stats).unwrap();
+    let summary: serde_json::Value = serde_json::from_str(text.lines().last().unwrap()).unwrap();
+    let lost = summary["lost_workers"].as_array().unwrap().clone();
+    (text, lost)
+}
+
+#[test]
+fn a_killed_worker_costs_a_re_render_not_the_frame() {
+    let reference = reference();
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("recovered.exr");
+    let stats = dir.path().join("recovered.jsonl");
+    let o = render(
+        &out,
+        &[
+            "--workers",
+            "3",
+            "--set",
+            "cluster.idle_timeout_s=3",
+            "--stats",
+            stats.to_str().unwrap(),
+        ],
+        &[("STRATA_TEST_KILL_RANK", "1")],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // The frame was rendered again by the two workers left, with worker 1's leaves, and
+    // is the single-process image.
+    let d = max_diff(reference, &read_exr(&out));
+    assert!(d <= 1e-5, "the recovered frame differs by {d}");
+    let (text, lost) = lost_workers(&stats);
+    assert_eq!(lost.len(), 1, "{text}");
+    assert_eq!(lost[0]["rank"], 1, "{text}");
+    assert!(
+        lost[0]["reason"]
+            .as_str()
+            .unwrap()
+            .contains("killed by signal 9"),
+        "{text}"
+    );
+    // Two workers reported the frame.
+    assert_eq!(text.matches("\"kind\":\"worker\"").count(), 2, "{text}");
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(stdout.contains("re-rendered without it"), "{stdout}");
+}
+
+#[test]
+fn a_hung_worker_is_given_up_on_and_the_sequence_goes_on_without_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = survey().join("scene.toml");
+    let (_, _) = orbit_run(&scene, dir.path(), "in", 3, &["--in-process"]);
+    // Worker 2 stops itself (SIGSTOP) before its first exchange: alive, silent. Its
+    // connections go quiet; the idle timeout gives it up, and frames 0..3 complete with
+    // the two workers left.
+    let out = dir.path().join("hung_%03d.exr");
+    let stats = dir.path().join("hung.jsonl");
+    let o = render_scene(
+        &scene,
+        &out,
+        &[
+            "--orbit",
+            "3",
+            "--workers",
+            "3",
+            "--set",
+            "cluster.idle_timeout_s=3",
+            "--stats",
+            stats.to_str().unwrap(),
+        ],
+        &[("STRATA_TEST_STOP_RANK", "2")],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for i in 0..3 {
+        let a = read_exr(&dir.path().join(format!("in_{i:03}.exr")));
+        let b = read_exr(&dir.path().join(format!("hung_{i:03}.exr")));
+        let d = max_diff(&a, &b);
+        assert!(d <= 1e-5, "frame {i} differs by {d}");
+    }
+    let (text, lost) = lost_workers(&stats);
+    assert_eq!(lost.len(), 1, "{text}");
+    assert_eq!(lost[0]["rank"], 2, "{text}");
+    // Frame 0 by two workers after the loss, and so are frames 1 and 2.
+    assert_eq!(text.matches("\"kind\":\"worker\"").count(), 6, "{text}");
 }
 
 #[test]

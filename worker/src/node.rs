@@ -148,6 +148,7 @@ async fn node(opts: NodeOptions) -> Result<()> {
             let msg = WorkerMsg::Failed {
                 frame: None,
                 message: format!("{e:#}"),
+                suspects: Vec::new(),
             };
             let _ = tokio::time::timeout(
                 Duration::from_secs(2),
@@ -222,6 +223,7 @@ async fn node(opts: NodeOptions) -> Result<()> {
                         let msg = WorkerMsg::Failed {
                             frame: Some(frame),
                             message: format!("{e:#}"),
+                            suspects: std::mem::take(&mut node.suspects),
                         };
                         write_frame(&mut csend, &wire::encode_meta(&msg), &[]).await?;
                     }
@@ -394,6 +396,7 @@ async fn mesh(
         timeout,
         shm_out,
         gather_shm: None,
+        suspects: Vec::new(),
     };
     Ok((node, ev_rx))
 }
@@ -566,6 +569,8 @@ struct Node {
     shm_out: Vec<Option<ShmWriter>>,
     /// The segment for the final pieces (a coordinator on this host).
     gather_shm: Option<ShmWriter>,
+    /// The peers the last failed frame is blamed on (reported to the coordinator).
+    suspects: Vec<u32>,
 }
 
 /// Parsed pieces and losses queued between the peer readers and the frame loop.
@@ -606,11 +611,13 @@ impl Node {
             );
             self.setup.leaves = leaves.clone();
         }
-        let n = self.setup.peers.len();
+        // The ranks of this frame: all of the run, or fewer after the coordinator gave up
+        // on lost workers.
+        let all = self.setup.peers.len();
+        let n = req.order.len();
         anyhow::ensure!(
-            req.order.len() == n,
-            "the visibility order has {} ranks, the run has {n}",
-            req.order.len()
+            (1..=all).contains(&n),
+            "the visibility order has {n} ranks, the run has {all}"
         );
         let pixels = req.width as u64 * req.height as u64;
         anyhow::ensure!(
@@ -629,11 +636,11 @@ impl Node {
                 u32::MAX
             )
         })?;
-        let mut seen = vec![false; n];
+        let mut seen = vec![false; all];
         for &r in &req.order {
             anyhow::ensure!(
-                (r as usize) < n && !std::mem::replace(&mut seen[r as usize], true),
-                "the visibility order {:?} is not a permutation of the {n} ranks",
+                (r as usize) < all && !std::mem::replace(&mut seen[r as usize], true),
+                "the visibility order {:?} repeats a rank or names one beyond the {all} ranks",
                 req.order
             );
         }
@@ -675,6 +682,21 @@ impl Node {
             // SAFETY: plain syscalls on our own process.
             unsafe {
                 libc::kill(libc::getpid(), libc::SIGKILL);
+            }
+        }
+        // Test hook: `STRATA_TEST_STOP_RANK=R` makes rank R stop itself (SIGSTOP) at the
+        // same moment, once: a hung worker, alive but silent. Debug builds only.
+        if cfg!(debug_assertions)
+            && std::env::var("STRATA_TEST_STOP_RANK").ok().as_deref()
+                == Some(&self.rank.to_string())
+        {
+            warn!(
+                rank = self.rank,
+                "STRATA_TEST_STOP_RANK: stopping this worker"
+            );
+            // SAFETY: plain syscalls on our own process.
+            unsafe {
+                libc::kill(libc::getpid(), libc::SIGSTOP);
             }
         }
         // 2. The exchange.
@@ -720,7 +742,13 @@ impl Node {
             }
             match self.exchange.poll_event() {
                 Some(ExchangeEvent::Done { result, .. }) => break result,
-                Some(ExchangeEvent::Failed { error, .. }) => bail!("{}", self.explain(&error)),
+                Some(ExchangeEvent::Failed { error, .. }) => {
+                    self.suspects = match &error {
+                        ExchangeError::Timeout { missing, .. } => missing.clone(),
+                        e => e.rank().into_iter().collect(),
+                    };
+                    bail!("{}", self.explain(&error))
+                }
                 None => {}
             }
             let deadline = self

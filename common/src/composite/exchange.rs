@@ -223,6 +223,8 @@ pub struct Exchange {
     pending_bytes: u64,
     /// A violation seen while no frame ran: the next frame fails with it.
     poisoned: Option<ExchangeError>,
+    /// Peers whose connection ended, and why: a frame that includes one fails.
+    lost: BTreeMap<u32, String>,
     sends: VecDeque<Outgoing>,
     events: VecDeque<ExchangeEvent>,
     stats: ExchangeStats,
@@ -240,6 +242,7 @@ impl Exchange {
             pending: BTreeMap::new(),
             pending_bytes: 0,
             poisoned: None,
+            lost: BTreeMap::new(),
             sends: VecDeque::new(),
             events: VecDeque::new(),
             stats: ExchangeStats::default(),
@@ -294,19 +297,24 @@ impl Exchange {
                 ExchangeError::BadFrame(format!("frame {frame} does not follow frame {last}")),
             );
         }
+        // The order may name fewer ranks than the run has (after lost workers), each once.
         let mut seen = vec![false; self.ranks];
-        let permutation = order.len() == self.ranks
+        let distinct = !order.is_empty()
             && order.iter().all(|&r| {
                 (r as usize) < self.ranks && !std::mem::replace(&mut seen[r as usize], true)
             });
-        if !permutation {
+        if !distinct {
             return fail(
                 self,
                 ExchangeError::BadFrame(format!(
-                    "the visibility order {order:?} is not a permutation of the {} ranks",
+                    "the visibility order {order:?} repeats a rank or names one beyond the {} ranks",
                     self.ranks
                 )),
             );
+        }
+        if let Some((&rank, error)) = self.lost.iter().find(|(r, _)| order.contains(r)) {
+            let error = error.clone();
+            return fail(self, ExchangeError::PeerLost { rank, error });
         }
         if order.get(rc.position()) != Some(&self.rank) {
             return fail(
@@ -445,9 +453,17 @@ impl Exchange {
         self.fail(error);
     }
 
-    /// The connection to rank `rank` ended.
+    /// The connection to rank `rank` ended: the frame in progress fails if that rank is
+    /// in it, and so does any later frame that includes it. Frames without it go on.
     pub fn handle_lost(&mut self, rank: u32, error: String) {
-        self.fail(ExchangeError::PeerLost { rank, error });
+        self.lost.insert(rank, error.clone());
+        if self
+            .active
+            .as_ref()
+            .is_some_and(|a| a.order.contains(&rank))
+        {
+            self.fail(ExchangeError::PeerLost { rank, error });
+        }
     }
 
     /// The next piece to send.
