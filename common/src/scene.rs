@@ -144,11 +144,22 @@ pub struct ClusterSettings {
     /// everywhere; an error when the processes are not all on one host).
     #[serde(default)]
     pub transport: Transport,
-    /// Re-render a frame without a worker that was lost during it (process exit, dead
-    /// connection, no answer within `frame_timeout_s`, or its peers losing it), instead
-    /// of failing the frame. Its leaves go to the survivors.
-    #[serde(default = "yes")]
-    pub recover: bool,
+    /// What a worker lost during a frame (process exit, dead connection, no answer within
+    /// `frame_timeout_s`, or its peers losing it) costs: `reassign` (its leaves go to the
+    /// survivors and the frame is rendered again) or `fail` (the frame fails, naming it).
+    #[serde(default)]
+    pub on_worker_loss: OnWorkerLoss,
+}
+
+/// `cluster.on_worker_loss`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum OnWorkerLoss {
+    /// Give the lost worker's leaves to the survivors and render the frame again.
+    #[default]
+    Reassign,
+    /// Fail the frame with an error naming the lost worker.
+    Fail,
 }
 
 /// `cluster.transport`.
@@ -187,7 +198,7 @@ impl Default for ClusterSettings {
             rebalance_threshold: default_rebalance_threshold(),
             rebalance_damping: default_rebalance_damping(),
             transport: Transport::Auto,
-            recover: true,
+            on_worker_loss: OnWorkerLoss::Reassign,
         }
     }
 }

@@ -65,8 +65,8 @@ pub struct ClusterOptions {
     pub rebalance_damping: f64,
     /// `cluster.transport`: shared memory between processes on one host, or QUIC.
     pub transport: Transport,
-    /// `cluster.recover`: re-render a frame without a worker that was lost.
-    pub recover: bool,
+    /// `cluster.on_worker_loss`: re-render a frame without a worker that was lost, or fail.
+    pub on_worker_loss: strata_common::scene::OnWorkerLoss,
 }
 
 /// A re-split of the k-d tree between two frames of a sequence.
@@ -152,7 +152,7 @@ impl ClusterOptions {
             rebalance_threshold: c.rebalance_threshold,
             rebalance_damping: c.rebalance_damping,
             transport: c.transport,
-            recover: c.recover,
+            on_worker_loss: c.on_worker_loss,
             worker_exe: std::env::var_os("STRATA_WORKER_BIN").map(PathBuf::from),
         })
     }
@@ -221,6 +221,21 @@ pub struct LostWorker {
     pub rank: u32,
     /// Why.
     pub reason: String,
+    /// Seconds from the start of the frame to the failure that gave the worker up.
+    pub detected_after_s: f64,
+    /// Seconds from that failure to the frame completing without it.
+    pub recovery_s: f64,
+    /// The new assignment: each rank left and its leaf regions.
+    pub assignment: Vec<Assignment>,
+}
+
+/// The leaf regions one rank renders.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct Assignment {
+    /// The rank.
+    pub rank: u32,
+    /// Its leaves.
+    pub leaves: Vec<strata_common::kd::Region>,
 }
 
 /// A failed attempt at a frame and the workers it blames.
@@ -723,7 +738,7 @@ impl Cluster {
         &self.decomposition
     }
 
-    /// Renders and composites one frame. With `cluster.recover`, a worker lost on the way
+    /// Renders and composites one frame. With `cluster.on_worker_loss = "reassign"`, a worker lost on the way
     /// (its process exited, its connection died, it stopped answering within the frame
     /// timeout, or its peers lost it mid-exchange) costs a re-render, not the frame: it is
     /// killed (local) or disconnected, its leaves go to the survivors (a new k-d split
@@ -738,7 +753,7 @@ impl Cluster {
         source: FrameSource,
     ) -> Result<FrameResult> {
         let t0 = Instant::now();
-        let mut lost_here = Vec::new();
+        let mut lost_here: Vec<LostWorker> = Vec::new();
         loop {
             match self
                 .frame_once(camera, width, height, composite, source.clone())
@@ -746,6 +761,9 @@ impl Cluster {
             {
                 Ok(mut r) => {
                     r.wall_s = t0.elapsed().as_secs_f64();
+                    for l in &mut lost_here {
+                        l.recovery_s = r.wall_s - l.detected_after_s;
+                    }
                     r.lost = lost_here;
                     return Ok(r);
                 }
@@ -756,19 +774,33 @@ impl Cluster {
                         .copied()
                         .filter(|r| self.slots.contains(r))
                         .collect();
-                    if !self.opts.recover || lost.is_empty() || lost.len() >= self.slots.len() {
+                    let reassign =
+                        self.opts.on_worker_loss == strata_common::scene::OnWorkerLoss::Reassign;
+                    if !reassign || lost.is_empty() || lost.len() >= self.slots.len() {
                         return Err(f.error);
                     }
                     let names = self.list(lost.iter().map(|&r| r as usize));
                     warn!("{:#}; re-rendering the frame without {names}", f.error);
+                    let detected_after_s = t0.elapsed().as_secs_f64();
+                    self.drop_workers(&lost);
+                    let assignment: Vec<Assignment> = self
+                        .slots
+                        .iter()
+                        .map(|&rank| Assignment {
+                            rank,
+                            leaves: self.new_leaves[rank as usize].clone().unwrap_or_default(),
+                        })
+                        .collect();
                     for &r in &lost {
                         lost_here.push(LostWorker {
                             worker: self.workers[r as usize].describe(),
                             rank: r,
                             reason: format!("{:#}", f.error),
+                            detected_after_s,
+                            recovery_s: 0.0,
+                            assignment: assignment.clone(),
                         });
                     }
-                    self.drop_workers(&lost);
                 }
             }
         }

@@ -534,7 +534,14 @@ fn run(cli: Cli) -> Result<()> {
                 );
             }
             for l in &s.lost_workers {
-                println!("lost {} and re-rendered without it: {}", l.worker, l.reason);
+                println!(
+                    "lost {} after {:.1} s and re-rendered without it in {:.1} s on {} workers: {}",
+                    l.worker,
+                    l.detected_after_s,
+                    l.recovery_s,
+                    l.assignment.len(),
+                    l.reason
+                );
             }
             if s.sequence.is_empty() {
                 println!(

@@ -437,7 +437,7 @@ fn bad_peers_are_refused_and_the_run_goes_on() {
 }
 
 #[test]
-fn a_killed_worker_fails_the_frame_with_an_error_naming_it_when_recovery_is_off() {
+fn a_killed_worker_fails_the_frame_with_an_error_naming_it_when_asked_to_fail() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("killed.exr");
     let t = Instant::now();
@@ -449,7 +449,7 @@ fn a_killed_worker_fails_the_frame_with_an_error_naming_it_when_recovery_is_off(
             "--set",
             "cluster.idle_timeout_s=3",
             "--set",
-            "cluster.recover=false",
+            "cluster.on_worker_loss=\"fail\"",
         ],
         &[("STRATA_TEST_KILL_RANK", "1"), ("RUST_LOG", "info")],
     );
@@ -523,6 +523,20 @@ fn a_killed_worker_costs_a_re_render_not_the_frame() {
             .as_str()
             .unwrap()
             .contains("killed by signal 9"),
+        "{text}"
+    );
+    // Stats say when, how long the recovery took and who renders what now.
+    assert!(lost[0]["recovery_s"].as_f64().unwrap() > 0.0, "{text}");
+    let assignment = lost[0]["assignment"].as_array().unwrap();
+    let ranks: Vec<u64> = assignment
+        .iter()
+        .map(|a| a["rank"].as_u64().unwrap())
+        .collect();
+    assert_eq!(ranks, [0, 2], "{text}");
+    assert!(
+        assignment
+            .iter()
+            .all(|a| !a["leaves"].as_array().unwrap().is_empty()),
         "{text}"
     );
     // Two workers reported the frame.
@@ -824,6 +838,49 @@ async fn fake_worker(
     (ep, conn, send, recv, *setup)
 }
 
+/// A small runtime for the hand-driven peers of a test.
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .unwrap()
+}
+
+/// Accepts the connection of a peer that dials the fake worker, and reads its hello.
+async fn accept_dialling_peer(ep: &quinn::Endpoint) -> quinn::Connection {
+    let incoming = tokio::time::timeout(Duration::from_secs(20), ep.accept())
+        .await
+        .unwrap()
+        .unwrap();
+    let peer = incoming.await.unwrap();
+    strata_net::transport::trust(&peer);
+    let _hello = peer.accept_uni().await.unwrap();
+    peer
+}
+
+/// The fake worker announces a (real) gather segment when asked to, then says it is
+/// ready; the segment must be kept alive by the caller.
+async fn fake_ready(
+    send: &mut quinn::SendStream,
+    shm_gather: bool,
+) -> Option<strata_net::shm::ShmWriter> {
+    use strata_common::wire::{self, WorkerMsg};
+    let gather = shm_gather.then(|| strata_net::shm::ShmWriter::create().unwrap());
+    if let Some(g) = &gather {
+        let msg = WorkerMsg::ShmSegment {
+            name: g.name().to_string(),
+        };
+        strata_net::write_frame(send, &wire::encode_meta(&msg), &[])
+            .await
+            .unwrap();
+    }
+    strata_net::write_frame(send, &wire::encode_meta(&WorkerMsg::Ready), &[])
+        .await
+        .unwrap();
+    gather
+}
+
 /// Waits for the coordinator to exit and returns its status and log.
 fn finish(mut w: Waiting) -> (std::process::ExitStatus, String) {
     let status = w.child.wait().unwrap();
@@ -839,11 +896,7 @@ fn a_bad_shared_memory_segment_of_a_worker_is_refused_naming_it() {
         eprintln!("skipped: this host has no /dev/shm");
         return;
     }
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(1)
-        .enable_all()
-        .build()
-        .unwrap();
+    let rt = runtime();
 
     // 1. A segment that does not exist, announced at set-up.
     let w = start_waiting_coordinator(1, &[]);
@@ -917,67 +970,30 @@ fn a_bad_shared_memory_segment_of_a_worker_is_refused_naming_it() {
 
 #[test]
 fn a_bad_segment_from_a_peer_fails_the_frame_naming_that_peer() {
-    use strata_common::wire::{self, PeerMsg, WorkerMsg};
+    use strata_common::wire::{self, PeerMsg};
     if strata_net::shm::host_id().is_none() {
         eprintln!("skipped: this host has no /dev/shm");
         return;
     }
-    let w = start_waiting_coordinator(2, &[]);
+    // Fail instead of re-rendering without the peer, to see the error itself.
+    let w = start_waiting_coordinator(2, &["--set", "cluster.on_worker_loss=\"fail\""]);
     // A real worker joins first (rank 0) and will dial the fake (rank 1).
-    let mut real = Command::new(BIN)
-        .args(["worker", "--connect"])
-        .arg(format!("127.0.0.1:{}", w.port))
-        .args(["--fingerprint", &w.fingerprint, "--connect-timeout-s", "20"])
-        .env("STRATA_SECRET", "correct-horse-battery-staple-42")
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let log = w.dir.path().join("coordinator.log");
-    let t = Instant::now();
-    while !std::fs::read_to_string(&log)
-        .unwrap_or_default()
-        .contains("worker joined")
-    {
-        assert!(
-            t.elapsed() < Duration::from_secs(30),
-            "the worker never joined"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(1)
-        .enable_all()
-        .build()
-        .unwrap();
+    let mut real = spawn_real_worker(w.port, &w.fingerprint, Stdio::null());
+    wait_for_log(&w.dir.path().join("coordinator.log"), "worker joined");
+    let rt = runtime();
     rt.block_on(async {
         let (ep, _conn, mut send, _recv, setup) = fake_worker(&w).await;
         assert_eq!(setup.rank, 1);
         assert!(setup.shm_peers[0], "peers on one host share memory");
         // Rank 0 dials us; answer its hello with a segment that does not exist.
-        let incoming = tokio::time::timeout(Duration::from_secs(20), ep.accept())
-            .await
-            .unwrap()
-            .unwrap();
-        let peer = incoming.await.unwrap();
-        strata_net::transport::trust(&peer);
-        let _hello = peer.accept_uni().await.unwrap();
+        let peer = accept_dialling_peer(&ep).await;
         let msg = PeerMsg::ShmSegment {
             name: format!("strata-shm-{}", "ab".repeat(16)),
         };
         strata_net::send_uni(&peer, &wire::encode_meta(&msg), &[])
             .await
             .unwrap();
-        let gather = strata_net::shm::ShmWriter::create().unwrap();
-        let msg = WorkerMsg::ShmSegment {
-            name: gather.name().to_string(),
-        };
-        strata_net::write_frame(&mut send, &wire::encode_meta(&msg), &[])
-            .await
-            .unwrap();
-        strata_net::write_frame(&mut send, &wire::encode_meta(&WorkerMsg::Ready), &[])
-            .await
-            .unwrap();
+        let _gather = fake_ready(&mut send, true).await;
         tokio::time::sleep(Duration::from_secs(3)).await;
     });
     let (status, log) = finish(w);
@@ -990,4 +1006,146 @@ fn a_bad_segment_from_a_peer_fails_the_frame_naming_that_peer() {
             && last.contains("shared-memory segment of worker 1 (fake"),
         "{log}"
     );
+}
+
+/// Waits (at most 30 s) until `log` contains `what`.
+fn wait_for_log(log: &Path, what: &str) {
+    let t = Instant::now();
+    while !std::fs::read_to_string(log)
+        .unwrap_or_default()
+        .contains(what)
+    {
+        assert!(t.elapsed() < Duration::from_secs(30), "never saw {what:?}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// A real worker process joining the waiting coordinator at `port`.
+fn spawn_real_worker(port: u16, fingerprint: &str, stderr: Stdio) -> Child {
+    Command::new(BIN)
+        .args(["worker", "--connect"])
+        .arg(format!("127.0.0.1:{port}"))
+        .args(["--fingerprint", fingerprint, "--connect-timeout-s", "20"])
+        .env("STRATA_SECRET", "correct-horse-battery-staple-42")
+        .stdout(Stdio::null())
+        .stderr(stderr)
+        .spawn()
+        .unwrap()
+}
+
+/// Starts a real worker for `w` once the coordinator has logged `after` (so ranks are
+/// assigned in a known order), its log going to `err`.
+fn spawn_worker_after(
+    w: &Waiting,
+    after: &'static str,
+    err: PathBuf,
+) -> std::thread::JoinHandle<Child> {
+    let log = w.dir.path().join("coordinator.log");
+    let (port, fp) = (w.port, w.fingerprint.clone());
+    std::thread::spawn(move || {
+        wait_for_log(&log, after);
+        spawn_real_worker(port, &fp, Stdio::from(std::fs::File::create(err).unwrap()))
+    })
+}
+
+#[test]
+fn a_peer_claiming_a_rank_with_another_certificate_is_refused() {
+    use strata_common::wire::{self, PeerMsg};
+    let mut w = start_waiting_coordinator(2, &[]);
+    let err = w.dir.path().join("real.err");
+    // The fake joins first (rank 0, which dials rank 1); the real worker is rank 1.
+    let spawner = spawn_worker_after(&w, "name=fake", err.clone());
+    let rt = runtime();
+    rt.block_on(async {
+        let (_ep, _conn, _send, _recv, setup) = fake_worker(&w).await;
+        assert_eq!(setup.rank, 0);
+        // Dial rank 1 with the right run token and rank, but a certificate other than the
+        // one this rank registered with the coordinator.
+        let other = strata_net::Identity::generate().unwrap();
+        let net = strata_net::NetConfig::default();
+        let ep =
+            strata_net::transport::endpoint("127.0.0.1:0".parse().unwrap(), &other, &net).unwrap();
+        let peer = &setup.peers[1];
+        let c = strata_net::transport::connect_as(
+            &ep,
+            peer.addr.parse().unwrap(),
+            peer.fingerprint,
+            Some(&other),
+            &net,
+            Duration::from_secs(10),
+        )
+        .await
+        .unwrap();
+        let hello = PeerMsg::Hello {
+            token: setup.run_token,
+            rank: 0,
+        };
+        strata_net::send_uni(&c, &wire::encode_meta(&hello), &[])
+            .await
+            .unwrap();
+        let closed = tokio::time::timeout(Duration::from_secs(15), c.closed())
+            .await
+            .expect("the impostor's connection stays open");
+        assert!(closed.to_string().contains("refused"), "{closed}");
+    });
+    let _ = w.child.kill();
+    let _ = w.child.wait();
+    let mut real = spawner.join().unwrap();
+    let _ = real.kill();
+    let _ = real.wait();
+    let log = strip_ansi(&std::fs::read_to_string(&err).unwrap());
+    assert!(
+        log.contains("claims rank 0 but presented certificate"),
+        "{log}"
+    );
+}
+
+#[test]
+fn a_half_sent_stream_loses_its_sender_and_the_frame_is_rendered_without_it() {
+    use strata_common::wire::{self, PeerMsg};
+    let w = start_waiting_coordinator(2, &["--set", "cluster.frame_timeout_s=5"]);
+    // Outlives the coordinator's folder, which `finish` removes.
+    let logs = tempfile::tempdir().unwrap();
+    let err = logs.path().join("real.err");
+    // The real worker is rank 0; the fake (rank 1) accepts its connection and then sends
+    // a piece stream that never finishes.
+    let mut real = spawn_real_worker(
+        w.port,
+        &w.fingerprint,
+        Stdio::from(std::fs::File::create(&err).unwrap()),
+    );
+    wait_for_log(&w.dir.path().join("coordinator.log"), "worker joined");
+    let rt = runtime();
+    let wait = rt.block_on(async {
+        let (ep, _conn, mut send, _recv, setup) = fake_worker(&w).await;
+        assert_eq!(setup.rank, 1);
+        let peer = accept_dialling_peer(&ep).await;
+        let _gather = fake_ready(&mut send, setup.shm_gather).await;
+        // A piece whose header promises 1000 bytes, of which 10 are sent.
+        let mut s = peer.open_uni().await.unwrap();
+        let meta = wire::encode_meta(&PeerMsg::Piece {
+            frame: 0,
+            round: 0,
+            from: 1,
+        });
+        s.write_all(&wire::encode_header(meta.len() as u32, 1000))
+            .await
+            .unwrap();
+        s.write_all(&meta).await.unwrap();
+        s.write_all(&[0u8; 10]).await.unwrap();
+        // Stay connected (silent) until the coordinator is done.
+        tokio::task::spawn_blocking(move || finish(w))
+            .await
+            .unwrap()
+    });
+    let (status, coordinator_log) = wait;
+    let _ = real.kill();
+    let _ = real.wait();
+    assert!(status.success(), "{coordinator_log}");
+    assert!(
+        coordinator_log.contains("re-rendering the frame without worker 1 (fake"),
+        "{coordinator_log}"
+    );
+    let log = strip_ansi(&std::fs::read_to_string(&err).unwrap());
+    assert!(log.contains("left a stream half-sent"), "{log}");
 }

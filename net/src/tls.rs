@@ -5,12 +5,18 @@
 //! certificate equals the fingerprint they were given out of band (the coordinator's on the
 //! command line or in a file; the peers' from the coordinator over the already pinned
 //! connection). That is exactly as strong as the channel that delivered the fingerprint.
+//!
+//! Between workers the pinning is mutual: a worker's server side demands a client
+//! certificate ([`server_config`] with `client_auth`), the dialling peer presents its own
+//! ([`client_config`] with `id`), and the acceptor compares [`peer_fingerprint`] with the
+//! fingerprint the coordinator handed out for the rank the peer claims.
 
 use anyhow::{Context, Result};
 use quinn::crypto::rustls::{QuicClientConfig, QuicServerConfig};
 use rustls::client::danger::{HandshakeSignatureValid, ServerCertVerified, ServerCertVerifier};
 use rustls::crypto::CryptoProvider;
 use rustls::pki_types::{CertificateDer, PrivateKeyDer, PrivatePkcs8KeyDer, ServerName, UnixTime};
+use rustls::server::danger::{ClientCertVerified, ClientCertVerifier};
 use rustls::{DigitallySignedStruct, SignatureScheme};
 use std::sync::Arc;
 use strata_common::wire::Fingerprint;
@@ -77,39 +83,96 @@ pub fn parse_fingerprint(s: &str) -> Result<Fingerprint> {
     Ok(fp)
 }
 
-/// Server side of an endpoint with this identity.
+/// Server side of an endpoint with this identity. With `client_auth`, every client must
+/// present a certificate and prove it holds its key; which certificate is acceptable is
+/// the application's check ([`peer_fingerprint`] against the fingerprint it expects).
 pub fn server_config(
     id: &Identity,
     transport: Arc<quinn::TransportConfig>,
+    client_auth: bool,
 ) -> Result<quinn::ServerConfig> {
-    let mut crypto = rustls::ServerConfig::builder_with_provider(provider())
-        .with_protocol_versions(&[&rustls::version::TLS13])?
-        .with_no_client_auth()
-        .with_single_cert(
-            vec![id.cert.clone()],
-            PrivateKeyDer::Pkcs8(id.key.clone_key()),
-        )?;
+    let builder = rustls::ServerConfig::builder_with_provider(provider())
+        .with_protocol_versions(&[&rustls::version::TLS13])?;
+    let builder = if client_auth {
+        builder.with_client_cert_verifier(Arc::new(AnyClientCert {
+            provider: provider(),
+        }))
+    } else {
+        builder.with_no_client_auth()
+    };
+    let mut crypto = builder.with_single_cert(
+        vec![id.cert.clone()],
+        PrivateKeyDer::Pkcs8(id.key.clone_key()),
+    )?;
     crypto.alpn_protocols = vec![ALPN.to_vec()];
     let mut cfg = quinn::ServerConfig::with_crypto(Arc::new(QuicServerConfig::try_from(crypto)?));
     cfg.transport_config(transport);
     Ok(cfg)
 }
 
-/// Client side that accepts only the server whose certificate hashes to `pinned`.
+/// Client side that accepts only the server whose certificate hashes to `pinned`, and
+/// presents `id`'s certificate when the server asks for one.
 pub fn client_config(
     pinned: Fingerprint,
     transport: Arc<quinn::TransportConfig>,
+    id: Option<&Identity>,
 ) -> Result<quinn::ClientConfig> {
     let provider = provider();
-    let mut crypto = rustls::ClientConfig::builder_with_provider(provider.clone())
+    let builder = rustls::ClientConfig::builder_with_provider(provider.clone())
         .with_protocol_versions(&[&rustls::version::TLS13])?
         .dangerous()
-        .with_custom_certificate_verifier(Arc::new(PinnedVerifier { pinned, provider }))
-        .with_no_client_auth();
+        .with_custom_certificate_verifier(Arc::new(PinnedVerifier { pinned, provider }));
+    let mut crypto = match id {
+        Some(id) => builder.with_client_auth_cert(
+            vec![id.cert.clone()],
+            PrivateKeyDer::Pkcs8(id.key.clone_key()),
+        )?,
+        None => builder.with_no_client_auth(),
+    };
     crypto.alpn_protocols = vec![ALPN.to_vec()];
     let mut cfg = quinn::ClientConfig::new(Arc::new(QuicClientConfig::try_from(crypto)?));
     cfg.transport_config(transport);
     Ok(cfg)
+}
+
+/// The handshake-signature checks both verifiers share: the peer must hold the key of the
+/// certificate it presents (the provider's algorithms, TLS 1.2 and 1.3).
+macro_rules! handshake_signatures {
+    () => {
+        fn verify_tls12_signature(
+            &self,
+            message: &[u8],
+            cert: &CertificateDer<'_>,
+            dss: &DigitallySignedStruct,
+        ) -> Result<HandshakeSignatureValid, rustls::Error> {
+            rustls::crypto::verify_tls12_signature(
+                message,
+                cert,
+                dss,
+                &self.provider.signature_verification_algorithms,
+            )
+        }
+
+        fn verify_tls13_signature(
+            &self,
+            message: &[u8],
+            cert: &CertificateDer<'_>,
+            dss: &DigitallySignedStruct,
+        ) -> Result<HandshakeSignatureValid, rustls::Error> {
+            rustls::crypto::verify_tls13_signature(
+                message,
+                cert,
+                dss,
+                &self.provider.signature_verification_algorithms,
+            )
+        }
+
+        fn supported_verify_schemes(&self) -> Vec<SignatureScheme> {
+            self.provider
+                .signature_verification_algorithms
+                .supported_schemes()
+        }
+    };
 }
 
 /// Accepts exactly one certificate, by fingerprint; signatures are still checked, so the
@@ -141,39 +204,44 @@ impl ServerCertVerifier for PinnedVerifier {
         }
     }
 
-    fn verify_tls12_signature(
-        &self,
-        message: &[u8],
-        cert: &CertificateDer<'_>,
-        dss: &DigitallySignedStruct,
-    ) -> Result<HandshakeSignatureValid, rustls::Error> {
-        rustls::crypto::verify_tls12_signature(
-            message,
-            cert,
-            dss,
-            &self.provider.signature_verification_algorithms,
-        )
+    handshake_signatures!();
+}
+
+/// The SHA-256 fingerprint of the certificate the remote side of `conn` presented (a
+/// server always does; a client does when the server demanded it).
+pub fn peer_fingerprint(conn: &quinn::Connection) -> Option<Fingerprint> {
+    let any = conn.peer_identity()?;
+    let certs = any.downcast::<Vec<CertificateDer<'static>>>().ok()?;
+    certs.first().map(|c| fingerprint_of(c))
+}
+
+/// Demands a client certificate and checks the client's handshake signature with it, so
+/// the client holds the key; which certificate is acceptable is decided after the
+/// handshake, by fingerprint, against the rank the client claims.
+#[derive(Debug)]
+struct AnyClientCert {
+    provider: Arc<CryptoProvider>,
+}
+
+impl ClientCertVerifier for AnyClientCert {
+    fn root_hint_subjects(&self) -> &[rustls::DistinguishedName] {
+        &[]
     }
 
-    fn verify_tls13_signature(
+    fn verify_client_cert(
         &self,
-        message: &[u8],
-        cert: &CertificateDer<'_>,
-        dss: &DigitallySignedStruct,
-    ) -> Result<HandshakeSignatureValid, rustls::Error> {
-        rustls::crypto::verify_tls13_signature(
-            message,
-            cert,
-            dss,
-            &self.provider.signature_verification_algorithms,
-        )
+        _end_entity: &CertificateDer<'_>,
+        _intermediates: &[CertificateDer<'_>],
+        _now: UnixTime,
+    ) -> Result<ClientCertVerified, rustls::Error> {
+        Ok(ClientCertVerified::assertion())
     }
 
-    fn supported_verify_schemes(&self) -> Vec<SignatureScheme> {
-        self.provider
-            .signature_verification_algorithms
-            .supported_schemes()
+    fn client_auth_mandatory(&self) -> bool {
+        true
     }
+
+    handshake_signatures!();
 }
 
 #[cfg(test)]

@@ -17,6 +17,8 @@ pub struct NetConfig {
     /// First UDP payload size. 1200 is safe on any path; loopback and jumbo-frame
     /// networks can start higher (path MTU discovery raises it anyway).
     pub initial_mtu: u16,
+    /// Demand a certificate from every client (workers' endpoints: peers pin each other).
+    pub client_auth: bool,
 }
 
 impl Default for NetConfig {
@@ -25,6 +27,7 @@ impl Default for NetConfig {
             idle_timeout: Duration::from_secs(10),
             keep_alive: Duration::from_secs(2),
             initial_mtu: 1200,
+            client_auth: false,
         }
     }
 }
@@ -72,7 +75,7 @@ pub fn trust(conn: &quinn::Connection) {
 
 /// An endpoint bound to `bind` that accepts connections with `id` (and can open them).
 pub fn endpoint(bind: SocketAddr, id: &Identity, cfg: &NetConfig) -> Result<quinn::Endpoint> {
-    let server = tls::server_config(id, cfg.transport()?)?;
+    let server = tls::server_config(id, cfg.transport()?, cfg.client_auth)?;
     // Accept datagrams as large as any peer's MTU (quinn's default drops anything above
     // 1472 bytes, which would silently black-hole a peer configured for loopback sizes).
     let mut ec = quinn::EndpointConfig::default();
@@ -93,7 +96,20 @@ pub async fn connect(
     cfg: &NetConfig,
     timeout: Duration,
 ) -> Result<quinn::Connection> {
-    let client = tls::client_config(pinned, cfg.transport()?)?;
+    connect_as(ep, addr, pinned, None, cfg, timeout).await
+}
+
+/// [`connect`], presenting `id`'s certificate to a server that demands one (a peer
+/// worker, which checks it against the rank this side claims).
+pub async fn connect_as(
+    ep: &quinn::Endpoint,
+    addr: SocketAddr,
+    pinned: Fingerprint,
+    id: Option<&Identity>,
+    cfg: &NetConfig,
+    timeout: Duration,
+) -> Result<quinn::Connection> {
+    let client = tls::client_config(pinned, cfg.transport()?, id)?;
     let connecting = ep
         .connect_with(client, addr, tls::SERVER_NAME)
         .with_context(|| format!("cannot connect to {addr}"))?;

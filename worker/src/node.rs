@@ -92,9 +92,11 @@ enum PeerEvent {
 }
 
 async fn node(opts: NodeOptions) -> Result<()> {
-    let id = Identity::generate()?;
+    let id = Arc::new(Identity::generate()?);
+    // Peers dialling this endpoint must present their certificate (pinned both ways).
     let net = NetConfig {
         idle_timeout: opts.idle_timeout,
+        client_auth: true,
         ..NetConfig::default()
     };
     let ep = transport::endpoint(opts.bind, &id, &net)?;
@@ -138,7 +140,7 @@ async fn node(opts: NodeOptions) -> Result<()> {
     let rank = setup.rank;
     info!(rank, name = %opts.name, peers = setup.peers.len(), "set up");
     let mesh = tokio::select! {
-        r = mesh(&ep, setup, &net, opts.connect_timeout) => r,
+        r = mesh(&ep, &id, setup, &net, opts.connect_timeout) => r,
         e = conn.closed() => Err(anyhow!("lost the coordinator during set-up: {e}")),
     };
     let (mut node, mut ev_rx) = match mesh {
@@ -243,6 +245,7 @@ async fn node(opts: NodeOptions) -> Result<()> {
 /// Checks the set-up, meshes with the peers and opens the scene.
 async fn mesh(
     ep: &quinn::Endpoint,
+    id: &Arc<Identity>,
     setup: Setup,
     net: &NetConfig,
     connect_timeout: Duration,
@@ -269,19 +272,20 @@ async fn mesh(
     let (token_tx, token_rx) = watch::channel(Some(setup.run_token));
     let (peer_tx, mut peer_rx) = mpsc::unbounded_channel::<(u32, quinn::Connection)>();
     let n = setup.peers.len() as u32;
-    tokio::spawn(accept_peers(ep.clone(), token_rx, peer_tx, n));
+    let fingerprints: Vec<wire::Fingerprint> = setup.peers.iter().map(|p| p.fingerprint).collect();
+    tokio::spawn(accept_peers(ep.clone(), token_rx, peer_tx, fingerprints));
     let mut peers: Vec<Option<quinn::Connection>> = vec![None; n as usize];
     // Dial the higher ranks all at once.
     let mut dials = Vec::new();
     for r in rank + 1..n {
         let p = setup.peers[r as usize].clone();
-        let (ep, net, token) = (ep.clone(), net.clone(), setup.run_token);
+        let (ep, net, token, id) = (ep.clone(), net.clone(), setup.run_token, id.clone());
         dials.push(tokio::spawn(async move {
             let addr: SocketAddr = p
                 .addr
                 .parse()
                 .with_context(|| format!("peer {r} address {:?}", p.addr))?;
-            let c = transport::connect(&ep, addr, p.fingerprint, &net, mesh_timeout)
+            let c = transport::connect_as(&ep, addr, p.fingerprint, Some(&id), &net, mesh_timeout)
                 .await
                 .with_context(|| format!("connecting to worker {r} ({} at {})", p.name, p.addr))?;
             transport::trust(&c);
@@ -376,6 +380,7 @@ async fn mesh(
                 limits,
                 u32::try_from(setup.max_pixels).unwrap_or(u32::MAX),
                 setup.shm_peers[r],
+                timeout,
                 ev_tx.clone(),
             ));
         }
@@ -408,16 +413,21 @@ fn describe(peers: &[PeerInfo], r: u32) -> String {
     }
 }
 
-/// Accepts peer connections; each must open with `PeerMsg::Hello` carrying the run token.
+/// Accepts peer connections; each must open with `PeerMsg::Hello` carrying the run token
+/// and a rank whose certificate (from the coordinator's set-up) is the one the peer
+/// presented in the handshake: peers pin each other, not only the dialling side.
 async fn accept_peers(
     ep: quinn::Endpoint,
     token: watch::Receiver<Option<[u8; 32]>>,
     out: mpsc::UnboundedSender<(u32, quinn::Connection)>,
-    n: u32,
+    fingerprints: Vec<wire::Fingerprint>,
 ) {
+    let n = fingerprints.len() as u32;
+    let fingerprints = Arc::new(fingerprints);
     while let Some(incoming) = ep.accept().await {
         let token = *token.borrow();
         let out = out.clone();
+        let fingerprints = fingerprints.clone();
         tokio::spawn(async move {
             let remote = incoming.remote_address();
             let conn = match incoming.await {
@@ -438,13 +448,25 @@ async fn accept_peers(
                 .await?;
                 Ok::<_, NetError>(wire::decode_meta::<PeerMsg>(&f.meta)?)
             };
+            let presented = strata_net::tls::peer_fingerprint(&conn);
             match (hello.await, token) {
                 (Ok(PeerMsg::Hello { token: t, rank }), Some(tok))
                     if strata_net::secret::ct_eq(&t, &tok) && rank < n =>
                 {
-                    debug!(peer = rank, %remote, "peer connected");
-                    transport::trust(&conn);
-                    let _ = out.send((rank, conn));
+                    let expected = &fingerprints[rank as usize];
+                    if presented.is_some_and(|p| strata_net::secret::ct_eq(&p, expected)) {
+                        debug!(peer = rank, %remote, "peer connected");
+                        transport::trust(&conn);
+                        let _ = out.send((rank, conn));
+                    } else {
+                        warn!(
+                            %remote,
+                            "refused a peer connection: it claims rank {rank} but presented certificate {}, not rank {rank}'s {}",
+                            presented.map_or("none".into(), |p| strata_net::tls::to_hex(&p)),
+                            strata_net::tls::to_hex(expected)
+                        );
+                        conn.close(2u32.into(), b"refused");
+                    }
                 }
                 (r, _) => {
                     warn!(%remote, "refused a peer connection: {}", match r {
@@ -470,6 +492,7 @@ async fn read_peer(
     limits: Limits,
     max_pixels: u32,
     shm_allowed: bool,
+    stream_timeout: Duration,
     out: mpsc::Sender<PeerEvent>,
 ) {
     let mut shm: Option<ShmReader> = None;
@@ -478,8 +501,20 @@ async fn read_peer(
             Ok(s) => s,
             Err(e) => break e.to_string(),
         };
-        let f = match read_frame(&mut s, &limits).await {
+        // A stream, once opened, must arrive whole within the frame timeout: a half-sent
+        // one would otherwise block every later piece of this peer.
+        let f = match with_timeout(
+            stream_timeout,
+            "a piece stream",
+            read_frame(&mut s, &limits),
+        )
+        .await
+        {
             Ok(f) => f,
+            Err(e @ NetError::Timeout { .. }) => {
+                conn.close(3u32.into(), b"stalled stream");
+                break format!("{what} left a stream half-sent: {e}");
+            }
             Err(e) => {
                 conn.close(3u32.into(), b"malformed frame");
                 break format!("malformed frame: {e}");
