@@ -451,7 +451,10 @@ fn a_killed_worker_fails_the_frame_with_an_error_naming_it_when_asked_to_fail() 
             "--set",
             "cluster.on_worker_loss=\"fail\"",
         ],
-        &[("STRATA_TEST_KILL_RANK", "1"), ("RUST_LOG", "info")],
+        &[
+            ("STRATA_TEST_FAULT", "1:kill:exchange"),
+            ("RUST_LOG", "info"),
+        ],
     );
     let took = t.elapsed();
     assert!(!o.status.success());
@@ -508,7 +511,7 @@ fn a_killed_worker_costs_a_re_render_not_the_frame() {
             "--stats",
             stats.to_str().unwrap(),
         ],
-        &[("STRATA_TEST_KILL_RANK", "1")],
+        &[("STRATA_TEST_FAULT", "1:kill:exchange")],
     );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     // The frame was rendered again by the two workers left, with worker 1's leaves, and
@@ -546,6 +549,42 @@ fn a_killed_worker_costs_a_re_render_not_the_frame() {
 }
 
 #[test]
+fn a_worker_killed_or_stopped_at_any_phase_of_a_frame_costs_a_re_render() {
+    let reference = reference();
+    let dir = tempfile::tempdir().unwrap();
+    for phase in ["render", "exchange", "round", "gather"] {
+        for signal in ["kill", "stop"] {
+            let name = format!("{signal}-{phase}");
+            let out = dir.path().join(format!("{name}.exr"));
+            let stats = dir.path().join(format!("{name}.jsonl"));
+            let fault = format!("1:{signal}:{phase}");
+            let o = render(
+                &out,
+                &[
+                    "--workers",
+                    "3",
+                    "--set",
+                    "cluster.idle_timeout_s=2",
+                    "--stats",
+                    stats.to_str().unwrap(),
+                ],
+                &[("STRATA_TEST_FAULT", &fault)],
+            );
+            assert!(
+                o.status.success(),
+                "{name}: {}",
+                String::from_utf8_lossy(&o.stderr)
+            );
+            let d = max_diff(reference, &read_exr(&out));
+            assert!(d <= 1e-5, "{name}: the recovered frame differs by {d}");
+            let (text, lost) = lost_workers(&stats);
+            assert_eq!(lost.len(), 1, "{name}: {text}");
+            assert_eq!(lost[0]["rank"], 1, "{name}: {text}");
+        }
+    }
+}
+
+#[test]
 fn a_hung_worker_is_given_up_on_and_the_sequence_goes_on_without_it() {
     let dir = tempfile::tempdir().unwrap();
     let scene = survey().join("scene.toml");
@@ -568,7 +607,7 @@ fn a_hung_worker_is_given_up_on_and_the_sequence_goes_on_without_it() {
             "--stats",
             stats.to_str().unwrap(),
         ],
-        &[("STRATA_TEST_STOP_RANK", "2")],
+        &[("STRATA_TEST_FAULT", "2:stop:exchange")],
     );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     for i in 0..3 {
@@ -1148,4 +1187,61 @@ fn a_half_sent_stream_loses_its_sender_and_the_frame_is_rendered_without_it() {
     );
     let log = strip_ansi(&std::fs::read_to_string(&err).unwrap());
     assert!(log.contains("left a stream half-sent"), "{log}");
+}
+
+#[test]
+fn no_worker_outlives_a_sigkilled_coordinator() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("coordinator.log");
+    let out = dir.path().join("f_%03d.png");
+    let mut c = Command::new(BIN)
+        .args([
+            "render",
+            survey().join("scene.toml").to_str().unwrap(),
+            "-o",
+        ])
+        .arg(&out)
+        .args(["--size", SIZE, "--workers", "3", "--orbit", "100000"])
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    wait_for_log(&log, "all workers ready");
+    let text = strip_ansi(&std::fs::read_to_string(&log).unwrap());
+    let pids: Vec<String> = text
+        .lines()
+        .filter(|l| l.contains("worker joined"))
+        .map(|l| {
+            l.split("pid=")
+                .nth(1)
+                .and_then(|r| r.split_whitespace().next())
+                .unwrap()
+                .to_string()
+        })
+        .collect();
+    assert_eq!(pids.len(), 3, "{text}");
+    // SIGKILL: no chance to shut anything down.
+    c.kill().unwrap();
+    c.wait().unwrap();
+    let t = Instant::now();
+    loop {
+        let alive: Vec<&String> = pids
+            .iter()
+            .filter(|pid| {
+                let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
+                // Gone, or a zombie awaiting a reaper.
+                !(stat.is_empty() || stat.split_whitespace().nth(2) == Some("Z"))
+            })
+            .collect();
+        if alive.is_empty() {
+            break;
+        }
+        // Well under the 10 s idle timeout: they die with it, not by noticing later.
+        assert!(
+            t.elapsed() < Duration::from_secs(5),
+            "workers {alive:?} outlived the coordinator"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
 }

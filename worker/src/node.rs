@@ -195,6 +195,7 @@ async fn node(opts: NodeOptions) -> Result<()> {
                 };
                 match result {
                     Ok((mut stats, piece, composite_start)) => {
+                        test_fault(rank, frame, "gather");
                         // Through shared memory when the coordinator shares this host
                         // (written straight from the piece); QUIC when not, or when the
                         // segment cannot take it (a full /dev/shm).
@@ -608,6 +609,36 @@ struct Node {
     suspects: Vec<u32>,
 }
 
+/// Test hook (debug builds only, what the tests run; release binaries ignore it):
+/// `STRATA_TEST_FAULT=RANK:kill|stop:PHASE` makes worker RANK SIGKILL or SIGSTOP itself in
+/// frame 0 at PHASE: `render` (before rendering), `exchange` (after rendering, before
+/// sending anything), `round` (with its first round's pieces sent) or `gather` (before
+/// its final piece goes to the coordinator). Tests check that a vanished or hung worker
+/// at any of these moments costs a re-render, or fails the frame naming it.
+fn test_fault(rank: u32, frame: u64, phase: &str) {
+    if !cfg!(debug_assertions) || frame != 0 {
+        return;
+    }
+    let Ok(spec) = std::env::var("STRATA_TEST_FAULT") else {
+        return;
+    };
+    let parts: Vec<&str> = spec.split(':').collect();
+    let [r, signal, p] = parts[..] else { return };
+    if r != rank.to_string() || p != phase {
+        return;
+    }
+    let sig = match signal {
+        "kill" => libc::SIGKILL,
+        "stop" => libc::SIGSTOP,
+        _ => return,
+    };
+    warn!(rank, phase, signal, "STRATA_TEST_FAULT");
+    // SAFETY: a plain syscall on our own process.
+    unsafe {
+        libc::kill(libc::getpid(), sig);
+    }
+}
+
 /// Parsed pieces and losses queued between the peer readers and the frame loop.
 const PEER_EVENTS: usize = 64;
 
@@ -690,6 +721,7 @@ impl Node {
             position: position as u32,
             ..Default::default()
         };
+        test_fault(self.rank, req.frame, "render");
         // 1. The partial image.
         let t = Instant::now();
         let image = tokio::task::block_in_place(|| self.image(req, &mut stats))?;
@@ -702,38 +734,7 @@ impl Node {
         stats.cache_lookups = cache.hits + cache.misses;
         let composite_start = Instant::now();
 
-        // Test hook: `STRATA_TEST_KILL_RANK=R` makes rank R die by SIGKILL between its
-        // render and the exchange, the worst moment for its peers, so tests can check that
-        // a vanished worker fails the frame with a clear error instead of a hang.
-        // Debug builds only (what the tests run): release binaries ignore the variable.
-        if cfg!(debug_assertions)
-            && std::env::var("STRATA_TEST_KILL_RANK").ok().as_deref()
-                == Some(&self.rank.to_string())
-        {
-            warn!(
-                rank = self.rank,
-                "STRATA_TEST_KILL_RANK: killing this worker"
-            );
-            // SAFETY: plain syscalls on our own process.
-            unsafe {
-                libc::kill(libc::getpid(), libc::SIGKILL);
-            }
-        }
-        // Test hook: `STRATA_TEST_STOP_RANK=R` makes rank R stop itself (SIGSTOP) at the
-        // same moment, once: a hung worker, alive but silent. Debug builds only.
-        if cfg!(debug_assertions)
-            && std::env::var("STRATA_TEST_STOP_RANK").ok().as_deref()
-                == Some(&self.rank.to_string())
-        {
-            warn!(
-                rank = self.rank,
-                "STRATA_TEST_STOP_RANK: stopping this worker"
-            );
-            // SAFETY: plain syscalls on our own process.
-            unsafe {
-                libc::kill(libc::getpid(), libc::SIGSTOP);
-            }
-        }
+        test_fault(self.rank, req.frame, "exchange");
         // 2. The exchange.
         let key = (n, px, req.composite.clone());
         let plan = match self.plans.get(&key) {
@@ -774,6 +775,10 @@ impl Node {
         let result = loop {
             while let Some(out) = self.exchange.poll_send() {
                 sends.push(self.send_piece(out, &mut stats)?);
+            }
+            if !sends.is_empty() {
+                // Its first round's pieces are on their way.
+                test_fault(self.rank, req.frame, "round");
             }
             match self.exchange.poll_event() {
                 Some(ExchangeEvent::Done { result, .. }) => break result,
