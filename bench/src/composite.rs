@@ -224,6 +224,15 @@ fn main() -> Result<()> {
                                     },
                                 )
                                 .await?;
+                            // A worker given up on would make the rest of the rows a
+                            // smaller p: refuse to report them.
+                            if let Some(l) = r.lost.first() {
+                                anyhow::bail!(
+                                    "p={p} {tname}: lost {} during the benchmark: {}",
+                                    l.worker,
+                                    l.reason
+                                );
+                            }
                             if f == 0 {
                                 continue; // warm-up
                             }
