@@ -260,6 +260,11 @@ pub enum CoordMsg {
     Setup(Box<Setup>),
     /// Render and composite one frame.
     Frame(FrameRequest),
+    /// The coordinator gave up on this worker (rank): frames that include it fail at once.
+    PeerLost {
+        /// The lost worker's rank.
+        rank: u32,
+    },
     /// Exit cleanly.
     Shutdown,
     /// The connection is refused (sent before closing it).

@@ -782,7 +782,7 @@ impl Cluster {
                     let names = self.list(lost.iter().map(|&r| r as usize));
                     warn!("{:#}; re-rendering the frame without {names}", f.error);
                     let detected_after_s = t0.elapsed().as_secs_f64();
-                    self.drop_workers(&lost);
+                    self.drop_workers(&lost).await;
                     let assignment: Vec<Assignment> = self
                         .slots
                         .iter()
@@ -808,7 +808,7 @@ impl Cluster {
 
     /// Gives up on `lost` workers: kills (local) or disconnects them and splits the scene
     /// over the ranks left.
-    fn drop_workers(&mut self, lost: &[u32]) {
+    async fn drop_workers(&mut self, lost: &[u32]) {
         for &r in lost {
             let w = &self.workers[r as usize];
             if self.child_pids.contains(&w.pid) {
@@ -820,6 +820,18 @@ impl Cluster {
             w.conn.close(7u32.into(), b"lost");
         }
         self.slots.retain(|r| !lost.contains(r));
+        // Survivors still waiting on a lost peer in the failed attempt stop at once.
+        for &rank in &self.slots.clone() {
+            let w = &mut self.workers[rank as usize];
+            for &r in lost {
+                let msg = wire::encode_meta(&CoordMsg::PeerLost { rank: r });
+                let _ = tokio::time::timeout(
+                    Duration::from_secs(2),
+                    write_frame(&mut w.send, &msg, &[]),
+                )
+                .await;
+            }
+        }
         let m = self.slots.len();
         let new = Decomposition::balanced(
             self.costs.root,

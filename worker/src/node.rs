@@ -179,18 +179,40 @@ async fn node(opts: NodeOptions) -> Result<()> {
         max_meta: wire::MAX_META,
         max_bulk: 0,
     };
+    // Control messages are read by their own task, so a frame in progress hears at once
+    // that the coordinator gave up on a peer (and a read is never cancelled midway).
+    let (ctl_tx, mut ctl_rx) = mpsc::channel::<Result<CoordMsg, String>>(16);
+    tokio::spawn(async move {
+        loop {
+            // No deadline between frames (a user may pause); a vanished coordinator ends
+            // the connection through the idle timeout.
+            let msg = match read_frame(&mut crecv, &control).await {
+                Ok(f) => wire::decode_meta::<CoordMsg>(&f.meta).map_err(|e| e.to_string()),
+                Err(e) => Err(format!("lost the coordinator: {e}")),
+            };
+            let end = msg.is_err();
+            if ctl_tx.send(msg).await.is_err() || end {
+                return;
+            }
+        }
+    });
     loop {
-        // No deadline between frames (a user may pause); a vanished coordinator ends
-        // the connection through the idle timeout.
-        let f = match read_frame(&mut crecv, &control).await {
-            Ok(f) => f,
-            Err(e) => bail!("lost the coordinator: {e}"),
+        let msg = match node.deferred.pop_front() {
+            Some(m) => m,
+            None => match ctl_rx.recv().await {
+                Some(Ok(m)) => m,
+                Some(Err(e)) => bail!("{e}"),
+                None => bail!("lost the coordinator"),
+            },
         };
-        match wire::decode_meta::<CoordMsg>(&f.meta)? {
+        match msg {
+            CoordMsg::PeerLost { rank: lost } => node
+                .exchange
+                .handle_lost(lost, "the coordinator gave it up".into()),
             CoordMsg::Frame(req) => {
                 let frame = req.frame;
                 let result = tokio::select! {
-                    r = node.frame(&req, &mut ev_rx) => r,
+                    r = node.frame(&req, &mut ev_rx, &mut ctl_rx) => r,
                     e = conn.closed() => bail!("lost the coordinator during frame {frame}: {e}"),
                 };
                 match result {
@@ -403,6 +425,7 @@ async fn mesh(
         shm_out,
         gather_shm: None,
         suspects: Vec::new(),
+        deferred: Default::default(),
     };
     Ok((node, ev_rx))
 }
@@ -607,6 +630,8 @@ struct Node {
     gather_shm: Option<ShmWriter>,
     /// The peers the last failed frame is blamed on (reported to the coordinator).
     suspects: Vec<u32>,
+    /// Control messages that arrived during a frame, for after it.
+    deferred: std::collections::VecDeque<CoordMsg>,
 }
 
 /// Test hook (debug builds only, what the tests run; release binaries ignore it):
@@ -652,6 +677,7 @@ impl Node {
         &mut self,
         req: &FrameRequest,
         events: &mut mpsc::Receiver<PeerEvent>,
+        control: &mut mpsc::Receiver<Result<CoordMsg, String>>,
     ) -> Result<(WorkerFrameStats, SparsePiece, Instant)> {
         if let Some(leaves) = &req.leaves {
             // A re-split: new regions from this frame on. The engine keeps its resident
@@ -808,6 +834,17 @@ impl Node {
                 _ = tokio::time::sleep_until(deadline.into()) => {
                     self.exchange.handle_timeout(Instant::now());
                 }
+                msg = control.recv() => match msg {
+                    // The coordinator gave up on a peer: a frame waiting on it fails now,
+                    // not at the idle timeout.
+                    Some(Ok(CoordMsg::PeerLost { rank })) => {
+                        self.exchange.handle_lost(rank, "the coordinator gave it up".into())
+                    }
+                    // Anything else (the re-run of this frame, shutdown) waits its turn.
+                    Some(Ok(m)) => self.deferred.push_back(m),
+                    Some(Err(e)) => bail!("{e}"),
+                    None => bail!("lost the coordinator"),
+                },
             }
         };
         for (what, s) in sends {

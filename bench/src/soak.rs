@@ -1,0 +1,284 @@
+//! `bench-soak`: worker loss under load. Renders a camera orbit twice with the release
+//! `coordinator`: once in-process (the reference), once on a cluster of `--workers` local
+//! workers while a fault thread SIGKILLs or SIGSTOPs a random live worker at random moments
+//! (`--faults` of them, at most `workers − 1`). Every frame of the faulty run must equal the
+//! reference (max channel difference ≤ 1e-5, early termination off), and the stats must
+//! list every worker given up on, with the time from the failure to the frame completing.
+//!
+//! ```text
+//! cargo build --release -p strata-coordinator -p strata-bench
+//! ./target/release/bench-soak --frames 100 --workers 6 --faults 4
+//! ```
+//!
+//! Not a CI test: it runs for minutes and its fault times are random (seeded).
+
+use anyhow::{bail, Context, Result};
+use clap::Parser;
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+#[derive(Parser)]
+#[command(name = "bench-soak", version, about)]
+struct Cli {
+    /// Scene to render (generated on first use when it is the demo).
+    #[arg(long, default_value = "configs/demo.toml")]
+    scene: PathBuf,
+    /// Frames of the orbit.
+    #[arg(long, default_value_t = 100)]
+    frames: u32,
+    /// Workers at the start.
+    #[arg(long, default_value_t = 6)]
+    workers: u32,
+    /// Workers to kill or stop during the run (at most workers − 1).
+    #[arg(long, default_value_t = 4)]
+    faults: u32,
+    /// Image size.
+    #[arg(long, default_value = "320x180")]
+    size: String,
+    /// Seed of the fault times, victims and signals.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// The coordinator binary.
+    #[arg(long, default_value = "target/release/coordinator")]
+    coordinator: PathBuf,
+    /// Scratch folder.
+    #[arg(long, default_value = "target/soak")]
+    dir: PathBuf,
+    /// Idle timeout (s): how fast a hung worker is noticed.
+    #[arg(long, default_value_t = 2.0)]
+    idle_timeout: f64,
+}
+
+fn main() -> Result<()> {
+    let cli = Cli::parse();
+    anyhow::ensure!(
+        cli.faults < cli.workers,
+        "--faults must leave at least one worker"
+    );
+    std::fs::create_dir_all(&cli.dir)?;
+    let common = |name: &str| -> Vec<String> {
+        vec![
+            "render".into(),
+            cli.scene.display().to_string(),
+            "-o".into(),
+            cli.dir
+                .join(format!("{name}_%04d.png"))
+                .display()
+                .to_string(),
+            "--exr".into(),
+            cli.dir
+                .join(format!("{name}_%04d.exr"))
+                .display()
+                .to_string(),
+            "--orbit".into(),
+            cli.frames.to_string(),
+            "--size".into(),
+            cli.size.clone(),
+            "--set".into(),
+            "render.early_termination=1.0".into(),
+            "--stats".into(),
+            cli.dir.join(format!("{name}.jsonl")).display().to_string(),
+        ]
+    };
+    for f in std::fs::read_dir(&cli.dir)? {
+        let p = f?.path();
+        if p.extension().is_some_and(|e| e == "exr" || e == "png") {
+            std::fs::remove_file(p)?;
+        }
+    }
+    let t = Instant::now();
+    let o = Command::new(&cli.coordinator)
+        .arg("-q")
+        .args(common("ref"))
+        .arg("--in-process")
+        .output()
+        .context("running the coordinator")?;
+    if !o.status.success() {
+        bail!("reference run: {}", String::from_utf8_lossy(&o.stderr));
+    }
+    let reference_s = t.elapsed().as_secs_f64();
+    println!("reference: {} frames in {reference_s:.1} s", cli.frames);
+
+    let mut child = Command::new(&cli.coordinator)
+        .args(common("soak"))
+        .args(["--workers", &cli.workers.to_string()])
+        .args([
+            "--set",
+            &format!("cluster.idle_timeout_s={}", cli.idle_timeout),
+        ])
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()?;
+    let pids: Arc<Mutex<Vec<i32>>> = Arc::default();
+    let ready = Arc::new(Mutex::new(false));
+    let reader = {
+        let (pids, ready) = (pids.clone(), ready.clone());
+        let stderr = child.stderr.take().unwrap();
+        std::thread::spawn(move || {
+            for l in BufReader::new(stderr).lines().map_while(Result::ok) {
+                let plain: String = strip_ansi(&l);
+                if plain.contains("worker joined") {
+                    if let Some(pid) = plain
+                        .split("pid=")
+                        .nth(1)
+                        .and_then(|r| r.split_whitespace().next())
+                        .and_then(|p| p.parse().ok())
+                    {
+                        pids.lock().unwrap().push(pid);
+                    }
+                }
+                if plain.contains("all workers ready") {
+                    *ready.lock().unwrap() = true;
+                }
+            }
+        })
+    };
+    // Faults spread over the run's expected length (twice the in-process time, since the
+    // workers share this machine's cores), each at a random moment in its share.
+    let mut rng = cli.seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
+    let mut next = || {
+        rng ^= rng << 13;
+        rng ^= rng >> 7;
+        rng ^= rng << 17;
+        rng
+    };
+    while !*ready.lock().unwrap() {
+        if child.try_wait()?.is_some() {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let start = Instant::now();
+    let share = 2.0 * reference_s / (cli.faults + 1) as f64;
+    let mut faults = Vec::new();
+    for k in 0..cli.faults {
+        let at = share * (k as f64 + 0.5 + (next() % 1000) as f64 / 1000.0);
+        let at = start + Duration::from_secs_f64(at);
+        while Instant::now() < at && child.try_wait()?.is_none() {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        if child.try_wait()?.is_some() {
+            println!("the run ended before fault {}", k + 1);
+            break;
+        }
+        let after = start.elapsed().as_secs_f64();
+        let mut alive = pids.lock().unwrap();
+        if alive.is_empty() {
+            break;
+        }
+        let pick = (next() % alive.len() as u64) as usize;
+        let victim = alive.remove(pick);
+        let (sig, name) = if next() % 2 == 0 {
+            (libc::SIGKILL, "SIGKILL")
+        } else {
+            (libc::SIGSTOP, "SIGSTOP")
+        };
+        // SAFETY: a plain syscall on a worker process this run started.
+        if unsafe { libc::kill(victim, sig) } != 0 {
+            bail!(
+                "cannot signal worker pid {victim}: {}",
+                std::io::Error::last_os_error()
+            );
+        }
+        faults.push(format!("{name} pid {victim} at {after:.2} s"));
+        println!("fault: {}", faults.last().unwrap());
+    }
+    let status = child.wait()?;
+    reader.join().ok();
+    if !status.success() {
+        bail!("the faulty run failed ({status})");
+    }
+
+    // Every frame against the reference.
+    let mut correct = 0;
+    let mut worst = 0.0f32;
+    for i in 0..cli.frames {
+        let a = read_exr(&cli.dir.join(format!("ref_{i:04}.exr")))?;
+        let b = read_exr(&cli.dir.join(format!("soak_{i:04}.exr")))?;
+        let d = a
+            .iter()
+            .zip(&b)
+            .flat_map(|(p, q)| (0..4).map(move |c| (p[c] - q[c]).abs()))
+            .fold(0.0f32, f32::max);
+        worst = worst.max(d);
+        if a.len() == b.len() && d <= 1e-5 {
+            correct += 1;
+        }
+    }
+    let stats = std::fs::read_to_string(cli.dir.join("soak.jsonl"))?;
+    let frame_s: Vec<f64> = stats
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter(|v| v["kind"] == "frame")
+        .filter_map(|v| v["seconds"].as_f64())
+        .collect();
+    let mut sorted = frame_s.clone();
+    sorted.sort_by(f64::total_cmp);
+    let median = sorted.get(sorted.len() / 2).copied().unwrap_or(0.0);
+    let summary: serde_json::Value =
+        serde_json::from_str(stats.lines().last().context("empty stats")?)?;
+    let lost = summary["lost_workers"]
+        .as_array()
+        .cloned()
+        .unwrap_or_default();
+    println!(
+        "frames correct: {correct}/{} (largest difference {worst:.2e}); median frame {:.0} ms",
+        cli.frames,
+        median * 1e3
+    );
+    for l in &lost {
+        let rec = l["recovery_s"].as_f64().unwrap_or(f64::NAN);
+        let det = l["detected_after_s"].as_f64().unwrap_or(f64::NAN);
+        // The frame that lost the worker, start to finish, against the issue's bound.
+        let total = det + rec;
+        let bound = 2.0 * median + cli.idle_timeout;
+        println!(
+            "lost {}: given up {det:.2} s into its frame, frame done {rec:.2} s later ({total:.2} s in all); bound 2 × median frame + idle timeout = {bound:.2} s: {}",
+            l["worker"].as_str().unwrap_or("?"),
+            if total <= bound { "met" } else { "NOT met" }
+        );
+    }
+    anyhow::ensure!(
+        lost.len() == faults.len(),
+        "{} faults but {} workers reported lost",
+        faults.len(),
+        lost.len()
+    );
+    anyhow::ensure!(
+        correct == cli.frames,
+        "{correct}/{} frames correct",
+        cli.frames
+    );
+    Ok(())
+}
+
+fn strip_ansi(s: &str) -> String {
+    let mut out = String::new();
+    let mut esc = false;
+    for c in s.chars() {
+        match (esc, c) {
+            (false, '\u{1b}') => esc = true,
+            (true, 'm') => esc = false,
+            (true, _) => {}
+            (false, c) => out.push(c),
+        }
+    }
+    out
+}
+
+fn read_exr(p: &Path) -> Result<Vec<[f32; 4]>> {
+    use exr::prelude::*;
+    let img = read_first_rgba_layer_from_file(
+        p,
+        |res, _| (res.width(), vec![[0f32; 4]; res.width() * res.height()]),
+        |(w, px): &mut (usize, Vec<[f32; 4]>), pos, (r, g, b, a): (f32, f32, f32, f32)| {
+            px[pos.y() * *w + pos.x()] = [r, g, b, a];
+        },
+    )
+    .with_context(|| format!("reading {}", p.display()))?;
+    Ok(img.layer_data.channel_data.pixels.1)
+}
