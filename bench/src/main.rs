@@ -87,6 +87,7 @@ fn bonsai_scene(store: &Path, w: u32, h: u32) -> Scene {
             window: Some([0.0, 255.0]),
             opacity: 1.0,
             opacity_points: Some(vec![[0.0, 0.0], [0.1, 0.0], [1.0, 0.5]]),
+            slices: Vec::new(),
         }],
         horizons: vec![],
         camera: Some(Camera {

@@ -255,6 +255,47 @@ pub struct VolumeLayer {
     /// from 0.1 otherwise.
     #[serde(default)]
     pub opacity_points: Option<Vec<[f64; 2]>>,
+    /// Inline, crossline and time slices through the volume, drawn opaque (by default) in
+    /// the volume's colour map over its window, as seismic interpretation tools show a
+    /// cube. `slices = [{ axis = "inline", index = 300 }, { axis = "time", index = 150 }]`.
+    #[serde(default)]
+    pub slices: Vec<SliceLayer>,
+}
+
+/// A plane of a volume's grid at a fixed index along one axis.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SliceLayer {
+    /// Which grid axis the slice is normal to.
+    pub axis: SliceAxis,
+    /// Position along that axis, in level-0 samples from the first (fractions allowed).
+    pub index: f64,
+    /// Opacity in [0, 1].
+    #[serde(default = "one")]
+    pub opacity: f64,
+}
+
+/// `axis` of a slice: the store's grid axes, as seismic cubes name them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SliceAxis {
+    /// First grid axis (constant inline number).
+    Inline,
+    /// Second grid axis (constant crossline number).
+    Crossline,
+    /// Third grid axis (constant time or depth sample).
+    Time,
+}
+
+impl SliceAxis {
+    /// The grid axis (0, 1, 2).
+    pub fn index(self) -> usize {
+        match self {
+            SliceAxis::Inline => 0,
+            SliceAxis::Crossline => 1,
+            SliceAxis::Time => 2,
+        }
+    }
 }
 
 /// A horizon to draw.

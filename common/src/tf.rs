@@ -222,6 +222,19 @@ impl TransferFunction {
         }
     }
 
+    /// Straight RGBA at value `v` (clamped to the window), interpolated between entries as
+    /// the step tables are; NaN (no data) gives NaN.
+    pub fn straight(&self, v: f32) -> [f32; 4] {
+        if v.is_nan() {
+            return [f32::NAN; 4];
+        }
+        let x = self.pos(v);
+        let i = (x as usize).min(self.table.len() - 2);
+        let f = x - i as f32;
+        let (a, b) = (self.table[i], self.table[i + 1]);
+        [0, 1, 2, 3].map(|k| a[k] + f * (b[k] - a[k]))
+    }
+
     /// Table position of a value (clamped).
     #[inline]
     fn pos(&self, v: f32) -> f32 {
@@ -334,6 +347,7 @@ mod tests {
             window: Some([-1.0, 1.0]),
             opacity: 1.0,
             opacity_points: None,
+            slices: Vec::new(),
         }
     }
 

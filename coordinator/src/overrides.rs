@@ -488,6 +488,10 @@ mod tests {
         assert!(syn.dir.ends_with("synthetic/demo"));
         assert_eq!(s.volumes.len(), 1);
         assert_eq!(s.horizons.len(), 3);
+        // The geoscientist's view: inline, crossline and time slices.
+        let axes: Vec<_> = s.volumes[0].slices.iter().map(|x| x.axis).collect();
+        use strata_common::scene::SliceAxis::*;
+        assert_eq!(axes, [Inline, Crossline, Time]);
         assert!(s.volumes[0].store.starts_with(&syn.dir));
         for h in &s.horizons {
             assert!(h.store.starts_with(&syn.dir));

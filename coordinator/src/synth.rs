@@ -346,6 +346,7 @@ pub fn synth(
             window: None,
             opacity: 0.6,
             opacity_points: None,
+            slices: Vec::new(),
         }],
         horizons: (1..=3)
             .map(|h| HorizonLayer {

@@ -170,6 +170,7 @@ pub mod scenes {
             window: Some(window),
             opacity: 1.0,
             opacity_points: Some(points),
+            slices: Vec::new(),
         }
     }
 

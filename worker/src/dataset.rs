@@ -25,6 +25,19 @@ pub struct Volume {
     pub tf: TransferFunction,
     /// `[min, max]` per page, in page-table order (NaN range for empty pages).
     pub bounds: Vec<[f32; 2]>,
+    /// Slices drawn through it.
+    pub slices: Vec<Slice>,
+}
+
+/// A slice of a volume, checked against its grid.
+#[derive(Copy, Clone, Debug, PartialEq)]
+pub struct Slice {
+    /// Grid axis it is normal to.
+    pub axis: usize,
+    /// Level-0 index along that axis.
+    pub index: f32,
+    /// Opacity.
+    pub opacity: f32,
 }
 
 /// A horizon to draw.
@@ -130,7 +143,38 @@ impl Volume {
         };
         let tf = TransferFunction::from_layer(layer, window)
             .with_context(|| format!("volume {}", layer.store.display()))?;
+        let dims = store.pyramid().level(0).dims;
+        let slices = layer
+            .slices
+            .iter()
+            .enumerate()
+            .map(|(i, s)| {
+                let a = s.axis.index();
+                let last = dims[a].saturating_sub(1) as f64;
+                if !(s.index >= 0.0 && s.index <= last) {
+                    bail!(
+                        "volume {}: slice {i} ({:?}) at index {} lies outside the grid's 0..={last}",
+                        layer.store.display(),
+                        s.axis,
+                        s.index
+                    );
+                }
+                if !(0.0..=1.0).contains(&s.opacity) {
+                    bail!(
+                        "volume {}: slice {i} opacity must lie in [0, 1], got {}",
+                        layer.store.display(),
+                        s.opacity
+                    );
+                }
+                Ok(Slice {
+                    axis: a,
+                    index: s.index as f32,
+                    opacity: s.opacity as f32,
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
         Ok(Volume {
+            slices,
             ds,
             pyramid: store.pyramid().clone(),
             to_world: h.transform,

@@ -126,6 +126,9 @@ fn gpu_unfit(data: &SceneData) -> Option<String> {
             crate::gpu::MAX_VOLUMES
         ));
     }
+    if data.volumes.iter().any(|v| !v.slices.is_empty()) {
+        return Some("volume slices are drawn by the CPU caster only".into());
+    }
     if data.horizons.len() > strata_common::gpu::MAX_HORIZONS {
         return Some(format!(
             "the GPU caster intersects at most {} horizons",
@@ -479,6 +482,8 @@ impl Engine {
                 transparent,
                 tables: tf_tables_for(&exps, &v.tf),
                 pyramid: &v.pyramid,
+                slices: &v.slices,
+                tf: &v.tf,
             });
         }
         let mut hors = Vec::new();

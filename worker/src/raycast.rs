@@ -428,6 +428,11 @@ impl<'a> FrameSetup<'a> {
         for h in &self.hors {
             h.intersect(d, t0, t1, &mut st.hits, fb);
         }
+        for v in &self.vols {
+            if !v.slices.is_empty() {
+                v.slice_hits(v.index_dir(d), t0, t1, &mut st.hits, fb);
+            }
+        }
         if st.hits.len() > 1 {
             st.hits.sort_by(|a, b| a.t.total_cmp(&b.t));
         }

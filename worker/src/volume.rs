@@ -36,6 +36,10 @@ pub struct VolFrame<'a> {
     pub tables: Vec<StepTable>,
     /// The pyramid (for page keys).
     pub pyramid: &'a Pyramid,
+    /// Slices through the volume (empty: no slice code runs).
+    pub slices: &'a [crate::dataset::Slice],
+    /// The transfer function (slices take its colour).
+    pub tf: &'a strata_common::tf::TransferFunction,
 }
 
 /// A ray's position in one volume's brick structure.
@@ -102,6 +106,21 @@ impl<'a> VolFrame<'a> {
         md: [f32; 3],
         feedback: &mut Vec<u64>,
     ) {
+        self.locate_page(cur, t, q, md, feedback, true)
+    }
+
+    /// [`locate`](Self::locate); with `skip_transparent` false, pages invisible under the
+    /// transfer function are located (and requested) too: a slice shows every value.
+    #[inline(always)]
+    fn locate_page(
+        &self,
+        cur: &mut Cursor<'a>,
+        t: f32,
+        q: [f32; 3],
+        md: [f32; 3],
+        feedback: &mut Vec<u64>,
+        skip_transparent: bool,
+    ) {
         let nl = self.level_t.len();
         let mut level = cur.level;
         while level + 1 < nl && t >= self.level_t[level + 1] {
@@ -133,7 +152,7 @@ impl<'a> VolFrame<'a> {
         // Guard against a non-advancing exit from rounding: the next sample re-locates.
         cur.t_exit = t_exit;
         let idx = self.table.index(level, b);
-        cur.transparent = self.transparent[idx];
+        cur.transparent = skip_transparent && self.transparent[idx];
         if cur.transparent {
             return;
         }
@@ -154,6 +173,50 @@ impl<'a> VolFrame<'a> {
         for a in 0..3 {
             let br = (b[a] >> k) as f32;
             cur.o[a] = 0.5 * sr - 0.5 - br * self.core + self.border;
+        }
+    }
+
+    /// The ray's crossings of this volume's slices inside `[t0, t1)`, as opaque (or
+    /// translucent) surface hits in the transfer function's colours at the sampled value.
+    /// The page under each crossing is requested at the level the distance calls for; a
+    /// crossing whose page is not resident yet, or that holds no data, shows nothing this
+    /// round.
+    pub fn slice_hits(
+        &self,
+        md: [f32; 3],
+        t0: f32,
+        t1: f32,
+        hits: &mut Vec<crate::horizon::Hit>,
+        feedback: &mut Vec<u64>,
+    ) {
+        for s in self.slices {
+            let a = s.axis;
+            if md[a] == 0.0 {
+                continue; // parallel to the slice
+            }
+            let t = (s.index - self.c[a]) / md[a];
+            if !(t >= t0 && t < t1) {
+                continue;
+            }
+            let mut q = [0, 1, 2].map(|k| self.c[k] + t * md[k]);
+            q[a] = s.index;
+            if (0..3).any(|k| k != a && !(q[k] >= -0.5 && q[k] < self.hi[k])) {
+                continue;
+            }
+            let mut cur = Cursor::default();
+            self.locate_page(&mut cur, t, q, md, feedback, false);
+            if cur.transparent {
+                continue; // not resident yet
+            }
+            let c = self.tf.straight(self.sample(&cur, q));
+            if c[0].is_nan() {
+                continue;
+            }
+            let o = s.opacity;
+            hits.push(crate::horizon::Hit {
+                t,
+                rgba: [c[0] * o, c[1] * o, c[2] * o, o],
+            });
         }
     }
 
