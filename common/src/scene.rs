@@ -258,7 +258,7 @@ pub struct VolumeLayer {
     /// Inline, crossline and time slices through the volume, drawn opaque (by default) in
     /// the volume's colour map over its window, as seismic interpretation tools show a
     /// cube. `slices = [{ axis = "inline", index = 300 }, { axis = "time", index = 150 }]`.
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub slices: Vec<SliceLayer>,
 }
 

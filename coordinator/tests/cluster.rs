@@ -1245,3 +1245,37 @@ fn no_worker_outlives_a_sigkilled_coordinator() {
         std::thread::sleep(Duration::from_millis(50));
     }
 }
+
+#[test]
+fn slices_render_the_same_distributed_as_in_process() {
+    // The survey's scene with an inline, a crossline and a time slice (written next to
+    // it: store paths are relative to the scene file).
+    let text = std::fs::read_to_string(survey().join("scene.toml")).unwrap();
+    let with = text.replacen(
+        "[[volume]]\n",
+        "[[volume]]\nslices = [{ axis = \"inline\", index = 17.5 }, { axis = \"crossline\", index = 9 }, { axis = \"time\", index = 15, opacity = 0.7 }]\n",
+        1,
+    );
+    assert_ne!(with, text);
+    let scene = survey().join("scene-slices.toml");
+    std::fs::write(&scene, with).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let go = |name: &str, extra: &[&str]| {
+        let out = dir.path().join(format!("{name}.exr"));
+        let o = render_scene(&scene, &out, extra, &[]);
+        assert!(
+            o.status.success(),
+            "{name}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        read_exr(&out)
+    };
+    let single = go("in", &["--in-process"]);
+    let split = go("dist", &["--workers", "3"]);
+    let d = max_diff(&single, &split);
+    assert!(d <= 1e-5, "distributed slices differ by {d}");
+    assert!(
+        max_diff(&single, reference()) > 0.01,
+        "the slices change the image"
+    );
+}
