@@ -185,7 +185,23 @@ pub struct VolumeParams {
     pub no_data: i32,
     /// `level_t[l]`: distance from which level `l` is fine enough (`level_t[0] = 0`).
     pub level_t: [f32; MAX_LEVELS],
+    /// Slices through the volume (at most [`MAX_SLICES`]).
+    pub n_slices: u32,
+    /// First entry of the straight-RGBA transfer-function table the slices are coloured
+    /// by (in the transfer-function buffer).
+    pub straight_base: u32,
+    /// Padding.
+    pub _pad: [u32; 2],
+    /// Grid axis of each slice.
+    pub slice_axis: [u32; MAX_SLICES],
+    /// Level-0 index of each slice along its axis.
+    pub slice_index: [f32; MAX_SLICES],
+    /// Opacity of each slice.
+    pub slice_opacity: [f32; MAX_SLICES],
 }
+
+/// Slices per volume the GPU caster draws.
+pub const MAX_SLICES: usize = 4;
 
 /// [`VolumeParams::flags`]: the volume's samples are signed integers in an 8- or 16-bit pool.
 pub const VOLUME_SIGNED: u32 = 1;
@@ -387,7 +403,9 @@ const _: () = assert!(offset_of!(FrameParams, band_start) == 80);
 const _: () = assert!(offset_of!(FrameParams, band_dt) == 112);
 const _: () = assert!(offset_of!(FrameParams, rect_h) == 144);
 const _: () = assert!(offset_of!(FrameParams, flags) == 160);
-const _: () = assert!(size_of::<VolumeParams>() == 176);
+const _: () = assert!(size_of::<VolumeParams>() == 240);
+const _: () = assert!(offset_of!(VolumeParams, n_slices) == 176);
+const _: () = assert!(offset_of!(VolumeParams, slice_axis) == 192);
 const _: () = assert!(offset_of!(VolumeParams, table_base) == 76);
 const _: () = assert!(offset_of!(VolumeParams, level_base) == 80);
 const _: () = assert!(offset_of!(VolumeParams, level_t) == 112);

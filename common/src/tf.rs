@@ -228,7 +228,11 @@ impl TransferFunction {
         if v.is_nan() {
             return [f32::NAN; 4];
         }
-        let x = self.pos(v);
+        // The step tables' value → position map, operation for operation (the GPU caster
+        // evaluates the same expression).
+        let n = (self.table.len() - 1) as f32;
+        let (scale, offset) = (n / (self.hi - self.lo), -self.lo * n / (self.hi - self.lo));
+        let x = (v * scale + offset).clamp(0.0, n);
         let i = (x as usize).min(self.table.len() - 2);
         let f = x - i as f32;
         let (a, b) = (self.table[i], self.table[i + 1]);

@@ -1,7 +1,7 @@
-//! Inline, crossline and time slices through a volume (CPU caster; scenes with slices go
-//! to the CPU under `render.backend = "auto"`): the analytic colour of the plane, its
-//! opacity, the surfaces and volume in front of and behind it, every k-d split giving the
-//! whole render, and slices outside the grid refused.
+//! Inline, crossline and time slices through a volume, on both casters (the GPU where a
+//! wgpu adapter exists, lavapipe in CI; GPU == CPU within 1e-4): the analytic colour of the
+//! plane, its opacity, slices in depth order, every k-d split giving the whole render, and
+//! slices outside the grid refused.
 
 use strata_common::geo::Affine3;
 use strata_common::kd::KdTree;
@@ -63,7 +63,7 @@ fn an_inline_slice_shows_the_value_on_its_plane_in_the_volume_colours() {
             vec![slice(SliceAxis::Inline, index, opacity)],
             along_x(),
         );
-        let px = render_whole(&s);
+        let px = render_on_both(&s, 1e-4, "slices");
         assert_clean(&px);
         let c = centre(&px);
         // Grey is linear in linear light from black to white over the window.
@@ -83,7 +83,7 @@ fn an_inline_slice_shows_the_value_on_its_plane_in_the_volume_colours() {
     }
     // Without the slice the volume is invisible.
     let s = ramp_scene(dir.path(), vec![], along_x());
-    assert_eq!(centre(&render_whole(&s))[3], 0.0);
+    assert_eq!(centre(&render_on_both(&s, 1e-4, "slices"))[3], 0.0);
 }
 
 #[test]
@@ -98,7 +98,7 @@ fn slices_are_surfaces_nearest_first_and_parallel_rays_miss_them() {
         ],
         along_x(),
     );
-    let c = centre(&render_whole(&s));
+    let c = centre(&render_on_both(&s, 1e-4, "slices"));
     let (g1, g2) = (8.0 / (N - 1) as f32, 24.0 / (N - 1) as f32);
     let want = 0.5 * g1 + 0.5 * 0.5 * g2;
     assert!(
@@ -107,7 +107,7 @@ fn slices_are_surfaces_nearest_first_and_parallel_rays_miss_them() {
     );
     // A time slice is parallel to the centre ray (along x): it never shows there.
     let s = ramp_scene(dir.path(), vec![slice(SliceAxis::Time, C, 1.0)], along_x());
-    assert_eq!(centre(&render_whole(&s))[3], 0.0);
+    assert_eq!(centre(&render_on_both(&s, 1e-4, "slices"))[3], 0.0);
     // Seen from above, the same time slice is the ramp itself: colour grows with x.
     let down = Camera {
         eye: [C, C, 120.0],
@@ -116,7 +116,7 @@ fn slices_are_surfaces_nearest_first_and_parallel_rays_miss_them() {
         fov_deg: 30.0,
     };
     let s = ramp_scene(dir.path(), vec![slice(SliceAxis::Time, C, 1.0)], down);
-    let px = render_whole(&s);
+    let px = render_on_both(&s, 1e-4, "slices");
     let row = (W / 2 * W) as usize;
     let (left, mid, right) = (px[row + 20], px[row + 32], px[row + 44]);
     assert!(
@@ -134,7 +134,7 @@ fn every_k_d_split_gives_the_whole_render_with_slices() {
         slice(SliceAxis::Crossline, 12.0, 0.7),
         slice(SliceAxis::Time, 16.0, 1.0),
     ];
-    let whole = render_whole(&s);
+    let whole = render_on_both(&s, 1e-4, "slices");
     assert_clean(&whole);
     let plain = {
         let mut p = s.clone();

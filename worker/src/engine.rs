@@ -126,8 +126,15 @@ fn gpu_unfit(data: &SceneData) -> Option<String> {
             crate::gpu::MAX_VOLUMES
         ));
     }
-    if data.volumes.iter().any(|v| !v.slices.is_empty()) {
-        return Some("volume slices are drawn by the CPU caster only".into());
+    if data
+        .volumes
+        .iter()
+        .any(|v| v.slices.len() > strata_common::gpu::MAX_SLICES)
+    {
+        return Some(format!(
+            "the GPU caster draws at most {} slices per volume",
+            strata_common::gpu::MAX_SLICES
+        ));
     }
     if data.horizons.len() > strata_common::gpu::MAX_HORIZONS {
         return Some(format!(

@@ -9,7 +9,7 @@ use crate::raycast::{CastStats, FrameSetup};
 use anyhow::{bail, Result};
 use strata_common::gpu::{
     FrameParams, HorizonParams, PoolFormat, VolumeParams, HORIZON_DEPTH_MAP, HORIZON_LIGHTING,
-    MAX_BANDS, MAX_HORIZONS, MAX_LEVELS, TF_SIZE,
+    MAX_BANDS, MAX_HORIZONS, MAX_LEVELS, MAX_SLICES, TF_SIZE,
 };
 use strata_common::image::PartialImage;
 use strata_common::pyramid::Pyramid;
@@ -271,6 +271,8 @@ impl GpuBackend {
             let nl = v.level_t.len();
             let level_t = level_t_array(&v.level_t);
             let t0 = &v.tables[0];
+            // Step tables, then (with slices) the straight table: bases are taken as built.
+            let tf_base = tf.len() as u32;
             for t in &v.tables {
                 if t.entries.len() != TF_SIZE {
                     bail!(
@@ -290,6 +292,32 @@ impl GpuBackend {
                 }
             }
             levels.extend(level_records(v.table));
+            // Slices are coloured by the straight transfer function, after the step tables.
+            let mut slice_axis = [0u32; MAX_SLICES];
+            let mut slice_index = [0f32; MAX_SLICES];
+            let mut slice_opacity = [0f32; MAX_SLICES];
+            if v.slices.len() > MAX_SLICES {
+                bail!(
+                    "the GPU caster draws at most {MAX_SLICES} slices per volume, got {}",
+                    v.slices.len()
+                );
+            }
+            for (k, s) in v.slices.iter().enumerate() {
+                slice_axis[k] = s.axis as u32;
+                slice_index[k] = s.index;
+                slice_opacity[k] = s.opacity;
+            }
+            let mut straight_base = 0;
+            if !v.slices.is_empty() {
+                if v.tf.table.len() != TF_SIZE {
+                    bail!(
+                        "the GPU caster needs transfer-function tables of {TF_SIZE} entries, got {}",
+                        v.tf.table.len()
+                    );
+                }
+                straight_base = tf.len() as u32;
+                tf.extend_from_slice(&v.tf.table);
+            }
             vols.push(VolumeParams {
                 m0: v.m[0],
                 core: v.core,
@@ -302,7 +330,7 @@ impl GpuBackend {
                 hi: v.hi,
                 table_base: base,
                 level_base: self.level_base[i],
-                tf_base: (i * nb * TF_SIZE) as u32,
+                tf_base,
                 tf_scale: t0.scale,
                 tf_offset: t0.offset,
                 tf_last: t0.last,
@@ -310,6 +338,12 @@ impl GpuBackend {
                 flags: vflags,
                 no_data: vno_data,
                 level_t,
+                n_slices: v.slices.len() as u32,
+                straight_base,
+                _pad: [0; 2],
+                slice_axis,
+                slice_index,
+                slice_opacity,
             });
         }
         let mut hors = Vec::with_capacity(setup.hors.len());

@@ -40,6 +40,8 @@ override POOL_BITS: u32 = 32u;
 // Volume samples through the texture unit's filter (render.gpu_filter = "hardware") from the
 // 3D-texture pool, instead of the shader's trilinear from the storage-buffer pool.
 override HW_FILTER: bool = false;
+// Some volume has slices: crossings are collected even without horizons.
+override SLICES: bool = false;
 const VOLUME_SIGNED: u32 = 1u;
 const VOLUME_NO_DATA: u32 = 2u;
 
@@ -86,6 +88,12 @@ struct Volume {
     flags: u32,
     no_data: i32,
     level_t: array<f32, 16>,
+    n_slices: u32,
+    straight_base: u32,
+    _pad0: vec2<u32>,
+    slice_axis: vec4<u32>,
+    slice_index: vec4<f32>,
+    slice_opacity: vec4<f32>,
 }
 
 struct Horizon {
@@ -263,6 +271,12 @@ fn level_t(vi: u32, l: u32) -> f32 {
 
 // Moves the cursor to the brick holding the sample at t (index position q).
 fn locate(vi: u32, cur: ptr<function, Cursor>, t: f32, q: vec3<f32>, md: vec3<f32>) {
+    locate_page(vi, cur, t, q, md, true);
+}
+
+// `locate`; with `skip_transparent` false, pages invisible under the transfer function are
+// located (and requested) too: a slice shows every value (volume.rs `locate_page`).
+fn locate_page(vi: u32, cur: ptr<function, Cursor>, t: f32, q: vec3<f32>, md: vec3<f32>, skip_transparent: bool) {
     let nl = vols[vi].n_levels;
     let core = vols[vi].core;
     let c = vols[vi].c;
@@ -294,7 +308,7 @@ fn locate(vi: u32, cur: ptr<function, Cursor>, t: f32, q: vec3<f32>, md: vec3<f3
     }
     (*cur).t_exit = t_exit;
     let g = vols[vi].table_base + li.x + (b.z * bricks.y + b.y) * bricks.x + b.x;
-    if (((transparent[g >> 5u] >> (g & 31u)) & 1u) != 0u) {
+    if (skip_transparent && ((transparent[g >> 5u] >> (g & 31u)) & 1u) != 0u) {
         (*cur).transparent = true;
         return;
     }
@@ -762,6 +776,51 @@ fn push_hit(t: f32, c: vec4<f32>) {
     hit_c[j] = c;
 }
 
+// The ray's crossings of volume `vi`'s slices inside [t0, t1) as surface hits in the
+// straight transfer-function colours (volume.rs `slice_hits`, operation for operation).
+fn slice_hits(vi: u32, md: vec3<f32>, t0: f32, t1: f32) {
+    let v = vols[vi];
+    for (var s = 0u; s < v.n_slices; s = s + 1u) {
+        let a = v.slice_axis[s];
+        if (md[a] == 0.0) {
+            continue;
+        }
+        let idx = v.slice_index[s];
+        let t = (idx - v.c[a]) / md[a];
+        if (!(t >= t0 && t < t1)) {
+            continue;
+        }
+        var q = v.c + t * md;
+        q[a] = idx;
+        var inside = true;
+        for (var k = 0u; k < 3u; k = k + 1u) {
+            if (k != a && !(q[k] >= -0.5 && q[k] < v.hi[k])) {
+                inside = false;
+            }
+        }
+        if (!inside) {
+            continue;
+        }
+        var cur = new_cursor();
+        locate_page(vi, &cur, t, q, md, false);
+        if (cur.transparent) {
+            continue;
+        }
+        let value = sample_at(vi, &cur, q);
+        if (is_nan(value)) {
+            continue;
+        }
+        let x = clamp(value * v.tf_scale + v.tf_offset, 0.0, v.tf_last);
+        let i = min(u32(x), TF_SIZE - 2u);
+        let f = x - f32(i);
+        let ca = tf[v.straight_base + i];
+        let cb = tf[v.straight_base + i + 1u];
+        let c = ca + f * (cb - ca);
+        let o = v.slice_opacity[s];
+        push_hit(t, vec4<f32>(c.xyz * o, o));
+    }
+}
+
 fn h_level_at(hi: u32, t: f32) -> u32 {
     var l = 0u;
     loop {
@@ -1092,10 +1151,17 @@ fn cast_rays(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
                 curs[i] = new_cursor();
             }
             var nh = 0u;
-            if (HORIZONS) {
+            if (HORIZONS || SLICES) {
                 n_hits = 0u;
-                for (var h = 0u; h < F.n_hors; h = h + 1u) {
-                    intersect_horizon(h, d, tt.x, tt.y);
+                if (HORIZONS) {
+                    for (var h = 0u; h < F.n_hors; h = h + 1u) {
+                        intersect_horizon(h, d, tt.x, tt.y);
+                    }
+                }
+                if (SLICES) {
+                    for (var i = 0u; i < F.n_vols; i = i + 1u) {
+                        slice_hits(i, mds[i], tt.x, tt.y);
+                    }
                 }
                 nh = n_hits;
             }
@@ -1104,7 +1170,7 @@ fn cast_rays(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
             var next = 0u;
             loop {
                 var next_hit = BIG;
-                if (HORIZONS && next < nh) {
+                if ((HORIZONS || SLICES) && next < nh) {
                     next_hit = hit_t[next];
                 }
                 let seg_end = min(next_hit, tt.y);
@@ -1123,7 +1189,7 @@ fn cast_rays(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
                     cur_t = seg_end;
                 }
                 if (ray.done) { break; }
-                if (HORIZONS && next < nh && next_hit < tt.y && seg_end >= next_hit) {
+                if ((HORIZONS || SLICES) && next < nh && next_hit < tt.y && seg_end >= next_hit) {
                     ray.acc = blend(ray.acc, hit_c[next]);
                     ray.hits = ray.hits + 1u;
                     next = next + 1u;

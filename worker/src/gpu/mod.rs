@@ -11,8 +11,8 @@
 //! * the page tables ([`GpuCaster::sync_table`]): only the runs of entries that changed
 //!   since the last frame are written;
 //! * newly resident horizon tiles ([`GpuCaster::write_horizon_page`]) into the horizon pool;
-//! * per frame, the [`FrameParams`], [`VolumeParams`] and [`HorizonParams`] of
-//!   `strata_common::gpu`, and the horizons' tile bounds.
+//! * per frame, the [`FrameParams`], [`VolumeParams`] (with the volume's slices) and
+//!   [`HorizonParams`] of `strata_common::gpu`, and the horizons' tile bounds.
 //!
 //! [`GpuCaster::cast`] returns the region's pixels, the compacted feedback
 //! (`(global page-table entry, rays)` pairs, no per-pixel buffer crosses the bus) and the
@@ -128,7 +128,7 @@ pub struct GpuCaster {
     module: wgpu::ShaderModule,
     /// Cast pipelines by effect set (shading, several volumes, horizons), pool width and
     /// filter (texture unit or shader).
-    pipelines: HashMap<(bool, bool, bool, u32, bool), wgpu::ComputePipeline>,
+    pipelines: HashMap<(bool, bool, bool, bool, u32, bool), wgpu::ComputePipeline>,
     compact: wgpu::ComputePipeline,
     frame: wgpu::Buffer,
     vols: wgpu::Buffer,
@@ -710,9 +710,10 @@ impl GpuCaster {
         shading: bool,
         multi: bool,
         horizons: bool,
+        slices: bool,
     ) -> Result<wgpu::ComputePipeline> {
         let hw = self.tex.is_some();
-        let key = (shading, multi, horizons, self.pool_bits, hw);
+        let key = (shading, multi, horizons, slices, self.pool_bits, hw);
         if let Some(p) = self.pipelines.get(&key) {
             return Ok(p.clone());
         }
@@ -724,6 +725,7 @@ impl GpuCaster {
                 ("HORIZONS", if horizons { 1.0 } else { 0.0 }),
                 ("POOL_BITS", self.pool_bits as f64),
                 ("HW_FILTER", if hw { 1.0 } else { 0.0 }),
+                ("SLICES", if slices { 1.0 } else { 0.0 }),
             ];
             device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some("cast"),
@@ -772,7 +774,8 @@ impl GpuCaster {
             g.ensure(&self.device, 16);
         }
         let px = frame.rect_w as u64 * frame.rect_h as u64;
-        let pipeline = self.pipeline(shading, vols.len() > 1, !hors.is_empty())?;
+        let slices = vols.iter().any(|v| v.n_slices > 0);
+        let pipeline = self.pipeline(shading, vols.len() > 1, !hors.is_empty(), slices)?;
         let out_bytes = px * 16;
         let clock = Instant::now();
         let device = &self.device;
