@@ -110,6 +110,8 @@ fn main() -> Result<()> {
             &format!("cluster.idle_timeout_s={}", cli.idle_timeout),
         ])
         .env("RUST_LOG", "info")
+        // Plain log lines (tracing honours NO_COLOR), so pids parse without escapes.
+        .env("NO_COLOR", "1")
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
         .spawn()?;
@@ -120,7 +122,7 @@ fn main() -> Result<()> {
         let stderr = child.stderr.take().unwrap();
         std::thread::spawn(move || {
             for l in BufReader::new(stderr).lines().map_while(Result::ok) {
-                let plain: String = strip_ansi(&l);
+                let plain = &l;
                 if plain.contains("worker joined") {
                     if let Some(pid) = plain
                         .split("pid=")
@@ -254,20 +256,6 @@ fn main() -> Result<()> {
         cli.frames
     );
     Ok(())
-}
-
-fn strip_ansi(s: &str) -> String {
-    let mut out = String::new();
-    let mut esc = false;
-    for c in s.chars() {
-        match (esc, c) {
-            (false, '\u{1b}') => esc = true,
-            (true, 'm') => esc = false,
-            (true, _) => {}
-            (false, c) => out.push(c),
-        }
-    }
-    out
 }
 
 fn read_exr(p: &Path) -> Result<Vec<[f32; 4]>> {

@@ -7,7 +7,10 @@
 //! Every wait is bounded: workers must connect within `cluster.connect_timeout_s`, a frame
 //! must finish within `cluster.frame_timeout_s`, and a vanished worker is noticed by its
 //! process exiting (local mode) or by its connection's idle timeout, whichever comes
-//! first. Errors name the worker: rank, name, pid and address.
+//! first. Errors name the worker: rank, name, pid and address. With
+//! `cluster.on_worker_loss = "reassign"` (the default) a lost worker is given up, the scene
+//! re-split over the workers left and the frame rendered again (`Cluster::frame`). Pairs of
+//! processes on one host exchange through shared memory (`cluster.transport`).
 
 use crate::decompose;
 use anyhow::{anyhow, bail, Context, Result};
@@ -552,35 +555,17 @@ impl Cluster {
             .collect();
         let token = secret::random_bytes::<32>();
         let scene_toml = scene.to_toml();
-        let shm = self.plan_transport()?;
-        let own_host = strata_net::shm::host_id();
-        let gather: Vec<bool> = self
-            .workers
-            .iter()
-            .map(|w| {
-                self.opts.transport != Transport::Quic && own_host.is_some() && w.host == own_host
-            })
-            .collect();
-        if self.opts.transport == Transport::Shm {
-            if let Some(w) = self.workers.iter().find(|w| !gather[w.rank as usize]) {
-                bail!(
-                    "cluster.transport = \"shm\" needs every process on one host, but {} does not share this coordinator's shared memory",
-                    w.describe()
-                );
-            }
-        }
+        let (shm, gather) = self.plan_transport()?;
         let n = self.workers.len();
+        let shm_pairs = (0..n)
+            .map(|a| (a + 1..n).filter(|&b| shm[a][b]).count())
+            .sum();
+        let shm_gather = gather.iter().filter(|&&g| g).count();
         self.transport = TransportReport {
-            shm_pairs: (0..n)
-                .flat_map(|a| (a + 1..n).map(move |b| (a, b)))
-                .filter(|&(a, b)| shm[a][b])
-                .count(),
-            quic_pairs: (0..n)
-                .flat_map(|a| (a + 1..n).map(move |b| (a, b)))
-                .filter(|&(a, b)| !shm[a][b])
-                .count(),
-            shm_gather: gather.iter().filter(|&&g| g).count(),
-            quic_gather: gather.iter().filter(|&&g| !g).count(),
+            shm_pairs,
+            quic_pairs: n * n.saturating_sub(1) / 2 - shm_pairs,
+            shm_gather,
+            quic_gather: n - shm_gather,
         };
         info!(transport = %self.transport.describe(), "transports chosen");
         for w in &mut self.workers {
@@ -692,30 +677,30 @@ impl Cluster {
         }
     }
 
-    /// Per pair of workers (by rank): whether they exchange through shared memory. Both
-    /// must report the same host id and `cluster.transport` must not be `quic`; with
-    /// `shm`, every pair must qualify.
-    fn plan_transport(&self) -> Result<Vec<Vec<bool>>> {
+    /// Which links go through shared memory: per pair of workers (by rank), and per worker
+    /// for the gather into this coordinator. Two processes share memory when they report
+    /// the same host id; `cluster.transport = "quic"` uses none, `"shm"` requires all.
+    fn plan_transport(&self) -> Result<(Vec<Vec<bool>>, Vec<bool>)> {
         let n = self.workers.len();
-        let mut shm = vec![vec![false; n]; n];
-        if self.opts.transport == Transport::Quic {
-            return Ok(shm);
-        }
-        for a in 0..n {
-            for b in 0..n {
-                let (wa, wb) = (&self.workers[a], &self.workers[b]);
-                let same = a != b && wa.host.is_some() && wa.host == wb.host;
-                if a != b && !same && self.opts.transport == Transport::Shm {
-                    bail!(
-                        "cluster.transport = \"shm\" needs every process on one host, but {} and {} do not share memory",
-                        wa.describe(),
-                        wb.describe()
-                    );
-                }
-                shm[a][b] = same;
+        let own = strata_net::shm::host_id();
+        let shares = |a: &Option<String>, b: &Option<String>| {
+            self.opts.transport != Transport::Quic && a.is_some() && a == b
+        };
+        let mut pairs = vec![vec![false; n]; n];
+        let mut gather = vec![false; n];
+        for (a, wa) in self.workers.iter().enumerate() {
+            gather[a] = shares(&wa.host, &own);
+            if self.opts.transport == Transport::Shm && !gather[a] {
+                bail!(
+                    "cluster.transport = \"shm\" needs every process on one host, but {} does not share this coordinator's shared memory",
+                    wa.describe()
+                );
+            }
+            for (b, wb) in self.workers.iter().enumerate() {
+                pairs[a][b] = a != b && shares(&wa.host, &wb.host);
             }
         }
-        Ok(shm)
+        Ok((pairs, gather))
     }
 
     /// The transports chosen at set-up.

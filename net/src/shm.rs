@@ -266,20 +266,6 @@ impl ShmReader {
         Ok(ShmReader { file, path: shown })
     }
 
-    /// Reads the record at `at`, checking its header against the announced frame, round
-    /// and sender position, and its length against `limit` and the segment's end.
-    pub fn read(
-        &mut self,
-        at: ShmRef,
-        limit: u64,
-        frame: u64,
-        round: u32,
-        from: u32,
-    ) -> Result<Vec<u8>, ShmError> {
-        let mut rec = self.record(at, limit, frame, round, from)?;
-        rec.read(0, at.len)
-    }
-
     /// Reads the image piece in the record at `at` (checked as [`record`](Self::record)
     /// does, then as [`SparsePiece::parse`] does, with spans up to `max_pixels`): header
     /// and run lengths first, then the pixel data straight into the piece's own buffer,
@@ -425,6 +411,20 @@ impl ShmRecord<'_> {
 mod tests {
     use super::*;
 
+    /// A whole record, checked.
+    fn read(
+        r: &mut ShmReader,
+        at: ShmRef,
+        limit: u64,
+        frame: u64,
+        round: u32,
+        from: u32,
+    ) -> Result<Vec<u8>, ShmError> {
+        let mut rec = r.record(at, limit, frame, round, from)?;
+        let n = rec.len();
+        rec.read(0, n)
+    }
+
     fn pair(dir: &Path) -> (ShmWriter, ShmReader) {
         let w = ShmWriter::create_in(dir).unwrap();
         let r = ShmReader::open_in(dir, w.name()).unwrap();
@@ -443,16 +443,16 @@ mod tests {
         let b = w.write(3, 1, 1, &[7u8; 1000]).unwrap();
         assert_eq!(a.offset, 0);
         assert_eq!(b.offset % ALIGN, 0);
-        assert_eq!(r.read(a, 1 << 20, 3, 0, 1).unwrap(), b"hello");
-        assert_eq!(r.read(b, 1 << 20, 3, 1, 1).unwrap(), vec![7u8; 1000]);
+        assert_eq!(read(&mut r, a, 1 << 20, 3, 0, 1).unwrap(), b"hello");
+        assert_eq!(read(&mut r, b, 1 << 20, 3, 1, 1).unwrap(), vec![7u8; 1000]);
         // The next frame reuses the segment from its start.
         w.reset();
         let c = w.write(4, 0, 1, b"again").unwrap();
         assert_eq!(c.offset, 0);
-        assert_eq!(r.read(c, 1 << 20, 4, 0, 1).unwrap(), b"again");
+        assert_eq!(read(&mut r, c, 1 << 20, 4, 0, 1).unwrap(), b"again");
         // The old record's announcement no longer matches what lies there.
         assert!(matches!(
-            r.read(a, 1 << 20, 3, 0, 1),
+            read(&mut r, a, 1 << 20, 3, 0, 1),
             Err(ShmError::Header { .. })
         ));
     }
@@ -463,23 +463,21 @@ mod tests {
         let (mut w, mut r) = pair(dir.path());
         let a = w.write(1, 0, 0, &[1u8; 100]).unwrap();
         let long = ShmRef { len: 101, ..a };
-        let e = r.read(long, 1 << 20, 1, 0, 0).unwrap_err();
+        let e = read(&mut r, long, 1 << 20, 1, 0, 0).unwrap_err();
         assert!(matches!(e, ShmError::PastEnd { .. }), "{e}");
         let huge = ShmRef {
             offset: u64::MAX - 8,
             len: 100,
         };
         assert!(matches!(
-            r.read(huge, 1 << 20, 1, 0, 0),
+            read(&mut r, huge, 1 << 20, 1, 0, 0),
             Err(ShmError::PastEnd { .. })
         ));
-        let e = r
-            .read(ShmRef { len: u64::MAX, ..a }, 1 << 20, 1, 0, 0)
-            .unwrap_err();
+        let e = read(&mut r, ShmRef { len: u64::MAX, ..a }, 1 << 20, 1, 0, 0).unwrap_err();
         assert!(matches!(e, ShmError::TooLarge { .. }), "{e}");
         // A segment truncated under the reader: a clear error, no SIGBUS.
         w.file.set_len(50).unwrap();
-        let e = r.read(a, 1 << 20, 1, 0, 0).unwrap_err();
+        let e = read(&mut r, a, 1 << 20, 1, 0, 0).unwrap_err();
         assert!(e.to_string().contains("past the segment's end"), "{e}");
     }
 
@@ -538,13 +536,13 @@ mod tests {
         // Another sender position, round or frame than announced.
         for (f, round, from) in [(2, 0, 0), (1, 1, 0), (1, 0, 1)] {
             assert!(matches!(
-                r.read(a, 1 << 20, f, round, from),
+                read(&mut r, a, 1 << 20, f, round, from),
                 Err(ShmError::Header { .. })
             ));
         }
         // A header overwritten with garbage.
         w.file.write_all_at(&[0xAB; 32], 0).unwrap();
-        let e = r.read(a, 1 << 20, 1, 0, 0).unwrap_err();
+        let e = read(&mut r, a, 1 << 20, 1, 0, 0).unwrap_err();
         assert!(e.to_string().contains("magic"), "{e}");
     }
 

@@ -4,9 +4,13 @@
 //! One QUIC endpoint serves everything: its client side dials the coordinator and the
 //! higher-ranked peers, its server side accepts the lower-ranked peers. The coordinator
 //! sees the endpoint's address on the worker's connection and hands it to the peers, so
-//! no port has to be configured. Every wait has a deadline; a peer or coordinator that
-//! vanishes is detected by the QUIC idle timeout (keep-alives run underneath) and turns
-//! into an error that names it.
+//! no port has to be configured. Peers pin each other's certificates. Pieces to a peer on
+//! the same host go through a shared-memory segment (`strata_net::shm`), announced over
+//! QUIC; others travel inline on QUIC streams. The exchange itself is the sans-IO
+//! `strata_common::composite::Exchange`; this module only moves its pieces and the time.
+//! Every wait has a deadline; a peer or coordinator that vanishes is detected by the QUIC
+//! idle timeout (keep-alives run underneath), or by the coordinator's `PeerLost`, and
+//! turns into an error that names it and blames it (`WorkerMsg::Failed::suspects`).
 
 use crate::engine::{Engine, Outcome};
 use anyhow::{anyhow, bail, Context, Result};

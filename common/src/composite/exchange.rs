@@ -249,7 +249,7 @@ impl Exchange {
         }
     }
 
-    /// The frame in progress and the latest frame started.
+    /// The frame in progress, if any.
     pub fn current_frame(&self) -> Option<u64> {
         self.active.as_ref().map(|a| a.frame)
     }
