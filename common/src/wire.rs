@@ -318,6 +318,10 @@ pub struct ShmRef {
     pub len: u64,
 }
 
+/// The round field of a final piece's record in a gather segment (the sender field holds
+/// the worker's rank), so writer and reader agree on it.
+pub const GATHER_ROUND: u32 = u32::MAX;
+
 /// Size of the header in front of every record in a shared-memory segment.
 pub const SHM_RECORD_HEADER: usize = 32;
 /// Magic of a shared-memory record.

@@ -964,7 +964,7 @@ impl Cluster {
                                             at,
                                             limit,
                                             frame,
-                                            GATHER_ROUND,
+                                            wire::GATHER_ROUND,
                                             rank,
                                             width * height,
                                         )
@@ -1239,10 +1239,6 @@ fn spawn_reader(
         }
     });
 }
-
-/// The round number of a final piece's record in a gather segment (the worker's rank is
-/// the sender field).
-const GATHER_ROUND: u32 = u32::MAX;
 
 fn describe_status(s: std::process::ExitStatus) -> String {
     use std::os::unix::process::ExitStatusExt;

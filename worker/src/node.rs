@@ -231,7 +231,7 @@ async fn node(opts: NodeOptions) -> Result<()> {
                             tokio::task::block_in_place(|| {
                                 let parts = piece.wire_parts();
                                 let refs: Vec<&[u8]> = parts.iter().map(|p| &**p).collect();
-                                w.write_parts(frame, GATHER_ROUND, rank, &refs)
+                                w.write_parts(frame, wire::GATHER_ROUND, rank, &refs)
                             })
                             .map_err(|e| warn!(frame, "final piece over QUIC instead: {e}"))
                             .ok()
@@ -670,9 +670,6 @@ fn test_fault(rank: u32, frame: u64, phase: &str) {
 
 /// Parsed pieces and losses queued between the peer readers and the frame loop.
 const PEER_EVENTS: usize = 64;
-
-/// The round number of a final piece's record in the gather segment.
-const GATHER_ROUND: u32 = u32::MAX;
 
 impl Node {
     /// Renders (or draws) this worker's image and runs its part of the exchange; returns
