@@ -47,6 +47,20 @@ struct Cli {
     /// Only the CPU-against-GPU backend comparison.
     #[arg(long)]
     only_backends: bool,
+    /// Only the CPU caster's paths (issue 14): bonsai and demo frames on 1 and 2 threads
+    /// with macrocells and compact slots on and off.
+    #[arg(long)]
+    only_caster: bool,
+    /// Threads for `--only-caster` (each a separate rayon pool).
+    #[arg(long, value_delimiter = ',', default_values_t = [1usize, 2])]
+    threads: Vec<usize>,
+    /// `--only-caster`: only the tables whose title contains this, and only the paths whose
+    /// label contains `--path-filter`.
+    #[arg(long, default_value = "")]
+    case: String,
+    /// See `--case`.
+    #[arg(long, default_value = "")]
+    path_filter: String,
     /// The bonsai raw file.
     #[arg(long)]
     bonsai: Option<PathBuf>,
@@ -75,7 +89,7 @@ fn bonsai_store(cli: &Cli) -> Result<PathBuf> {
 
 /// ParaView's baseline setup: viridis over [0, 255], opacity 0 up to 10 % then to 0.5,
 /// camera at centre + 1.8 × diagonal along (1, 0.6, 0.8), up +z, 30°.
-fn bonsai_scene(store: &Path, w: u32, h: u32) -> Scene {
+pub(crate) fn bonsai_scene(store: &Path, w: u32, h: u32) -> Scene {
     let c = 127.5;
     let diag = (3.0f64).sqrt() * 255.0;
     let d = [1.0, 0.6, 0.8];
@@ -108,15 +122,21 @@ fn bonsai_scene(store: &Path, w: u32, h: u32) -> Scene {
     }
 }
 
-struct Timed {
-    median: f64,
-    samples: u64,
-    rays: u64,
-    image: Vec<Rgba>,
+mod caster;
+use caster::CasterArgs;
+
+pub(crate) struct Timed {
+    pub(crate) median: f64,
+    pub(crate) samples: u64,
+    pub(crate) skipped: u64,
+    pub(crate) rays: u64,
+    /// Bytes per voxel of the CPU atlas slots (0 on the GPU).
+    pub(crate) bytes_per_voxel: usize,
+    pub(crate) image: Vec<Rgba>,
 }
 
 /// Converges once (batch), then times `frames` frames with everything resident.
-fn time_scene(scene: &Scene, frames: usize) -> Result<Timed> {
+pub(crate) fn time_scene(scene: &Scene, frames: usize) -> Result<Timed> {
     let mut e = Engine::new(scene)?;
     let view = e.view(scene.render.width, scene.render.height)?;
     let region = e.scene_region();
@@ -133,12 +153,14 @@ fn time_scene(scene: &Scene, frames: usize) -> Result<Timed> {
     Ok(Timed {
         median: times[times.len() / 2],
         samples: f.stats.samples,
+        skipped: f.stats.skipped,
         rays: f.stats.rays,
+        bytes_per_voxel: e.cpu_atlas_bytes_per_voxel().unwrap_or(0),
         image: f.image.to_full(),
     })
 }
 
-fn rmse(a: &[Rgba], b: &[Rgba]) -> (f64, f64) {
+pub(crate) fn rmse(a: &[Rgba], b: &[Rgba]) -> (f64, f64) {
     let mut s = 0.0f64;
     let mut m = 0.0f64;
     for (p, q) in a.iter().zip(b) {
@@ -395,12 +417,25 @@ fn survey(cli: &Cli) -> Result<()> {
 
 fn main() -> Result<()> {
     let cli = Cli::parse();
+    // As the worker and coordinator binaries do: freed frame buffers stay in the heap.
+    strata_worker::node::retain_freed_memory();
     std::fs::create_dir_all(&cli.dir)?;
     println!(
         "bench-render, {} threads",
         std::thread::available_parallelism().map_or(1, |n| n.get())
     );
     println!();
+    if cli.only_caster {
+        caster::run(&CasterArgs {
+            bonsai: bonsai_store(&cli)?,
+            frames: cli.frames,
+            threads: cli.threads.clone(),
+            case: cli.case.clone(),
+            path_filter: cli.path_filter.clone(),
+        })?;
+        println!("peak RSS {:.0} MiB", peak_rss_mib());
+        return Ok(());
+    }
     if !cli.only_survey && !cli.only_backends {
         bonsai(&cli)?;
     }

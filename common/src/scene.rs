@@ -369,6 +369,16 @@ pub struct RenderSettings {
     /// Skip bricks whose value range maps to zero opacity.
     #[serde(default = "yes")]
     pub empty_space_skipping: bool,
+    /// With empty-space skipping, the CPU caster also skips 8³-sample macrocells inside a
+    /// brick whose value range maps to zero opacity (ranges computed as a page enters the
+    /// atlas). The image is the same either way.
+    #[serde(default = "yes")]
+    pub macrocells: bool,
+    /// The CPU caster's atlas keeps volume samples in the data's own type (`u8`, `i8`, `u16`,
+    /// `i16`) when every volume shares one and none has a no-data value, instead of `f32`:
+    /// a quarter of the memory for 8-bit data, and the same image.
+    #[serde(default = "yes")]
+    pub compact_slots: bool,
     /// Gradient (Blinn-Phong headlight) shading of volumes.
     #[serde(default)]
     pub volume_shading: bool,
@@ -468,6 +478,8 @@ impl Default for RenderSettings {
             adaptive_step: true,
             early_termination: default_ert(),
             empty_space_skipping: true,
+            macrocells: true,
+            compact_slots: true,
             volume_shading: false,
             lighting: true,
             atlas_mb: default_atlas(),

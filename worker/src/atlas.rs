@@ -4,7 +4,10 @@
 //! [`strata_common::gpu`], so the CPU caster and the wgpu backend read one layout:
 //!
 //! * the **pool**: `slots × page_samples` samples (x fastest, border included). The CPU
-//!   backend keeps them as f32 in host memory; the GPU backend keeps only the bookkeeping
+//!   backend keeps them in host memory, in the volume's own sample type when every volume
+//!   of the scene shares one and none has a no-data value (`render.compact_slots`; a `u8`
+//!   volume then takes one byte per voxel), else as f32, with the value ranges of the
+//!   slots' macrocells ([`crate::macrocell`]); the GPU backend keeps only the bookkeeping
 //!   here ([`Pool::bookkeeping`]) and the samples on the device, slot for slot, in the
 //!   data's own width (`strata_common::gpu::PoolFormat`: a storage buffer, or a 3D texture
 //!   for `render.gpu_filter = "hardware"`);
@@ -18,9 +21,11 @@
 //!
 //! One pool holds volume bricks and another horizon tiles, each with its own budget.
 
+use crate::macrocell::MacroCells;
 use std::collections::{HashMap, HashSet};
 use strata_common::ids::PageId;
 use strata_common::pyramid::Pyramid;
+use strata_common::sample::SampleType;
 
 pub use strata_common::gpu::{LevelInfo, SlotInfo, MAX_SLOTS, NOT_RESIDENT, SLOT_MASK};
 
@@ -88,13 +93,162 @@ impl PageTable {
     }
 }
 
+/// A sample type a CPU pool can hold: its value is the `f32` the decoded page holds, exactly.
+pub trait Voxel: Copy + Send + Sync + 'static {
+    /// The element for a decoded value (an integer of the type's range, or any f32).
+    fn from_value(v: f32) -> Self;
+    /// The decoded value.
+    fn value(self) -> f32;
+}
+
+macro_rules! int_voxel {
+    ($($t:ty),*) => {$(
+        impl Voxel for $t {
+            #[inline(always)]
+            fn from_value(v: f32) -> Self {
+                v as $t
+            }
+            #[inline(always)]
+            fn value(self) -> f32 {
+                self as f32
+            }
+        }
+    )*};
+}
+int_voxel!(u8, i8, u16, i16);
+
+impl Voxel for f32 {
+    #[inline(always)]
+    fn from_value(v: f32) -> Self {
+        v
+    }
+    #[inline(always)]
+    fn value(self) -> f32 {
+        self
+    }
+}
+
+/// The samples of a CPU pool, in one element type.
+#[derive(Debug)]
+pub enum SlotData {
+    /// Decoded `f32` (any volume; NaN = no data).
+    F32(Vec<f32>),
+    /// `u8` volumes.
+    U8(Vec<u8>),
+    /// `i8` volumes.
+    I8(Vec<i8>),
+    /// `u16` volumes.
+    U16(Vec<u16>),
+    /// `i16` volumes.
+    I16(Vec<i16>),
+}
+
+/// A borrowed [`SlotData`].
+#[derive(Copy, Clone, Debug)]
+pub enum Samples<'a> {
+    /// See [`SlotData::F32`].
+    F32(&'a [f32]),
+    /// See [`SlotData::U8`].
+    U8(&'a [u8]),
+    /// See [`SlotData::I8`].
+    I8(&'a [i8]),
+    /// See [`SlotData::U16`].
+    U16(&'a [u16]),
+    /// See [`SlotData::I16`].
+    I16(&'a [i16]),
+}
+
+impl SlotData {
+    fn zeroed(t: SampleType, n: usize) -> Self {
+        match t {
+            SampleType::U8 => SlotData::U8(vec![0; n]),
+            SampleType::I8 => SlotData::I8(vec![0; n]),
+            SampleType::U16 => SlotData::U16(vec![0; n]),
+            SampleType::I16 => SlotData::I16(vec![0; n]),
+            SampleType::F32 => SlotData::F32(vec![0.0; n]),
+        }
+    }
+
+    fn len(&self) -> usize {
+        self.borrow().len()
+    }
+
+    /// The borrowed form.
+    pub fn borrow(&self) -> Samples<'_> {
+        match self {
+            SlotData::F32(d) => Samples::F32(d),
+            SlotData::U8(d) => Samples::U8(d),
+            SlotData::I8(d) => Samples::I8(d),
+            SlotData::U16(d) => Samples::U16(d),
+            SlotData::I16(d) => Samples::I16(d),
+        }
+    }
+
+    fn write(&mut self, o: usize, samples: &[f32]) {
+        fn put<T: Voxel>(d: &mut [T], src: &[f32]) {
+            for (e, &v) in d.iter_mut().zip(src) {
+                *e = T::from_value(v);
+            }
+        }
+        let n = samples.len();
+        match self {
+            SlotData::F32(d) => d[o..o + n].copy_from_slice(samples),
+            SlotData::U8(d) => put(&mut d[o..o + n], samples),
+            SlotData::I8(d) => put(&mut d[o..o + n], samples),
+            SlotData::U16(d) => put(&mut d[o..o + n], samples),
+            SlotData::I16(d) => put(&mut d[o..o + n], samples),
+        }
+    }
+}
+
+impl<'a> Samples<'a> {
+    /// Elements.
+    pub fn len(&self) -> usize {
+        match self {
+            Samples::F32(d) => d.len(),
+            Samples::U8(d) => d.len(),
+            Samples::I8(d) => d.len(),
+            Samples::U16(d) => d.len(),
+            Samples::I16(d) => d.len(),
+        }
+    }
+
+    /// Whether there are no elements (a bookkeeping-only pool).
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Element `i` as its decoded value.
+    #[inline]
+    pub fn value(&self, i: usize) -> f32 {
+        match self {
+            Samples::F32(d) => d[i],
+            Samples::U8(d) => d[i].value(),
+            Samples::I8(d) => d[i].value(),
+            Samples::U16(d) => d[i].value(),
+            Samples::I16(d) => d[i].value(),
+        }
+    }
+
+    /// Bytes per element.
+    pub fn elem_bytes(&self) -> usize {
+        match self {
+            Samples::F32(_) => 4,
+            Samples::U8(_) | Samples::I8(_) => 1,
+            Samples::U16(_) | Samples::I16(_) => 2,
+        }
+    }
+}
+
 /// A pool of page slots.
 #[derive(Debug)]
 pub struct Pool {
     /// Samples per page (border included).
     pub page_samples: usize,
     /// `slots × page_samples` samples (empty for a bookkeeping-only pool).
-    pub data: Vec<f32>,
+    data: SlotData,
+    /// Value ranges and visibility of the slots' macrocells (volume pools on the CPU).
+    cells: Option<MacroCells>,
     /// Slot records.
     pub slots: Vec<SlotInfo>,
     map: HashMap<u64, u32>,
@@ -109,17 +263,39 @@ pub enum PlaceError {
 }
 
 impl Pool {
-    /// A pool of `budget_bytes / page bytes` slots (at least one).
+    /// A pool of f32 samples: `budget_bytes / page bytes` slots (at least one).
     pub fn new(page_samples: usize, budget_bytes: u64) -> Self {
-        let n = Self::slots_for(page_samples, budget_bytes);
+        Self::typed(page_samples, budget_bytes, SampleType::F32)
+    }
+
+    /// A pool whose slots hold samples of type `t` (the decoded values must be integers of
+    /// that type's range, or NaN-free for integer types): as many slots as `budget_bytes`
+    /// holds at that width.
+    pub fn typed(page_samples: usize, budget_bytes: u64, t: SampleType) -> Self {
+        let n = Self::slots_of(page_samples, budget_bytes, t.size());
         let mut p = Self::bookkeeping(page_samples, n);
-        p.data = vec![0.0; n * page_samples];
+        p.data = SlotData::zeroed(t, n * page_samples);
         p
+    }
+
+    /// Adds macrocells for pages of `page`³ samples (`page³ = page_samples`).
+    pub fn with_cells(mut self, page: usize) -> Self {
+        assert_eq!(
+            page.pow(3),
+            self.page_samples,
+            "macrocells need cubic pages"
+        );
+        self.cells = Some(MacroCells::new(page, self.capacity()));
+        self
     }
 
     /// Slots of `page_samples` f32 samples that fit `budget_bytes` (at least one).
     pub fn slots_for(page_samples: usize, budget_bytes: u64) -> usize {
-        ((budget_bytes / (page_samples as u64 * 4)) as usize).clamp(1, MAX_SLOTS)
+        Self::slots_of(page_samples, budget_bytes, 4)
+    }
+
+    fn slots_of(page_samples: usize, budget_bytes: u64, elem: usize) -> usize {
+        ((budget_bytes / (page_samples as u64 * elem as u64)) as usize).clamp(1, MAX_SLOTS)
     }
 
     /// A pool of `slots` slots whose samples live elsewhere (in a GPU buffer): only the
@@ -128,7 +304,8 @@ impl Pool {
         let n = slots.clamp(1, MAX_SLOTS);
         Pool {
             page_samples,
-            data: Vec::new(),
+            data: SlotData::F32(Vec::new()),
+            cells: None,
             slots: vec![SlotInfo::free(); n],
             map: HashMap::new(),
             free: (0..n as u32).rev().collect(),
@@ -187,20 +364,55 @@ impl Pool {
                 victim
             }
         };
-        if !self.data.is_empty() {
-            let o = slot as usize * self.page_samples;
-            self.data[o..o + self.page_samples].copy_from_slice(samples);
+        if self.data.len() > 0 {
+            self.data.write(slot as usize * self.page_samples, samples);
+            if let Some(c) = self.cells.as_mut() {
+                c.compute(slot, |i| samples[i]);
+            }
         }
         self.slots[slot as usize] = SlotInfo::new(key, frame, pinned);
         self.map.insert(key, slot);
         Ok(slot)
     }
 
-    /// The samples of a slot.
+    /// The samples of a slot of an f32 pool (horizon tiles are always f32).
+    ///
+    /// Panics on a pool of another type: callers that read volume slots go through
+    /// [`samples`](Self::samples).
     #[inline(always)]
     pub fn slot_data(&self, slot: u32) -> &[f32] {
+        let SlotData::F32(d) = &self.data else {
+            panic!(
+                "slot_data on a {:?}-element pool",
+                self.samples().elem_bytes()
+            );
+        };
         let o = slot as usize * self.page_samples;
-        &self.data[o..o + self.page_samples]
+        &d[o..o + self.page_samples]
+    }
+
+    /// Every slot's samples (slot `s` starts at `s · page_samples`).
+    #[inline(always)]
+    pub fn samples(&self) -> Samples<'_> {
+        self.data.borrow()
+    }
+
+    /// The macrocells, if the pool keeps them.
+    pub fn cells(&self) -> Option<&MacroCells> {
+        self.cells.as_ref()
+    }
+
+    /// Classifies the macrocells of `slot` (see [`MacroCells::classify`]); nothing without
+    /// macrocells.
+    pub fn classify(&mut self, slot: u32, visible: impl Fn(f32, f32) -> bool) {
+        if let Some(c) = self.cells.as_mut() {
+            c.classify(slot, visible);
+        }
+    }
+
+    /// Bytes of sample storage per slot.
+    pub fn slot_bytes(&self) -> usize {
+        self.page_samples * self.samples().elem_bytes()
     }
 
     /// Resident pages of one data set, as a lookup for [`PageTable::rebuild`].

@@ -16,6 +16,7 @@ use strata_common::camera::{default_camera, View};
 use strata_common::geo::Affine3;
 use strata_common::image::{PartialImage, Rect};
 use strata_common::kd::Region;
+use strata_common::sample::SampleType;
 use strata_common::scene::{Backend, Camera, RenderSettings, Scene};
 
 /// How long a batch round waits for its page loads before failing.
@@ -192,6 +193,23 @@ fn open_backend(s: &RenderSettings, data: &SceneData) -> Result<Option<GpuBacken
     }
 }
 
+/// The element type of the CPU caster's volume slots: the volumes' own sample type when
+/// `render.compact_slots` is on, they all share one and none has a no-data value (the NaN of
+/// a decoded page has no integer to go to), else f32.
+fn cpu_slot_type(s: &RenderSettings, data: &SceneData) -> SampleType {
+    let first = data.volumes[0].store.header().sample_type;
+    let compact = s.compact_slots
+        && data.volumes.iter().all(|v| {
+            let h = v.store.header();
+            h.sample_type == first && h.no_data.is_none()
+        });
+    if compact {
+        first
+    } else {
+        SampleType::F32
+    }
+}
+
 fn rows_f32(a: &Affine3) -> ([[f32; 3]; 3], [f32; 3]) {
     let m = [0, 1, 2].map(|r| [0, 1, 2].map(|c| a.rows[r][c] as f32));
     let c = [0, 1, 2].map(|r| a.rows[r][3] as f32);
@@ -249,7 +267,22 @@ impl Engine {
         let mut gpu = open_backend(&s, &data)?;
         let vpool = match (vps, gpu.as_mut()) {
             (None, _) => None,
-            (Some(n), None) => Some(Pool::new(n, s.atlas_mb << 20)),
+            (Some(n), None) => {
+                let t = cpu_slot_type(&s, &data);
+                let page = data.volumes[0].pyramid.page() as usize;
+                let pool = Pool::typed(n, s.atlas_mb << 20, t);
+                tracing::debug!(
+                    slot_type = ?t,
+                    slots = pool.capacity(),
+                    macrocells = s.macrocells && s.empty_space_skipping,
+                    "CPU volume atlas"
+                );
+                Some(if s.macrocells && s.empty_space_skipping {
+                    pool.with_cells(page)
+                } else {
+                    pool
+                })
+            }
             (Some(n), Some(g)) => {
                 // The samples live in one device buffer in their own width (8-bit data takes
                 // a byte per sample): as many slots as the budget and the adapter's largest
@@ -315,16 +348,40 @@ impl Engine {
             let top = p.level_count() - 1;
             let key = p.id(top, [0, 0, 0]).with_dataset(ds).0;
             let page = self.cache.load_now(key)?;
-            let pool = self.pool_mut(ds);
-            let slot = pool.place(key, &page, 0, true, &none).map_err(|_| {
+            self.place(ds, key, &page, 0, true, &none).map_err(|_| {
                 anyhow::anyhow!("the atlas has no slot for the root pages; raise render.atlas_mb")
             })?;
-            if let Some(g) = self.gpu.as_mut() {
-                g.write_page(ds, slot, &page);
-            }
         }
         self.rebuild_tables();
         Ok(())
+    }
+
+    /// Puts a page into its pool (and the GPU's copy); a volume page's macrocells are
+    /// classified against its volume's transfer function.
+    fn place(
+        &mut self,
+        ds: u16,
+        key: u64,
+        page: &[f32],
+        frame: u32,
+        pinned: bool,
+        keep: &HashSet<u64>,
+    ) -> Result<u32, PlaceError> {
+        let volume = self.is_volume(ds);
+        let pool = if volume {
+            self.vpool.as_mut().expect("volume pool")
+        } else {
+            self.hpool.as_mut().expect("horizon pool")
+        };
+        let slot = pool.place(key, page, frame, pinned, keep)?;
+        if volume {
+            let tf = &self.data.volumes[ds as usize].tf;
+            pool.classify(slot, |lo, hi| tf.max_alpha(lo, hi) > 0.0);
+        }
+        if let Some(g) = self.gpu.as_mut() {
+            g.write_page(ds, slot, page);
+        }
+        Ok(slot)
     }
 
     fn is_volume(&self, ds: u16) -> bool {
@@ -408,6 +465,13 @@ impl Engine {
         self.cache.stats()
     }
 
+    /// Bytes of the CPU volume atlas per voxel of a slot (1 for compact `u8` slots, 4 for
+    /// f32; `None` on the GPU backend or without volumes).
+    pub fn cpu_atlas_bytes_per_voxel(&self) -> Option<usize> {
+        let p = self.vpool.as_ref().filter(|_| self.gpu.is_none())?;
+        Some(p.slot_bytes() / p.page_samples)
+    }
+
     /// Atlas slots in use (volume pool, horizon pool).
     pub fn atlas_usage(&self) -> (usize, usize) {
         (
@@ -469,12 +533,16 @@ impl Engine {
             let vsize = (0..3).map(|k| col_len(&rel[i], k)).fold(0.0, f64::max);
             let nl = v.pyramid.level_count();
             let level_t = level_distances(vsize, nl, s.tau, pa);
-            let transparent = v
+            let transparent: Vec<bool> = v
                 .bounds
                 .iter()
                 .map(|&b| v.tf.page_transparent(b, s.empty_space_skipping))
                 .collect();
             let d = v.dims();
+            let pool = self.vpool.as_ref().unwrap();
+            let cells = pool
+                .cells()
+                .filter(|_| s.empty_space_skipping && s.macrocells);
             vols.push(VolFrame {
                 ds: v.ds,
                 m,
@@ -485,7 +553,11 @@ impl Engine {
                 border: v.pyramid.border() as f32,
                 page: v.pyramid.page() as usize,
                 table: &self.tables[v.ds as usize],
-                pool: self.vpool.as_ref().unwrap(),
+                pool,
+                samples: pool.samples(),
+                cells: cells.map(|c| c.visible()),
+                cells_per_axis: cells.map_or(0, |c| c.per_axis()),
+                invisible: s.empty_space_skipping && transparent.iter().all(|&t| t),
                 transparent,
                 tables: tf_tables_for(&exps, &v.tf),
                 pyramid: &v.pyramid,
@@ -652,13 +724,8 @@ impl Engine {
                 continue;
             };
             let ds = strata_common::ids::PageId(k).dataset();
-            match self.pool_mut(ds).place(k, &page, frame, false, &needed) {
-                Ok(slot) => {
-                    report.uploaded += 1;
-                    if let Some(g) = self.gpu.as_mut() {
-                        g.write_page(ds, slot, &page);
-                    }
-                }
+            match self.place(ds, k, &page, frame, false, &needed) {
+                Ok(_) => report.uploaded += 1,
                 Err(PlaceError::Full) => report.no_slot += 1,
             }
         }

@@ -64,6 +64,30 @@ pub struct Hit {
 /// this keeps the nearest ones).
 pub const MAX_HITS: usize = 32;
 
+/// `a.min(b)` for numbers that are not NaN, without `f32::min`'s NaN handling (one
+/// instruction instead of four on x86; equal results when neither is NaN).
+#[inline(always)]
+fn fmin(a: f32, b: f32) -> f32 {
+    if a < b {
+        a
+    } else {
+        b
+    }
+}
+
+/// `a.max(b)` for numbers that are not NaN (see [`fmin`]).
+#[inline(always)]
+fn fmax(a: f32, b: f32) -> f32 {
+    if a > b {
+        a
+    } else {
+        b
+    }
+}
+
+/// `[t0, t1]` of the ray `c + t·d` in the box `[lo, hi]` (empty when `t0 > t1`). The box
+/// and the ray are finite (bounds of tiles with no valid height are never tested).
+#[inline(always)]
 fn slab(c: [f32; 3], d: [f32; 3], lo: [f32; 3], hi: [f32; 3]) -> (f32, f32) {
     let mut t0 = f32::NEG_INFINITY;
     let mut t1 = f32::INFINITY;
@@ -75,8 +99,8 @@ fn slab(c: [f32; 3], d: [f32; 3], lo: [f32; 3], hi: [f32; 3]) -> (f32, f32) {
         } else {
             let ta = (lo[a] - c[a]) / d[a];
             let tb = (hi[a] - c[a]) / d[a];
-            t0 = t0.max(ta.min(tb));
-            t1 = t1.min(ta.max(tb));
+            t0 = fmax(t0, fmin(ta, tb));
+            t1 = fmin(t1, fmax(ta, tb));
         }
     }
     (t0, t1)
@@ -139,8 +163,9 @@ impl<'a> HorFrame<'a> {
     }
 
     /// All crossings of the ray `p(t) = t·d` with `t` in `[ta, tb)`, appended to `hits`
-    /// unsorted; requested tiles go to `feedback`. `stop_after` is the t beyond which
-    /// nothing is visible any more (an opaque hit already found).
+    /// unsorted; requested tiles go to `feedback`. Returns the `t` beyond which nothing is
+    /// visible any more: the nearest opaque crossing found, or `tb` (callers pass it on as
+    /// the next surface's `tb`, so a surface hidden behind an opaque one is not searched).
     pub fn intersect(
         &self,
         d: [f32; 3],
@@ -148,7 +173,7 @@ impl<'a> HorFrame<'a> {
         tb: f32,
         hits: &mut Vec<Hit>,
         feedback: &mut Vec<u64>,
-    ) {
+    ) -> f32 {
         let md = self.index_dir(d);
         let top = self.pyramid.level_count() - 1;
         let mut limit = tb;
@@ -159,6 +184,7 @@ impl<'a> HorFrame<'a> {
             hits[start..].sort_by(|a, b| a.t.total_cmp(&b.t));
             hits.truncate(start + MAX_HITS);
         }
+        limit
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -187,7 +213,7 @@ impl<'a> HorFrame<'a> {
         let lo = [flo[0] - s, flo[1] - s, zmin - eps];
         let hi = [fhi[0] + s, fhi[1] + s, zmax + eps];
         let (e0, e1) = slab(self.c, md, lo, hi);
-        if e0.max(ta) >= e1.min(*limit) || e1 < 0.0 {
+        if fmax(e0, ta) >= fmin(e1, *limit) || e1 < 0.0 {
             return;
         }
         // The LOD decision uses the unclipped entry, so it does not depend on the region.
@@ -197,22 +223,34 @@ impl<'a> HorFrame<'a> {
             self.leaf(level, b, d, md, ta, limit, hits);
             return;
         }
-        // Children front to back by their entry.
+        // Children front to back, ordered by where the ray crosses the two split lines
+        // (two divisions instead of a slab per child; the order only decides how soon an
+        // opaque crossing prunes the rest, never which crossings are found).
         let lb = &self.table.levels[level - 1].bricks;
+        let split = self.footprint(level - 1, [2 * b[0] + 1, 2 * b[1] + 1, 0]).0;
+        let cross = [0, 1].map(|a| {
+            if md[a] == 0.0 {
+                f32::INFINITY
+            } else {
+                (split[a] - self.c[a]) / md[a]
+            }
+        });
+        // The child on the far side of a split line is entered where the ray crosses it.
+        let key = |a: usize, half: u32| {
+            let far = if md[a] >= 0.0 { half == 1 } else { half == 0 };
+            if far {
+                cross[a]
+            } else {
+                f32::NEG_INFINITY
+            }
+        };
         let mut kids: [(f32, [u32; 3]); 4] = [(f32::INFINITY, [0; 3]); 4];
         let mut n = 0;
         for dy in 0..2 {
             for dx in 0..2 {
                 let cb = [2 * b[0] + dx, 2 * b[1] + dy, 0];
                 if cb[0] < lb[0] && cb[1] < lb[1] {
-                    let (clo, chi) = self.footprint(level - 1, cb);
-                    let (c0, _) = slab(
-                        self.c,
-                        md,
-                        [clo[0], clo[1], f32::NEG_INFINITY],
-                        [chi[0], chi[1], f32::INFINITY],
-                    );
-                    kids[n] = (c0, cb);
+                    kids[n] = (fmax(key(0, dx), key(1, dy)), cb);
                     n += 1;
                 }
             }
@@ -305,7 +343,7 @@ impl<'a> HorFrame<'a> {
             guard += 1;
             let tx = next_t(0, cell[0]);
             let ty = next_t(1, cell[1]);
-            let t_next = tx.min(ty).min(t_hi);
+            let t_next = fmin(fmin(tx, ty), t_hi);
             let (i, j) = (cell[0], cell[1]);
             if i >= 0 && j >= 0 && i + 1 < nodes_r[0] && j + 1 < nodes_r[1] && t_next > t_cell {
                 let h00 = at(i, j);
@@ -315,9 +353,9 @@ impl<'a> HorFrame<'a> {
                 if !(h00.is_nan() || h10.is_nan() || h01.is_nan() || h11.is_nan()) {
                     let z0 = cr[2] + t_cell * dr[2];
                     let z1 = cr[2] + t_next * dr[2];
-                    let hmin = h00.min(h10).min(h01).min(h11);
-                    let hmax = h00.max(h10).max(h01).max(h11);
-                    if z0.min(z1) <= hmax && z0.max(z1) >= hmin {
+                    let hmin = fmin(fmin(h00, h10), fmin(h01, h11));
+                    let hmax = fmax(fmax(h00, h10), fmax(h01, h11));
+                    if fmin(z0, z1) <= hmax && fmax(z0, z1) >= hmin {
                         // Solve relative to where the ray enters this cell, a value that
                         // depends only on the cell and the ray, not on where the region
                         // clipped it: the same crossing gets the same t in every region.

@@ -28,6 +28,7 @@ pub mod engine;
 pub mod feedback;
 pub mod gpu;
 pub mod horizon;
+pub mod macrocell;
 pub mod node;
 pub mod raycast;
 pub mod volume;

@@ -10,8 +10,9 @@
 //! Effects are chosen once per frame: with no horizons no intersection code runs, with one
 //! volume the mixing path never runs, gradient shading only when asked for.
 
+use crate::atlas::{Samples, Voxel};
 use crate::horizon::{Hit, HorFrame};
-use crate::volume::{first_k, Cursor, VolFrame};
+use crate::volume::{first_k, trilinear_at, Cursor, VolFrame};
 use rayon::prelude::*;
 use strata_common::image::{PartialImage, Rect, Rgba};
 
@@ -138,7 +139,29 @@ impl<'s, 'a> RayCtx<'s, 'a> {
     fn march_one(
         &mut self,
         v: &VolFrame<'a>,
-        cur: &mut Cursor<'a>,
+        cur: &mut Cursor,
+        md: [f32; 3],
+        ta: f32,
+        tb: f32,
+        fb: &mut Vec<u64>,
+    ) {
+        // One copy of the loop per element type of the pool.
+        match v.samples {
+            Samples::F32(d) => self.march_typed(v, d, cur, md, ta, tb, fb),
+            Samples::U8(d) => self.march_typed(v, d, cur, md, ta, tb, fb),
+            Samples::I8(d) => self.march_typed(v, d, cur, md, ta, tb, fb),
+            Samples::U16(d) => self.march_typed(v, d, cur, md, ta, tb, fb),
+            Samples::I16(d) => self.march_typed(v, d, cur, md, ta, tb, fb),
+        }
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn march_typed<T: Voxel>(
+        &mut self,
+        v: &VolFrame<'a>,
+        data: &[T],
+        cur: &mut Cursor,
         md: [f32; 3],
         ta: f32,
         tb: f32,
@@ -150,6 +173,13 @@ impl<'s, 'a> RayCtx<'s, 'a> {
         while band + 1 < bands.start.len() && ta >= bands.start[band + 1] {
             band += 1;
         }
+        // Without macrocells no sample ever reaches the cell test.
+        let no_cell = if v.cells.is_some() {
+            f32::NEG_INFINITY
+        } else {
+            f32::INFINITY
+        };
+        let p = v.page;
         let mut t_start = ta;
         while t_start < tb && !self.done {
             let dt = bands.dt[band];
@@ -164,6 +194,8 @@ impl<'s, 'a> RayCtx<'s, 'a> {
             let ert = f.ert;
             let shading = f.volume_shading;
             let mut terminated = false;
+            // Samples before `cell_exit` lie in a macrocell already found visible.
+            let mut cell_exit = no_cell;
             loop {
                 let t = k as f32 * dt;
                 if t >= seg_end {
@@ -172,6 +204,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                 if t >= cur.t_exit {
                     let q = [0, 1, 2].map(|a| v.c[a] + t * md[a]);
                     v.locate(cur, t, q, md, fb);
+                    cell_exit = no_cell;
                 }
                 if cur.transparent {
                     // Jump to the first lattice point past the brick (the cursor stays
@@ -182,7 +215,20 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                     continue;
                 }
                 let q = [v.c[0] + t * md[0], v.c[1] + t * md[1], v.c[2] + t * md[2]];
-                let s = v.sample(cur, q);
+                let l = v.local(cur, q);
+                if t >= cell_exit {
+                    let (visible, exit) = v.cell_at(cur, l, md);
+                    if !visible {
+                        let nk = first_k(exit.min(cur.t_exit).min(seg_end), dt).max(k + 1);
+                        skipped += (nk - k) as u64;
+                        k = nk;
+                        continue;
+                    }
+                    cell_exit = exit;
+                }
+                // SAFETY: `locate` checked that the cursor's slot lies inside the pool, and
+                // `local` clamps to [0, p − 1).
+                let s = unsafe { trilinear_at(data, cur.off, p, l) };
                 samples += 1;
                 k += 1;
                 if s.is_nan() {
@@ -219,7 +265,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
     fn march_mixed(
         &mut self,
         active: &[usize],
-        curs: &mut [Cursor<'a>],
+        curs: &mut [Cursor],
         mds: &[[f32; 3]],
         ta: f32,
         tb: f32,
@@ -295,7 +341,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
     }
 }
 
-fn shade(v: &VolFrame<'_>, cur: &Cursor<'_>, q: [f32; 3], d: [f32; 3], rgba: &mut Rgba) {
+fn shade(v: &VolFrame<'_>, cur: &Cursor, q: [f32; 3], d: [f32; 3], rgba: &mut Rgba) {
     let g = v.gradient(cur, q);
     // Index-space gradient to camera space: ∇_world = Mᵀ ∇_index.
     let m = &v.m;
@@ -325,10 +371,10 @@ pub struct RayState<'s, 'a> {
     hi: usize,
     md0: [f32; 3],
     span0: (f32, f32),
-    single: Cursor<'a>,
+    single: Cursor,
     mds: Vec<[f32; 3]>,
     spans: Vec<(f32, f32)>,
-    curs: Vec<Cursor<'a>>,
+    curs: Vec<Cursor>,
 }
 
 impl<'s, 'a> RayState<'s, 'a> {
@@ -425,28 +471,45 @@ impl<'a> FrameSetup<'a> {
             st.ctx.done = true;
             return st;
         }
-        for h in &self.hors {
-            h.intersect(d, t0, t1, &mut st.hits, fb);
-        }
+        // Slices first, then each horizon searched only up to the nearest opaque surface
+        // found so far: what lies behind it is invisible.
         for v in &self.vols {
             if !v.slices.is_empty() {
                 v.slice_hits(v.index_dir(d), t0, t1, &mut st.hits, fb);
             }
         }
+        let mut limit = st
+            .hits
+            .iter()
+            .filter(|h| h.rgba[3] >= 1.0)
+            .fold(t1, |m, h| m.min(h.t));
+        for h in &self.hors {
+            limit = limit.min(h.intersect(d, t0, limit, &mut st.hits, fb));
+        }
         if st.hits.len() > 1 {
             st.hits.sort_by(|a, b| a.t.total_cmp(&b.t));
         }
         let nv = self.vols.len();
+        // A volume whose transfer function shows nothing is never marched (its slices
+        // still show).
         if nv == 1 {
             st.md0 = self.vols[0].index_dir(d);
             let (a, b) = self.vols[0].interval(st.md0);
-            st.span0 = (a.max(t0), b.min(t1));
+            st.span0 = if self.vols[0].invisible {
+                (0.0, 0.0)
+            } else {
+                (a.max(t0), b.min(t1))
+            };
         } else if nv > 1 {
             for v in &self.vols {
                 let md = v.index_dir(d);
                 let (a, b) = v.interval(md);
                 st.mds.push(md);
-                st.spans.push((a.max(t0), b.min(t1)));
+                st.spans.push(if v.invisible {
+                    (0.0, 0.0)
+                } else {
+                    (a.max(t0), b.min(t1))
+                });
             }
             st.curs.resize_with(nv, Cursor::default);
         }
@@ -466,7 +529,7 @@ impl<'a> FrameSetup<'a> {
     fn march_fragments<'s>(
         &'s self,
         ctx: &mut RayCtx<'s, 'a>,
-        curs: &mut [Cursor<'a>],
+        curs: &mut [Cursor],
         mds: &[[f32; 3]],
         spans: &[(f32, f32)],
         ta: f32,
@@ -508,13 +571,15 @@ impl<'a> FrameSetup<'a> {
         }
     }
 
-    /// Casts every pixel of the region's rectangle with rayon over tiles.
+    /// Casts every pixel of the region's rectangle with rayon over tiles; each tile writes
+    /// its pixels straight into the image.
     pub fn render(&self) -> CastOutput {
         let r = self.rect;
         let tiles_x = r.w.div_ceil(TILE);
         let tiles_y = r.h.div_ceil(TILE);
-        let results: Vec<(Vec<Rgba>, Vec<crate::feedback::FeedbackEntry>, CastStats)> = (0
-            ..tiles_x * tiles_y)
+        let mut pixels = vec![[0.0f32; 4]; r.area()];
+        let out = TileSink(pixels.as_mut_ptr());
+        let results: Vec<(Vec<crate::feedback::FeedbackEntry>, CastStats)> = (0..tiles_x * tiles_y)
             .into_par_iter()
             .map(|ti| {
                 let tx = r.x + (ti % tiles_x) * TILE;
@@ -552,28 +617,21 @@ impl<'a> FrameSetup<'a> {
                         next
                     };
                 }
-                let px: Vec<Rgba> = rays
-                    .iter()
-                    .map(|r| {
-                        st += r.ctx.stats;
-                        sanitize(r.ctx.acc)
-                    })
-                    .collect();
+                for (i, ray) in rays.iter().enumerate() {
+                    st += ray.ctx.stats;
+                    let (x, y) = (tx - r.x + i as u32 % w, ty - r.y + i as u32 / w);
+                    // SAFETY: (x, y) lies in this tile, inside the rectangle, and tiles do
+                    // not overlap, so no other thread writes this pixel; `pixels` outlives
+                    // the parallel loop.
+                    unsafe { out.write((y * r.w + x) as usize, sanitize(ray.ctx.acc)) };
+                }
                 let red = crate::feedback::reduce_tile(&mut fb);
-                (px, red, st)
+                (red, st)
             })
             .collect();
-        let mut pixels = vec![[0.0f32; 4]; r.area()];
         let mut feedback = Vec::new();
         let mut stats = CastStats::default();
-        for (ti, (px, fb, st)) in results.into_iter().enumerate() {
-            let tx = (ti as u32 % tiles_x) * TILE;
-            let ty = (ti as u32 / tiles_x) * TILE;
-            let w = TILE.min(r.w - tx);
-            for (i, p) in px.into_iter().enumerate() {
-                let (x, y) = (tx + i as u32 % w, ty + i as u32 / w);
-                pixels[(y * r.w + x) as usize] = p;
-            }
+        for (fb, st) in results {
             feedback.extend(fb);
             stats += st;
         }
@@ -587,6 +645,23 @@ impl<'a> FrameSetup<'a> {
             feedback,
             stats,
         }
+    }
+}
+
+/// The image's pixels, written by the tiles in parallel (each tile its own pixels).
+#[derive(Copy, Clone)]
+struct TileSink(*mut Rgba);
+
+// SAFETY: tiles write disjoint pixels (see `render`).
+unsafe impl Send for TileSink {}
+unsafe impl Sync for TileSink {}
+
+impl TileSink {
+    /// # Safety
+    /// `i` is inside the image and no other thread writes pixel `i` concurrently.
+    #[inline]
+    unsafe fn write(self, i: usize, v: Rgba) {
+        unsafe { *self.0.add(i) = v };
     }
 }
 

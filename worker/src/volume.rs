@@ -4,7 +4,7 @@
 //! times the base step (a *band*, chosen by distance). Every region that renders part of a
 //! ray therefore takes exactly the samples that rendering the ray whole would take.
 
-use crate::atlas::{PageTable, Pool, NOT_RESIDENT, SLOT_MASK};
+use crate::atlas::{PageTable, Pool, Samples, Voxel, NOT_RESIDENT, SLOT_MASK};
 use strata_common::pyramid::Pyramid;
 use strata_common::tf::StepTable;
 
@@ -30,8 +30,18 @@ pub struct VolFrame<'a> {
     pub table: &'a PageTable,
     /// Atlas pool.
     pub pool: &'a Pool,
+    /// The pool's samples.
+    pub samples: Samples<'a>,
+    /// The pool's macrocell visibility (`slot · cells_per_slot + cell`), when the march may
+    /// skip invisible macrocells.
+    pub cells: Option<&'a [u8]>,
+    /// Macrocells per page edge.
+    pub cells_per_axis: usize,
     /// Per page (page-table order): no value in it is visible under the transfer function.
     pub transparent: Vec<bool>,
+    /// With empty-space skipping: no value of the volume's range maps to a non-zero
+    /// opacity, so its rays are not marched at all.
+    pub invisible: bool,
     /// Per band: premultiplied, step-corrected lookup.
     pub tables: Vec<StepTable>,
     /// The pyramid (for page keys).
@@ -43,24 +53,31 @@ pub struct VolFrame<'a> {
 }
 
 /// A ray's position in one volume's brick structure.
-pub struct Cursor<'a> {
+#[derive(Clone)]
+pub struct Cursor {
     level: usize,
     /// Samples at `t >= t_exit` need a new lookup (brick or level change).
     pub t_exit: f32,
     /// The current brick has nothing visible.
     pub transparent: bool,
-    data: &'a [f32],
-    s: f32,
-    o: [f32; 3],
+    /// The slot the brick's samples are read from.
+    pub slot: u32,
+    /// First element of that slot in the pool.
+    pub off: usize,
+    /// Level-0 index → slot-page coordinate: `q · s + o`.
+    pub s: f32,
+    /// See `s`.
+    pub o: [f32; 3],
 }
 
-impl<'a> Default for Cursor<'a> {
+impl Default for Cursor {
     fn default() -> Self {
         Cursor {
             level: 0,
             t_exit: f32::NEG_INFINITY,
             transparent: true,
-            data: &[],
+            slot: 0,
+            off: 0,
             s: 1.0,
             o: [0.0; 3],
         }
@@ -100,7 +117,7 @@ impl<'a> VolFrame<'a> {
     #[inline(never)]
     pub fn locate(
         &self,
-        cur: &mut Cursor<'a>,
+        cur: &mut Cursor,
         t: f32,
         q: [f32; 3],
         md: [f32; 3],
@@ -114,7 +131,7 @@ impl<'a> VolFrame<'a> {
     #[inline(always)]
     fn locate_page(
         &self,
-        cur: &mut Cursor<'a>,
+        cur: &mut Cursor,
         t: f32,
         q: [f32; 3],
         md: [f32; 3],
@@ -166,14 +183,43 @@ impl<'a> VolFrame<'a> {
         let slot = e & SLOT_MASK;
         let sr = (0.5f32).powi(r as i32);
         let k = (r - level) as u32;
-        let pool: &'a Pool = self.pool;
-        cur.data = pool.slot_data(slot);
-        assert_eq!(cur.data.len(), self.page * self.page * self.page);
+        let ps = self.pool.page_samples;
+        assert_eq!(ps, self.page * self.page * self.page);
+        cur.slot = slot;
+        cur.off = slot as usize * ps;
+        // The tap reads rely on this (see `trilinear_at`).
+        assert!(cur.off + ps <= self.samples.len());
         cur.s = sr;
         for a in 0..3 {
             let br = (b[a] >> k) as f32;
             cur.o[a] = 0.5 * sr - 0.5 - br * self.core + self.border;
         }
+    }
+
+    /// The macrocell of slot-page coordinate `l` (as [`local`](Self::local) gives it) in the
+    /// cursor's slot: whether it may hold a visible value, and the `t` at which the ray
+    /// leaves its box. Only called with macrocells (`self.cells` set).
+    #[inline(always)]
+    pub fn cell_at(&self, cur: &Cursor, l: [f32; 3], md: [f32; 3]) -> (bool, f32) {
+        use crate::macrocell::CELL;
+        let n = self.cells_per_axis;
+        let mut idx = 0usize;
+        let mut exit = f32::INFINITY;
+        for a in (0..3).rev() {
+            // `l` is clamped to [0, p − 1), so the cell is below `n`.
+            let c = l[a] as usize / CELL;
+            idx = idx * n + c;
+            let dir = md[a] * cur.s;
+            if dir != 0.0 {
+                let bound = if dir > 0.0 { (c + 1) * CELL } else { c * CELL } as f32;
+                // Slot coordinate `(c + t·md)·s + o` reaches `bound` (`s` is a power of two,
+                // so dividing by it is exact).
+                exit = exit.min(((bound - cur.o[a]) / cur.s - self.c[a]) / md[a]);
+            }
+        }
+        let cells = self.cells.expect("macrocells");
+        let i = cur.slot as usize * n * n * n + idx;
+        (cells[i] != 0, exit)
     }
 
     /// The ray's crossings of this volume's slices inside `[t0, t1)`, as opaque (or
@@ -220,30 +266,50 @@ impl<'a> VolFrame<'a> {
         }
     }
 
+    /// The slot-page coordinate of index position `q` through the cursor, clamped to the
+    /// page's interpolation range `[0, p − 1)`.
+    #[inline(always)]
+    pub fn local(&self, cur: &Cursor, q: [f32; 3]) -> [f32; 3] {
+        let maxc = (self.page - 1) as f32 - 1e-3;
+        [0, 1, 2].map(|a| (q[a] * cur.s + cur.o[a]).clamp(0.0, maxc))
+    }
+
     /// Trilinear sample at index position `q` through the cursor's page.
     #[inline(always)]
-    pub fn sample(&self, cur: &Cursor<'a>, q: [f32; 3]) -> f32 {
-        let p = self.page;
-        let maxc = (p - 1) as f32 - 1e-3;
-        let lx = (q[0] * cur.s + cur.o[0]).clamp(0.0, maxc);
-        let ly = (q[1] * cur.s + cur.o[1]).clamp(0.0, maxc);
-        let lz = (q[2] * cur.s + cur.o[2]).clamp(0.0, maxc);
-        trilinear(cur.data, p, lx, ly, lz)
+    pub fn sample(&self, cur: &Cursor, q: [f32; 3]) -> f32 {
+        self.sample_local(cur, self.local(cur, q))
+    }
+
+    /// Trilinear sample at slot-page coordinate `l`, which must lie in `[0, p − 1)`.
+    #[inline(always)]
+    fn sample_local(&self, cur: &Cursor, l: [f32; 3]) -> f32 {
+        let (p, o) = (self.page, cur.off);
+        debug_assert!(l.iter().all(|&c| c >= 0.0 && c < (p - 1) as f32));
+        // SAFETY: `locate` checked that the slot's page lies inside the pool, and every
+        // caller clamps the coordinates to [0, p − 1).
+        unsafe {
+            match self.samples {
+                Samples::F32(d) => trilinear_at(d, o, p, l),
+                Samples::U8(d) => trilinear_at(d, o, p, l),
+                Samples::I8(d) => trilinear_at(d, o, p, l),
+                Samples::U16(d) => trilinear_at(d, o, p, l),
+                Samples::I16(d) => trilinear_at(d, o, p, l),
+            }
+        }
     }
 
     /// Gradient (index units of the sampled level) by central differences.
-    pub fn gradient(&self, cur: &Cursor<'a>, q: [f32; 3]) -> [f32; 3] {
+    pub fn gradient(&self, cur: &Cursor, q: [f32; 3]) -> [f32; 3] {
         let p = self.page;
         let maxc = (p - 1) as f32 - 1e-3;
         let l = [0, 1, 2].map(|a| q[a] * cur.s + cur.o[a]);
         let at = |dx: f32, dy: f32, dz: f32| {
-            trilinear(
-                cur.data,
-                p,
+            let l = [
                 (l[0] + dx).clamp(0.0, maxc),
                 (l[1] + dy).clamp(0.0, maxc),
                 (l[2] + dz).clamp(0.0, maxc),
-            )
+            ];
+            self.sample_local(cur, l)
         };
         [
             at(1.0, 0.0, 0.0) - at(-1.0, 0.0, 0.0),
@@ -256,16 +322,30 @@ impl<'a> VolFrame<'a> {
 /// Trilinear interpolation in a `p³` page at local coordinates within `[0, p − 1)`.
 #[inline(always)]
 pub fn trilinear(data: &[f32], p: usize, x: f32, y: f32, z: f32) -> f32 {
+    assert!(data.len() >= p * p * p);
+    assert!([x, y, z].iter().all(|&c| c >= 0.0 && c < (p - 1) as f32));
+    // SAFETY: checked just above.
+    unsafe { trilinear_at(data, 0, p, [x, y, z]) }
+}
+
+/// Trilinear interpolation in the `p³` page starting at element `off` of `data`, at local
+/// coordinates `l`, each within `[0, p − 1)`; the taps are decoded to f32 first, so every
+/// element type gives the f32 page's result bit for bit.
+///
+/// # Safety
+/// `off + p³ <= data.len()` and every `l[a]` lies in `[0, p − 1)`.
+#[inline(always)]
+pub unsafe fn trilinear_at<T: Voxel>(data: &[T], off: usize, p: usize, l: [f32; 3]) -> f32 {
+    let [x, y, z] = l;
     let (xi, yi, zi) = (x as usize, y as usize, z as usize);
     let (fx, fy, fz) = (x - xi as f32, y - yi as f32, z - zi as f32);
-    let i = (zi * p + yi) * p + xi;
+    let i = off + (zi * p + yi) * p + xi;
     let (sy, sz) = (p, p * p);
-    debug_assert!(i + sz + sy + 1 < data.len());
-    // SAFETY: `data` is a whole p³ page (checked where a cursor takes it, in `locate`) and
-    // the coordinates are clamped to [0, p − 1) by the callers, so the largest tap index,
-    // i + sz + sy + 1, is at most p³ − 1.
+    debug_assert!(i + sz + sy + 1 < off + p * p * p && off + p * p * p <= data.len());
+    // SAFETY (the caller's contract): with coordinates in [0, p − 1) the largest tap index,
+    // i + sz + sy + 1, is at most off + p³ − 1 < data.len().
     unsafe {
-        let g = |k: usize| *data.get_unchecked(k);
+        let g = |k: usize| data.get_unchecked(k).value();
         let c00 = g(i) + fx * (g(i + 1) - g(i));
         let c10 = g(i + sy) + fx * (g(i + sy + 1) - g(i + sy));
         let c01 = g(i + sz) + fx * (g(i + sz + 1) - g(i + sz));

@@ -1029,8 +1029,9 @@ fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f3
 
 // All crossings of the ray t·d, t in [ta, tb), with horizon `hi`: a front-to-back descent
 // of the min-max tile tree to the level the footprint calls for; the tiles reached are
-// counted in the feedback.
-fn intersect_horizon(hi: u32, d: vec3<f32>, ta: f32, tb: f32) {
+// counted in the feedback. Returns the nearest opaque crossing, or tb (horizon.rs
+// `intersect`).
+fn intersect_horizon(hi: u32, d: vec3<f32>, ta: f32, tb: f32) -> f32 {
     let hz = &hors[hi];
     let md = mul_rows((*hz).m0, (*hz).m1, (*hz).m2, d);
     let c = (*hz).c;
@@ -1098,6 +1099,7 @@ fn intersect_horizon(hi: u32, d: vec3<f32>, ta: f32, tb: f32) {
             }
         }
     }
+    return limit;
 }
 
 fn sanitize(c: vec4<f32>) -> vec4<f32> {
@@ -1153,14 +1155,22 @@ fn cast_rays(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
             var nh = 0u;
             if (HORIZONS || SLICES) {
                 n_hits = 0u;
-                if (HORIZONS) {
-                    for (var h = 0u; h < F.n_hors; h = h + 1u) {
-                        intersect_horizon(h, d, tt.x, tt.y);
-                    }
-                }
+                // Slices first, then each horizon only up to the nearest opaque surface
+                // found so far (raycast.rs `start`).
+                var limit = tt.y;
                 if (SLICES) {
                     for (var i = 0u; i < F.n_vols; i = i + 1u) {
                         slice_hits(i, mds[i], tt.x, tt.y);
+                    }
+                    for (var k = 0u; k < n_hits; k = k + 1u) {
+                        if (hit_c[k].w >= 1.0) {
+                            limit = min(limit, hit_t[k]);
+                        }
+                    }
+                }
+                if (HORIZONS) {
+                    for (var h = 0u; h < F.n_hors; h = h + 1u) {
+                        limit = min(limit, intersect_horizon(h, d, tt.x, limit));
                     }
                 }
                 nh = n_hits;

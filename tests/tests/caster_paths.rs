@@ -1,0 +1,302 @@
+//! The CPU caster's faster paths change no pixel: macrocell skipping on against off, and
+//! atlas slots in the data's own sample type (u8, i16, u16) against f32 slots. Both are exact
+//! by construction (a skipped sample would have had zero opacity; an integer decodes to the
+//! same f32), so the images must be identical, not merely close.
+
+use indicatif::ProgressBar;
+use std::path::{Path, PathBuf};
+use strata_common::camera::View;
+use strata_common::image::Rgba;
+use strata_common::sample::SampleType;
+use strata_common::scene::{Backend, Camera, Scene};
+use strata_coordinator::builder::{build_store, BuildOptions};
+use strata_coordinator::source::MemorySource;
+use strata_tests::scenes::*;
+use strata_worker::engine::{Engine, Outcome};
+use strata_worker::raycast::CastStats;
+use tempfile::TempDir;
+
+const N: u64 = 100;
+
+/// A blobby field on `N`³: mostly empty (value 0) with a few smooth lumps, a thin shell and
+/// scattered single bright voxels (the hardest case for a skip that lands a little late: an
+/// isolated voxel right past an empty cell), as integers in `0..=max`, so that macrocells
+/// inside bricks are often empty.
+fn blobs(max: f32) -> Vec<f32> {
+    let n = N as usize;
+    let centres = [
+        [30.0, 40.0, 50.0, 14.0],
+        [70.0, 65.0, 30.0, 10.0],
+        [55.0, 20.0, 75.0, 8.0],
+    ];
+    (0..n * n * n)
+        .map(|i| {
+            let p = [(i % n) as f32, (i / n % n) as f32, (i / (n * n)) as f32];
+            let mut v = 0.0f32;
+            for c in centres {
+                let d =
+                    ((p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2) + (p[2] - c[2]).powi(2)).sqrt();
+                v = v.max(1.0 - d / c[3]);
+            }
+            // A thin shell of radius 45 around the middle.
+            let r = ((p[0] - 50.0).powi(2) + (p[1] - 50.0).powi(2) + (p[2] - 50.0).powi(2)).sqrt();
+            if (r - 45.0).abs() < 0.8 && p[0] > 70.0 {
+                v = v.max(0.6);
+            }
+            // Thin planes one voxel thick, at depths that fall at different offsets from
+            // the macrocell faces of their bricks, with empty space before them.
+            if [17.0, 37.0, 48.0, 79.0].contains(&p[2]) && p[0] < 60.0 && p[1] < 50.0 {
+                v = v.max(0.7);
+            }
+            // Isolated voxels, about one in 20000.
+            if (i as u64).wrapping_mul(2654435761) % 20000 == 7 {
+                v = 0.9;
+            }
+            (v.max(0.0) * max).round()
+        })
+        .collect()
+}
+
+fn store(dir: &Path, name: &str, t: SampleType, data: Vec<f32>) -> PathBuf {
+    store_with(dir, name, t, None, data)
+}
+
+fn store_with(
+    dir: &Path,
+    name: &str,
+    t: SampleType,
+    no_data: Option<f32>,
+    data: Vec<f32>,
+) -> PathBuf {
+    let path = dir.join(format!("{name}.strata"));
+    let mut o = BuildOptions::volume(name, t);
+    o.page_size = 32; // cores of 30: 4 macrocells per edge, four bricks per axis
+    o.border = 1;
+    o.no_data = no_data;
+    build_store(
+        &MemorySource {
+            dims: [N, N, N],
+            data,
+        },
+        &path,
+        &o,
+        &ProgressBar::hidden(),
+    )
+    .unwrap();
+    path
+}
+
+fn cameras() -> Vec<Camera> {
+    let c = [49.5, 49.5, 49.5];
+    vec![
+        // Oblique, from outside.
+        Camera {
+            eye: [-60.0, -35.0, 140.0],
+            target: c,
+            up: [0.0, 0.0, 1.0],
+            fov_deg: 40.0,
+        },
+        // Exactly along the grid axis: rays run along macrocell and brick faces.
+        Camera {
+            eye: [48.0, 48.0, -120.0],
+            target: [48.0, 48.0, 50.0],
+            up: [0.0, 1.0, 0.0],
+            fov_deg: 30.0,
+        },
+        // Inside the volume, looking out through the shell.
+        Camera {
+            eye: [50.3, 47.1, 52.9],
+            target: [95.0, 80.0, 10.0],
+            up: [0.0, 0.0, 1.0],
+            fov_deg: 70.0,
+        },
+        // Far away: coarser levels and steps (the cells of ancestor pages are used).
+        Camera {
+            eye: [900.0, 700.0, 1200.0],
+            target: c,
+            up: [0.0, 0.0, 1.0],
+            fov_deg: 8.0,
+        },
+    ]
+}
+
+fn scene_for(store: PathBuf, window: [f64; 2], cam: Camera) -> Scene {
+    let mut s = scene(
+        vec![volume_layer(
+            store,
+            "viridis",
+            window,
+            // Zero opacity below 20 % of the window: the low values are empty space.
+            vec![[0.0, 0.0], [0.2, 0.0], [0.5, 0.3], [1.0, 0.8]],
+        )],
+        vec![],
+        cam,
+        exact_settings(72, 56),
+    );
+    s.render.backend = Backend::Cpu;
+    s.render.tau = 2.0;
+    s
+}
+
+struct Rendered {
+    image: Vec<Rgba>,
+    stats: CastStats,
+    bytes_per_voxel: usize,
+}
+
+fn render(s: &Scene) -> Rendered {
+    let mut e = Engine::new(s).unwrap();
+    let view = e.view(s.render.width, s.render.height).unwrap();
+    let region = e.scene_region();
+    let r = e.render_batch(&view, &region).unwrap();
+    assert_eq!(r.outcome, Outcome::Converged);
+    Rendered {
+        image: r.image.to_full(),
+        stats: r.last,
+        bytes_per_voxel: e.cpu_atlas_bytes_per_voxel().unwrap(),
+    }
+}
+
+fn identical(a: &[Rgba], b: &[Rgba]) -> bool {
+    a.len() == b.len()
+        && a.iter()
+            .zip(b)
+            .all(|(p, q)| p.iter().zip(q).all(|(x, y)| x.to_bits() == y.to_bits()))
+}
+
+#[test]
+fn macrocell_skipping_takes_fewer_samples_and_changes_no_pixel() {
+    let dir = TempDir::new().unwrap();
+    let st = store(dir.path(), "blobs", SampleType::F32, blobs(100.0));
+    let mut gained = 0;
+    for (i, cam) in cameras().into_iter().enumerate() {
+        for shading in [false, true] {
+            let mut s = scene_for(st.clone(), [0.0, 100.0], cam.clone());
+            s.render.volume_shading = shading;
+            s.render.macrocells = false;
+            let off = render(&s);
+            s.render.macrocells = true;
+            let on = render(&s);
+            assert_clean(&on.image);
+            assert!(
+                on.image.iter().filter(|p| p[3] > 0.01).count() > 50,
+                "camera {i}: the view shows the data"
+            );
+            assert!(
+                identical(&on.image, &off.image),
+                "camera {i}, shading {shading}: macrocells change the image by {}",
+                max_diff(&on.image, &off.image)
+            );
+            // Every lattice point is either sampled or skipped, with or without cells.
+            assert_eq!(
+                on.stats.samples + on.stats.skipped,
+                off.stats.samples + off.stats.skipped,
+                "camera {i}"
+            );
+            assert!(on.stats.samples <= off.stats.samples, "camera {i}");
+            if on.stats.samples * 10 < off.stats.samples * 9 {
+                gained += 1;
+            }
+        }
+    }
+    assert!(
+        gained >= 4,
+        "macrocells saved 10 % of the samples in only {gained} of 8 views"
+    );
+}
+
+#[test]
+fn compact_slots_give_the_f32_image() {
+    let dir = TempDir::new().unwrap();
+    for (t, max, bytes) in [
+        (SampleType::U8, 255.0, 1),
+        (SampleType::U16, 65535.0, 2),
+        (SampleType::I16, 32767.0, 2),
+    ] {
+        let name = format!("{t:?}");
+        let mut data = blobs(max);
+        if t == SampleType::I16 {
+            // Negative values too: the window spans both signs.
+            for (i, v) in data.iter_mut().enumerate() {
+                if i % 7 == 0 {
+                    *v = -*v;
+                }
+            }
+        }
+        let window = if t == SampleType::I16 {
+            [-max as f64, max as f64]
+        } else {
+            [0.0, max as f64]
+        };
+        let st = store(dir.path(), &name, t, data);
+        for (i, cam) in cameras().into_iter().enumerate().take(3) {
+            let mut s = scene_for(st.clone(), window, cam);
+            s.render.compact_slots = false;
+            let wide = render(&s);
+            s.render.compact_slots = true;
+            let compact = render(&s);
+            assert_eq!(wide.bytes_per_voxel, 4);
+            assert_eq!(compact.bytes_per_voxel, bytes, "{name}");
+            assert!(compact.image.iter().any(|p| p[3] > 0.01), "{name}: blank");
+            assert!(
+                identical(&compact.image, &wide.image),
+                "{name}, camera {i}: compact slots change the image by {}",
+                max_diff(&compact.image, &wide.image)
+            );
+            assert_eq!(compact.stats, wide.stats, "{name}, camera {i}");
+        }
+    }
+}
+
+#[test]
+fn a_volume_with_no_data_values_keeps_f32_slots() {
+    let dir = TempDir::new().unwrap();
+    let mut data = blobs(255.0);
+    for v in data.iter_mut().step_by(5) {
+        *v = f32::NAN;
+    }
+    let path = store_with(dir.path(), "nd", SampleType::U8, Some(0.0), data);
+    let s = scene_for(path, [0.0, 255.0], cameras()[0].clone());
+    let r = render(&s);
+    // A decoded no-data sample is NaN, which no u8 holds: the atlas stays f32.
+    assert_eq!(r.bytes_per_voxel, 4);
+    assert_clean(&r.image);
+}
+
+/// The cell ranges are computed from the page as it enters the atlas: an atlas too small
+/// for the working set, whose slots are reused for other pages as the view changes, still
+/// gives the images with macrocells that it gives without.
+#[test]
+fn macrocells_follow_slot_reuse() {
+    let dir = TempDir::new().unwrap();
+    let st = store(dir.path(), "reuse", SampleType::U8, blobs(255.0));
+    let cams = cameras();
+    let mut s = scene_for(st, [0.0, 255.0], cams[0].clone());
+    // 32³ u8 pages: 32 KiB each, so 1 MiB holds 32 slots, fewer than the views need.
+    s.render.atlas_mb = 1;
+    s.render.tau = 0.5;
+    s.render.max_rounds = 8;
+    let run = |cells: bool| {
+        let mut s = s.clone();
+        s.render.macrocells = cells;
+        // One engine throughout (its atlas keeps its slots); only the view changes.
+        let mut e = Engine::new(&s).unwrap();
+        let region = e.scene_region();
+        let mut images = Vec::new();
+        let mut full = 0;
+        for k in 0..6 {
+            let cam = &cams[[0, 2, 1][k % 3]];
+            let view = View::new(cam, &s.render, s.render.width, s.render.height).unwrap();
+            let r = e.render_batch(&view, &region).unwrap();
+            full += (r.outcome == Outcome::AtlasFull) as u32;
+            images.push(r.image.to_full());
+        }
+        (images, full)
+    };
+    let (on, full) = run(true);
+    let (off, _) = run(false);
+    assert!(full > 0, "the atlas was large enough: nothing was reused");
+    for (k, (a, b)) in on.iter().zip(&off).enumerate() {
+        assert!(identical(a, b), "view {k}: differ by {}", max_diff(a, b));
+    }
+}
