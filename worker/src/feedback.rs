@@ -24,16 +24,57 @@ pub struct FeedbackEntry {
     pub _pad: u32,
 }
 
-/// Reduces a tile's raw request list into sorted `(page, count)` records.
-pub fn reduce_tile(raw: &mut [u64]) -> Vec<FeedbackEntry> {
-    raw.sort_unstable();
+/// A tile's page requests as its rays make them: runs of the same page (neighbouring rays
+/// entering the same brick one after another) are kept as one record with a count, so a
+/// tile's list stays short and cheap to sort.
+#[derive(Clone, Debug, Default)]
+pub struct Requests {
+    runs: Vec<(u64, u32)>,
+}
+
+impl Requests {
+    /// An empty list.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// One request of `page`.
+    #[inline]
+    pub fn push(&mut self, page: u64) {
+        match self.runs.last_mut() {
+            Some((k, n)) if *k == page => *n += 1,
+            _ => self.runs.push((page, 1)),
+        }
+    }
+
+    /// Requests made (a page requested twice counts twice).
+    pub fn len(&self) -> usize {
+        self.runs.iter().map(|r| r.1 as usize).sum()
+    }
+
+    /// Whether none were made.
+    pub fn is_empty(&self) -> bool {
+        self.runs.is_empty()
+    }
+
+    /// Every request, in order, one key per request.
+    pub fn keys(&self) -> impl Iterator<Item = u64> + '_ {
+        self.runs
+            .iter()
+            .flat_map(|&(k, n)| std::iter::repeat_n(k, n as usize))
+    }
+}
+
+/// Reduces a tile's requests into sorted `(page, count)` records.
+pub fn reduce_tile(raw: &mut Requests) -> Vec<FeedbackEntry> {
+    raw.runs.sort_unstable_by_key(|r| r.0);
     let mut out: Vec<FeedbackEntry> = Vec::new();
-    for &k in raw.iter() {
+    for &(k, n) in raw.runs.iter() {
         match out.last_mut() {
-            Some(e) if e.page == k => e.coverage += 1,
+            Some(e) if e.page == k => e.coverage += n,
             _ => out.push(FeedbackEntry {
                 page: k,
-                coverage: 1,
+                coverage: n,
                 _pad: 0,
             }),
         }
@@ -108,11 +149,16 @@ mod tests {
 
     #[test]
     fn tiles_reduce_to_counts() {
-        let mut raw = vec![5, 3, 5, 5, 9, 3];
+        let mut raw = Requests::new();
+        for k in [5, 3, 5, 5, 9, 3, 3] {
+            raw.push(k);
+        }
+        assert_eq!(raw.len(), 7);
+        assert_eq!(raw.keys().collect::<Vec<_>>(), [5, 3, 5, 5, 9, 3, 3]);
         let r = reduce_tile(&mut raw);
         assert_eq!(
             r.iter().map(|e| (e.page, e.coverage)).collect::<Vec<_>>(),
-            vec![(3, 2), (5, 3), (9, 1)]
+            vec![(3, 3), (5, 3), (9, 1)]
         );
     }
 

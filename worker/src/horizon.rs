@@ -85,6 +85,27 @@ fn fmax(a: f32, b: f32) -> f32 {
     }
 }
 
+/// [`slab`] with `inv = 1 / d` precomputed (multiplications instead of divisions; the
+/// result may differ from `slab`'s by a rounding).
+#[inline(always)]
+fn slab_inv(c: [f32; 3], d: [f32; 3], inv: [f32; 3], lo: [f32; 3], hi: [f32; 3]) -> (f32, f32) {
+    let mut t0 = f32::NEG_INFINITY;
+    let mut t1 = f32::INFINITY;
+    for a in 0..3 {
+        if d[a] == 0.0 {
+            if !(lo[a] <= c[a] && c[a] <= hi[a]) {
+                return (1.0, 0.0);
+            }
+        } else {
+            let ta = (lo[a] - c[a]) * inv[a];
+            let tb = (hi[a] - c[a]) * inv[a];
+            t0 = fmax(t0, fmin(ta, tb));
+            t1 = fmin(t1, fmax(ta, tb));
+        }
+    }
+    (t0, t1)
+}
+
 /// `[t0, t1]` of the ray `c + t·d` in the box `[lo, hi]` (empty when `t0 > t1`). The box
 /// and the ray are finite (bounds of tiles with no valid height are never tested).
 #[inline(always)]
@@ -172,13 +193,14 @@ impl<'a> HorFrame<'a> {
         ta: f32,
         tb: f32,
         hits: &mut Vec<Hit>,
-        feedback: &mut Vec<u64>,
+        feedback: &mut crate::feedback::Requests,
     ) -> f32 {
         let md = self.index_dir(d);
         let top = self.pyramid.level_count() - 1;
         let mut limit = tb;
         let start = hits.len();
-        self.visit(top, [0, 0, 0], d, md, ta, &mut limit, hits, feedback);
+        let inv = md.map(|m| 1.0 / m);
+        self.visit(top, [0, 0, 0], d, md, inv, ta, &mut limit, hits, feedback);
         // Keep the nearest MAX_HITS.
         if hits.len() - start > MAX_HITS {
             hits[start..].sort_by(|a, b| a.t.total_cmp(&b.t));
@@ -194,10 +216,11 @@ impl<'a> HorFrame<'a> {
         b: [u32; 3],
         d: [f32; 3],
         md: [f32; 3],
+        inv: [f32; 3],
         ta: f32,
         limit: &mut f32,
         hits: &mut Vec<Hit>,
-        feedback: &mut Vec<u64>,
+        feedback: &mut crate::feedback::Requests,
     ) {
         let idx = self.table.index(level, b);
         let [zmin, zmax] = self.bounds[idx];
@@ -212,7 +235,7 @@ impl<'a> HorFrame<'a> {
         let eps = 1e-4 * (1.0 + zmin.abs().max(zmax.abs()));
         let lo = [flo[0] - s, flo[1] - s, zmin - eps];
         let hi = [fhi[0] + s, fhi[1] + s, zmax + eps];
-        let (e0, e1) = slab(self.c, md, lo, hi);
+        let (e0, e1) = slab_inv(self.c, md, inv, lo, hi);
         if fmax(e0, ta) >= fmin(e1, *limit) || e1 < 0.0 {
             return;
         }
@@ -257,7 +280,7 @@ impl<'a> HorFrame<'a> {
         }
         kids[..n].sort_by(|a, b| a.0.total_cmp(&b.0));
         for &(_, cb) in &kids[..n] {
-            self.visit(level - 1, cb, d, md, ta, limit, hits, feedback);
+            self.visit(level - 1, cb, d, md, inv, ta, limit, hits, feedback);
         }
     }
 
@@ -339,10 +362,12 @@ impl<'a> HorFrame<'a> {
         let mut t_cell = t_lo;
         let mut guard = 0usize;
         let lighting = self.lighting;
+        // Each axis's exit is recomputed (by the same formula) only when the DDA steps on
+        // that axis.
+        let mut tx = next_t(0, cell[0]);
+        let mut ty = next_t(1, cell[1]);
         while t_cell < t_hi && guard < 1 << 20 {
             guard += 1;
-            let tx = next_t(0, cell[0]);
-            let ty = next_t(1, cell[1]);
             let t_next = fmin(fmin(tx, ty), t_hi);
             let (i, j) = (cell[0], cell[1]);
             if i >= 0 && j >= 0 && i + 1 < nodes_r[0] && j + 1 < nodes_r[1] && t_next > t_cell {
@@ -411,8 +436,10 @@ impl<'a> HorFrame<'a> {
             t_cell = t_next;
             if tx <= ty {
                 cell[0] += step[0];
+                tx = next_t(0, cell[0]);
             } else {
                 cell[1] += step[1];
+                ty = next_t(1, cell[1]);
             }
         }
     }
@@ -562,7 +589,7 @@ mod tests {
             let d = [0, 1, 2].map(|a| target[a] as f32 - f.eye[a]);
             let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
             let d = d.map(|v| v / l);
-            let (mut whole, mut fb) = (Vec::new(), Vec::new());
+            let (mut whole, mut fb) = (Vec::new(), crate::feedback::Requests::new());
             h.intersect(d, 0.0, f32::INFINITY, &mut whole, &mut fb);
             for hit in whole.clone() {
                 crossings += 1;

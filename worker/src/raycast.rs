@@ -143,7 +143,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
         md: [f32; 3],
         ta: f32,
         tb: f32,
-        fb: &mut Vec<u64>,
+        fb: &mut crate::feedback::Requests,
     ) {
         // One copy of the loop per element type of the pool.
         match v.samples {
@@ -165,7 +165,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
         md: [f32; 3],
         ta: f32,
         tb: f32,
-        fb: &mut Vec<u64>,
+        fb: &mut crate::feedback::Requests,
     ) {
         let f = self.f;
         let bands = &f.bands;
@@ -180,6 +180,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
             f32::INFINITY
         };
         let p = v.page;
+        let inv = md.map(|m| 1.0 / m);
         let mut t_start = ta;
         while t_start < tb && !self.done {
             let dt = bands.dt[band];
@@ -202,7 +203,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                     break;
                 }
                 if t >= cur.t_exit {
-                    let q = [0, 1, 2].map(|a| v.c[a] + t * md[a]);
+                    let q = [v.c[0] + t * md[0], v.c[1] + t * md[1], v.c[2] + t * md[2]];
                     v.locate(cur, t, q, md, fb);
                     cell_exit = no_cell;
                 }
@@ -217,7 +218,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                 let q = [v.c[0] + t * md[0], v.c[1] + t * md[1], v.c[2] + t * md[2]];
                 let l = v.local(cur, q);
                 if t >= cell_exit {
-                    let (visible, exit) = v.cell_at(cur, l, md);
+                    let (visible, exit) = v.cell_at(cur, l, md, inv);
                     if !visible {
                         let nk = first_k(exit.min(cur.t_exit).min(seg_end), dt).max(k + 1);
                         skipped += (nk - k) as u64;
@@ -235,12 +236,15 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                     continue; // no data: transparent
                 }
                 let mut rgba = table.lookup(s);
-                if rgba[3] <= 0.0 {
-                    continue;
-                }
                 if shading {
+                    if rgba[3] <= 0.0 {
+                        continue; // no gradient for what does not show
+                    }
                     shade(v, cur, q, self.d, &mut rgba);
                 }
+                // Unconditionally: a zero-opacity entry is all zeros (premultiplied), so the
+                // blend leaves `acc` exactly as it is, and a data-dependent branch costs more
+                // than the arithmetic.
                 blend(&mut acc, rgba);
                 if acc[3] >= ert {
                     terminated = true;
@@ -269,7 +273,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
         mds: &[[f32; 3]],
         ta: f32,
         tb: f32,
-        fb: &mut Vec<u64>,
+        fb: &mut crate::feedback::Requests,
     ) {
         let f = self.f;
         let bands = &f.bands;
@@ -296,7 +300,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                     let v = &f.vols[vi];
                     let md = mds[vi];
                     let cur = &mut curs[vi];
-                    let q = [0, 1, 2].map(|a| v.c[a] + t * md[a]);
+                    let q = [v.c[0] + t * md[0], v.c[1] + t * md[1], v.c[2] + t * md[2]];
                     if t >= cur.t_exit {
                         v.locate(cur, t, q, md, fb);
                     }
@@ -384,7 +388,7 @@ impl<'s, 'a> RayState<'s, 'a> {
     }
 
     /// Marches (volumes and surfaces, front to back) up to `until` (exclusive).
-    pub fn advance(&mut self, until: f32, fb: &mut Vec<u64>) {
+    pub fn advance(&mut self, until: f32, fb: &mut crate::feedback::Requests) {
         let f = self.ctx.f;
         let nv = f.vols.len();
         loop {
@@ -443,7 +447,11 @@ impl<'s, 'a> RayState<'s, 'a> {
 
 impl<'a> FrameSetup<'a> {
     /// Starts a ray: clips it to the region, finds its surface crossings and volume spans.
-    pub fn start<'s>(&'s self, d: [f32; 3], fb: &mut Vec<u64>) -> RayState<'s, 'a> {
+    pub fn start<'s>(
+        &'s self,
+        d: [f32; 3],
+        fb: &mut crate::feedback::Requests,
+    ) -> RayState<'s, 'a> {
         let (t0, t1) = clip_region(self.region_lo, self.region_hi, d);
         let mut st = RayState {
             ctx: RayCtx {
@@ -517,7 +525,7 @@ impl<'a> FrameSetup<'a> {
     }
 
     /// Casts one ray whole; `fb` collects requested pages.
-    pub fn cast(&self, d: [f32; 3], fb: &mut Vec<u64>) -> (Rgba, CastStats) {
+    pub fn cast(&self, d: [f32; 3], fb: &mut crate::feedback::Requests) -> (Rgba, CastStats) {
         let mut st = self.start(d, fb);
         st.advance(f32::INFINITY, fb);
         (st.ctx.acc, st.ctx.stats)
@@ -534,7 +542,7 @@ impl<'a> FrameSetup<'a> {
         spans: &[(f32, f32)],
         ta: f32,
         tb: f32,
-        fb: &mut Vec<u64>,
+        fb: &mut crate::feedback::Requests,
     ) {
         let mut cuts: Vec<f32> = vec![ta, tb];
         for &(a, b) in spans {
@@ -586,7 +594,7 @@ impl<'a> FrameSetup<'a> {
                 let ty = r.y + (ti / tiles_x) * TILE;
                 let w = TILE.min(r.x + r.w - tx);
                 let h = TILE.min(r.y + r.h - ty);
-                let mut fb = Vec::new();
+                let mut fb = crate::feedback::Requests::new();
                 let mut st = CastStats::default();
                 let mut rays: Vec<RayState<'_, '_>> = Vec::with_capacity((w * h) as usize);
                 for y in ty..ty + h {

@@ -121,7 +121,7 @@ impl<'a> VolFrame<'a> {
         t: f32,
         q: [f32; 3],
         md: [f32; 3],
-        feedback: &mut Vec<u64>,
+        feedback: &mut crate::feedback::Requests,
     ) {
         self.locate_page(cur, t, q, md, feedback, true)
     }
@@ -135,7 +135,7 @@ impl<'a> VolFrame<'a> {
         t: f32,
         q: [f32; 3],
         md: [f32; 3],
-        feedback: &mut Vec<u64>,
+        feedback: &mut crate::feedback::Requests,
         skip_transparent: bool,
     ) {
         let nl = self.level_t.len();
@@ -154,7 +154,9 @@ impl<'a> VolFrame<'a> {
         };
         let span = self.core / scale; // brick size in level-0 samples
         for a in 0..3 {
-            let f = ((q[a] + 0.5) * scale / self.core).floor();
+            // Truncation is the floor here: negative positions clamp to brick 0 either way
+            // (and `floor` is a libm call on baseline x86-64).
+            let f = (q[a] + 0.5) * scale / self.core;
             let bi = (f.max(0.0) as u32).min(li.bricks[a] - 1);
             b[a] = bi;
             if md[a] != 0.0 {
@@ -198,9 +200,10 @@ impl<'a> VolFrame<'a> {
 
     /// The macrocell of slot-page coordinate `l` (as [`local`](Self::local) gives it) in the
     /// cursor's slot: whether it may hold a visible value, and the `t` at which the ray
-    /// leaves its box. Only called with macrocells (`self.cells` set).
+    /// leaves its box (`inv` is `1 / md` per axis). Only called with macrocells
+    /// (`self.cells` set).
     #[inline(always)]
-    pub fn cell_at(&self, cur: &Cursor, l: [f32; 3], md: [f32; 3]) -> (bool, f32) {
+    pub fn cell_at(&self, cur: &Cursor, l: [f32; 3], md: [f32; 3], inv: [f32; 3]) -> (bool, f32) {
         use crate::macrocell::CELL;
         let n = self.cells_per_axis;
         let mut idx = 0usize;
@@ -213,8 +216,9 @@ impl<'a> VolFrame<'a> {
             if dir != 0.0 {
                 let bound = if dir > 0.0 { (c + 1) * CELL } else { c * CELL } as f32;
                 // Slot coordinate `(c + t·md)·s + o` reaches `bound` (`s` is a power of two,
-                // so dividing by it is exact).
-                exit = exit.min(((bound - cur.o[a]) / cur.s - self.c[a]) / md[a]);
+                // so dividing by it is exact; `inv = 1 / md` may be off by a rounding, which
+                // the cells' one-sample margin absorbs).
+                exit = exit.min(((bound - cur.o[a]) / cur.s - self.c[a]) * inv[a]);
             }
         }
         let cells = self.cells.expect("macrocells");
@@ -233,7 +237,7 @@ impl<'a> VolFrame<'a> {
         t0: f32,
         t1: f32,
         hits: &mut Vec<crate::horizon::Hit>,
-        feedback: &mut Vec<u64>,
+        feedback: &mut crate::feedback::Requests,
     ) {
         for s in self.slices {
             let a = s.axis;
@@ -271,7 +275,12 @@ impl<'a> VolFrame<'a> {
     #[inline(always)]
     pub fn local(&self, cur: &Cursor, q: [f32; 3]) -> [f32; 3] {
         let maxc = (self.page - 1) as f32 - 1e-3;
-        [0, 1, 2].map(|a| (q[a] * cur.s + cur.o[a]).clamp(0.0, maxc))
+        // Spelled out: `[_; 3].map` is not always inlined, and this runs per sample.
+        [
+            (q[0] * cur.s + cur.o[0]).clamp(0.0, maxc),
+            (q[1] * cur.s + cur.o[1]).clamp(0.0, maxc),
+            (q[2] * cur.s + cur.o[2]).clamp(0.0, maxc),
+        ]
     }
 
     /// Trilinear sample at index position `q` through the cursor's page.
@@ -302,7 +311,11 @@ impl<'a> VolFrame<'a> {
     pub fn gradient(&self, cur: &Cursor, q: [f32; 3]) -> [f32; 3] {
         let p = self.page;
         let maxc = (p - 1) as f32 - 1e-3;
-        let l = [0, 1, 2].map(|a| q[a] * cur.s + cur.o[a]);
+        let l = [
+            q[0] * cur.s + cur.o[0],
+            q[1] * cur.s + cur.o[1],
+            q[2] * cur.s + cur.o[2],
+        ];
         let at = |dx: f32, dy: f32, dz: f32| {
             let l = [
                 (l[0] + dx).clamp(0.0, maxc),
@@ -359,7 +372,9 @@ pub unsafe fn trilinear_at<T: Voxel>(data: &[T], off: usize, p: usize, l: [f32; 
 /// First lattice index `k` with `k·dt >= t` (as evaluated in f32).
 #[inline]
 pub fn first_k(t: f32, dt: f32) -> i64 {
-    let mut k = (t / dt).ceil() as i64;
+    // A start within one of the answer (truncation, not `ceil`, which is a libm call on
+    // baseline x86-64); the loops make it exact.
+    let mut k = (t / dt) as i64;
     while k > i64::MIN && ((k - 1) as f32) * dt >= t {
         k -= 1;
     }

@@ -687,6 +687,26 @@ fn slab(c: vec3<f32>, d: vec3<f32>, lo: vec3<f32>, hi: vec3<f32>) -> vec2<f32> {
     return vec2<f32>(t0, t1);
 }
 
+// slab() with inv = 1 / d precomputed, multiplications for divisions (horizon.rs
+// `slab_inv`, used for the tile tree's padded boxes).
+fn slab_inv(c: vec3<f32>, d: vec3<f32>, inv: vec3<f32>, lo: vec3<f32>, hi: vec3<f32>) -> vec2<f32> {
+    var t0 = -BIG;
+    var t1 = BIG;
+    for (var a = 0u; a < 3u; a = a + 1u) {
+        if (d[a] == 0.0) {
+            if (!(lo[a] <= c[a] && c[a] <= hi[a])) {
+                return vec2<f32>(1.0, 0.0);
+            }
+        } else {
+            let ta = (lo[a] - c[a]) * inv[a];
+            let tb = (hi[a] - c[a]) * inv[a];
+            t0 = max(t0, min(ta, tb));
+            t1 = min(t1, max(ta, tb));
+        }
+    }
+    return vec2<f32>(t0, t1);
+}
+
 // Entry of the ray into the lateral prism [lo, hi] × (−∞, ∞).
 fn slab_entry2(c: vec3<f32>, d: vec3<f32>, lo: vec2<f32>, hi: vec2<f32>) -> f32 {
     var t0 = -BIG;
@@ -1034,6 +1054,8 @@ fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f3
 fn intersect_horizon(hi: u32, d: vec3<f32>, ta: f32, tb: f32) -> f32 {
     let hz = &hors[hi];
     let md = mul_rows((*hz).m0, (*hz).m1, (*hz).m2, d);
+    // Components where md is 0 are never used (slab_inv tests d == 0 first).
+    let inv = vec3<f32>(1.0) / select(md, vec3<f32>(1.0), md == vec3<f32>(0.0));
     let c = (*hz).c;
     var limit = tb;
     var stack: array<vec3<u32>, STACK>;
@@ -1054,7 +1076,7 @@ fn intersect_horizon(hi: u32, d: vec3<f32>, ta: f32, tb: f32) -> f32 {
         // Pad by one cell of this level: coarse and fine footprints do not nest exactly. A
         // flat tile gets a little thickness so the slab test cannot lose it to rounding.
         let eps = 1e-4 * (1.0 + max(abs(zb.x), abs(zb.y)));
-        let e = slab(c, md, vec3<f32>(fp.x - s, fp.y - s, zb.x - eps), vec3<f32>(fp.z + s, fp.w + s, zb.y + eps));
+        let e = slab_inv(c, md, inv, vec3<f32>(fp.x - s, fp.y - s, zb.x - eps), vec3<f32>(fp.z + s, fp.w + s, zb.y + eps));
         if (max(e.x, ta) >= min(e.y, limit) || e.y < 0.0) {
             continue;
         }
