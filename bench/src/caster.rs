@@ -32,19 +32,21 @@ type Tweak = fn(&mut RenderSettings);
 /// The caster's paths: the first is the reference of the comparison.
 fn variants() -> Vec<(&'static str, Tweak)> {
     vec![
-        ("f32 slots, brick skipping (before)", |s| {
+        ("scalar, f32 slots, brick skipping (before)", |s| {
+            s.simd = false;
             s.compact_slots = false;
             s.macrocells = false;
         }),
-        ("f32 slots + macrocells", |s| {
+        ("scalar, f32 slots + macrocells", |s| {
+            s.simd = false;
             s.compact_slots = false;
-            s.macrocells = true;
         }),
-        ("compact slots, brick skipping", |s| {
-            s.compact_slots = true;
+        ("scalar, compact slots + macrocells", |s| s.simd = false),
+        ("packets, f32 slots, brick skipping", |s| {
+            s.compact_slots = false;
             s.macrocells = false;
         }),
-        ("compact slots + macrocells (default)", |_| {}),
+        ("packets, compact slots + macrocells (default)", |_| {}),
     ]
 }
 

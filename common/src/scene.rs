@@ -379,6 +379,10 @@ pub struct RenderSettings {
     /// a quarter of the memory for 8-bit data, and the same image.
     #[serde(default = "yes")]
     pub compact_slots: bool,
+    /// The CPU caster marches eight rays at a time with AVX2 where the CPU has it (one
+    /// volume, no gradient shading); false forces the scalar march. The image is the same.
+    #[serde(default = "yes")]
+    pub simd: bool,
     /// Gradient (Blinn-Phong headlight) shading of volumes.
     #[serde(default)]
     pub volume_shading: bool,
@@ -480,6 +484,7 @@ impl Default for RenderSettings {
             empty_space_skipping: true,
             macrocells: true,
             compact_slots: true,
+            simd: true,
             volume_shading: false,
             lighting: true,
             atlas_mb: default_atlas(),

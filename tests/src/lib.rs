@@ -326,9 +326,20 @@ pub mod scenes {
 
     /// Renders the scene on the CPU and, where an adapter exists, on the GPU too, asserting
     /// that the two images agree within `tol` (largest channel difference) and that the GPU
-    /// image is clean; returns the CPU image.
+    /// image is clean; returns the CPU image. The CPU renders twice, with its SIMD packets
+    /// (where the CPU has AVX2) and with the scalar march forced, and the two must agree bit
+    /// for bit: every scene that goes through here checks the packet path and the scalar
+    /// fallback.
     pub fn render_on_both(scene: &Scene, tol: f32, what: &str) -> Vec<Rgba> {
         let cpu = render_whole(&on_backend(scene, Backend::Cpu));
+        let mut scalar = on_backend(scene, Backend::Cpu);
+        scalar.render.simd = false;
+        let scalar = render_whole(&scalar);
+        assert!(
+            bit_identical(&cpu, &scalar),
+            "{what}: SIMD packets and the scalar march differ by {}",
+            max_diff(&cpu, &scalar)
+        );
         if gpu_available() {
             let gpu = render_whole(&on_backend(scene, Backend::Gpu));
             assert_clean(&gpu);
@@ -363,6 +374,14 @@ pub mod scenes {
     /// The region of a scene (as the engine sees it).
     pub fn scene_region(scene: &Scene) -> Region {
         Engine::new(scene).unwrap().scene_region()
+    }
+
+    /// Whether two images are equal bit for bit.
+    pub fn bit_identical(a: &[Rgba], b: &[Rgba]) -> bool {
+        a.len() == b.len()
+            && a.iter()
+                .zip(b)
+                .all(|(p, q)| p.iter().zip(q).all(|(x, y)| x.to_bits() == y.to_bits()))
     }
 
     /// Largest absolute channel difference.

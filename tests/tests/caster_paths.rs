@@ -121,14 +121,18 @@ fn cameras() -> Vec<Camera> {
 }
 
 fn scene_for(store: PathBuf, window: [f64; 2], cam: Camera) -> Scene {
+    // Zero opacity below 20 % of the window: the low values are empty space.
+    scene_with(
+        store,
+        window,
+        cam,
+        vec![[0.0, 0.0], [0.2, 0.0], [0.5, 0.3], [1.0, 0.8]],
+    )
+}
+
+fn scene_with(store: PathBuf, window: [f64; 2], cam: Camera, opacity: Vec<[f64; 2]>) -> Scene {
     let mut s = scene(
-        vec![volume_layer(
-            store,
-            "viridis",
-            window,
-            // Zero opacity below 20 % of the window: the low values are empty space.
-            vec![[0.0, 0.0], [0.2, 0.0], [0.5, 0.3], [1.0, 0.8]],
-        )],
+        vec![volume_layer(store, "viridis", window, opacity)],
         vec![],
         cam,
         exact_settings(72, 56),
@@ -298,5 +302,78 @@ fn macrocells_follow_slot_reuse() {
     assert!(full > 0, "the atlas was large enough: nothing was reused");
     for (k, (a, b)) in on.iter().zip(&off).enumerate() {
         assert!(identical(a, b), "view {k}: differ by {}", max_diff(a, b));
+    }
+}
+
+/// SIMD packets against the scalar march: the same pixels bit for bit, the same counters
+/// and the same page requests, for every slot type, with NaN samples, early termination,
+/// several sampling bands (the far camera) and macrocells on and off.
+#[test]
+fn packets_and_the_scalar_march_agree_bit_for_bit() {
+    if !strata_worker::packet::available() {
+        eprintln!("NOTICE: no AVX2 here: both runs take the scalar march");
+    }
+    let dir = TempDir::new().unwrap();
+    let mut nan = blobs(100.0);
+    for v in nan.iter_mut().step_by(11) {
+        *v = f32::NAN;
+    }
+    let empty_low = vec![[0.0, 0.0], [0.2, 0.0], [0.5, 0.3], [1.0, 0.8]];
+    // The lowest value shows too: a NaN sample that leaked into the lookup would show.
+    let visible_low = vec![[0.0, 0.4], [0.2, 0.0], [0.5, 0.3], [1.0, 0.8]];
+    let stores = [
+        (
+            store(dir.path(), "f", SampleType::F32, nan),
+            [0.0, 100.0],
+            &visible_low,
+        ),
+        (
+            store(dir.path(), "u", SampleType::U8, blobs(255.0)),
+            [0.0, 255.0],
+            &empty_low,
+        ),
+        (
+            store(dir.path(), "i", SampleType::I16, blobs(3000.0)),
+            [-10.0, 3000.0],
+            &empty_low,
+        ),
+    ];
+    for (st, window, opacity) in &stores {
+        for (i, cam) in cameras().into_iter().enumerate() {
+            for (ert, cells) in [(1.0, true), (0.9, true), (0.95, false)] {
+                let mut s = scene_with(st.clone(), *window, cam.clone(), opacity.to_vec());
+                s.render.early_termination = ert;
+                s.render.macrocells = cells;
+                s.render.tau = 1.0;
+                let run = |simd: bool| {
+                    let mut s = s.clone();
+                    s.render.simd = simd;
+                    let mut e = Engine::new(&s).unwrap();
+                    let view = e.view(s.render.width, s.render.height).unwrap();
+                    let region = e.scene_region();
+                    let b = e.render_batch(&view, &region).unwrap();
+                    assert_eq!(b.outcome, Outcome::Converged);
+                    let f = e.render_frame(&view, &region).unwrap();
+                    let mut fb: Vec<(u64, u32)> =
+                        f.feedback.coverage.iter().map(|(&k, &c)| (k, c)).collect();
+                    fb.sort_unstable();
+                    (f.image.to_full(), f.stats, fb)
+                };
+                let (pi, ps, pf) = run(true);
+                let (si, ss, sf) = run(false);
+                let what = format!("{}, camera {i}, ERT {ert}, cells {cells}", st.display());
+                assert!(pi.iter().any(|p| p[3] > 0.01), "{what}: blank");
+                assert!(
+                    bit_identical(&pi, &si),
+                    "{what}: packets differ by {}",
+                    max_diff(&pi, &si)
+                );
+                assert_eq!(ps, ss, "{what}: counters");
+                assert_eq!(pf, sf, "{what}: page requests");
+                if ert < 1.0 && i < 3 {
+                    assert!(ps.terminated > 0, "{what}: no ray terminated early");
+                }
+            }
+        }
     }
 }

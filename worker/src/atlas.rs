@@ -274,7 +274,8 @@ impl Pool {
     pub fn typed(page_samples: usize, budget_bytes: u64, t: SampleType) -> Self {
         let n = Self::slots_of(page_samples, budget_bytes, t.size());
         let mut p = Self::bookkeeping(page_samples, n);
-        p.data = SlotData::zeroed(t, n * page_samples);
+        // Padding past the last slot for the SIMD caster's 32-bit reads of 8-bit pairs.
+        p.data = SlotData::zeroed(t, n * page_samples + crate::packet::POOL_PAD);
         p
     }
 

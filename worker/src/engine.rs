@@ -540,6 +540,7 @@ impl Engine {
                 .collect();
             let d = v.dims();
             let pool = self.vpool.as_ref().unwrap();
+            let tables = tf_tables_for(&exps, &v.tf);
             let cells = pool
                 .cells()
                 .filter(|_| s.empty_space_skipping && s.macrocells);
@@ -559,7 +560,8 @@ impl Engine {
                 cells_per_axis: cells.map_or(0, |c| c.per_axis()),
                 invisible: s.empty_space_skipping && transparent.iter().all(|&t| t),
                 transparent,
-                tables: tf_tables_for(&exps, &v.tf),
+                flat: crate::packet::FlatTables::new(&tables),
+                tables,
                 pyramid: &v.pyramid,
                 slices: &v.slices,
                 tf: &v.tf,
@@ -605,6 +607,7 @@ impl Engine {
         let region_lo = [0, 1, 2].map(|a| (rlo[a] - view.eye[a]) as f32);
         let region_hi = [0, 1, 2].map(|a| (rhi[a] - view.eye[a]) as f32);
         let rect = screen_rect(view, &clipped);
+        let vols_n = vols.len();
         FrameSetup {
             width: view.width,
             height: view.height,
@@ -620,6 +623,7 @@ impl Engine {
             ert: (s.early_termination as f32).min(1.0),
             volume_shading: s.volume_shading,
             skipping: s.empty_space_skipping,
+            packets: s.simd && vols_n == 1 && !s.volume_shading && crate::packet::available(),
             // 32 base steps: deep enough to amortize, shallow enough that the bricks a
             // tile's rays touch in one chunk stay in cache.
             chunk: if base > 0.0 && base.is_finite() {

@@ -89,27 +89,25 @@ fn fmax(a: f32, b: f32) -> f32 {
 /// result may differ from `slab`'s by a rounding).
 #[inline(always)]
 fn slab_inv(c: [f32; 3], d: [f32; 3], inv: [f32; 3], lo: [f32; 3], hi: [f32; 3]) -> (f32, f32) {
-    let mut t0 = f32::NEG_INFINITY;
-    let mut t1 = f32::INFINITY;
-    for a in 0..3 {
-        if d[a] == 0.0 {
-            if !(lo[a] <= c[a] && c[a] <= hi[a]) {
-                return (1.0, 0.0);
-            }
-        } else {
-            let ta = (lo[a] - c[a]) * inv[a];
-            let tb = (hi[a] - c[a]) * inv[a];
-            t0 = fmax(t0, fmin(ta, tb));
-            t1 = fmin(t1, fmax(ta, tb));
-        }
-    }
-    (t0, t1)
+    slab_by(c, d, lo, hi, |x, a| x * inv[a])
 }
 
 /// `[t0, t1]` of the ray `c + t·d` in the box `[lo, hi]` (empty when `t0 > t1`). The box
 /// and the ray are finite (bounds of tiles with no valid height are never tested).
 #[inline(always)]
 fn slab(c: [f32; 3], d: [f32; 3], lo: [f32; 3], hi: [f32; 3]) -> (f32, f32) {
+    slab_by(c, d, lo, hi, |x, a| x / d[a])
+}
+
+/// The slab test with `per_d(x, a)` = `x / d[a]`, however computed.
+#[inline(always)]
+fn slab_by(
+    c: [f32; 3],
+    d: [f32; 3],
+    lo: [f32; 3],
+    hi: [f32; 3],
+    per_d: impl Fn(f32, usize) -> f32,
+) -> (f32, f32) {
     let mut t0 = f32::NEG_INFINITY;
     let mut t1 = f32::INFINITY;
     for a in 0..3 {
@@ -118,8 +116,8 @@ fn slab(c: [f32; 3], d: [f32; 3], lo: [f32; 3], hi: [f32; 3]) -> (f32, f32) {
                 return (1.0, 0.0);
             }
         } else {
-            let ta = (lo[a] - c[a]) / d[a];
-            let tb = (hi[a] - c[a]) / d[a];
+            let ta = per_d(lo[a] - c[a], a);
+            let tb = per_d(hi[a] - c[a], a);
             t0 = fmax(t0, fmin(ta, tb));
             t1 = fmin(t1, fmax(ta, tb));
         }

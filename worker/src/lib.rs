@@ -30,5 +30,6 @@ pub mod gpu;
 pub mod horizon;
 pub mod macrocell;
 pub mod node;
+pub mod packet;
 pub mod raycast;
 pub mod volume;

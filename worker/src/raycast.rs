@@ -12,7 +12,7 @@
 
 use crate::atlas::{Samples, Voxel};
 use crate::horizon::{Hit, HorFrame};
-use crate::volume::{first_k, trilinear_at, Cursor, VolFrame};
+use crate::volume::{first_k, first_k_near, trilinear_at, Cursor, VolFrame};
 use rayon::prelude::*;
 use strata_common::image::{PartialImage, Rect, Rgba};
 
@@ -60,6 +60,9 @@ pub struct FrameSetup<'a> {
     pub skipping: bool,
     /// Depth of the lockstep chunks a tile's rays are marched in (camera-relative units).
     pub chunk: f32,
+    /// March single-volume spans in SIMD packets ([`crate::packet`]); only set where the
+    /// CPU has AVX2, there is one volume and no gradient shading.
+    pub packets: bool,
 }
 
 /// Counters of one frame.
@@ -188,6 +191,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
             let seg_end = tb.min(band_end);
             let table = &v.tables[band];
             let mut k = first_k(t_start, dt);
+            let inv_dt = 1.0 / dt;
             // Hot loop: accumulate in locals, write back once.
             let mut acc = self.acc;
             let mut samples = 0u64;
@@ -210,7 +214,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                 if cur.transparent {
                     // Jump to the first lattice point past the brick (the cursor stays
                     // valid across segments, so a later segment may start inside it).
-                    let nk = first_k(cur.t_exit.min(seg_end), dt).max(k + 1);
+                    let nk = first_k_near(cur.t_exit.min(seg_end), dt, inv_dt).max(k + 1);
                     skipped += (nk - k) as u64;
                     k = nk;
                     continue;
@@ -220,7 +224,8 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                 if t >= cell_exit {
                     let (visible, exit) = v.cell_at(cur, l, md, inv);
                     if !visible {
-                        let nk = first_k(exit.min(cur.t_exit).min(seg_end), dt).max(k + 1);
+                        let nk =
+                            first_k_near(exit.min(cur.t_exit).min(seg_end), dt, inv_dt).max(k + 1);
                         skipped += (nk - k) as u64;
                         k = nk;
                         continue;
@@ -385,6 +390,59 @@ impl<'s, 'a> RayState<'s, 'a> {
     /// Whether the ray needs more marching.
     pub fn active(&self) -> bool {
         !self.ctx.done && self.cur_t < self.t1
+    }
+
+    /// The volume interval `advance(until)` would march first, for a single-volume frame:
+    /// `(ta, tb, cur_t after it)`, or `None` if it would march nothing first.
+    pub fn pending(&self, until: f32) -> Option<(f32, f32, f32)> {
+        if self.ctx.done || self.ctx.f.vols.len() != 1 {
+            return None;
+        }
+        let next_hit = self.hits.get(self.hi).map_or(f32::INFINITY, |h| h.t);
+        let seg_end = next_hit.min(self.t1).min(until);
+        if seg_end <= self.cur_t {
+            return None;
+        }
+        let (a, b) = self.span0;
+        let (a, b) = (a.max(self.cur_t), b.min(seg_end));
+        (a < b).then_some((a, b, seg_end))
+    }
+
+    /// The ray's index-space direction in its (single) volume.
+    pub fn md0(&self) -> [f32; 3] {
+        self.md0
+    }
+
+    /// The ray's cursor in its (single) volume.
+    pub fn cursor(&self) -> &Cursor {
+        &self.single
+    }
+
+    /// The accumulated premultiplied colour.
+    pub fn acc(&self) -> Rgba {
+        self.ctx.acc
+    }
+
+    /// Takes the outcome of a packet's march of the interval [`pending`](Self::pending)
+    /// gave: what the scalar march would have left.
+    pub fn finish_packet(
+        &mut self,
+        acc: Rgba,
+        cur: Cursor,
+        samples: u64,
+        skipped: u64,
+        terminated: bool,
+        then: f32,
+    ) {
+        self.ctx.acc = acc;
+        self.single = cur;
+        self.ctx.stats.samples += samples;
+        self.ctx.stats.skipped += skipped;
+        if terminated {
+            self.ctx.done = true;
+            self.ctx.stats.terminated += 1;
+        }
+        self.cur_t = then;
     }
 
     /// Marches (volumes and surfaces, front to back) up to `until` (exclusive).
@@ -608,8 +666,34 @@ impl<'a> FrameSetup<'a> {
                     .filter(|r| r.active())
                     .map(|r| (r.cur_t / self.chunk).floor())
                     .fold(f32::INFINITY, f32::min);
+                let mut work = Vec::with_capacity(crate::packet::LANES);
                 while c.is_finite() {
                     let until = (c + 1.0) * self.chunk;
+                    if self.packets {
+                        // The chunk's first volume span of every ray, eight rays at a time;
+                        // `advance` below then does the rest (surfaces, later spans).
+                        for i in 0..rays.len() {
+                            let r = &rays[i];
+                            if r.active() && r.cur_t < until {
+                                if let Some((ta, tb, then)) = r.pending(until) {
+                                    work.push(crate::packet::Pending {
+                                        ray: i,
+                                        ta,
+                                        tb,
+                                        then,
+                                    });
+                                }
+                            }
+                            if work.len() == crate::packet::LANES {
+                                crate::packet::march(self, &mut rays, &work, &mut fb);
+                                work.clear();
+                            }
+                        }
+                        if !work.is_empty() {
+                            crate::packet::march(self, &mut rays, &work, &mut fb);
+                            work.clear();
+                        }
+                    }
                     let mut next = f32::INFINITY;
                     for r in rays.iter_mut() {
                         if r.active() && r.cur_t < until {

@@ -44,6 +44,8 @@ pub struct VolFrame<'a> {
     pub invisible: bool,
     /// Per band: premultiplied, step-corrected lookup.
     pub tables: Vec<StepTable>,
+    /// The same tables laid end to end (for SIMD packets).
+    pub flat: crate::packet::FlatTables,
     /// The pyramid (for page keys).
     pub pyramid: &'a Pyramid,
     /// Slices through the volume (empty: no slice code runs).
@@ -66,6 +68,8 @@ pub struct Cursor {
     pub off: usize,
     /// Level-0 index → slot-page coordinate: `q · s + o`.
     pub s: f32,
+    /// `1 / s` (exact: `s` is a power of two).
+    pub rs: f32,
     /// See `s`.
     pub o: [f32; 3],
 }
@@ -79,6 +83,7 @@ impl Default for Cursor {
             slot: 0,
             off: 0,
             s: 1.0,
+            rs: 1.0,
             o: [0.0; 3],
         }
     }
@@ -192,6 +197,7 @@ impl<'a> VolFrame<'a> {
         // The tap reads rely on this (see `trilinear_at`).
         assert!(cur.off + ps <= self.samples.len());
         cur.s = sr;
+        cur.rs = 1.0 / sr;
         for a in 0..3 {
             let br = (b[a] >> k) as f32;
             cur.o[a] = 0.5 * sr - 0.5 - br * self.core + self.border;
@@ -216,9 +222,9 @@ impl<'a> VolFrame<'a> {
             if dir != 0.0 {
                 let bound = if dir > 0.0 { (c + 1) * CELL } else { c * CELL } as f32;
                 // Slot coordinate `(c + t·md)·s + o` reaches `bound` (`s` is a power of two,
-                // so dividing by it is exact; `inv = 1 / md` may be off by a rounding, which
-                // the cells' one-sample margin absorbs).
-                exit = exit.min(((bound - cur.o[a]) / cur.s - self.c[a]) * inv[a]);
+                // so multiplying by `rs = 1 / s` is dividing by it, exactly; `inv = 1 / md` may
+                // be off by a rounding, which the cells' one-sample margin absorbs).
+                exit = exit.min(((bound - cur.o[a]) * cur.rs - self.c[a]) * inv[a]);
             }
         }
         let cells = self.cells.expect("macrocells");
@@ -372,9 +378,16 @@ pub unsafe fn trilinear_at<T: Voxel>(data: &[T], off: usize, p: usize, l: [f32; 
 /// First lattice index `k` with `k·dt >= t` (as evaluated in f32).
 #[inline]
 pub fn first_k(t: f32, dt: f32) -> i64 {
-    // A start within one of the answer (truncation, not `ceil`, which is a libm call on
-    // baseline x86-64); the loops make it exact.
-    let mut k = (t / dt) as i64;
+    first_k_near(t, dt, 1.0 / dt)
+}
+
+/// [`first_k`] with `inv_dt = 1 / dt` precomputed: the same answer (the estimate only
+/// starts the exact search).
+#[inline]
+pub fn first_k_near(t: f32, dt: f32, inv_dt: f32) -> i64 {
+    // A start within about one of the answer (truncation, not `ceil`, which is a libm call
+    // on baseline x86-64); the loops make it exact.
+    let mut k = (t * inv_dt) as i64;
     while k > i64::MIN && ((k - 1) as f32) * dt >= t {
         k -= 1;
     }
