@@ -10,7 +10,8 @@
 //! * [`atlas`]: the virtualized atlas: fixed pools of page slots and per-data-set page
 //!   tables, in the `#[repr(C)]` layout of `strata_common::gpu` that both backends read.
 //! * [`feedback`]: per-ray page requests, reduced to priorities.
-//! * [`volume`], [`horizon`], [`raycast`]: the CPU ray caster.
+//! * [`volume`], [`horizon`], [`raycast`]: the CPU ray caster; [`macrocell`]: its
+//!   empty-space skipping inside bricks; [`packet`]: its SIMD ray packets (AVX2).
 //! * [`gpu`]: the wgpu backend: atlas pools and page tables in GPU buffers, the WGSL caster
 //!   of volumes and horizons, feedback counted and compacted on the GPU (`render.backend`).
 //!

@@ -707,23 +707,6 @@ fn slab_inv(c: vec3<f32>, d: vec3<f32>, inv: vec3<f32>, lo: vec3<f32>, hi: vec3<
     return vec2<f32>(t0, t1);
 }
 
-// Entry of the ray into the lateral prism [lo, hi] × (−∞, ∞).
-fn slab_entry2(c: vec3<f32>, d: vec3<f32>, lo: vec2<f32>, hi: vec2<f32>) -> f32 {
-    var t0 = -BIG;
-    for (var a = 0u; a < 2u; a = a + 1u) {
-        if (d[a] == 0.0) {
-            if (!(lo[a] <= c[a] && c[a] <= hi[a])) {
-                return 1.0;
-            }
-        } else {
-            let ta = (lo[a] - c[a]) / d[a];
-            let tb = (hi[a] - c[a]) / d[a];
-            t0 = max(t0, min(ta, tb));
-        }
-    }
-    return t0;
-}
-
 struct Roots {
     n: u32,
     r: vec2<f32>,
@@ -1087,8 +1070,17 @@ fn intersect_horizon(hi: u32, d: vec3<f32>, ta: f32, tb: f32) -> f32 {
             h_leaf(hi, level, b, d, md, ta, &limit);
             continue;
         }
-        // Children sorted front to back by their entry (stable), pushed farthest first.
+        // Children sorted front to back (stable) by where the ray crosses the split lines
+        // (horizon.rs `visit`: a far-side child is entered at its split line), pushed
+        // farthest first.
         let lb = levels[(*hz).level_base + level - 1u].yz;
+        let split = footprint(hi, level - 1u, vec2<u32>(2u * b.x + 1u, 2u * b.y + 1u)).xy;
+        var cross = vec2<f32>(BIG, BIG);
+        for (var a = 0u; a < 2u; a = a + 1u) {
+            if (md[a] != 0.0) {
+                cross[a] = (split[a] - c[a]) / md[a];
+            }
+        }
         var kt: array<f32, 4>;
         var kb: array<vec2<u32>, 4>;
         var n = 0u;
@@ -1096,8 +1088,9 @@ fn intersect_horizon(hi: u32, d: vec3<f32>, ta: f32, tb: f32) -> f32 {
             for (var dx = 0u; dx < 2u; dx = dx + 1u) {
                 let cb = vec2<u32>(2u * b.x + dx, 2u * b.y + dy);
                 if (cb.x < lb.x && cb.y < lb.y) {
-                    let cf = footprint(hi, level - 1u, cb);
-                    let t0 = slab_entry2(c, md, cf.xy, cf.zw);
+                    let far_x = select(dx == 0u, dx == 1u, md.x >= 0.0);
+                    let far_y = select(dy == 0u, dy == 1u, md.y >= 0.0);
+                    let t0 = max(select(-BIG, cross.x, far_x), select(-BIG, cross.y, far_y));
                     var j = n;
                     loop {
                         if (j > 0u && kt[j - 1u] > t0) {
