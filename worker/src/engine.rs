@@ -608,6 +608,8 @@ impl Engine {
         let region_hi = [0, 1, 2].map(|a| (rhi[a] - view.eye[a]) as f32);
         let rect = screen_rect(view, &clipped);
         let vols_n = vols.len();
+        let one_invisible = vols_n == 1 && vols[0].invisible;
+        let all_invisible = vols.iter().all(|v| v.invisible);
         FrameSetup {
             width: view.width,
             height: view.height,
@@ -623,10 +625,16 @@ impl Engine {
             ert: (s.early_termination as f32).min(1.0),
             volume_shading: s.volume_shading,
             skipping: s.empty_space_skipping,
-            packets: s.simd && vols_n == 1 && !s.volume_shading && crate::packet::available(),
+            // (A single volume invisible under its transfer function is never marched.)
+            packets: s.simd
+                && vols_n == 1
+                && !one_invisible
+                && !s.volume_shading
+                && crate::packet::available(),
             // 32 base steps: deep enough to amortize, shallow enough that the bricks a
-            // tile's rays touch in one chunk stay in cache.
-            chunk: if base > 0.0 && base.is_finite() {
+            // tile's rays touch in one chunk stay in cache. With no volume to march (only
+            // surfaces and slices) the rays go in one piece.
+            chunk: if base > 0.0 && base.is_finite() && !all_invisible {
                 32.0 * base
             } else {
                 f32::INFINITY

@@ -174,11 +174,13 @@ impl<'a> HorFrame<'a> {
 
     /// Lateral footprint of tile `b` at `level` in level-0 node coordinates: the cells whose
     /// lower node lies in the tile's core.
+    #[inline(always)]
     fn footprint(&self, level: usize, b: [u32; 3]) -> ([f32; 2], [f32; 2]) {
         let s = (1u64 << level) as f32;
-        let lo = [0, 1].map(|a| (b[a] as f32 * self.core as f32 + 0.5) * s - 0.5);
-        let hi = [0, 1].map(|a| ((b[a] + 1) as f32 * self.core as f32 + 0.5) * s - 0.5);
-        (lo, hi)
+        let core = self.core as f32;
+        // Spelled out: `[_; 2].map` is not always inlined, and this runs per tile visit.
+        let at = |i: u32| (i as f32 * core + 0.5) * s - 0.5;
+        ([at(b[0]), at(b[1])], [at(b[0] + 1), at(b[1] + 1)])
     }
 
     /// All crossings of the ray `p(t) = t·d` with `t` in `[ta, tb)`, appended to `hits`
@@ -249,13 +251,14 @@ impl<'a> HorFrame<'a> {
         // opaque crossing prunes the rest, never which crossings are found).
         let lb = &self.table.levels[level - 1].bricks;
         let split = self.footprint(level - 1, [2 * b[0] + 1, 2 * b[1] + 1, 0]).0;
-        let cross = [0, 1].map(|a| {
+        let crossing = |a: usize| {
             if md[a] == 0.0 {
                 f32::INFINITY
             } else {
                 (split[a] - self.c[a]) / md[a]
             }
-        });
+        };
+        let cross = [crossing(0), crossing(1)];
         // The child on the far side of a split line is entered where the ray crosses it.
         let key = |a: usize, half: u32| {
             let far = if md[a] >= 0.0 { half == 1 } else { half == 0 };
@@ -276,7 +279,14 @@ impl<'a> HorFrame<'a> {
                 }
             }
         }
-        kids[..n].sort_by(|a, b| a.0.total_cmp(&b.0));
+        // Stable insertion sort of at most four (keys are never NaN).
+        for i in 1..n {
+            let mut j = i;
+            while j > 0 && kids[j - 1].0 > kids[j].0 {
+                kids.swap(j - 1, j);
+                j -= 1;
+            }
+        }
         for &(_, cb) in &kids[..n] {
             self.visit(level - 1, cb, d, md, inv, ta, limit, hits, feedback);
         }
