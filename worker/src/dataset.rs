@@ -58,6 +58,8 @@ pub struct Horizon {
     pub opacity: f32,
     /// `[min, max]` height per tile, in page-table order.
     pub bounds: Vec<[f32; 2]>,
+    /// The tile tree's padded boxes, in page-table order.
+    pub boxes: Vec<crate::horizon::TileBox>,
 }
 
 fn page_bounds(store: &PageStore) -> Vec<[f32; 2]> {
@@ -220,6 +222,7 @@ impl Horizon {
             color: layer.color.map(|c| (c.clamp(0.0, 1.0) as f32).powf(2.2)),
             depth_map,
             opacity: layer.opacity as f32,
+            boxes: crate::horizon::tile_boxes(store.pyramid(), &page_bounds(&store)),
             bounds: page_bounds(&store),
             store,
         })

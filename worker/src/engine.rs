@@ -590,6 +590,7 @@ impl Engine {
                 table: &self.tables[h.ds as usize],
                 pool: self.hpool.as_ref().unwrap(),
                 bounds: &h.bounds,
+                boxes: &h.boxes,
                 color: h.color,
                 depth_map: h.depth_map.as_ref().map(|(m, r)| (m, *r)),
                 opacity: h.opacity,
@@ -610,6 +611,11 @@ impl Engine {
         let vols_n = vols.len();
         let one_invisible = vols_n == 1 && vols[0].invisible;
         let all_invisible = vols.iter().all(|v| v.invisible);
+        // The packets' gathers index with i32 (an atlas of 2 G elements or more, e.g. 8 GiB
+        // of f32 slots, takes the scalar march).
+        let packet_indices_fit = vols
+            .iter()
+            .all(|v| v.samples.len() < i32::MAX as usize && v.flat.rgba.len() < i32::MAX as usize);
         FrameSetup {
             width: view.width,
             height: view.height,
@@ -629,6 +635,7 @@ impl Engine {
             packets: s.simd
                 && vols_n == 1
                 && !one_invisible
+                && packet_indices_fit
                 && !s.volume_shading
                 && crate::packet::available(),
             // 32 base steps: deep enough to amortize, shallow enough that the bricks a

@@ -39,6 +39,8 @@ pub struct HorFrame<'a> {
     pub pool: &'a Pool,
     /// `[min, max]` per tile (page-table order).
     pub bounds: &'a [[f32; 2]],
+    /// The tile tree's boxes ([`tile_boxes`] of `bounds`).
+    pub boxes: &'a [TileBox],
     /// Straight linear RGB.
     pub color: [f32; 3],
     /// Colour by height.
@@ -156,12 +158,77 @@ fn roots_in(a: f32, b: f32, c: f32, lo: f32, hi: f32, out: &mut [f32; 2]) -> usi
     n
 }
 
+/// Lateral footprint of tile `b` at `level` (tiles of `core` nodes) in level-0 node
+/// coordinates: the cells whose lower node lies in the tile's core.
+#[inline(always)]
+fn footprint(core: u32, level: usize, b: [u32; 3]) -> ([f32; 2], [f32; 2]) {
+    let s = (1u64 << level) as f32;
+    let core = core as f32;
+    let at = |i: u32| (i as f32 * core + 0.5) * s - 0.5;
+    ([at(b[0]), at(b[1])], [at(b[0] + 1), at(b[1] + 1)])
+}
+
+/// What the tile-tree descent tests at a tile, computed once per horizon (it depends on the
+/// tile's index and height bounds only): the padded box and where its children meet.
+#[derive(Copy, Clone, Debug, Default, PartialEq)]
+pub struct TileBox {
+    /// Lower corner: the footprint padded by one cell of the tile's level, `zmin − eps`.
+    pub lo: [f32; 3],
+    /// Upper corner.
+    pub hi: [f32; 3],
+    /// Where the four children meet (the lower corner of child (1, 1)); unused at level 0.
+    pub split: [f32; 2],
+}
+
+/// The [`TileBox`] of every tile of a horizon's tree, in page-table order (`bounds` is the
+/// store's `[min, max]` per tile; all-hole tiles get a default box and are never tested).
+pub fn tile_boxes(pyramid: &Pyramid, bounds: &[[f32; 2]]) -> Vec<TileBox> {
+    let table = PageTable::new(pyramid);
+    let core = pyramid.core();
+    let mut out = vec![TileBox::default(); table.entries.len()];
+    for (level, li) in table.levels.iter().enumerate() {
+        for y in 0..li.bricks[1] {
+            for x in 0..li.bricks[0] {
+                let b = [x, y, 0];
+                let i = table.index(level, b);
+                let Some(&[zmin, zmax]) = bounds.get(i) else {
+                    continue;
+                };
+                if !(zmin <= zmax) {
+                    continue;
+                }
+                let s = (1u64 << level) as f32;
+                let (flo, fhi) = footprint(core, level, b);
+                // Pad by one cell of this level: coarse and fine footprints do not nest
+                // exactly. A flat tile has zmin == zmax: give the box a little thickness so
+                // the slab test cannot lose it to rounding.
+                let eps = 1e-4 * (1.0 + zmin.abs().max(zmax.abs()));
+                let split = if level > 0 {
+                    footprint(core, level - 1, [2 * x + 1, 2 * y + 1, 0]).0
+                } else {
+                    [0.0; 2]
+                };
+                out[i] = TileBox {
+                    lo: [flo[0] - s, flo[1] - s, zmin - eps],
+                    hi: [fhi[0] + s, fhi[1] + s, zmax + eps],
+                    split,
+                };
+            }
+        }
+    }
+    out
+}
+
 impl<'a> HorFrame<'a> {
     /// Index-space direction of a camera-relative ray direction.
     #[inline]
     pub fn index_dir(&self, d: [f32; 3]) -> [f32; 3] {
         let m = &self.m;
-        [0, 1, 2].map(|r| m[r][0] * d[0] + m[r][1] * d[1] + m[r][2] * d[2])
+        [
+            m[0][0] * d[0] + m[0][1] * d[1] + m[0][2] * d[2],
+            m[1][0] * d[0] + m[1][1] * d[1] + m[1][2] * d[2],
+            m[2][0] * d[0] + m[2][1] * d[1] + m[2][2] * d[2],
+        ]
     }
 
     fn level_at(&self, t: f32) -> usize {
@@ -176,11 +243,7 @@ impl<'a> HorFrame<'a> {
     /// lower node lies in the tile's core.
     #[inline(always)]
     fn footprint(&self, level: usize, b: [u32; 3]) -> ([f32; 2], [f32; 2]) {
-        let s = (1u64 << level) as f32;
-        let core = self.core as f32;
-        // Spelled out: `[_; 2].map` is not always inlined, and this runs per tile visit.
-        let at = |i: u32| (i as f32 * core + 0.5) * s - 0.5;
-        ([at(b[0]), at(b[1])], [at(b[0] + 1), at(b[1] + 1)])
+        footprint(self.core, level, b)
     }
 
     /// All crossings of the ray `p(t) = t·d` with `t` in `[ta, tb)`, appended to `hits`
@@ -227,15 +290,8 @@ impl<'a> HorFrame<'a> {
         if !(zmin <= zmax) {
             return; // all holes
         }
-        let s = (1u64 << level) as f32;
-        let (flo, fhi) = self.footprint(level, b);
-        // Pad by one cell of this level: coarse and fine footprints do not nest exactly.
-        // A flat tile has zmin == zmax: give the box a little thickness so the slab test
-        // cannot lose it to rounding.
-        let eps = 1e-4 * (1.0 + zmin.abs().max(zmax.abs()));
-        let lo = [flo[0] - s, flo[1] - s, zmin - eps];
-        let hi = [fhi[0] + s, fhi[1] + s, zmax + eps];
-        let (e0, e1) = slab_inv(self.c, md, inv, lo, hi);
+        let tb = &self.boxes[idx];
+        let (e0, e1) = slab_inv(self.c, md, inv, tb.lo, tb.hi);
         if fmax(e0, ta) >= fmin(e1, *limit) || e1 < 0.0 {
             return;
         }
@@ -250,7 +306,7 @@ impl<'a> HorFrame<'a> {
         // (two divisions instead of a slab per child; the order only decides how soon an
         // opaque crossing prunes the rest, never which crossings are found).
         let lb = &self.table.levels[level - 1].bricks;
-        let split = self.footprint(level - 1, [2 * b[0] + 1, 2 * b[1] + 1, 0]).0;
+        let split = tb.split;
         let crossing = |a: usize| {
             if md[a] == 0.0 {
                 f32::INFINITY
@@ -345,9 +401,15 @@ impl<'a> HorFrame<'a> {
         let dr = [md[0] * sr, md[1] * sr, md[2]];
         let dims_r = self.table.levels[r].bricks; // only for bounds of tiles
         let _ = dims_r;
-        let nodes_r = [0, 1].map(|a| self.pyramid.level(r).dims[a] as i64);
+        let nodes_r = [
+            self.pyramid.level(r).dims[0] as i64,
+            self.pyramid.level(r).dims[1] as i64,
+        ];
         let p = self.page as i64;
-        let off = [0, 1].map(|a| br[a] as i64 * self.core as i64 - self.border as i64);
+        let off = [
+            br[0] as i64 * self.core as i64 - self.border as i64,
+            br[1] as i64 * self.core as i64 - self.border as i64,
+        ];
         let at = |i: i64, j: i64| -> f32 {
             let (li, lj) = (i - off[0], j - off[1]);
             if li < 0 || lj < 0 || li >= p || lj >= p {
@@ -466,7 +528,11 @@ impl<'a> HorFrame<'a> {
         // Normal in index space (per level-0 node), then to camera space by Mᵀ.
         let ni = [-hu * sr, -hv * sr, 1.0];
         let m = &self.m;
-        let n = [0, 1, 2].map(|c| m[0][c] * ni[0] + m[1][c] * ni[1] + m[2][c] * ni[2]);
+        let n = [
+            m[0][0] * ni[0] + m[1][0] * ni[1] + m[2][0] * ni[2],
+            m[0][1] * ni[0] + m[1][1] * ni[1] + m[2][1] * ni[2],
+            m[0][2] * ni[0] + m[1][2] * ni[1] + m[2][2] * ni[2],
+        ];
         let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
         let cosv = if len > 0.0 && len.is_finite() {
             ((n[0] * d[0] + n[1] * d[1] + n[2] * d[2]) / len).abs()
@@ -491,6 +557,7 @@ mod tests {
         table: PageTable,
         pool: Pool,
         bounds: Vec<[f32; 2]>,
+        boxes: Vec<TileBox>,
         eye: [f32; 3],
     }
 
@@ -535,6 +602,7 @@ mod tests {
         let mut table = PageTable::new(&pyramid);
         table.rebuild(pool.resident_of(0, &pyramid));
         Fixture {
+            boxes: tile_boxes(&pyramid, &bounds),
             pyramid,
             table,
             pool,
@@ -562,6 +630,7 @@ mod tests {
                 table: &self.table,
                 pool: &self.pool,
                 bounds: &self.bounds,
+                boxes: &self.boxes,
                 color: [1.0, 0.0, 0.0],
                 depth_map: None,
                 opacity: 0.5,
@@ -594,7 +663,11 @@ mod tests {
         for _ in 0..400 {
             // A ray from the eye towards a random point of the grid.
             let target = [next() * 63.0, next() * 63.0, 10.0];
-            let d = [0, 1, 2].map(|a| target[a] as f32 - f.eye[a]);
+            let d = [
+                target[0] as f32 - f.eye[0],
+                target[1] as f32 - f.eye[1],
+                target[2] as f32 - f.eye[2],
+            ];
             let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
             let d = d.map(|v| v / l);
             let (mut whole, mut fb) = (Vec::new(), crate::feedback::Requests::new());

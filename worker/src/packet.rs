@@ -12,8 +12,8 @@
 //! same order with the same roundings (no fused multiply-adds, truncating conversions as
 //! `as` does), so a packet gives exactly the pixels, counters and page requests the scalar
 //! march gives; tests compare the two bit for bit. The packet path needs AVX2 (detected at
-//! run time); without it, with gradient shading, or with several volumes, the scalar march
-//! runs (`render.simd = false` forces it).
+//! run time); without it, with gradient shading, with several volumes, or with an atlas too
+//! large for 32-bit gather indices, the scalar march runs (`render.simd = false` forces it).
 
 use crate::atlas::Samples;
 use crate::feedback::Requests;
@@ -342,8 +342,8 @@ mod avx2 {
         fb: &mut Requests,
     ) {
         let p = v.page;
-        // Gathers index with i32: the pool and the tables must fit (checked once here; the
-        // engine sizes pools far below this).
+        // Gathers index with i32: the pool and the tables must fit (the engine chooses the
+        // packet path only then).
         assert!(data.len() < i32::MAX as usize && v.flat.rgba.len() < i32::MAX as usize);
         let mut lanes: Vec<Lane> = work
             .iter()

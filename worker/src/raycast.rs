@@ -354,7 +354,11 @@ fn shade(v: &VolFrame<'_>, cur: &Cursor, q: [f32; 3], d: [f32; 3], rgba: &mut Rg
     let g = v.gradient(cur, q);
     // Index-space gradient to camera space: ∇_world = Mᵀ ∇_index.
     let m = &v.m;
-    let n = [0, 1, 2].map(|c| m[0][c] * g[0] + m[1][c] * g[1] + m[2][c] * g[2]);
+    let n = [
+        m[0][0] * g[0] + m[1][0] * g[1] + m[2][0] * g[2],
+        m[0][1] * g[0] + m[1][1] * g[1] + m[2][1] * g[2],
+        m[0][2] * g[0] + m[1][2] * g[1] + m[2][2] * g[2],
+    ];
     let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
     if !(len > 1e-12) || !len.is_finite() {
         return;
@@ -510,6 +514,18 @@ impl<'a> FrameSetup<'a> {
         d: [f32; 3],
         fb: &mut crate::feedback::Requests,
     ) -> RayState<'s, 'a> {
+        self.start_with(d, fb, Vec::new())
+    }
+
+    /// [`start`](Self::start), keeping the ray's surface crossings in `hits` (cleared
+    /// first), so a caller can reuse one buffer for many rays.
+    pub fn start_with<'s>(
+        &'s self,
+        d: [f32; 3],
+        fb: &mut crate::feedback::Requests,
+        mut hits: Vec<Hit>,
+    ) -> RayState<'s, 'a> {
+        hits.clear();
         let (t0, t1) = clip_region(self.region_lo, self.region_hi, d);
         let mut st = RayState {
             ctx: RayCtx {
@@ -524,7 +540,7 @@ impl<'a> FrameSetup<'a> {
             },
             t1,
             cur_t: t0,
-            hits: Vec::new(),
+            hits,
             hi: 0,
             md0: [0.0; 3],
             span0: (0.0, 0.0),
@@ -654,6 +670,24 @@ impl<'a> FrameSetup<'a> {
                 let h = TILE.min(r.y + r.h - ty);
                 let mut fb = crate::feedback::Requests::new();
                 let mut st = CastStats::default();
+                if !self.chunk.is_finite() {
+                    // Nothing to march in lockstep (surfaces and slices only): each ray whole,
+                    // one after the other, reusing one crossing buffer.
+                    let mut hits = Vec::new();
+                    for y in ty..ty + h {
+                        for x in tx..tx + w {
+                            let mut ray = self.start_with(ray_dir(self, x, y), &mut fb, hits);
+                            ray.advance(f32::INFINITY, &mut fb);
+                            st += ray.ctx.stats;
+                            let i = (y - r.y) * r.w + (x - r.x);
+                            // SAFETY: (x, y) lies in this tile, inside the rectangle; tiles do
+                            // not overlap, and `pixels` outlives the parallel loop.
+                            unsafe { out.write(i as usize, sanitize(ray.ctx.acc)) };
+                            hits = std::mem::take(&mut ray.hits);
+                        }
+                    }
+                    return (crate::feedback::reduce_tile(&mut fb), st);
+                }
                 let mut rays: Vec<RayState<'_, '_>> = Vec::with_capacity((w * h) as usize);
                 for y in ty..ty + h {
                     for x in tx..tx + w {
@@ -776,7 +810,11 @@ fn sanitize(c: Rgba) -> Rgba {
 fn ray_dir(f: &FrameSetup<'_>, x: u32, y: u32) -> [f32; 3] {
     let fx = x as f32 + 0.5;
     let fy = y as f32 + 0.5;
-    let d = [0, 1, 2].map(|a| f.dir00[a] + fx * f.du[a] + fy * f.dv[a]);
+    let d = [
+        f.dir00[0] + fx * f.du[0] + fy * f.dv[0],
+        f.dir00[1] + fx * f.du[1] + fy * f.dv[1],
+        f.dir00[2] + fx * f.du[2] + fy * f.dv[2],
+    ];
     let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
     d.map(|v| v / l)
 }

@@ -94,7 +94,11 @@ impl<'a> VolFrame<'a> {
     #[inline]
     pub fn index_dir(&self, d: [f32; 3]) -> [f32; 3] {
         let m = &self.m;
-        [0, 1, 2].map(|r| m[r][0] * d[0] + m[r][1] * d[1] + m[r][2] * d[2])
+        [
+            m[0][0] * d[0] + m[0][1] * d[1] + m[0][2] * d[2],
+            m[1][0] * d[0] + m[1][1] * d[1] + m[1][2] * d[2],
+            m[2][0] * d[0] + m[2][1] * d[1] + m[2][2] * d[2],
+        ]
     }
 
     /// `[t0, t1)` of the ray inside the volume's box (empty if `t0 >= t1`).
@@ -254,7 +258,11 @@ impl<'a> VolFrame<'a> {
             if !(t >= t0 && t < t1) {
                 continue;
             }
-            let mut q = [0, 1, 2].map(|k| self.c[k] + t * md[k]);
+            let mut q = [
+                self.c[0] + t * md[0],
+                self.c[1] + t * md[1],
+                self.c[2] + t * md[2],
+            ];
             q[a] = s.index;
             if (0..3).any(|k| k != a && !(q[k] >= -0.5 && q[k] < self.hi[k])) {
                 continue;
