@@ -369,7 +369,7 @@ pub struct RenderSettings {
     /// Skip bricks whose value range maps to zero opacity.
     #[serde(default = "yes")]
     pub empty_space_skipping: bool,
-    /// With empty-space skipping, the CPU caster also skips 8³-sample macrocells inside a
+    /// With empty-space skipping, the CPU caster also skips 16³-sample macrocells inside a
     /// brick whose value range maps to zero opacity (ranges computed as a page enters the
     /// atlas). The image is the same either way.
     #[serde(default = "yes")]

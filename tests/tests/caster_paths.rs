@@ -70,7 +70,7 @@ fn store_with(
 ) -> PathBuf {
     let path = dir.join(format!("{name}.strata"));
     let mut o = BuildOptions::volume(name, t);
-    o.page_size = 32; // cores of 30: 4 macrocells per edge, four bricks per axis
+    o.page_size = 64; // cores of 62: 4 macrocells of 16 per edge, two bricks per axis
     o.border = 1;
     o.no_data = no_data;
     build_store(
@@ -276,7 +276,7 @@ fn macrocells_follow_slot_reuse() {
     let st = store(dir.path(), "reuse", SampleType::U8, blobs(255.0));
     let cams = cameras();
     let mut s = scene_for(st, [0.0, 255.0], cams[0].clone());
-    // 32³ u8 pages: 32 KiB each, so 1 MiB holds 32 slots, fewer than the views need.
+    // 64³ u8 pages: 256 KiB each, so 1 MiB holds 4 slots, fewer than the views need.
     s.render.atlas_mb = 1;
     s.render.tau = 0.5;
     s.render.max_rounds = 8;
