@@ -589,6 +589,18 @@ async fn read_peer(
                         b,
                         wire_len + wire::SHM_RECORD_HEADER as u64 + at.len,
                     ),
+                    // A record that does not hold what its announcement says was overwritten:
+                    // after a failed attempt at a frame the sender starts its segment over,
+                    // and announcements of the old attempt may still be queued here. The
+                    // piece is dropped, not trusted; if it was needed after all, the
+                    // exchange's deadline reports the missing piece.
+                    Err(e @ strata_net::shm::ShmError::Header { .. }) => {
+                        warn!(
+                            peer = rank,
+                            "dropped a stale or bad shared-memory piece: {e}"
+                        );
+                        continue;
+                    }
                     Err(e) => {
                         conn.close(3u32.into(), b"bad shared-memory record");
                         break format!("a piece in the shared-memory segment of {what}: {e}");
