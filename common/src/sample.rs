@@ -67,9 +67,14 @@ impl SampleType {
         }
     }
     /// Rounds a computed value to the nearest representable one (integers: round half away
-    /// from zero, then clamp). `NaN` stays `NaN`; the encoder maps it to no-data.
+    /// from zero, then clamp). `NaN` stays `NaN`; the encoder maps it to no-data. In `f32`
+    /// stores `±Inf` becomes `NaN` too: an infinite amplitude is a broken sample, not a
+    /// value, and would poison interpolation (`0·Inf`) and value ranges.
     pub fn quantize(self, v: f32) -> f32 {
-        if self == SampleType::F32 || v.is_nan() {
+        if self == SampleType::F32 {
+            return if v.is_infinite() { f32::NAN } else { v };
+        }
+        if v.is_nan() {
             return v;
         }
         let (lo, hi) = self.range();

@@ -376,6 +376,22 @@ pub mod scenes {
         Engine::new(scene).unwrap().scene_region()
     }
 
+    /// Lattice samples `k·dt` in `[t0, t1)`, counted with the caster's f32 arithmetic.
+    pub fn lattice_count(t0: f32, t1: f32, dt: f32) -> u64 {
+        let mut n = 0;
+        let mut k = (t0 / dt).floor() as i64 - 2;
+        loop {
+            let t = k as f32 * dt;
+            if t >= t1 {
+                return n;
+            }
+            if t >= t0 {
+                n += 1;
+            }
+            k += 1;
+        }
+    }
+
     /// Whether two images are equal bit for bit.
     pub fn bit_identical(a: &[Rgba], b: &[Rgba]) -> bool {
         a.len() == b.len()

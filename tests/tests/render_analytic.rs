@@ -30,22 +30,6 @@ fn axis_camera(eye: [f64; 3], target: [f64; 3]) -> Camera {
     }
 }
 
-/// Lattice samples `k·dt` in `[t0, t1)`, counted with the caster's f32 arithmetic.
-fn lattice_count(t0: f32, t1: f32, dt: f32) -> u64 {
-    let mut n = 0;
-    let mut k = (t0 / dt).floor() as i64 - 2;
-    loop {
-        let t = k as f32 * dt;
-        if t >= t1 {
-            return n;
-        }
-        if t >= t0 {
-            n += 1;
-        }
-        k += 1;
-    }
-}
-
 fn centre(px: &[[f32; 4]]) -> [f32; 4] {
     px[(W / 2 * W + W / 2) as usize]
 }

@@ -108,8 +108,18 @@ pub const SEISMIC_CLIP_PERCENTILE: f64 = 99.5;
 /// data: ±the [`SEISMIC_CLIP_PERCENTILE`]th percentile of |amplitude|, so white sits exactly
 /// at zero and rare spikes do not wash the section out; the percentile is taken over the
 /// root page's valid samples (the whole volume, coarsened, one page read). Otherwise the
-/// store's value range.
+/// store's value range. A constant store (range `[v, v]`) gets a window centred on `v`, so
+/// its value maps to the middle of the colour map instead of the layer being refused.
 fn default_window(store: &PageStore, layer: &VolumeLayer) -> Result<[f64; 2]> {
+    let [lo, hi] = data_window(store, layer)?;
+    if lo == hi && lo.is_finite() {
+        let half = 0.5 * lo.abs().max(1.0);
+        return Ok([lo - half, lo + half]);
+    }
+    Ok([lo, hi])
+}
+
+fn data_window(store: &PageStore, layer: &VolumeLayer) -> Result<[f64; 2]> {
     let range = store.header().value_range;
     if layer.colormap != "seismic" || !(range[0] < 0.0) {
         return Ok(range);

@@ -450,7 +450,11 @@ impl<'a> HorFrame<'a> {
                     let z1 = cr[2] + t_next * dr[2];
                     let hmin = fmin(fmin(h00, h10), fmin(h01, h11));
                     let hmax = fmax(fmax(h00, h10), fmax(h01, h11));
-                    if fmin(z0, z1) <= hmax && fmax(z0, z1) >= hmin {
+                    // A cull only, padded like the height clip above: z0 and z1 come from
+                    // region-clipped t, so a crossing on a region's face (a flat horizon in
+                    // a split plane) could fall a rounding outside [hmin, hmax] in both
+                    // regions and be lost; the exact test is the one on t below.
+                    if fmin(z0, z1) <= hmax + eps && fmax(z0, z1) >= hmin - eps {
                         // Solve relative to where the ray enters this cell, a value that
                         // depends only on the cell and the ray, not on where the region
                         // clipped it: the same crossing gets the same t in every region.

@@ -974,7 +974,8 @@ fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f3
                 let z1 = cr.z + t_next * dr.z;
                 let hmin = min(min(h00, h10), min(h01, h11));
                 let hmax = max(max(h00, h10), max(h01, h11));
-                if (min(z0, z1) <= hmax && max(z0, z1) >= hmin) {
+                // A cull only, padded like the height clip (see horizon.rs).
+                if (min(z0, z1) <= hmax + eps && max(z0, z1) >= hmin - eps) {
                     // Solve relative to where the ray enters this cell (independent of where
                     // the region clipped it): the same crossing gets the same t everywhere.
                     var ex = -BIG;

@@ -293,6 +293,15 @@ impl GpuCaster {
     pub fn new(choice: &AdapterChoice) -> Result<Self> {
         let adapter = pick_adapter(choice)?;
         let info = adapter.get_info();
+        if info.device_type == wgpu::DeviceType::Cpu && info.name.contains("llvmpipe") {
+            // Mesa's gallivm stops every loop nest after 65 535 back-edges per invocation
+            // (LP_MAX_TGSI_LOOP_ITERATIONS), so a ray is cut short after about 16 000
+            // samples (hard cases 15 and 16); a hardware GPU has no such limit.
+            tracing::warn!(
+                adapter = %info.name,
+                "software Vulkan: rays of more than about 16 000 samples are cut short (llvmpipe's loop limit)"
+            );
+        }
         // The adapter's own limits: the WebGPU defaults cap a storage binding at 128 MiB.
         let limits = adapter.limits();
         if limits.max_storage_buffers_per_shader_stage < 12 {
