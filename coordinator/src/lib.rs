@@ -13,6 +13,7 @@
 //! * [`decompose`]: the cost-balanced k-d split of a scene over workers.
 //! * [`demo`]: the scene's built-in synthetic survey, generated once into a cache folder.
 //! * [`image_out`]: PNG (sRGB, flattened) and OpenEXR (float RGBA) image writers.
+//! * [`study`]: `study accuracy`, error against time for every accuracy knob of a scene.
 
 pub mod builder;
 pub mod cluster;
@@ -26,4 +27,5 @@ pub mod render;
 pub mod segy;
 pub mod sequence;
 pub mod source;
+pub mod study;
 pub mod synth;

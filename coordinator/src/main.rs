@@ -11,7 +11,7 @@ use strata_common::geo::Affine3;
 use strata_common::sample::SampleType;
 use strata_common::store::{Compression, Units};
 use strata_coordinator::builder::{build_store, BuildOptions, BuildReport};
-use strata_coordinator::{horizon_text, inspect, overrides, render, segy, source, synth};
+use strata_coordinator::{horizon_text, inspect, overrides, render, segy, source, study, synth};
 use tracing::{info, warn};
 
 /// Strata: distributed sort-last rendering of seismic volumes and horizons.
@@ -39,6 +39,9 @@ enum Command {
     Inspect(InspectArgs),
     /// Render a scene to a PNG (8-bit sRGB) and optionally a float RGBA EXR.
     Render(RenderArgs),
+    /// Measure what rendering choices cost (`study accuracy`).
+    #[command(subcommand)]
+    Study(Study),
     /// Join a render run as a worker (what `render` spawns locally; same flags as the
     /// `worker` binary).
     Worker(strata_worker::cli::JoinArgs),
@@ -87,6 +90,38 @@ struct RenderArgs {
     /// ffmpeg is on the PATH; without it the frames stand alone and a note says so.
     #[arg(long, value_name = "FILE")]
     mp4: Option<PathBuf>,
+}
+
+#[derive(Subcommand)]
+enum Study {
+    /// Render a reference (CPU, step/16, no early termination, level 0 only), then each
+    /// accuracy knob alone and in pairs; write report.md, points.csv and error-against-time
+    /// plots (PNG, SVG) with the Pareto front and the defaults marked.
+    Accuracy(AccuracyArgs),
+}
+
+#[derive(Args)]
+struct AccuracyArgs {
+    /// Scene TOML (e.g. configs/demo.toml).
+    scene: PathBuf,
+    /// Output folder (created; report.md, points.csv, <knob>.png/.svg).
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Image size, e.g. --size 480x270 (overrides render.width and render.height).
+    #[arg(long, value_name = "WIDTHxHEIGHT")]
+    size: Option<String>,
+    /// Override a scene setting for every point and the reference (repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    sets: Vec<String>,
+    /// Timed frames per point after it converged (the median is reported).
+    #[arg(long, default_value_t = 3)]
+    frames: usize,
+    /// Worker processes of the distributed (wire-precision) points; 0 leaves them out.
+    #[arg(long, default_value_t = 2)]
+    workers: usize,
+    /// Leave out the GPU points (backend gpu, gpu_filter hardware).
+    #[arg(long)]
+    no_gpu: bool,
 }
 
 #[derive(Subcommand)]
@@ -609,6 +644,27 @@ fn run(cli: Cli) -> Result<()> {
         }
         Command::Worker(a) => {
             strata_worker::cli::join(a)?;
+        }
+        Command::Study(Study::Accuracy(a)) => {
+            anyhow::ensure!(a.frames >= 1, "--frames must be at least 1");
+            anyhow::ensure!(a.workers != 1, "--workers must be 0 (none) or at least 2");
+            let opts = study::StudyOptions {
+                scene: a.scene.clone(),
+                out: a.output.clone(),
+                size: a.size.as_deref().map(overrides::parse_size).transpose()?,
+                sets: a.sets.clone(),
+                frames: a.frames,
+                workers: a.workers,
+                gpu: !a.no_gpu,
+            };
+            let pb = progress(cli.quiet, "study");
+            let points = study::run(&opts, &pb)?;
+            pb.finish_and_clear();
+            println!(
+                "{} points; wrote {}",
+                points.len(),
+                a.output.join("report.md").display()
+            );
         }
         Command::Inspect(a) => {
             let pb = progress(cli.quiet, "inspect");

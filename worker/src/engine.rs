@@ -109,6 +109,9 @@ pub struct Engine {
     vpool: Option<Pool>,
     hpool: Option<Pool>,
     tables: Vec<PageTable>,
+    /// Pre-integrated tables by (volume, step exponent bits), built on first use: each
+    /// costs tens of milliseconds, and a view's exponents rarely change.
+    preint: std::sync::Mutex<PreintCache>,
     frame_no: u32,
     /// Regions rendered in batch mode so far: a region's first batch converges whatever
     /// `render.rounds_per_frame` says.
@@ -116,8 +119,14 @@ pub struct Engine {
     gpu: Option<GpuBackend>,
 }
 
+type PreintCache =
+    std::collections::HashMap<(usize, u32), std::sync::Arc<strata_common::tf::PreintTable>>;
+
 /// Why the scene can't go to the GPU caster, if it can't.
-fn gpu_unfit(data: &SceneData) -> Option<String> {
+fn gpu_unfit(s: &RenderSettings, data: &SceneData) -> Option<String> {
+    if s.preintegrated {
+        return Some("render.preintegrated runs on the CPU caster only".into());
+    }
     if data.volumes.is_empty() && data.horizons.is_empty() {
         return Some("the scene has no data".into());
     }
@@ -170,7 +179,7 @@ fn open_backend(s: &RenderSettings, data: &SceneData) -> Result<Option<GpuBacken
     match s.backend {
         Backend::Cpu => Ok(None),
         Backend::Gpu => {
-            if let Some(why) = gpu_unfit(data) {
+            if let Some(why) = gpu_unfit(s, data) {
                 bail!("render.backend = \"gpu\": {why}; use \"cpu\" or \"auto\"");
             }
             GpuBackend::new(&choice(true), pyramids(), types(), s.gpu_filter)
@@ -178,7 +187,7 @@ fn open_backend(s: &RenderSettings, data: &SceneData) -> Result<Option<GpuBacken
                 .context("render.backend = \"gpu\"")
         }
         Backend::Auto => {
-            if let Some(why) = gpu_unfit(data) {
+            if let Some(why) = gpu_unfit(s, data) {
                 tracing::info!("backend auto: CPU caster ({why})");
                 return Ok(None);
             }
@@ -324,6 +333,7 @@ impl Engine {
             vpool,
             hpool,
             tables,
+            preint: Default::default(),
             frame_no: 0,
             seen_regions: HashSet::new(),
             gpu,
@@ -541,6 +551,17 @@ impl Engine {
             let d = v.dims();
             let pool = self.vpool.as_ref().unwrap();
             let tables = tf_tables_for(&exps, &v.tf);
+            let pre = s.preintegrated.then(|| {
+                let mut cache = self.preint.lock().unwrap_or_else(|e| e.into_inner());
+                exps.iter()
+                    .map(|&e| {
+                        cache
+                            .entry((i, e.to_bits()))
+                            .or_insert_with(|| std::sync::Arc::new(v.tf.preintegrated_table(e)))
+                            .clone()
+                    })
+                    .collect()
+            });
             let cells = pool
                 .cells()
                 .filter(|_| s.empty_space_skipping && s.macrocells);
@@ -562,6 +583,7 @@ impl Engine {
                 transparent,
                 flat: crate::packet::FlatTables::new(&tables),
                 tables,
+                pre,
                 pyramid: &v.pyramid,
                 slices: &v.slices,
                 tf: &v.tf,
@@ -637,6 +659,7 @@ impl Engine {
                 && !one_invisible
                 && packet_indices_fit
                 && !s.volume_shading
+                && !s.preintegrated
                 && crate::packet::available(),
             // 32 base steps: deep enough to amortize, shallow enough that the bricks a
             // tile's rays touch in one chunk stay in cache. With no volume to march (only

@@ -190,6 +190,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
             let band_end = bands.start.get(band + 1).copied().unwrap_or(f32::INFINITY);
             let seg_end = tb.min(band_end);
             let table = &v.tables[band];
+            let pre = v.pre.as_ref().map(|p| &*p[band]);
             let mut k = first_k(t_start, dt);
             let inv_dt = 1.0 / dt;
             // Hot loop: accumulate in locals, write back once.
@@ -217,6 +218,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                     let nk = first_k_near(cur.t_exit.min(seg_end), dt, inv_dt).max(k + 1);
                     skipped += (nk - k) as u64;
                     k = nk;
+                    cur.prev = f32::NAN;
                     continue;
                 }
                 let q = [v.c[0] + t * md[0], v.c[1] + t * md[1], v.c[2] + t * md[2]];
@@ -228,6 +230,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                             first_k_near(exit.min(cur.t_exit).min(seg_end), dt, inv_dt).max(k + 1);
                         skipped += (nk - k) as u64;
                         k = nk;
+                        cur.prev = f32::NAN;
                         continue;
                     }
                     cell_exit = exit;
@@ -238,9 +241,16 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                 samples += 1;
                 k += 1;
                 if s.is_nan() {
+                    cur.prev = f32::NAN;
                     continue; // no data: transparent
                 }
-                let mut rgba = table.lookup(s);
+                let mut rgba = match pre {
+                    // The segment from the previous sample; the first sample of a span has
+                    // none and is classified alone.
+                    Some(pre) if !cur.prev.is_nan() => pre.lookup(cur.prev, s),
+                    _ => table.lookup(s),
+                };
+                cur.prev = s;
                 if shading {
                     if rgba[3] <= 0.0 {
                         continue; // no gradient for what does not show

@@ -44,6 +44,8 @@ pub struct VolFrame<'a> {
     pub invisible: bool,
     /// Per band: premultiplied, step-corrected lookup.
     pub tables: Vec<StepTable>,
+    /// Per band, with `render.preintegrated`: the pre-integrated segment lookup.
+    pub pre: Option<Vec<std::sync::Arc<strata_common::tf::PreintTable>>>,
     /// The same tables laid end to end (for SIMD packets).
     pub flat: crate::packet::FlatTables,
     /// The pyramid (for page keys).
@@ -72,6 +74,9 @@ pub struct Cursor {
     pub rs: f32,
     /// See `s`.
     pub o: [f32; 3],
+    /// The ray's previous sample of this volume (pre-integration's segment front); NaN
+    /// when there is none (the start of a span, or after skipped empty space).
+    pub prev: f32,
 }
 
 impl Default for Cursor {
@@ -85,6 +90,7 @@ impl Default for Cursor {
             s: 1.0,
             rs: 1.0,
             o: [0.0; 3],
+            prev: f32::NAN,
         }
     }
 }

@@ -1,0 +1,314 @@
+//! `coordinator study accuracy`: what accuracy costs in time, for one scene.
+//!
+//! Renders a reference (CPU, step/16, no early termination, level 0 only, fixed step),
+//! then each knob alone and in pairs, each point converged once and then timed over
+//! `frames` frames with everything resident. Every point records the median frame time, the
+//! samples, and its RMSE, largest error (premultiplied linear RGBA) and 1 − SSIM (the
+//! displayed image) against the reference. The report (`report.md`), the table
+//! (`points.csv`) and one plot per knob (`<knob>.png`, `.svg`) go to the output folder,
+//! with the Pareto front of all points drawn and the defaults checked against it.
+
+pub mod metrics;
+pub mod pareto;
+pub mod plot;
+mod points;
+mod report;
+
+use crate::builder::{build_store, BuildOptions};
+use crate::overrides::load_scene;
+use crate::source::MemorySource;
+use anyhow::{bail, Context, Result};
+use indicatif::ProgressBar;
+use metrics::Errors;
+use std::path::{Path, PathBuf};
+use strata_common::filter::CoarsenFilter;
+use strata_common::image::Rgba;
+use strata_common::scene::Scene;
+use strata_common::store::PageStore;
+use strata_worker::engine::Engine;
+use tracing::info;
+
+pub use points::{variants, Variant, Where};
+
+/// What to study.
+#[derive(Clone, Debug)]
+pub struct StudyOptions {
+    /// Scene TOML.
+    pub scene: PathBuf,
+    /// Output folder (created).
+    pub out: PathBuf,
+    /// `--size WxH`.
+    pub size: Option<(u32, u32)>,
+    /// `--set` overrides applied to every point (and the reference).
+    pub sets: Vec<String>,
+    /// Timed frames per point (median reported).
+    pub frames: usize,
+    /// Workers of the distributed points (0: no distributed points).
+    pub workers: usize,
+    /// Also the GPU points (any adapter, software Vulkan included).
+    pub gpu: bool,
+}
+
+/// One measured point.
+#[derive(Clone, Debug)]
+pub struct Point {
+    /// The knob it varies ("defaults" for the scene as given, "reference").
+    pub knob: String,
+    /// Its value(s), short.
+    pub label: String,
+    /// The `--set` overrides that reproduce it (plus the store swaps in `label`).
+    pub sets: Vec<String>,
+    /// Median seconds per converged frame (distributed: the slowest worker's cast plus
+    /// the compositing).
+    pub seconds: f64,
+    /// Trilinear samples of the frame.
+    pub samples: u64,
+    /// Against the reference.
+    pub errors: Errors,
+    /// Backend (and adapter) that rendered.
+    pub backend: String,
+    /// Anything the reader should know (did not converge, ...).
+    pub note: String,
+}
+
+/// An image and how it was made.
+pub(crate) struct Measured {
+    pub(crate) seconds: f64,
+    pub(crate) samples: u64,
+    pub(crate) image: Vec<Rgba>,
+    pub(crate) backend: String,
+    pub(crate) note: String,
+}
+
+/// Converges once, then times `frames` frames (median) with everything resident.
+pub(crate) fn measure_in_process(scene: &Scene, frames: usize) -> Result<Measured> {
+    let mut e = Engine::new(scene)?;
+    let view = e.view(scene.render.width, scene.render.height)?;
+    let region = e.scene_region();
+    let b = e.render_batch(&view, &region)?;
+    let note = match b.outcome.as_str() {
+        "converged" => String::new(),
+        o => format!("{o} after {} rounds", b.rounds),
+    };
+    let mut times = Vec::new();
+    let mut last = None;
+    for _ in 0..frames.max(1) {
+        let f = e.render_frame(&view, &region)?;
+        times.push(f.seconds);
+        last = Some(f);
+    }
+    times.sort_by(|a, b| a.total_cmp(b));
+    let f = last.expect("at least one frame");
+    Ok(Measured {
+        seconds: times[times.len() / 2],
+        samples: f.stats.samples,
+        image: f.image.to_full(),
+        backend: b.backend,
+        note,
+    })
+}
+
+/// Bytes of the level-0 pages of every volume of the scene (what a level-0-only frame may
+/// need resident).
+fn level0_bytes(scene: &Scene) -> Result<u64> {
+    let mut total = 0u64;
+    for v in &scene.volumes {
+        let s =
+            PageStore::open(&v.store).with_context(|| format!("opening {}", v.store.display()))?;
+        let p = s.pyramid();
+        total += p.level(0).page_count() * p.page_samples() as u64 * 4;
+    }
+    Ok(total)
+}
+
+/// The reference's overrides: CPU, step/16, no early termination, fixed step, a τ so small
+/// that every sample is taken from level 0, and an atlas and cache that hold level 0.
+fn reference_sets(scene: &Scene) -> Result<Vec<String>> {
+    let mib = level0_bytes(scene)?.div_ceil(1 << 20) + 64;
+    let r = &scene.render;
+    Ok(vec![
+        "render.backend=cpu".into(),
+        format!("render.step={}", r.step / 16.0),
+        "render.early_termination=1.0".into(),
+        "render.adaptive_step=false".into(),
+        "render.tau=1e-6".into(),
+        format!("render.atlas_mb={}", r.atlas_mb.max(mib + mib / 4)),
+        format!("render.cache_mb={}", r.cache_mb.max(mib + mib / 4)),
+        format!("render.max_rounds={}", r.max_rounds.max(64)),
+    ])
+}
+
+/// Level 0 of a volume store, in memory (the study's stores are small; larger ones are
+/// refused rather than read for minutes).
+fn level0(store: &PageStore) -> Result<MemorySource> {
+    let p = store.pyramid();
+    let dims = p.level(0).dims;
+    let n = dims.iter().product::<u64>();
+    if n > (1 << 29) {
+        bail!(
+            "{}: level 0 holds {n} samples; the coarsening-filter knob rebuilds stores of at most 2^29",
+            store.path().display()
+        );
+    }
+    let mut data = vec![f32::NAN; n as usize];
+    let pd = p.page_dims().map(|d| d as i64);
+    let mut page = vec![0f32; p.page_samples()];
+    let bricks = p.level(0).bricks;
+    for bz in 0..bricks[2] {
+        for by in 0..bricks[1] {
+            for bx in 0..bricks[0] {
+                let b = [bx, by, bz];
+                let id = p.id(0, b);
+                if store.entry(id).is_none() {
+                    continue;
+                }
+                store.read_page_into(id, &mut page)?;
+                let org = p.page_origin(b);
+                let cr = p.core_range(0, b);
+                for z in cr[2].0..cr[2].1 {
+                    for y in cr[1].0..cr[1].1 {
+                        for x in cr[0].0..cr[0].1 {
+                            let l = [x as i64 - org[0], y as i64 - org[1], z as i64 - org[2]];
+                            let src = ((l[2] * pd[1] + l[1]) * pd[0] + l[0]) as usize;
+                            data[((z * dims[1] + y) * dims[0] + x) as usize] = page[src];
+                        }
+                    }
+                }
+            }
+        }
+    }
+    Ok(MemorySource { dims, data })
+}
+
+/// Rebuilds a volume store with another coarsening filter (same level 0, pages, border,
+/// compression, transform and survey grid).
+pub fn rebuild_with_filter(src: &Path, filter: CoarsenFilter, out: &Path) -> Result<()> {
+    let store = PageStore::open(src).with_context(|| format!("opening {}", src.display()))?;
+    let h = store.header().clone();
+    if h.no_data.is_some() {
+        bail!(
+            "{}: stores with a no-data value are not rebuilt (the sentinel would be lost)",
+            src.display()
+        );
+    }
+    let grid = level0(&store)?;
+    let mut o = BuildOptions::volume(&h.name, h.sample_type);
+    o.page_size = h.page_size;
+    o.border = h.border;
+    o.filter = filter;
+    o.compression = h.compression;
+    o.transform = h.transform;
+    o.units = h.units;
+    o.survey = h.survey;
+    o.source = format!("{} rebuilt with the {filter:?} filter", h.source);
+    build_store(&grid, out, &o, &ProgressBar::hidden())?;
+    Ok(())
+}
+
+/// Runs the study and writes its outputs; returns the points (reference first, then the
+/// defaults).
+pub fn run(opts: &StudyOptions, progress: &ProgressBar) -> Result<Vec<Point>> {
+    std::fs::create_dir_all(&opts.out)
+        .with_context(|| format!("creating {}", opts.out.display()))?;
+    let base = load_scene(&opts.scene, &opts.sets, opts.size)?;
+    if let Some(spec) = &base.synthetic {
+        crate::demo::ensure_synthetic(spec, progress)?;
+    }
+    let (w, h) = (base.render.width as usize, base.render.height as usize);
+    let bg = base.render.background.map(|c| c as f32);
+    let scratch = tempfile::Builder::new()
+        .prefix(".study-")
+        .tempdir_in(&opts.out)
+        .with_context(|| format!("scratch folder in {}", opts.out.display()))?;
+    let vars = variants(&base, opts);
+    progress.set_length(vars.len() as u64 + 2);
+    progress.set_message("reference");
+
+    let mut ref_sets = opts.sets.clone();
+    ref_sets.extend(reference_sets(&base)?);
+    let ref_scene = load_scene(&opts.scene, &ref_sets, opts.size)?;
+    let r = measure_in_process(&ref_scene, 1).context("the reference render")?;
+    info!(
+        seconds = r.seconds,
+        samples = r.samples,
+        "reference rendered"
+    );
+    progress.inc(1);
+    let zero = Errors {
+        rmse: 0.0,
+        max: 0.0,
+        dssim: 0.0,
+    };
+    let mut out = vec![Point {
+        knob: "reference".into(),
+        label: "reference".into(),
+        sets: reference_sets(&base)?,
+        seconds: r.seconds,
+        samples: r.samples,
+        errors: zero,
+        backend: r.backend.clone(),
+        note: r.note.clone(),
+    }];
+    let reference = r.image;
+
+    progress.set_message("defaults");
+    let d = measure_in_process(&base, opts.frames).context("the defaults")?;
+    out.push(Point {
+        knob: "defaults".into(),
+        label: "defaults".into(),
+        sets: Vec::new(),
+        seconds: d.seconds,
+        samples: d.samples,
+        errors: metrics::compare(&d.image, &reference, w, h, bg),
+        backend: d.backend,
+        note: d.note,
+    });
+    progress.inc(1);
+
+    for v in &vars {
+        progress.set_message(format!("{} {}", v.knob, v.label));
+        let m = points::measure(v, opts, scratch.path());
+        progress.inc(1);
+        let m = match m {
+            Ok(m) => m,
+            Err(e) => {
+                info!(knob = v.knob, label = %v.label, "skipped: {e:#}");
+                out.push(Point {
+                    knob: v.knob.into(),
+                    label: v.label.clone(),
+                    sets: v.sets.clone(),
+                    seconds: f64::NAN,
+                    samples: 0,
+                    errors: Errors {
+                        rmse: f64::NAN,
+                        max: f64::NAN,
+                        dssim: f64::NAN,
+                    },
+                    backend: String::new(),
+                    note: format!("skipped: {e:#}"),
+                });
+                continue;
+            }
+        };
+        if m.image.len() != w * h {
+            bail!(
+                "{} {}: image of {} pixels, expected {w}x{h}",
+                v.knob,
+                v.label,
+                m.image.len()
+            );
+        }
+        out.push(Point {
+            knob: v.knob.into(),
+            label: v.label.clone(),
+            sets: v.sets.clone(),
+            seconds: m.seconds,
+            samples: m.samples,
+            errors: metrics::compare(&m.image, &reference, w, h, bg),
+            backend: m.backend,
+            note: m.note,
+        });
+    }
+    report::write(opts, &base, &out)?;
+    Ok(out)
+}
