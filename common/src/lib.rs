@@ -28,6 +28,8 @@
 //!   radix-k), active-pixel encoding and the rank state machine that runs a plan.
 //! * [`wire`]: the cluster protocol: frame header, limits and messages (no I/O).
 //! * [`kd`]: half-open regions, k-d trees and their visibility order.
+//! * [`occlusion`]: per-block transmittance of partial images and the blocks each position
+//!   of the visibility order may leave uncast (cross-worker occlusion).
 //! * [`scene`]: the scene description (TOML) with errors that name line and column.
 //!
 //! No async, no networking, no threads are spawned here.
@@ -43,6 +45,7 @@ pub mod gpu;
 pub mod ids;
 pub mod image;
 pub mod kd;
+pub mod occlusion;
 pub mod pyramid;
 pub mod sample;
 pub mod scene;

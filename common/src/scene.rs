@@ -149,6 +149,17 @@ pub struct ClusterSettings {
     /// survivors and the frame is rendered again) or `fail` (the frame fails, naming it).
     #[serde(default)]
     pub on_worker_loss: OnWorkerLoss,
+    /// Cross-worker occlusion: workers leave uncast the screen blocks that content in
+    /// front of their region (owned by other workers) already makes opaque to
+    /// `render.early_termination`, predicted from the previous frame of a sequence and
+    /// confirmed in the current one (blocks it does not confirm are cast afterwards).
+    #[serde(default = "yes")]
+    pub occlusion: bool,
+    /// Side in pixels of the screen blocks occlusion works in (1..=64): smaller blocks
+    /// follow silhouettes and varying opacity more closely and move more bytes (two per
+    /// block and worker, each way, per frame).
+    #[serde(default = "default_occlusion_block")]
+    pub occlusion_block: u32,
 }
 
 /// `cluster.on_worker_loss`.
@@ -175,6 +186,9 @@ pub enum Transport {
     Shm,
 }
 
+fn default_occlusion_block() -> u32 {
+    2
+}
 fn default_rebalance_threshold() -> f64 {
     1.25
 }
@@ -199,6 +213,8 @@ impl Default for ClusterSettings {
             rebalance_damping: default_rebalance_damping(),
             transport: Transport::Auto,
             on_worker_loss: OnWorkerLoss::Reassign,
+            occlusion: true,
+            occlusion_block: default_occlusion_block(),
         }
     }
 }

@@ -21,13 +21,14 @@
 
 use crate::composite::{Algorithm, WireFormat};
 use crate::kd::Region;
+use crate::occlusion::BlockRect;
 use crate::scene::Camera;
 use serde::{de::DeserializeOwned, Deserialize, Serialize};
 
 /// Frame magic.
 pub const MAGIC: [u8; 4] = *b"STRF";
 /// Protocol version; bumped on any incompatible change of the header or the messages.
-pub const PROTOCOL_VERSION: u16 = 2;
+pub const PROTOCOL_VERSION: u16 = 3;
 /// Size of the frame header.
 pub const HEADER_LEN: usize = 24;
 /// Largest meta message any endpoint accepts (control messages are small; the scene text
@@ -242,6 +243,16 @@ pub enum WorkerMsg {
         /// Where the final piece lies in the segment (`None`: it follows as bulk).
         shm: Option<ShmRef>,
     },
+    /// Cross-worker occlusion (`FrameRequest::occlusion`): this worker's partial image of
+    /// the frame reduced to per-block transmittance over `rect`
+    /// ([`crate::occlusion::Transmittance`]); the `rect.w · rect.h` levels follow as bulk,
+    /// two little-endian bytes each.
+    Coverage {
+        /// Frame number.
+        frame: u64,
+        /// The blocks the values cover.
+        rect: BlockRect,
+    },
     /// The worker could not do what was asked.
     Failed {
         /// The frame, if any.
@@ -264,6 +275,14 @@ pub enum CoordMsg {
     PeerLost {
         /// The lost worker's rank.
         rank: u32,
+    },
+    /// Cross-worker occlusion: per block of the frame's block grid, the transmittance of
+    /// what lies in front of this worker ([`crate::occlusion::front_of`]).
+    Occlusion {
+        /// Frame number.
+        frame: u64,
+        /// [`crate::occlusion::FrontTransmittance::q`], two little-endian bytes per level.
+        front: Vec<u8>,
     },
     /// Exit cleanly.
     Shutdown,
@@ -391,6 +410,10 @@ pub struct FrameRequest {
     /// most [`MAX_LEAVES_PER_WORKER`]); `None` keeps the current ones. `leaf_order`
     /// indexes the leaves in force for the frame.
     pub leaves: Option<Vec<Region>>,
+    /// Cross-worker occlusion (`cluster.occlusion`): the side of its screen blocks in pixels
+    /// (0: off). After rendering, send [`WorkerMsg::Coverage`] and wait for
+    /// [`CoordMsg::Occlusion`] before compositing.
+    pub occlusion_block: u32,
 }
 
 /// Leaves one worker may be given.
@@ -506,8 +529,21 @@ pub struct WorkerFrameStats {
     pub rounds: u32,
     /// Feedback rounds of the renderer.
     pub render_rounds: u32,
-    /// Ray samples of the last render round.
+    /// Ray samples of the last render round (and of the occlusion fix-up's last round).
     pub samples: u64,
+    /// Cross-worker occlusion: screen blocks left uncast because the previous frame
+    /// predicted content in front of this worker hides them.
+    pub occluded_blocks: u64,
+    /// Screen blocks cast with a lower termination threshold because the previous frame
+    /// predicted content in front of this worker lets only part of the light through.
+    pub limited_blocks: u64,
+    /// Blocks this frame's front transmittance did not confirm (the prediction promised
+    /// less light than there is), cast again with this frame's thresholds.
+    pub fixup_blocks: u64,
+    /// Seconds from sending the coverage to receiving the front transmittance.
+    pub occlusion_s: f64,
+    /// Seconds of the fix-up render.
+    pub fixup_s: f64,
     /// "converged", "round-limit" or "atlas-full".
     pub outcome: String,
     /// The backend and adapter that rendered, e.g. `gpu: NVIDIA H100 (Vulkan)` or `cpu (8 threads)`.

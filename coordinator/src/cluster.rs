@@ -23,6 +23,7 @@ use std::time::{Duration, Instant};
 use strata_common::composite::{assemble, Interlace, SparsePiece};
 use strata_common::image::Rgba;
 use strata_common::kd::Decomposition;
+use strata_common::occlusion::{self, BlockGrid, Transmittance};
 use strata_common::scene::Transport;
 use strata_common::scene::{Camera, Scene};
 use strata_common::wire::{
@@ -70,6 +71,10 @@ pub struct ClusterOptions {
     pub transport: Transport,
     /// `cluster.on_worker_loss`: re-render a frame without a worker that was lost, or fail.
     pub on_worker_loss: strata_common::scene::OnWorkerLoss,
+    /// `cluster.occlusion`: cross-worker occlusion with every rendered frame.
+    pub occlusion: bool,
+    /// `cluster.occlusion_block`: side of its screen blocks in pixels.
+    pub occlusion_block: u32,
 }
 
 /// A re-split of the k-d tree between two frames of a sequence.
@@ -111,6 +116,12 @@ impl ClusterOptions {
                 || (c.rebalance_threshold >= 1.0 && c.rebalance_threshold.is_finite()),
             "cluster.rebalance_threshold must be 0 (off) or at least 1, got {}",
             c.rebalance_threshold
+        );
+        anyhow::ensure!(
+            (1..=occlusion::MAX_BLOCK).contains(&c.occlusion_block),
+            "cluster.occlusion_block must lie in 1..={}, got {}",
+            occlusion::MAX_BLOCK,
+            c.occlusion_block
         );
         anyhow::ensure!(
             c.rebalance_damping > 0.0 && c.rebalance_damping <= 1.0,
@@ -156,6 +167,8 @@ impl ClusterOptions {
             rebalance_damping: c.rebalance_damping,
             transport: c.transport,
             on_worker_loss: c.on_worker_loss,
+            occlusion: c.occlusion,
+            occlusion_block: c.occlusion_block,
             worker_exe: std::env::var_os("STRATA_WORKER_BIN").map(PathBuf::from),
         })
     }
@@ -213,6 +226,8 @@ pub struct FrameResult {
     pub assemble_s: f64,
     /// Workers given up on during this frame (the frame was re-rendered without them).
     pub lost: Vec<LostWorker>,
+    /// Seconds this coordinator spent checking occlusion coverage and sending the maps.
+    pub occlusion_s: f64,
 }
 
 /// A worker given up on.
@@ -865,6 +880,21 @@ impl Cluster {
             .map(|slot| slots[slot])
             .collect();
         debug!(frame, ?order, "visibility order");
+        // Cross-worker occlusion in blocks of `occlusion_block` pixels, coarser where the
+        // maps (two bytes a block, sent as control messages) would not fit one.
+        let mut block = self.opts.occlusion_block.max(1);
+        while BlockGrid::new(width, height, block).len() * 2 + 1024 > wire::MAX_META as usize {
+            block += 1;
+        }
+        let grid = BlockGrid::new(width, height, block);
+        let occlusion = self.opts.occlusion
+            && matches!(source, FrameSource::Render)
+            && block <= occlusion::MAX_BLOCK;
+        // Cross-worker occlusion: each worker's block transmittance, by rank, until all
+        // are in and the maps have gone out.
+        let mut coverage: Vec<Option<Transmittance>> = vec![None; self.workers.len()];
+        let mut maps_sent = !occlusion;
+        let mut occlusion_s = 0.0;
         for (slot, &rank) in slots.iter().enumerate() {
             let mine = self.decomposition.worker_leaves(slot);
             let leaf_order = self
@@ -883,6 +913,7 @@ impl Cluster {
                 composite: composite.clone(),
                 source: source.clone(),
                 leaves: self.new_leaves[rank as usize].take(),
+                occlusion_block: if occlusion { block } else { 0 },
             });
             let w = &mut self.workers[rank as usize];
             let what = w.describe();
@@ -935,6 +966,7 @@ impl Cluster {
                     match wire::decode_meta::<WorkerMsg>(&f.meta) {
                         // Leftovers of an earlier (failed) frame are not this frame's.
                         Ok(WorkerMsg::FrameDone { frame: fno, .. })
+                        | Ok(WorkerMsg::Coverage { frame: fno, .. })
                         | Ok(WorkerMsg::Failed {
                             frame: Some(fno), ..
                         }) if fno < frame => {
@@ -984,6 +1016,23 @@ impl Cluster {
                             pieces[rank as usize] = Some(piece);
                             stats[rank as usize] = Some(s);
                             collect_s += t.elapsed().as_secs_f64();
+                        }
+                        Ok(WorkerMsg::Coverage { frame: fno, rect })
+                            if fno == frame && !maps_sent =>
+                        {
+                            let t = Instant::now();
+                            let map = occlusion::levels_from_bytes(&f.bulk)
+                                .and_then(|q| Transmittance::checked(grid, rect, q))
+                                .with_context(|| format!("occlusion coverage from {who}"))
+                                .map_err(blame)?;
+                            coverage[rank as usize] = Some(map);
+                            if slots.iter().all(|&r| coverage[r as usize].is_some()) {
+                                self.send_occlusion(frame, &order, &coverage)
+                                    .await
+                                    .map_err(|(e, r)| Failure::blaming(e, r))?;
+                                maps_sent = true;
+                            }
+                            occlusion_s += t.elapsed().as_secs_f64();
                         }
                         Ok(WorkerMsg::Failed {
                             message, suspects, ..
@@ -1037,7 +1086,11 @@ impl Cluster {
         let image = tokio::task::block_in_place(|| assemble(width, height, &interlace, &pieces))
             .map_err(|e| Failure::of(e.into()))?;
         let assemble_s = t.elapsed().as_secs_f64();
-        let slowest_render = stats.iter().map(|s| s.render_s).fold(0.0, f64::max);
+        // Rendering includes waiting for the occlusion maps and the fix-up render.
+        let slowest_render = stats
+            .iter()
+            .map(|s| s.render_s + s.occlusion_s + s.fixup_s)
+            .fold(0.0, f64::max);
         Ok(FrameResult {
             image,
             composite_s: ((last_arrival - t0).as_secs_f64() - slowest_render).max(0.0),
@@ -1047,7 +1100,39 @@ impl Cluster {
             collect_s,
             assemble_s,
             lost: Vec::new(),
+            occlusion_s,
         })
+    }
+
+    /// Sends every worker of the frame the transmittance of what the workers in front of it
+    /// hold, per block (`order` front first, `coverage` by rank, all present).
+    async fn send_occlusion(
+        &mut self,
+        frame: u64,
+        order: &[u32],
+        coverage: &[Option<Transmittance>],
+    ) -> Result<(), (anyhow::Error, u32)> {
+        let layers: Vec<&Transmittance> = order
+            .iter()
+            .map(|&r| coverage[r as usize].as_ref().expect("every coverage is in"))
+            .collect();
+        let fronts = tokio::task::block_in_place(|| occlusion::front_of(&layers));
+        for (&rank, front) in order.iter().zip(fronts) {
+            let w = &mut self.workers[rank as usize];
+            let what = w.describe();
+            let msg = wire::encode_meta(&CoordMsg::Occlusion {
+                frame,
+                front: occlusion::levels_to_bytes(&front.q),
+            });
+            with_timeout(
+                self.opts.frame_timeout,
+                format!("sending the occlusion map of frame {frame} to {what}"),
+                write_frame(&mut w.send, &msg, &[]),
+            )
+            .await
+            .map_err(|e| (anyhow!(e), rank))?;
+        }
+        Ok(())
     }
 
     /// The rank of local worker process `child`, if it joined.

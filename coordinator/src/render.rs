@@ -243,6 +243,12 @@ pub struct FrameSummary {
     pub outcome: String,
     /// Trilinear samples of the frame's final round (all workers).
     pub samples: u64,
+    /// Cross-worker occlusion (`cluster.occlusion`): screen blocks the workers left uncast,
+    /// predicted hidden by the workers in front of them (summed over the workers; 0
+    /// in-process).
+    pub occluded_blocks: u64,
+    /// Of these, blocks the frame's own masks did not confirm, cast afterwards.
+    pub fixup_blocks: u64,
 }
 
 /// What a render did.
@@ -456,6 +462,8 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
                     rounds: fr.stats.iter().map(|s| s.render_rounds).max().unwrap_or(0),
                     outcome: worst_outcome(fr.stats.iter().map(|s| s.outcome.as_str())),
                     samples: fr.stats.iter().map(|s| s.samples).sum(),
+                    occluded_blocks: fr.stats.iter().map(|s| s.occluded_blocks).sum(),
+                    fixup_blocks: fr.stats.iter().map(|s| s.fixup_blocks).sum(),
                 });
                 progress.inc(1);
                 if f.index != plan.last().map_or(f.index, |l| l.index) {
@@ -591,6 +599,8 @@ pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result
             rounds: result.rounds,
             outcome: result.outcome.clone().as_str().into(),
             samples: result.last.samples,
+            occluded_blocks: 0,
+            fixup_blocks: 0,
         });
         progress.inc(1);
         last = Some(result);

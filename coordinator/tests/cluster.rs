@@ -297,6 +297,8 @@ fn start_waiting_coordinator(workers: usize, extra: &[&str]) -> Waiting {
         format!("cluster.secret_file={:?}", secret.display().to_string()),
         format!("cluster.fingerprint_file={:?}", fp.display().to_string()),
         "cluster.connect_timeout_s=60".to_string(),
+        // The hand-driven workers of these tests speak the exchange, not occlusion.
+        "cluster.occlusion=false".to_string(),
     ];
     let mut c = Command::new(BIN);
     c.args(["render", scene.to_str().unwrap(), "-o"])
@@ -1262,4 +1264,128 @@ fn slices_render_the_same_distributed_as_in_process() {
         max_diff(&single, reference()) > 0.01,
         "the slices change the image"
     );
+}
+
+/// Per-frame `(samples, occluded_blocks, fixup_blocks)` of a `--stats` file.
+fn frame_counts(stats: &str) -> Vec<(u64, u64, u64)> {
+    stats
+        .lines()
+        .filter(|l| l.contains("\"kind\":\"frame\""))
+        .map(|l| {
+            let v: serde_json::Value = serde_json::from_str(l).unwrap();
+            let n = |k: &str| v[k].as_u64().unwrap_or_else(|| panic!("{k} in {v}"));
+            (n("samples"), n("occluded_blocks"), n("fixup_blocks"))
+        })
+        .collect()
+}
+
+#[test]
+fn cross_worker_occlusion_casts_less_and_stays_within_the_termination_bound() {
+    let dir = tempfile::tempdir().unwrap();
+    // Opaque horizons and a dense volume: the workers behind have much that is hidden.
+    let survey = dir.path().join("survey");
+    let o = run(
+        &[
+            "synth",
+            "-o",
+            survey.to_str().unwrap(),
+            "--size",
+            "80",
+            "64",
+            "48",
+            "--seed",
+            "5",
+        ],
+        &[],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let scene = survey.join("scene.toml");
+    // Four frames of a 40-frame orbit (9° apart): each frame predicts from the last, and
+    // the camera moves enough that some predictions fail and are re-cast.
+    let go = |name: &str, extra: &[&str]| {
+        let out = dir.path().join(format!("{name}_%03d.exr"));
+        let stats = dir.path().join(format!("{name}.jsonl"));
+        let mut args = vec![
+            "--orbit",
+            "40",
+            "--frames",
+            "0..4",
+            "--stats",
+            stats.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        let o = render_scene(&scene, &out, &args, &[]);
+        assert!(
+            o.status.success(),
+            "{name}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        let frames: Vec<Vec<[f32; 4]>> = (0..4)
+            .map(|i| read_exr(&dir.path().join(format!("{name}_{i:03}.exr"))))
+            .collect();
+        (
+            frames,
+            frame_counts(&std::fs::read_to_string(stats).unwrap()),
+        )
+    };
+    // No re-split from measured (noisy) times: every run splits the scene alike, so sample
+    // counts compare.
+    let ert = [
+        "--set",
+        "render.early_termination=0.99",
+        "--set",
+        "cluster.rebalance_threshold=0",
+    ];
+    let (inp, _) = go("in", &[&ert[..], &["--in-process"]].concat());
+    let (on, on_n) = go("on", &[&ert[..], &["--workers", "3"]].concat());
+    let (off, off_n) = go(
+        "off",
+        &[
+            &ert[..],
+            &["--workers", "3", "--set", "cluster.occlusion=false"],
+        ]
+        .concat(),
+    );
+    for i in 0..4 {
+        // Early termination at t may move a pixel by 1 − t, in-process as distributed.
+        let d = max_diff(&on[i], &inp[i]);
+        assert!(
+            d <= 0.01 + 1e-5,
+            "frame {i}: occlusion moved a pixel by {d}"
+        );
+        let d = max_diff(&off[i], &inp[i]);
+        assert!(
+            d <= 0.01 + 1e-5,
+            "frame {i}: without occlusion a pixel moved by {d}"
+        );
+    }
+    assert!(off_n.iter().all(|f| f.1 == 0 && f.2 == 0), "{off_n:?}");
+    assert_eq!(on_n[0].1, 0, "the first frame has nothing to predict from");
+    for i in 1..4 {
+        assert!(on_n[i].1 > 0, "frame {i}: no block left out: {on_n:?}");
+        assert!(
+            on_n[i].0 < off_n[i].0,
+            "frame {i}: occlusion cast {} samples, without {}",
+            on_n[i].0,
+            off_n[i].0
+        );
+    }
+    assert!(
+        on_n.iter().map(|f| f.2).sum::<u64>() > 0,
+        "the moving camera made no prediction fail, so no re-cast was exercised: {on_n:?}"
+    );
+    // At t = 1 only exactly opaque content hides anything, and the image is the same.
+    let (in1, _) = go("in1", &["--in-process"]);
+    let (on1, on1_n) = go(
+        "on1",
+        &["--workers", "3", "--set", "cluster.rebalance_threshold=0"],
+    );
+    for i in 0..4 {
+        let d = max_diff(&on1[i], &in1[i]);
+        assert!(
+            d <= 1e-5,
+            "frame {i} at t = 1: occlusion moved a pixel by {d}"
+        );
+    }
+    assert!(on1_n[1..].iter().all(|f| f.1 > 0), "{on1_n:?}");
 }

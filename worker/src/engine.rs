@@ -16,6 +16,7 @@ use strata_common::camera::{default_camera, View};
 use strata_common::geo::Affine3;
 use strata_common::image::{PartialImage, Rect};
 use strata_common::kd::Region;
+use strata_common::occlusion::RayLimits;
 use strata_common::sample::SampleType;
 use strata_common::scene::{Backend, Camera, RenderSettings, Scene};
 
@@ -669,6 +670,7 @@ impl Engine {
             } else {
                 f32::INFINITY
             },
+            limits: None,
         }
     }
 
@@ -680,7 +682,28 @@ impl Engine {
 
     /// Renders one frame of `region` with what is resident now, on the engine's backend.
     pub fn render_frame(&mut self, view: &View, region: &Region) -> Result<Frame> {
+        self.render_frame_limited(view, region, None)
+    }
+
+    /// Whether this engine's caster takes per-ray limits ([`Engine::render_batch_limited`]):
+    /// the CPU caster does, the GPU caster not yet.
+    pub fn supports_ray_limits(&self) -> bool {
+        self.gpu.is_none()
+    }
+
+    /// [`Engine::render_frame`] under cross-worker occlusion: each ray with the termination
+    /// threshold `limits` gives its block, and rays it leaves out not cast at all (their
+    /// pixels stay transparent and they ask for no page).
+    pub fn render_frame_limited(
+        &mut self,
+        view: &View,
+        region: &Region,
+        limits: Option<RayLimits<'_>>,
+    ) -> Result<Frame> {
         let t = Instant::now();
+        if limits.is_some() && !self.supports_ray_limits() {
+            bail!("the GPU caster takes no per-ray limits (cross-worker occlusion)");
+        }
         if self.gpu.is_some() {
             let mut gpu = self.gpu.take().expect("checked");
             let res = gpu.render(&self.setup(view, region));
@@ -694,7 +717,8 @@ impl Engine {
                 gpu: g,
             });
         }
-        let setup = self.setup(view, region);
+        let mut setup = self.setup(view, region);
+        setup.limits = limits;
         let out = setup.render();
         let mut feedback = Feedback::default();
         feedback.add(&out.feedback);
@@ -803,6 +827,18 @@ impl Engine {
     /// for was resident at its requested level (converged) or `render.max_rounds` is hit
     /// (`render.rounds_per_frame` when set, for a region this engine rendered before).
     pub fn render_batch(&mut self, view: &View, region: &Region) -> Result<BatchResult> {
+        self.render_batch_limited(view, region, None)
+    }
+
+    /// [`Engine::render_batch`] under cross-worker occlusion
+    /// ([`Engine::render_frame_limited`]): the batch converges on the pages the rays cast
+    /// ask for.
+    pub fn render_batch_limited(
+        &mut self,
+        view: &View,
+        region: &Region,
+        limits: Option<RayLimits<'_>>,
+    ) -> Result<BatchResult> {
         let key = [0, 1, 2, 3, 4, 5].map(|i| {
             if i < 3 {
                 region.lo[i].to_bits()
@@ -825,7 +861,7 @@ impl Engine {
         let mut uploaded_bytes = 0;
         loop {
             rounds += 1;
-            let f = self.render_frame(view, region)?;
+            let f = self.render_frame_limited(view, region, limits)?;
             cast_s += f.seconds;
             uploaded_bytes += f.gpu.uploaded_bytes;
             total += f.stats;

@@ -24,6 +24,10 @@ use strata_common::composite::{
     RankCompositor, SparsePiece,
 };
 use strata_common::image::{composite_front_to_back, PartialImage, Rect, Rgba};
+use strata_common::occlusion::{
+    levels_from_bytes, levels_to_bytes, BlockGrid, BlockMask, FrontTransmittance, RayLimits,
+    Transmittance, CLEAR, MAX_BLOCK,
+};
 use strata_common::scene::Scene;
 use strata_common::wire::{
     self, CompositeChoice, CoordMsg, Fingerprint, FrameRequest, FrameSource, Limits, PeerInfo,
@@ -216,7 +220,7 @@ async fn node(opts: NodeOptions) -> Result<()> {
             CoordMsg::Frame(req) => {
                 let frame = req.frame;
                 let result = tokio::select! {
-                    r = node.frame(&req, &mut ev_rx, &mut ctl_rx) => r,
+                    r = node.frame(&req, &mut ev_rx, &mut ctl_rx, &mut csend) => r,
                     e = conn.closed() => bail!("lost the coordinator during frame {frame}: {e}"),
                 };
                 match result {
@@ -430,6 +434,7 @@ async fn mesh(
         gather_shm: None,
         suspects: Vec::new(),
         deferred: Default::default(),
+        front_last: None,
     };
     Ok((node, ev_rx))
 }
@@ -648,6 +653,19 @@ struct Node {
     suspects: Vec<u32>,
     /// Control messages that arrived during a frame, for after it.
     deferred: std::collections::VecDeque<CoordMsg>,
+    /// Cross-worker occlusion: the last frame's transmittance of what lies in front of this
+    /// worker, the prediction for the next frame.
+    front_last: Option<FrontLast>,
+}
+
+/// The front transmittance of the last frame and what it depended on (the image size and
+/// the workers in front of this one). A re-split of the leaves keeps it: like a moving
+/// camera it only makes the prediction worse, and the fix-up keeps the image right.
+struct FrontLast {
+    width: u32,
+    height: u32,
+    order: Vec<u32>,
+    front: FrontTransmittance,
 }
 
 /// Test hook (debug builds only, what the tests run; release binaries ignore it):
@@ -691,6 +709,7 @@ impl Node {
         req: &FrameRequest,
         events: &mut mpsc::Receiver<PeerEvent>,
         control: &mut mpsc::Receiver<Result<CoordMsg, String>>,
+        csend: &mut quinn::SendStream,
     ) -> Result<(WorkerFrameStats, SparsePiece, Instant)> {
         if let Some(leaves) = &req.leaves {
             // A re-split: new regions from this frame on. The engine keeps its resident
@@ -761,10 +780,74 @@ impl Node {
             ..Default::default()
         };
         test_fault(self.rank, req.frame, "render");
-        // 1. The partial image.
+        // 1. The partial image. Under cross-worker occlusion each ray stops where the light
+        //    the last frame's front transmittance predicts, times its own, falls to
+        //    1 − early_termination, and rays behind opaque blocks are not cast.
         let t = Instant::now();
-        let image = tokio::task::block_in_place(|| self.image(req, &mut stats))?;
+        anyhow::ensure!(
+            req.occlusion_block <= MAX_BLOCK,
+            "frame {}: occlusion blocks of {} pixels (at most {MAX_BLOCK})",
+            req.frame,
+            req.occlusion_block
+        );
+        let occlusion = req.occlusion_block > 0 && matches!(req.source, FrameSource::Render);
+        let grid = BlockGrid::new(req.width, req.height, req.occlusion_block);
+        let threshold = (self.engine.settings.early_termination as f32).min(1.0);
+        let predicted = if occlusion {
+            self.predicted_front(req, grid)
+        } else {
+            None
+        };
+        let limits = predicted.as_ref().map(|front| RayLimits {
+            front,
+            only: None,
+            threshold,
+        });
+        stats.leaf_cast_s = vec![0.0; self.setup.leaves.len()];
+        let mut image = tokio::task::block_in_place(|| self.image(req, limits, &mut stats))?;
         stats.render_s = t.elapsed().as_secs_f64();
+        if occlusion {
+            // 1b. This frame's front transmittance: blocks where the prediction promised
+            //     less light than there is are cast again with this frame's thresholds.
+            let t = Instant::now();
+            let front = self
+                .occlusion_front(req, grid, &image, control, csend, frame_start)
+                .await?;
+            stats.occlusion_s = t.elapsed().as_secs_f64();
+            if let Some(p) = &predicted {
+                let hidden = p.hidden(threshold);
+                stats.occluded_blocks = hidden.count();
+                stats.limited_blocks =
+                    p.q.iter().filter(|&&q| q < CLEAR).count() as u64 - stats.occluded_blocks;
+                let stale = p.stale(&front, &image, threshold);
+                if stale.any() {
+                    let t = Instant::now();
+                    stats.fixup_blocks = stale.count();
+                    let limits = Some(RayLimits {
+                        front: &front,
+                        only: Some(&stale),
+                        threshold,
+                    });
+                    let again =
+                        tokio::task::block_in_place(|| self.image(req, limits, &mut stats))?;
+                    image = replace_blocks(&image, &again, &stale);
+                    stats.fixup_s = t.elapsed().as_secs_f64();
+                }
+                debug!(
+                    frame = req.frame,
+                    hidden = stats.occluded_blocks,
+                    limited = stats.limited_blocks,
+                    recast = stats.fixup_blocks,
+                    "occlusion"
+                );
+            }
+            self.front_last = Some(FrontLast {
+                width: req.width,
+                height: req.height,
+                order: req.order.clone(),
+                front,
+            });
+        }
         stats.render_end_us = strata_net::unix_us();
         let cache = self.engine.cache_stats();
         stats.pages_read = cache.pages_read;
@@ -979,8 +1062,106 @@ impl Node {
         }
     }
 
-    /// This worker's partial image for the frame.
-    fn image(&mut self, req: &FrameRequest, stats: &mut WorkerFrameStats) -> Result<PartialImage> {
+    /// The last frame's front transmittance, when it applies to this frame: same image
+    /// size and workers in front, something in front, and a caster that takes ray limits.
+    fn predicted_front(&self, req: &FrameRequest, grid: BlockGrid) -> Option<FrontTransmittance> {
+        let last = self.front_last.as_ref()?;
+        // The same workers in front of this one (their order among themselves does not
+        // matter: opacity composes either way).
+        let front = |order: &[u32]| -> Option<Vec<u32>> {
+            let pos = order.iter().position(|&r| r == self.rank)?;
+            let mut f = order[..pos].to_vec();
+            f.sort_unstable();
+            Some(f)
+        };
+        let same = last.width == req.width
+            && last.height == req.height
+            && front(&last.order).is_some()
+            && front(&last.order) == front(&req.order)
+            && last.front.grid == grid;
+        (same && last.front.any() && self.engine.supports_ray_limits()).then(|| last.front.clone())
+    }
+
+    /// Sends this worker's block transmittance to the coordinator and waits for the
+    /// transmittance of what the workers in front of it hold this frame.
+    async fn occlusion_front(
+        &mut self,
+        req: &FrameRequest,
+        grid: BlockGrid,
+        image: &PartialImage,
+        control: &mut mpsc::Receiver<Result<CoordMsg, String>>,
+        csend: &mut quinn::SendStream,
+        frame_start: Instant,
+    ) -> Result<FrontTransmittance> {
+        let map = tokio::task::block_in_place(|| Transmittance::of_image(image, grid.block));
+        let msg = WorkerMsg::Coverage {
+            frame: req.frame,
+            rect: map.rect,
+        };
+        let deadline = frame_start + self.timeout;
+        let left = deadline.saturating_duration_since(Instant::now());
+        with_timeout(
+            left,
+            "sending the occlusion coverage to the coordinator",
+            write_frame(csend, &wire::encode_meta(&msg), &levels_to_bytes(&map.q)),
+        )
+        .await?;
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            let msg = match tokio::time::timeout(left, control.recv()).await {
+                Ok(Some(Ok(m))) => m,
+                Ok(Some(Err(e))) => bail!("{e}"),
+                Ok(None) => bail!("lost the coordinator"),
+                Err(_) => bail!(
+                    "no occlusion map for frame {} from the coordinator within the frame timeout of {:.1} s",
+                    req.frame,
+                    self.timeout.as_secs_f64()
+                ),
+            };
+            match msg {
+                CoordMsg::Occlusion { frame, front } if frame == req.frame => {
+                    return levels_from_bytes(&front)
+                        .and_then(|q| FrontTransmittance::checked(grid, q))
+                        .with_context(|| {
+                            format!("the coordinator's occlusion map for frame {frame}")
+                        });
+                }
+                // The map of an abandoned attempt at an earlier frame.
+                CoordMsg::Occlusion { frame, .. } if frame < req.frame => {
+                    debug!(frame, "ignoring a stale occlusion map")
+                }
+                CoordMsg::Occlusion { frame, .. } => {
+                    bail!(
+                        "the coordinator sent the occlusion map of frame {frame} during frame {}",
+                        req.frame
+                    )
+                }
+                // The coordinator gave up on a peer: this attempt is over if it takes part.
+                CoordMsg::PeerLost { rank } => {
+                    self.exchange
+                        .handle_lost(rank, "the coordinator gave it up".into());
+                    if req.order.contains(&rank) {
+                        self.suspects = vec![rank];
+                        bail!(
+                            "the coordinator gave up {} before the occlusion map of frame {}",
+                            describe(&self.setup.peers, rank),
+                            req.frame
+                        );
+                    }
+                }
+                other => self.deferred.push_back(other),
+            }
+        }
+    }
+
+    /// This worker's partial image for the frame, its rays limited by `limits` (cross-worker
+    /// occlusion). Adds its costs to `stats` (so a re-cast adds to the first render).
+    fn image(
+        &mut self,
+        req: &FrameRequest,
+        limits: Option<RayLimits<'_>>,
+        stats: &mut WorkerFrameStats,
+    ) -> Result<PartialImage> {
         match &req.source {
             FrameSource::Synthetic { coverage, seed } => Ok(synthetic_image(
                 req.width,
@@ -994,19 +1175,21 @@ impl Node {
                 let view = View::new(&req.camera, &self.engine.settings, req.width, req.height)?;
                 let mut images = Vec::new();
                 let mut outcome = Outcome::Converged;
-                stats.leaf_cast_s = vec![0.0; self.setup.leaves.len()];
+                stats
+                    .leaf_cast_s
+                    .resize(self.setup.leaves.len().max(stats.leaf_cast_s.len()), 0.0);
                 for &leaf in &req.leaf_order {
                     let region = *self
                         .setup
                         .leaves
                         .get(leaf as usize)
                         .ok_or_else(|| anyhow!("leaf {leaf} is not one of this worker's"))?;
-                    let r = self.engine.render_batch(&view, &region)?;
+                    let r = self.engine.render_batch_limited(&view, &region, limits)?;
                     stats.render_rounds = stats.render_rounds.max(r.rounds);
                     stats.cast_s += r.cast_seconds;
                     stats.load_s += r.load_seconds;
                     stats.last_round_s += r.last_seconds;
-                    stats.leaf_cast_s[leaf as usize] = r.last_seconds;
+                    stats.leaf_cast_s[leaf as usize] += r.last_seconds;
                     stats.backend = r.backend.clone();
                     stats.samples += r.last.samples;
                     if r.outcome != Outcome::Converged {
@@ -1014,7 +1197,10 @@ impl Node {
                     }
                     images.push(r.image);
                 }
-                stats.outcome = outcome.as_str().into();
+                // A fix-up render keeps the first render's outcome unless it is worse.
+                if stats.outcome.is_empty() || outcome != Outcome::Converged {
+                    stats.outcome = outcome.as_str().into();
+                }
                 Ok(match images.len() {
                     0 => PartialImage::empty(req.width, req.height),
                     1 => images.pop().unwrap(),
@@ -1027,6 +1213,22 @@ impl Node {
             }
         }
     }
+}
+
+/// `base` with the pixels of the blocks set in `blocks` taken from `again` (a re-cast of
+/// those blocks).
+fn replace_blocks(base: &PartialImage, again: &PartialImage, blocks: &BlockMask) -> PartialImage {
+    let (w, h) = (base.width, base.height);
+    let mut full = base.to_full();
+    for b in (0..blocks.grid.len()).filter(|&b| blocks.get(b)) {
+        let (x0, y0, x1, y1) = blocks.grid.pixels_of(b);
+        for y in y0..y1 {
+            for x in x0..x1 {
+                full[(y * w + x) as usize] = again.get(x, y);
+            }
+        }
+    }
+    PartialImage::from_full(w, h, &full)
 }
 
 /// A benchmark image: a translucent box's footprint for rank `rank` of `ranks`, covering

@@ -377,11 +377,14 @@ mod avx2 {
             })
             .collect();
         let mut acc = [[0.0f32; LANES]; 4];
+        // Each lane's own termination threshold (lower under cross-worker occlusion).
+        let mut erts = [f.ert; LANES];
         for (i, w) in work.iter().enumerate() {
             let a = rays[w.ray].acc();
             for c in 0..4 {
                 acc[c][i] = a[c];
             }
+            erts[i] = rays[w.ray].ert();
         }
         // SAFETY (all intrinsics below): AVX2 is enabled for this function; every gather
         // index is in bounds as argued where it is formed.
@@ -390,7 +393,7 @@ mod avx2 {
             let mut ag = load_f(&acc[1]);
             let mut ab = load_f(&acc[2]);
             let mut aa = load_f(&acc[3]);
-            let ert = _mm256_set1_ps(f.ert);
+            let ert = load_f(&erts);
             let one = _mm256_set1_ps(1.0);
             let zero = _mm256_setzero_ps();
             let lut = v.flat.rgba.as_ptr();

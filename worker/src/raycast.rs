@@ -15,6 +15,7 @@ use crate::horizon::{Hit, HorFrame};
 use crate::volume::{first_k, first_k_near, trilinear_at, Cursor, VolFrame};
 use rayon::prelude::*;
 use strata_common::image::{PartialImage, Rect, Rgba};
+use strata_common::occlusion::RayLimits;
 
 /// Tile edge in pixels (rayon's unit of work; one feedback list per tile).
 pub const TILE: u32 = 16;
@@ -63,6 +64,10 @@ pub struct FrameSetup<'a> {
     /// March single-volume spans in SIMD packets ([`crate::packet`]); only set where the
     /// CPU has AVX2, there is one volume and no gradient shading.
     pub packets: bool,
+    /// Cross-worker occlusion ([`strata_common::occlusion`]): per screen block, each ray's
+    /// termination threshold from what lies in front, or not cast at all (left
+    /// transparent, asking for no page). `None`: every ray of the rectangle, with `ert`.
+    pub limits: Option<RayLimits<'a>>,
 }
 
 /// Counters of one frame.
@@ -135,6 +140,8 @@ struct RayCtx<'s, 'a> {
     acc: Rgba,
     stats: CastStats,
     done: bool,
+    /// This ray's termination threshold (the frame's, or lower under occlusion).
+    ert: f32,
 }
 
 impl<'s, 'a> RayCtx<'s, 'a> {
@@ -197,7 +204,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
             let mut acc = self.acc;
             let mut samples = 0u64;
             let mut skipped = 0u64;
-            let ert = f.ert;
+            let ert = self.ert;
             let shading = f.volume_shading;
             let mut terminated = false;
             // Samples before `cell_exit` lie in a macrocell already found visible.
@@ -348,7 +355,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                 let a = 1.0 - transmit;
                 let w = a / alpha_sum;
                 blend(&mut self.acc, [sum[0] * w, sum[1] * w, sum[2] * w, a]);
-                if self.acc[3] >= f.ert {
+                if self.acc[3] >= self.ert {
                     self.done = true;
                     self.stats.terminated += 1;
                     return;
@@ -420,6 +427,11 @@ impl<'s, 'a> RayState<'s, 'a> {
         let (a, b) = self.span0;
         let (a, b) = (a.max(self.cur_t), b.min(seg_end));
         (a < b).then_some((a, b, seg_end))
+    }
+
+    /// The ray's termination threshold.
+    pub fn ert(&self) -> f32 {
+        self.ctx.ert
     }
 
     /// The ray's index-space direction in its (single) volume.
@@ -501,7 +513,7 @@ impl<'s, 'a> RayState<'s, 'a> {
                 blend(&mut self.ctx.acc, h.rgba);
                 self.ctx.stats.hits += 1;
                 self.hi += 1;
-                if self.ctx.acc[3] >= f.ert {
+                if self.ctx.acc[3] >= self.ctx.ert {
                     self.ctx.done = true;
                     self.ctx.stats.terminated += 1;
                     return;
@@ -547,6 +559,7 @@ impl<'a> FrameSetup<'a> {
                     ..CastStats::default()
                 },
                 done: false,
+                ert: self.ert,
             },
             t1,
             cur_t: t0,
@@ -680,13 +693,24 @@ impl<'a> FrameSetup<'a> {
                 let h = TILE.min(r.y + r.h - ty);
                 let mut fb = crate::feedback::Requests::new();
                 let mut st = CastStats::default();
+                let limits = self.limits;
+                if limits.is_some_and(|l| l.none_in(tx, ty, w, h)) {
+                    return (Vec::new(), st);
+                }
+                // The ray's own threshold, or None when it is not cast.
+                let ert = |x: u32, y: u32| match limits {
+                    Some(l) => l.ray(x, y),
+                    None => Some(self.ert),
+                };
                 if !self.chunk.is_finite() {
                     // Nothing to march in lockstep (surfaces and slices only): each ray whole,
                     // one after the other, reusing one crossing buffer.
                     let mut hits = Vec::new();
                     for y in ty..ty + h {
                         for x in tx..tx + w {
+                            let Some(e) = ert(x, y) else { continue };
                             let mut ray = self.start_with(ray_dir(self, x, y), &mut fb, hits);
+                            ray.ctx.ert = e;
                             ray.advance(f32::INFINITY, &mut fb);
                             st += ray.ctx.stats;
                             let i = (y - r.y) * r.w + (x - r.x);
@@ -699,9 +723,15 @@ impl<'a> FrameSetup<'a> {
                     return (crate::feedback::reduce_tile(&mut fb), st);
                 }
                 let mut rays: Vec<RayState<'_, '_>> = Vec::with_capacity((w * h) as usize);
+                // Each ray's pixel (within the rectangle), as some may be skipped.
+                let mut at: Vec<u32> = Vec::with_capacity((w * h) as usize);
                 for y in ty..ty + h {
                     for x in tx..tx + w {
-                        rays.push(self.start(ray_dir(self, x, y), &mut fb));
+                        let Some(e) = ert(x, y) else { continue };
+                        let mut ray = self.start(ray_dir(self, x, y), &mut fb);
+                        ray.ctx.ert = e;
+                        rays.push(ray);
+                        at.push((y - r.y) * r.w + (x - r.x));
                     }
                 }
                 // March all rays of the tile chunk by chunk along t.
@@ -753,13 +783,12 @@ impl<'a> FrameSetup<'a> {
                         next
                     };
                 }
-                for (i, ray) in rays.iter().enumerate() {
+                for (ray, &i) in rays.iter().zip(&at) {
                     st += ray.ctx.stats;
-                    let (x, y) = (tx - r.x + i as u32 % w, ty - r.y + i as u32 / w);
-                    // SAFETY: (x, y) lies in this tile, inside the rectangle, and tiles do
+                    // SAFETY: pixel `i` lies in this tile, inside the rectangle, and tiles do
                     // not overlap, so no other thread writes this pixel; `pixels` outlives
                     // the parallel loop.
-                    unsafe { out.write((y * r.w + x) as usize, sanitize(ray.ctx.acc)) };
+                    unsafe { out.write(i as usize, sanitize(ray.ctx.acc)) };
                 }
                 let red = crate::feedback::reduce_tile(&mut fb);
                 (red, st)

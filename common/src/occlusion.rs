@@ -1,0 +1,861 @@
+//! Cross-worker occlusion: how far a worker need cast its rays, given what the workers in
+//! front of its region already make opaque.
+//!
+//! Early ray termination stops a ray once its accumulated opacity reaches the threshold
+//! `t`. In sort-last rendering each worker sees only its own region, so a ray that an opaque
+//! horizon or a dense volume in front has already finished is still cast in full by every
+//! worker behind, and a ray half-finished in front is marched behind until it is opaque on
+//! its own. Here the screen is cut into square blocks of [`BlockGrid::block`] pixels, and:
+//!
+//! 1. every worker reduces its partial image to a [`Transmittance`] per block (the largest
+//!    `1 − α` of the block's pixels, rounded *up* to a multiple of 1/65535, so it never
+//!    understates what passes);
+//! 2. [`front_of`] multiplies these front to back in the visibility order, giving each
+//!    position the [`FrontTransmittance`] of everything in front of it (rounded up again);
+//! 3. a ray whose block lets `T` through from the front is cast with the termination
+//!    threshold `1 − (1 − t)/T` instead of `t`, so it stops where the whole ray would have
+//!    stopped; when `T ≤ 1 − t` it is not cast at all ([`RayLimits`]).
+//!
+//! A ray then stops only where the light reaching it through the front and its own part is
+//! at most `1 − t`, so the image moves by at most `1 − t` per channel, the freedom
+//! in-process early termination already takes, and at `t = 1` not at all (thresholds stay
+//! 1, and a ray is left out only behind an exactly opaque block, which `OVER` weights by
+//! zero up to its own rounding). Every bound is conservative (block maxima, upward rounding
+//! to 1/65535, a pixel left uncast counting as fully transmissive), up to 2·10⁻¹¹ of
+//! transmittance lost to the f64 product.
+//!
+//! Levels are 16-bit: near the threshold that matters (`1 − t = 0.01`) an 8-bit level
+//! is off by up to 40 %, which left rays behind an almost opaque front cast for nothing. How the maps travel and when
+//! they are known is the caller's business (the cluster predicts from the previous frame
+//! and re-casts the blocks the current frame's maps do not confirm,
+//! [`FrontTransmittance::stale`]).
+
+use crate::image::PartialImage;
+use serde::{Deserialize, Serialize};
+
+/// A transmittance level: `ceil(CLEAR · T)`.
+pub type Level = u16;
+
+/// The level of full transmittance (nothing in front, or nothing drawn).
+pub const CLEAR: Level = u16::MAX;
+
+const SCALE: f64 = CLEAR as f64;
+
+/// Largest block side accepted.
+pub const MAX_BLOCK: u32 = 64;
+
+/// The block grid of a `width × height` image.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct BlockGrid {
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+    /// Side of a block in pixels (1..=[`MAX_BLOCK`]).
+    pub block: u32,
+}
+
+impl BlockGrid {
+    /// The grid of an image with `block`-pixel blocks (clamped to 1..=[`MAX_BLOCK`]).
+    pub fn new(width: u32, height: u32, block: u32) -> Self {
+        BlockGrid {
+            width,
+            height,
+            block: block.clamp(1, MAX_BLOCK),
+        }
+    }
+
+    /// Block columns.
+    pub fn cols(&self) -> u32 {
+        self.width.div_ceil(self.block)
+    }
+
+    /// Block rows.
+    pub fn rows(&self) -> u32 {
+        self.height.div_ceil(self.block)
+    }
+
+    /// Number of blocks.
+    pub fn len(&self) -> usize {
+        self.cols() as usize * self.rows() as usize
+    }
+
+    /// Whether the grid has no block.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The block holding pixel `(x, y)`.
+    #[inline]
+    pub fn block_of(&self, x: u32, y: u32) -> usize {
+        (y / self.block) as usize * self.cols() as usize + (x / self.block) as usize
+    }
+
+    /// Words of a bit mask over the grid.
+    pub fn words(&self) -> usize {
+        self.len().div_ceil(64)
+    }
+
+    /// The pixels of block `b`: `(x0, y0, x1, y1)`, half-open, clipped to the image.
+    #[inline]
+    pub fn pixels_of(&self, b: usize) -> (u32, u32, u32, u32) {
+        let cols = self.cols() as usize;
+        let (x0, y0) = (
+            (b % cols) as u32 * self.block,
+            (b / cols) as u32 * self.block,
+        );
+        (
+            x0,
+            y0,
+            (x0 + self.block).min(self.width),
+            (y0 + self.block).min(self.height),
+        )
+    }
+}
+
+/// A rectangle of blocks `[x, y, w, h]`, in block units.
+#[derive(Copy, Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct BlockRect {
+    /// First block column.
+    pub x: u32,
+    /// First block row.
+    pub y: u32,
+    /// Block columns.
+    pub w: u32,
+    /// Block rows.
+    pub h: u32,
+}
+
+impl BlockRect {
+    /// Number of blocks.
+    pub fn area(&self) -> usize {
+        self.w as usize * self.h as usize
+    }
+}
+
+/// Why a transmittance map or mask from elsewhere is refused.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum OcclusionError {
+    /// The rectangle reaches past the grid.
+    #[error("block rectangle {rect:?} reaches past the {cols}x{rows} block grid")]
+    RectOutside {
+        /// The rectangle.
+        rect: BlockRect,
+        /// Grid columns.
+        cols: u32,
+        /// Grid rows.
+        rows: u32,
+    },
+    /// The number of values does not match.
+    #[error("{what}: {got} values where {expected} were expected")]
+    Length {
+        /// What was being read.
+        what: &'static str,
+        /// Values received.
+        got: usize,
+        /// Values the grid or rectangle calls for.
+        expected: usize,
+    },
+}
+
+/// One worker's per-block transmittance over a rectangle of blocks ([`CLEAR`] = fully
+/// transmissive, the value of every block outside the rectangle).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Transmittance {
+    /// The grid.
+    pub grid: BlockGrid,
+    /// The blocks stored.
+    pub rect: BlockRect,
+    /// Per stored block, row-major: `ceil(CLEAR · max(1 − α))` over its pixels.
+    pub q: Vec<Level>,
+}
+
+/// `ceil(CLEAR · (1 − α))`, clamped to `0..=CLEAR`: never below the true transmittance, and
+/// 0 only where the pixel is exactly opaque.
+#[inline]
+pub fn quantize(alpha: f32) -> Level {
+    let t = 1.0 - alpha as f64;
+    if t.is_nan() {
+        return CLEAR;
+    }
+    if t <= 0.0 {
+        return 0;
+    }
+    (t * SCALE).ceil().clamp(1.0, SCALE) as Level
+}
+
+/// Levels as little-endian bytes (how they travel).
+pub fn levels_to_bytes(q: &[Level]) -> Vec<u8> {
+    q.iter().flat_map(|v| v.to_le_bytes()).collect()
+}
+
+/// Levels from little-endian bytes.
+pub fn levels_from_bytes(b: &[u8]) -> Result<Vec<Level>, OcclusionError> {
+    if !b.len().is_multiple_of(2) {
+        return Err(OcclusionError::Length {
+            what: "transmittance bytes (two per level)",
+            got: b.len(),
+            expected: b.len() + 1,
+        });
+    }
+    Ok(b.chunks_exact(2)
+        .map(|c| Level::from_le_bytes([c[0], c[1]]))
+        .collect())
+}
+
+impl Transmittance {
+    /// Reduces a partial image to `block`-pixel blocks: pixels outside its rectangle are
+    /// transparent.
+    pub fn of_image(img: &PartialImage, block: u32) -> Self {
+        let grid = BlockGrid::new(img.width, img.height, block);
+        let b = grid.block;
+        let r = img.rect;
+        if r.is_empty() {
+            return Transmittance {
+                grid,
+                rect: BlockRect::default(),
+                q: Vec::new(),
+            };
+        }
+        let rect = BlockRect {
+            x: r.x / b,
+            y: r.y / b,
+            w: (r.x + r.w).div_ceil(b) - r.x / b,
+            h: (r.y + r.h).div_ceil(b) - r.y / b,
+        };
+        // Blocks the pixel rectangle covers only partly hold transparent pixels outside
+        // it: they start fully transmissive unless the rectangle covers them whole.
+        let mut q = vec![0 as Level; rect.area()];
+        for by in 0..rect.h {
+            for bx in 0..rect.w {
+                let (x0, y0) = ((rect.x + bx) * b, (rect.y + by) * b);
+                let (x1, y1) = ((x0 + b).min(img.width), (y0 + b).min(img.height));
+                let whole = x0 >= r.x && y0 >= r.y && x1 <= r.x + r.w && y1 <= r.y + r.h;
+                if !whole {
+                    q[(by * rect.w + bx) as usize] = CLEAR;
+                }
+            }
+        }
+        for row in 0..r.h {
+            let y = r.y + row;
+            let by = y / b - rect.y;
+            let line = &img.pixels[(row * r.w) as usize..((row + 1) * r.w) as usize];
+            for (col, p) in line.iter().enumerate() {
+                let x = r.x + col as u32;
+                let i = (by * rect.w + x / b - rect.x) as usize;
+                let v = quantize(p[3]);
+                if v > q[i] {
+                    q[i] = v;
+                }
+            }
+        }
+        Transmittance { grid, rect, q }
+    }
+
+    /// Checks a map received from elsewhere against the grid it claims.
+    pub fn checked(
+        grid: BlockGrid,
+        rect: BlockRect,
+        q: Vec<Level>,
+    ) -> Result<Self, OcclusionError> {
+        let inside = rect.x.checked_add(rect.w).is_some_and(|e| e <= grid.cols())
+            && rect.y.checked_add(rect.h).is_some_and(|e| e <= grid.rows());
+        if !inside {
+            return Err(OcclusionError::RectOutside {
+                rect,
+                cols: grid.cols(),
+                rows: grid.rows(),
+            });
+        }
+        if q.len() != rect.area() {
+            return Err(OcclusionError::Length {
+                what: "block transmittance",
+                got: q.len(),
+                expected: rect.area(),
+            });
+        }
+        Ok(Transmittance { grid, rect, q })
+    }
+
+    /// The value of block `(bx, by)`.
+    #[inline]
+    pub fn at(&self, bx: u32, by: u32) -> Level {
+        let r = &self.rect;
+        if bx < r.x || by < r.y || bx >= r.x + r.w || by >= r.y + r.h {
+            return CLEAR;
+        }
+        self.q[((by - r.y) * r.w + (bx - r.x)) as usize]
+    }
+}
+
+/// One bit per block of a grid.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct BlockMask {
+    /// The grid.
+    pub grid: BlockGrid,
+    /// Bit `i % 64` of word `i / 64` is block `i` (row-major).
+    pub bits: Vec<u64>,
+}
+
+impl BlockMask {
+    /// No block set.
+    pub fn empty(grid: BlockGrid) -> Self {
+        BlockMask {
+            grid,
+            bits: vec![0; grid.words()],
+        }
+    }
+
+    /// Checks a mask received from elsewhere: one word per 64 blocks, no bit past the grid.
+    pub fn checked(grid: BlockGrid, bits: Vec<u64>) -> Result<Self, OcclusionError> {
+        if bits.len() != grid.words() {
+            return Err(OcclusionError::Length {
+                what: "block mask words",
+                got: bits.len(),
+                expected: grid.words(),
+            });
+        }
+        let mut m = BlockMask { grid, bits };
+        m.clear_tail();
+        Ok(m)
+    }
+
+    fn clear_tail(&mut self) {
+        let n = self.grid.len();
+        if !n.is_multiple_of(64) {
+            if let Some(last) = self.bits.last_mut() {
+                *last &= (1u64 << (n % 64)) - 1;
+            }
+        }
+    }
+
+    /// Whether block `i` is set.
+    #[inline]
+    pub fn get(&self, i: usize) -> bool {
+        self.bits[i / 64] >> (i % 64) & 1 == 1
+    }
+
+    /// Sets block `i`.
+    #[inline]
+    pub fn set(&mut self, i: usize) {
+        self.bits[i / 64] |= 1 << (i % 64);
+    }
+
+    /// Whether the block holding pixel `(x, y)` is set.
+    #[inline]
+    pub fn pixel(&self, x: u32, y: u32) -> bool {
+        self.get(self.grid.block_of(x, y))
+    }
+
+    /// Whether every block touching the pixel rectangle `[x, x + w) × [y, y + h)` is set.
+    pub fn covers(&self, x: u32, y: u32, w: u32, h: u32) -> bool {
+        if w == 0 || h == 0 {
+            return true;
+        }
+        let b = self.grid.block;
+        let (bx0, by0) = (x / b, y / b);
+        let (bx1, by1) = ((x + w - 1) / b, (y + h - 1) / b);
+        let cols = self.grid.cols() as usize;
+        (by0..=by1).all(|by| (bx0..=bx1).all(|bx| self.get(by as usize * cols + bx as usize)))
+    }
+
+    /// Blocks set.
+    pub fn count(&self) -> u64 {
+        self.bits.iter().map(|w| w.count_ones() as u64).sum()
+    }
+
+    /// Whether any block is set.
+    pub fn any(&self) -> bool {
+        self.bits.iter().any(|&w| w != 0)
+    }
+
+    /// The blocks set here and not in `other` (same grid).
+    pub fn and_not(&self, other: &BlockMask) -> BlockMask {
+        assert_eq!(self.grid, other.grid);
+        BlockMask {
+            grid: self.grid,
+            bits: self
+                .bits
+                .iter()
+                .zip(&other.bits)
+                .map(|(a, b)| a & !b)
+                .collect(),
+        }
+    }
+
+    /// Every block not set here.
+    pub fn complement(&self) -> BlockMask {
+        let mut m = BlockMask {
+            grid: self.grid,
+            bits: self.bits.iter().map(|w| !w).collect(),
+        };
+        m.clear_tail();
+        m
+    }
+}
+
+/// The transmittance of everything in front of one position of the visibility order, per
+/// block of the whole grid: `ceil(CLEAR · T)` ([`CLEAR`]: nothing in front; 0: exactly
+/// opaque).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct FrontTransmittance {
+    /// The grid.
+    pub grid: BlockGrid,
+    /// Per block, row-major.
+    pub q: Vec<Level>,
+}
+
+impl FrontTransmittance {
+    /// Nothing in front.
+    pub fn clear(grid: BlockGrid) -> Self {
+        FrontTransmittance {
+            grid,
+            q: vec![CLEAR; grid.len()],
+        }
+    }
+
+    /// Checks a map received from elsewhere: one value per block of the grid.
+    pub fn checked(grid: BlockGrid, q: Vec<Level>) -> Result<Self, OcclusionError> {
+        if q.len() != grid.len() {
+            return Err(OcclusionError::Length {
+                what: "front transmittance",
+                got: q.len(),
+                expected: grid.len(),
+            });
+        }
+        Ok(FrontTransmittance { grid, q })
+    }
+
+    /// The termination threshold of a ray in `block` for the whole-ray threshold
+    /// `threshold`: `None` when the front lets at most `1 − threshold` through (the ray
+    /// need not be cast), else the largest own opacity the ray needs, `1 − (1 − t)/T`,
+    /// rounded down.
+    #[inline]
+    pub fn ray_threshold(&self, block: usize, threshold: f32) -> Option<f32> {
+        let q = self.q[block];
+        if q == CLEAR {
+            return Some(threshold);
+        }
+        let t = threshold.clamp(0.0, 1.0) as f64;
+        let front = q as f64 / SCALE;
+        if front <= 1.0 - t {
+            return None;
+        }
+        let own = 1.0 - (1.0 - t) / front;
+        let mut e = own as f32;
+        if e as f64 > own {
+            e = f32::from_bits(e.to_bits() - 1);
+        }
+        Some(e)
+    }
+
+    /// Blocks whose rays need not be cast at all for `threshold`.
+    pub fn hidden(&self, threshold: f32) -> BlockMask {
+        let mut m = BlockMask::empty(self.grid);
+        for i in 0..self.q.len() {
+            if self.ray_threshold(i, threshold).is_none() {
+                m.set(i);
+            }
+        }
+        m
+    }
+
+    /// The blocks of `image` (cast with this map's thresholds, a prediction) that must be
+    /// cast again with `actual`'s: where a pixel was left out that `actual` does not leave
+    /// out, or where a ray stopped at this map's threshold (its alpha reached it) short of
+    /// `actual`'s. A ray whose alpha stayed below its threshold ran to the end of its
+    /// region and is complete whatever lies in front.
+    pub fn stale(
+        &self,
+        actual: &FrontTransmittance,
+        image: &PartialImage,
+        threshold: f32,
+    ) -> BlockMask {
+        assert_eq!(self.grid, actual.grid);
+        assert_eq!(
+            (image.width, image.height),
+            (self.grid.width, self.grid.height)
+        );
+        let mut m = BlockMask::empty(self.grid);
+        for b in 0..self.q.len() {
+            if actual.q[b] <= self.q[b] {
+                // The front lets no more through than predicted: every threshold holds.
+                continue;
+            }
+            let Some(ea) = actual.ray_threshold(b, threshold) else {
+                continue;
+            };
+            let ep = self.ray_threshold(b, threshold);
+            let (x0, y0, x1, y1) = self.grid.pixels_of(b);
+            let redo = (y0..y1).any(|y| {
+                (x0..x1).any(|x| match ep {
+                    None => true,
+                    Some(ep) => {
+                        let a = image.get(x, y)[3];
+                        a >= ep && a < ea
+                    }
+                })
+            });
+            if redo {
+                m.set(b);
+            }
+        }
+        m
+    }
+
+    /// Whether some block has anything in front.
+    pub fn any(&self) -> bool {
+        self.q.iter().any(|&q| q < CLEAR)
+    }
+}
+
+/// For each position of the visibility order (`layers[0]` in front, all on one grid): the
+/// transmittance of the layers in front of it. A zero factor stays exactly zero; every
+/// other product is rounded up.
+pub fn front_of(layers: &[&Transmittance]) -> Vec<FrontTransmittance> {
+    let Some(first) = layers.first() else {
+        return Vec::new();
+    };
+    let grid = first.grid;
+    assert!(
+        layers.iter().all(|l| l.grid == grid),
+        "layers on different grids"
+    );
+    let cols = grid.cols();
+    let mut out = Vec::with_capacity(layers.len());
+    out.push(FrontTransmittance::clear(grid));
+    // The exact product (in f64) of the rounded-up factors so far, per block.
+    let mut front = vec![1.0f64; grid.len()];
+    for layer in &layers[..layers.len() - 1] {
+        let r = layer.rect;
+        for by in r.y..r.y + r.h {
+            for bx in r.x..r.x + r.w {
+                let i = (by * cols + bx) as usize;
+                let q = layer.at(bx, by);
+                // (A floor far below 1/255 keeps a positive product from underflowing to
+                // an exact zero.)
+                front[i] = if q == 0 || front[i] == 0.0 {
+                    0.0
+                } else {
+                    (front[i] * (q as f64 / SCALE)).max(1e-300)
+                };
+            }
+        }
+        out.push(FrontTransmittance {
+            grid,
+            // Up; only an exact zero maps to 0. (The 1e-6 keeps a product that is a whole
+            // number of levels but came out an ulp above it from rounding up a whole
+            // level; it can understate a transmittance by at most 2e-11.)
+            q: front
+                .iter()
+                .map(|&t| {
+                    if t == 0.0 {
+                        0
+                    } else {
+                        (t * SCALE - 1e-6).ceil().clamp(1.0, SCALE) as Level
+                    }
+                })
+                .collect(),
+        });
+    }
+    out
+}
+
+/// How a worker casts its rays under cross-worker occlusion: each ray's termination
+/// threshold from the front transmittance of its block, and optionally only the blocks set
+/// in `only` (a re-cast).
+#[derive(Clone, Copy, Debug)]
+pub struct RayLimits<'a> {
+    /// What lies in front, per block.
+    pub front: &'a FrontTransmittance,
+    /// Cast only these blocks (`None`: all).
+    pub only: Option<&'a BlockMask>,
+    /// The whole ray's threshold (`render.early_termination`).
+    pub threshold: f32,
+}
+
+impl RayLimits<'_> {
+    /// The termination threshold of the ray through pixel `(x, y)`, or `None` when it is
+    /// not cast.
+    #[inline]
+    pub fn ray(&self, x: u32, y: u32) -> Option<f32> {
+        let b = self.front.grid.block_of(x, y);
+        if self.only.is_some_and(|m| !m.get(b)) {
+            return None;
+        }
+        self.front.ray_threshold(b, self.threshold)
+    }
+
+    /// Whether no ray of the pixel rectangle `[x, x + w) × [y, y + h)` is cast.
+    pub fn none_in(&self, x: u32, y: u32, w: u32, h: u32) -> bool {
+        if w == 0 || h == 0 {
+            return true;
+        }
+        let cols = self.front.grid.cols() as usize;
+        let b = self.front.grid.block;
+        let (bx0, by0) = (x / b, y / b);
+        let (bx1, by1) = ((x + w - 1) / b, (y + h - 1) / b);
+        (by0..=by1).all(|by| {
+            (bx0..=bx1).all(|bx| {
+                let i = by as usize * cols + bx as usize;
+                self.only.is_some_and(|m| !m.get(i))
+                    || self.front.ray_threshold(i, self.threshold).is_none()
+            })
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::image::{composite_front_to_back, Rect, Rgba};
+    use proptest::prelude::*;
+
+    fn image(w: u32, h: u32, rect: Rect, alpha: impl Fn(u32, u32) -> f32) -> PartialImage {
+        let mut pixels = Vec::new();
+        for y in rect.y..rect.y + rect.h {
+            for x in rect.x..rect.x + rect.w {
+                let a = alpha(x, y);
+                pixels.push([a * 0.5, a * 0.25, a, a]);
+            }
+        }
+        PartialImage {
+            width: w,
+            height: h,
+            rect,
+            pixels,
+        }
+    }
+
+    #[test]
+    fn quantize_rounds_up_and_is_zero_only_when_opaque() {
+        assert_eq!(quantize(1.0), 0);
+        assert_eq!(quantize(0.0), CLEAR);
+        assert_eq!(quantize(1.0 - 1e-7), 1);
+        assert_eq!(quantize(0.5), 32768);
+        assert_eq!(quantize(f32::NAN), CLEAR);
+        for a in [0.0f32, 0.1, 0.33, 0.5, 0.9, 0.99, 0.999_99] {
+            assert!(quantize(a) as f64 / SCALE >= 1.0 - a as f64, "{a}");
+        }
+        let q = vec![0, 1, 258, CLEAR];
+        assert_eq!(levels_from_bytes(&levels_to_bytes(&q)).unwrap(), q);
+        assert!(levels_from_bytes(&[1, 2, 3]).is_err());
+    }
+
+    #[test]
+    fn blocks_partly_outside_the_image_rectangle_count_as_transmissive() {
+        // An opaque rectangle from (1, 1) to (8, 8) in a 10×10 image: only the block
+        // (1, 1) (pixels 4..8) is covered whole.
+        let img = image(
+            10,
+            10,
+            Rect {
+                x: 1,
+                y: 1,
+                w: 7,
+                h: 7,
+            },
+            |_, _| 1.0,
+        );
+        let t = Transmittance::of_image(&img, 4);
+        assert_eq!(
+            t.rect,
+            BlockRect {
+                x: 0,
+                y: 0,
+                w: 2,
+                h: 2
+            }
+        );
+        assert_eq!(t.at(1, 1), 0);
+        assert_eq!(t.at(0, 0), CLEAR);
+        assert_eq!(t.at(1, 0), CLEAR);
+        assert_eq!(t.at(2, 2), CLEAR);
+        // The image edge: a 10-pixel-wide image's last block is 2 pixels wide and is
+        // covered whole by a rectangle reaching the edge.
+        let img = image(
+            10,
+            10,
+            Rect {
+                x: 8,
+                y: 8,
+                w: 2,
+                h: 2,
+            },
+            |_, _| 1.0,
+        );
+        assert_eq!(Transmittance::of_image(&img, 4).at(2, 2), 0);
+    }
+
+    #[test]
+    fn thresholds_follow_the_front_and_stay_exact_at_one() {
+        let g = 8;
+        let full = Rect {
+            x: 0,
+            y: 0,
+            w: g,
+            h: g,
+        };
+        // Front: opaque left half, 0.999 right half.
+        let front = image(g, g, full, |x, _| if x < 4 { 1.0 } else { 0.999 });
+        let back = image(g, g, full, |_, _| 0.5);
+        let (tf, tb) = (
+            Transmittance::of_image(&front, 4),
+            Transmittance::of_image(&back, 4),
+        );
+        let f = front_of(&[&tf, &tb, &tb]);
+        assert!(!f[0].any(), "nothing lies in front of the first position");
+        // 1 − 0.999f32 = 0.00099998713 → 66 levels; times 32768/65535 = 33.0005 → 34.
+        assert_eq!(f[1].q, vec![0, 66, 0, 66]);
+        assert_eq!(f[2].q, vec![0, 34, 0, 34]);
+        // At t = 1 only the exactly opaque blocks are left out; the others keep t = 1.
+        assert_eq!(f[1].hidden(1.0).count(), 2);
+        assert_eq!(f[1].ray_threshold(1, 1.0), Some(1.0));
+        assert_eq!(f[1].ray_threshold(0, 1.0), None);
+        // At 0.99 the 0.999 half is hidden too.
+        assert_eq!(f[1].hidden(0.99).count(), 4);
+        // Two half-opaque layers pass 1/4, quantized up to (32768/65535)^2 → 16385 levels:
+        // the third position's rays need only 1 − 0.01 · 65535/16385 = 0.96000 of their own.
+        let f = front_of(&[&tb, &tb, &tb]);
+        assert_eq!(f[1].q[0], 32768);
+        assert_eq!(f[2].q[0], 16385);
+        let e = f[2].ray_threshold(0, 0.99).unwrap();
+        assert!(
+            (e - (1.0 - 0.01 * SCALE / 16385.0) as f32).abs() < 1e-6,
+            "{e}"
+        );
+        assert!(((1.0 - e as f64) * 16385.0 / SCALE) <= 0.01 + 1e-12);
+        // A prediction that promised less light than there is goes stale where a ray was
+        // left out or stopped short of the actual threshold; a ray that ran out of its
+        // region below its threshold is complete.
+        let img = |a: f32| image(g, g, full, move |x, y| if x < 4 && y < 4 { a } else { 0.3 });
+        let actual = &f[0]; // nothing in front after all
+        let hidden = FrontTransmittance {
+            grid: f[2].grid,
+            q: vec![600; 4],
+        };
+        assert_eq!(hidden.stale(actual, &img(0.0), 0.99).count(), 4, "left out");
+        assert_eq!(
+            f[1].stale(actual, &img(0.97), 0.99).count(),
+            0,
+            "below 0.980: ran out"
+        );
+        let pred = FrontTransmittance {
+            grid: f[2].grid,
+            q: vec![16385, CLEAR, CLEAR, CLEAR],
+        };
+        let e = pred.ray_threshold(0, 0.99).unwrap();
+        assert_eq!(
+            pred.stale(actual, &img(e), 0.99).count(),
+            1,
+            "stopped at its threshold"
+        );
+        assert_eq!(
+            pred.stale(actual, &img(0.995), 0.99).count(),
+            0,
+            "past both"
+        );
+        assert_eq!(
+            pred.stale(actual, &img(e * 0.99), 0.99).count(),
+            0,
+            "ran out"
+        );
+        assert!(
+            !f[0].stale(&f[1], &img(0.0), 0.99).any(),
+            "less light than predicted"
+        );
+    }
+
+    #[test]
+    fn received_maps_and_masks_are_checked() {
+        let grid = BlockGrid::new(10, 7, 4); // 3 × 2 blocks
+        let r = BlockRect {
+            x: 1,
+            y: 0,
+            w: 2,
+            h: 2,
+        };
+        assert!(Transmittance::checked(grid, r, vec![0; 4]).is_ok());
+        assert!(matches!(
+            Transmittance::checked(grid, r, vec![0; 3]),
+            Err(OcclusionError::Length { .. })
+        ));
+        let past = BlockRect { x: 2, ..r };
+        assert!(matches!(
+            Transmittance::checked(grid, past, vec![0; 4]),
+            Err(OcclusionError::RectOutside { .. })
+        ));
+        let huge = BlockRect { x: u32::MAX, ..r };
+        assert!(Transmittance::checked(grid, huge, vec![0; 4]).is_err());
+        assert!(BlockMask::checked(grid, vec![]).is_err());
+        let m = BlockMask::checked(grid, vec![u64::MAX]).unwrap();
+        assert_eq!(m.count(), 6, "bits past the grid are dropped");
+        assert_eq!(m.complement().count(), 0);
+        assert!(m.covers(0, 0, 10, 7));
+    }
+
+    fn layer_strategy(g: u32) -> impl Strategy<Value = Vec<(Rect, Vec<f32>)>> {
+        let one = (0..g, 0..g, 1..=g, 1..=g).prop_flat_map(move |(x, y, w, h)| {
+            let (w, h) = (w.min(g - x), h.min(g - y));
+            let n = (w * h) as usize;
+            let alpha = prop_oneof![Just(0.0f32), Just(1.0f32), 0.0f32..=1.0];
+            (
+                Just(Rect { x, y, w, h }),
+                proptest::collection::vec(alpha, n),
+            )
+        });
+        proptest::collection::vec(one, 1..6)
+    }
+
+    proptest! {
+        /// Whatever the layers: a ray left uncast lies behind at most `1 − t` of light in
+        /// every pixel of its block, and a ray stopped at its threshold `e` leaves at most
+        /// `1 − t` passing through the front and its own part, so no pixel moves by more
+        /// than early termination allows.
+        #[test]
+        fn every_limited_ray_stops_within_the_termination_bound(
+            layers in layer_strategy(13),
+            t in prop_oneof![Just(1.0f32), 0.5f32..1.0],
+            block in 1u32..6,
+        ) {
+            let g = 13;
+            let imgs: Vec<PartialImage> = layers
+                .iter()
+                .map(|(rect, alphas)| PartialImage {
+                    width: g,
+                    height: g,
+                    rect: *rect,
+                    pixels: alphas.iter().map(|&a| [a, a, a, a] as Rgba).collect(),
+                })
+                .collect();
+            let maps: Vec<Transmittance> =
+                imgs.iter().map(|i| Transmittance::of_image(i, block)).collect();
+            let refs: Vec<&Transmittance> = maps.iter().collect();
+            let fronts = front_of(&refs);
+            for pos in 1..imgs.len() {
+                let front: Vec<&PartialImage> = imgs[..pos].iter().collect();
+                let acc = composite_front_to_back(g, g, &front);
+                let limits = RayLimits { front: &fronts[pos], only: None, threshold: t };
+                for y in 0..g {
+                    for x in 0..g {
+                        let through = 1.0 - acc[(y * g + x) as usize][3] as f64;
+                        let own = match limits.ray(x, y) {
+                            None => 0.0,
+                            Some(e) => {
+                                prop_assert!(e <= t);
+                                e as f64
+                            }
+                        };
+                        prop_assert!(
+                            through * (1.0 - own) <= (1.0 - t as f64) + 1e-6,
+                            "pos {pos} ({x}, {y}): {through} passes the front, own {own}, t = {t}"
+                        );
+                        if t == 1.0 {
+                            prop_assert!(limits.ray(x, y).is_none_or(|e| e == 1.0));
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
