@@ -1,19 +1,23 @@
 #!/usr/bin/env bash
 # Strong scaling of a camera orbit over one scene: p = 1, 2, 4, 8 worker processes with a
 # fixed number of rayon threads each (`cluster.worker_threads`, default 2), so p workers on
-# one machine stand in for p nodes. Every p renders the same orbit on one cluster; frame 0
-# loads the data, the later frames run with it resident and are the ones compared.
+# one machine stand in for p nodes. Every p renders the first FRAMES frames of an
+# ORBIT-frame orbit on one cluster, with cross-worker occlusion on and off (MODES), one after
+# the other in the same run; frame 0 loads the data, the later frames run with it resident
+# and are the ones compared.
 #
-# Reports per p: median frame time over frames 1.., speed-up and efficiency against p = 1,
-# samples per frame and their inflation over p = 1 (early termination is per region), the
-# imbalance (slowest / mean worker render time) and bytes moved per frame (exchange +
-# gather) and the peak RSS of the largest process (GNU time: the coordinator or a worker).
-# Writes the table to stdout and the raw stats under $OUT (default
-# target/strong-scaling).
+# Reports per p and mode: median frame time over frames 1.., speed-up and efficiency against
+# the first p of the same mode, samples per frame and their inflation over the first p of
+# the first mode (early termination is per region unless occlusion tells a worker what lies
+# in front), blocks left out and re-cast by occlusion, the imbalance (slowest / mean worker
+# render time), bytes moved per frame (exchange + gather) and the peak RSS of the largest
+# process (GNU time: the coordinator or a worker). Writes the table to stdout and the raw
+# stats under $OUT (default target/strong-scaling).
 #
 #   bench/strong-scaling.sh [SCENE] [extra coordinator render flags...]
 #
-# Environment: PS ("1 2 4 8"), FRAMES (4), SIZE (1280x720), THREADS (2).
+# Environment: PS ("1 2 4 8"), FRAMES (4), ORBIT (120), SIZE (1280x720), THREADS (2),
+# MODES ("on off").
 # On a GPU-less node without a Rust toolchain: build here, carry target/release/coordinator
 # and set COORDINATOR to it.
 set -euo pipefail
@@ -22,6 +26,8 @@ SCENE="${1:-configs/demo.toml}"
 shift || true
 PS="${PS:-1 2 4 8}"
 FRAMES="${FRAMES:-4}"
+ORBIT="${ORBIT:-120}"
+MODES="${MODES:-on off}"
 SIZE="${SIZE:-1280x720}"
 THREADS="${THREADS:-2}"
 OUT="${OUT:-target/strong-scaling}"
@@ -31,41 +37,52 @@ if [ -z "$COORDINATOR" ]; then
   COORDINATOR=./target/release/coordinator
 fi
 mkdir -p "$OUT"
-for p in $PS; do
-  rm -f "$OUT"/p"$p"_*.png
-  /usr/bin/time -v -o "$OUT/p$p.time" "$COORDINATOR" -q render "$SCENE" \
-    -o "$OUT/p${p}_%03d.png" --orbit "$FRAMES" --workers "$p" --size "$SIZE" \
-    --set "cluster.worker_threads=$THREADS" --stats "$OUT/p$p.jsonl" "$@"
+for mode in $MODES; do
+  occ=true
+  [ "$mode" = off ] && occ=false
+  for p in $PS; do
+    rm -f "$OUT"/"$mode"_p"$p"_*.png
+    /usr/bin/time -v -o "$OUT/${mode}_p$p.time" "$COORDINATOR" -q render "$SCENE" \
+      -o "$OUT/${mode}_p${p}_%03d.png" --orbit "$ORBIT" --frames "0..$FRAMES" --workers "$p" \
+      --size "$SIZE" --set "cluster.worker_threads=$THREADS" --set "cluster.occlusion=$occ" \
+      --stats "$OUT/${mode}_p$p.jsonl" "$@"
+  done
 done
-python3 - "$OUT" $PS <<'EOF'
+python3 - "$OUT" "$MODES" $PS <<'EOF'
 import json, statistics, sys, re
-out, ps = sys.argv[1], [int(p) for p in sys.argv[2:]]
-rows = {}
-for p in ps:
-    lines = [json.loads(l) for l in open(f"{out}/p{p}.jsonl")]
-    frames = [l for l in lines if l["kind"] == "frame"]
-    workers = [l for l in lines if l["kind"] == "worker"]
-    warm = [f for f in frames if f["frame"] > 0] or frames
-    t = statistics.median(f["seconds"] for f in warm)
-    samples = statistics.median(f["samples"] for f in warm)
-    imb = []
-    moved = []
-    for f in warm:
-        ws = [w for w in workers if w["frame"] == f["frame"]]
-        r = [w["render_s"] for w in ws]
-        imb.append(max(r) / (sum(r) / len(r)))
-        moved.append(sum(w["bytes_sent"] + w["gather_bytes"] for w in ws))
-    rss = 0
-    for l in open(f"{out}/p{p}.time"):
-        m = re.search(r"Maximum resident set size \(kbytes\): (\d+)", l)
-        if m:
-            rss = int(m.group(1)) / 1024
-    rows[p] = (t, samples, statistics.median(imb), statistics.median(moved), rss)
-base = rows[ps[0]]
-print("| p | frame time (frames 1..) | speed-up | efficiency | samples/frame | inflation | imbalance (max/mean render) | MB moved/frame | largest process peak RSS MiB |")
-print("|---|---|---|---|---|---|---|---|---|")
-for p in ps:
-    t, s, imb, mv, rss = rows[p]
-    sp = base[0] / t * ps[0]
-    print(f"| {p} | {t*1e3:.0f} ms | {sp:.2f} | {sp/p*100:.0f} % | {s/1e6:.1f} M | {(s/base[1]-1)*100:+.1f} % | {imb:.2f} | {mv/1e6:.1f} | {rss:.0f} |")
+out, modes, ps = sys.argv[1], sys.argv[2].split(), [int(p) for p in sys.argv[3:]]
+print("| occlusion | p | frame time (frames 1..) | speed-up | efficiency | samples/frame | inflation | blocks left out / re-cast | imbalance (max/mean render) | MB moved/frame | largest process peak RSS MiB |")
+print("|---|---|---|---|---|---|---|---|---|---|---|")
+base_samples = None
+for mode in modes:
+    rows = {}
+    for p in ps:
+        lines = [json.loads(l) for l in open(f"{out}/{mode}_p{p}.jsonl")]
+        frames = [l for l in lines if l["kind"] == "frame"]
+        workers = [l for l in lines if l["kind"] == "worker"]
+        warm = [f for f in frames if f["frame"] > 0] or frames
+        t = statistics.median(f["seconds"] for f in warm)
+        samples = statistics.median(f["samples"] for f in warm)
+        occ = statistics.median(f.get("occluded_blocks", 0) for f in warm)
+        fix = statistics.median(f.get("fixup_blocks", 0) for f in warm)
+        imb = []
+        moved = []
+        for f in warm:
+            ws = [w for w in workers if w["frame"] == f["frame"]]
+            r = [w["render_s"] for w in ws]
+            imb.append(max(r) / (sum(r) / len(r)) if r else 1.0)
+            moved.append(sum(w["bytes_sent"] + w["gather_bytes"] for w in ws))
+        rss = 0
+        for l in open(f"{out}/{mode}_p{p}.time"):
+            m = re.search(r"Maximum resident set size \(kbytes\): (\d+)", l)
+            if m:
+                rss = int(m.group(1)) / 1024
+        rows[p] = (t, samples, occ, fix, statistics.median(imb), statistics.median(moved), rss)
+    base = rows[ps[0]]
+    if base_samples is None:
+        base_samples = base[1]
+    for p in ps:
+        t, s, occ, fix, imb, mv, rss = rows[p]
+        sp = base[0] / t * ps[0]
+        print(f"| {mode} | {p} | {t*1e3:.0f} ms | {sp:.2f} | {sp/p*100:.0f} % | {s/1e6:.1f} M | {(s/base_samples-1)*100:+.1f} % | {occ:.0f} / {fix:.0f} | {imb:.2f} | {mv/1e6:.1f} | {rss:.0f} |")
 EOF

@@ -137,8 +137,10 @@ pub struct FrameParams {
     pub fb_entries: u32,
     /// Horizons in use.
     pub n_hors: u32,
-    /// Padding.
-    pub _pad: u32,
+    /// Cross-worker occlusion: side in pixels of the blocks of the per-block ray
+    /// thresholds buffer (`strata_common::occlusion::RayLimits`, one `f32` per block, < 0:
+    /// not cast); 0: every ray of the rectangle with `ert`.
+    pub occl_block: u32,
 }
 
 /// One volume of a frame: its camera-relative → index transform, brick layout, LOD
@@ -438,6 +440,7 @@ pub fn frame_params_offsets() -> Vec<(&'static str, usize)> {
         ("flags", offset_of!(FrameParams, flags)),
         ("fb_entries", offset_of!(FrameParams, fb_entries)),
         ("n_hors", offset_of!(FrameParams, n_hors)),
+        ("occl_block", offset_of!(FrameParams, occl_block)),
     ]
 }
 

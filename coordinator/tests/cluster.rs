@@ -1388,4 +1388,45 @@ fn cross_worker_occlusion_casts_less_and_stays_within_the_termination_bound() {
         );
     }
     assert!(on1_n[1..].iter().all(|f| f.1 > 0), "{on1_n:?}");
+    // GPU workers take the same limits (lavapipe in CI; skipped without an adapter).
+    if strata_worker::gpu::list_adapters().is_empty() {
+        eprintln!("NOTICE: GPU workers under occlusion skipped, no wgpu adapter");
+        return;
+    }
+    let (gpu, gpu_n) = go(
+        "gpu",
+        &[&ert[..], &["--workers", "3", "--set", "render.backend=gpu"]].concat(),
+    );
+    for i in 0..4 {
+        let d = max_diff(&gpu[i], &inp[i]);
+        assert!(
+            d <= 0.01 + 1e-4,
+            "frame {i}: GPU workers under occlusion differ by {d}"
+        );
+    }
+    let (_, gpu_off_n) = go(
+        "gpu-off",
+        &[
+            &ert[..],
+            &[
+                "--workers",
+                "3",
+                "--set",
+                "render.backend=gpu",
+                "--set",
+                "cluster.occlusion=false",
+            ],
+        ]
+        .concat(),
+    );
+    for i in 1..4 {
+        assert!(
+            gpu_n[i].1 > 0,
+            "frame {i}: no block left out on the GPU: {gpu_n:?}"
+        );
+        assert!(
+            gpu_n[i].0 < gpu_off_n[i].0,
+            "frame {i}: {gpu_n:?} against {gpu_off_n:?}"
+        );
+    }
 }

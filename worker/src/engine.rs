@@ -686,9 +686,9 @@ impl Engine {
     }
 
     /// Whether this engine's caster takes per-ray limits ([`Engine::render_batch_limited`]):
-    /// the CPU caster does, the GPU caster not yet.
+    /// both casters do.
     pub fn supports_ray_limits(&self) -> bool {
-        self.gpu.is_none()
+        true
     }
 
     /// [`Engine::render_frame`] under cross-worker occlusion: each ray with the termination
@@ -701,12 +701,11 @@ impl Engine {
         limits: Option<RayLimits<'_>>,
     ) -> Result<Frame> {
         let t = Instant::now();
-        if limits.is_some() && !self.supports_ray_limits() {
-            bail!("the GPU caster takes no per-ray limits (cross-worker occlusion)");
-        }
         if self.gpu.is_some() {
             let mut gpu = self.gpu.take().expect("checked");
-            let res = gpu.render(&self.setup(view, region));
+            let mut setup = self.setup(view, region);
+            setup.limits = limits;
+            let res = gpu.render(&setup);
             self.gpu = Some(gpu);
             let (image, feedback, stats, g) = res?;
             return Ok(Frame {

@@ -260,8 +260,19 @@ impl GpuBackend {
             flags: 0,
             fb_entries: self.entries,
             n_hors: setup.hors.len() as u32,
-            _pad: 0,
+            occl_block: setup.limits.map_or(0, |l| l.front.grid.block),
         };
+        // Per block: the ray threshold the CPU caster would use, < 0 for rays not cast.
+        let occl: Option<Vec<f32>> = setup.limits.map(|l| {
+            (0..l.front.grid.len())
+                .map(|b| {
+                    if l.only.is_some_and(|m| !m.get(b)) {
+                        return -1.0;
+                    }
+                    l.front.ray_threshold(b, l.threshold).unwrap_or(-1.0)
+                })
+                .collect()
+        });
         let mut vols = Vec::with_capacity(setup.vols.len());
         let mut levels = Vec::new();
         let mut tf = Vec::with_capacity(setup.vols.len() * nb * TF_SIZE);
@@ -407,7 +418,7 @@ impl GpuBackend {
         stats.uploaded_bytes = self.caster.take_uploaded();
         let out = self
             .caster
-            .cast(&frame, &vols, &hors, setup.volume_shading)?;
+            .cast(&frame, &vols, &hors, setup.volume_shading, occl.as_deref())?;
         stats.readback_bytes = out.readback_bytes;
         stats.feedback_bytes = out.feedback_bytes;
         let mut feedback = Feedback::default();

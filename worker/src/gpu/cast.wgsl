@@ -65,7 +65,8 @@ struct Frame {
     flags: u32,
     fb_entries: u32,
     n_hors: u32,
-    _pad0: u32,
+    // Cross-worker occlusion: block side of `occl` (0: no per-ray limits).
+    occl_block: u32,
 }
 
 struct Volume {
@@ -156,6 +157,9 @@ struct Cursor {
 // biased by 2^(POOL_BITS−1), f32 texels the values themselves.
 @group(0) @binding(15) var pool_tex: texture_3d<f32>;
 @group(0) @binding(16) var pool_samp: sampler;
+// Cross-worker occlusion (occlusion.rs `RayLimits`): per screen block of `F.occl_block`
+// pixels, the termination threshold of its rays, or < 0 where they are not cast.
+@group(0) @binding(17) var<storage, read> occl: array<f32>;
 
 // A ray's surface crossings, nearest first.
 var<private> n_hits: u32;
@@ -495,6 +499,8 @@ struct Ray {
     skipped: u32,
     terminated: u32,
     hits: u32,
+    // This ray's termination threshold (the frame's, or lower under occlusion).
+    ert: f32,
 }
 
 fn blend(acc: vec4<f32>, s: vec4<f32>) -> vec4<f32> {
@@ -543,7 +549,7 @@ fn march_one(vi: u32, cur: ptr<function, Cursor>, md: vec3<f32>, d: vec3<f32>, t
                 rgba = shade(vi, cur, q, d, rgba);
             }
             (*ray).acc = blend((*ray).acc, rgba);
-            if ((*ray).acc.w >= F.ert) {
+            if ((*ray).acc.w >= (*ray).ert) {
                 (*ray).done = true;
                 (*ray).terminated = 1u;
                 return;
@@ -605,7 +611,7 @@ fn march_mixed(active_set: u32, curs: ptr<function, array<Cursor, 4>>, mds: ptr<
             let a = 1.0 - transmit;
             let w = a / alpha_sum;
             (*ray).acc = blend((*ray).acc, vec4<f32>(sum * w, a));
-            if ((*ray).acc.w >= F.ert) {
+            if ((*ray).acc.w >= (*ray).ert) {
                 (*ray).done = true;
                 (*ray).terminated = 1u;
                 return;
@@ -1146,9 +1152,17 @@ fn cast_rays(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
         atomicStore(&wg_hits, 0u);
     }
     workgroupBarrier();
-    var ray = Ray(vec4<f32>(0.0), false, 0u, 0u, 0u, 0u);
+    var ray = Ray(vec4<f32>(0.0), false, 0u, 0u, 0u, 0u, F.ert);
     let inside = gid.x < F.rect_w && gid.y < F.rect_h;
-    if (inside) {
+    var casts = inside;
+    if (inside && F.occl_block > 0u) {
+        let x = F.rect_x + gid.x;
+        let y = F.rect_y + gid.y;
+        let cols = (F.width + F.occl_block - 1u) / F.occl_block;
+        ray.ert = occl[(y / F.occl_block) * cols + x / F.occl_block];
+        casts = ray.ert >= 0.0;
+    }
+    if (casts) {
         let x = F.rect_x + gid.x;
         let y = F.rect_y + gid.y;
         let fx = f32(x) + 0.5;
@@ -1219,7 +1233,7 @@ fn cast_rays(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
                     ray.acc = blend(ray.acc, hit_c[next]);
                     ray.hits = ray.hits + 1u;
                     next = next + 1u;
-                    if (ray.acc.w >= F.ert) {
+                    if (ray.acc.w >= ray.ert) {
                         ray.done = true;
                         ray.terminated = 1u;
                         break;
@@ -1230,12 +1244,15 @@ fn cast_rays(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
                 break;
             }
         }
-        out_px[gid.y * F.rect_w + gid.x] = sanitize(ray.acc);
         atomicAdd(&wg_samples, ray.samples);
         atomicAdd(&wg_skipped, ray.skipped);
         atomicAdd(&wg_terminated, ray.terminated);
         atomicAdd(&wg_rays, 1u);
         atomicAdd(&wg_hits, ray.hits);
+    }
+    // A ray not cast leaves its pixel transparent.
+    if (inside) {
+        out_px[gid.y * F.rect_w + gid.x] = sanitize(ray.acc);
     }
     workgroupBarrier();
     if (lid == 0u) {

@@ -134,6 +134,8 @@ pub struct GpuCaster {
     vols: wgpu::Buffer,
     hors: wgpu::Buffer,
     hbounds: Grow,
+    /// Cross-worker occlusion: per-block ray thresholds (binding 17).
+    occl: Grow,
     hpool: Grow,
     levels: Grow,
     table: Grow,
@@ -408,6 +410,7 @@ impl GpuCaster {
             vols,
             hors,
             hbounds: Grow::new("horizon tile bounds", STORAGE_DST),
+            occl: Grow::new("occlusion ray thresholds", STORAGE_DST),
             hpool: Grow::new("horizon pool", STORAGE_DST),
             levels: Grow::new("levels", STORAGE_DST),
             table: Grow::new("page table", STORAGE_DST),
@@ -761,6 +764,7 @@ impl GpuCaster {
         vols: &[VolumeParams],
         hors: &[HorizonParams],
         shading: bool,
+        occl: Option<&[f32]>,
     ) -> Result<GpuCast> {
         if vols.len() > MAX_VOLUMES || hors.len() > MAX_HORIZONS || vols.len() + hors.len() == 0 {
             bail!(
@@ -779,8 +783,23 @@ impl GpuCaster {
             bail!("GPU caster: the pools must be allocated before a frame");
         }
         // Every binding needs a buffer, used or not.
-        for g in [&mut self.pool, &mut self.hpool, &mut self.hbounds] {
+        for g in [
+            &mut self.pool,
+            &mut self.hpool,
+            &mut self.hbounds,
+            &mut self.occl,
+        ] {
             g.ensure(&self.device, 16);
+        }
+        if let Some(o) = occl {
+            if frame.occl_block == 0 {
+                bail!("GPU caster: per-ray limits without a block size");
+            }
+            self.occl
+                .ensure(&self.device, std::mem::size_of_val(o) as u64);
+            self.queue
+                .write_buffer(self.occl.get(), 0, bytemuck::cast_slice(o));
+            self.uploaded += std::mem::size_of_val(o) as u64;
         }
         let px = frame.rect_w as u64 * frame.rect_h as u64;
         let slices = vols.iter().any(|v| v.n_slices > 0);
@@ -824,6 +843,7 @@ impl GpuCaster {
                     entry(9, &self.stats),
                     entry(12, &self.hors),
                     entry(13, self.hbounds.get()),
+                    entry(17, self.occl.get()),
                     entry(14, self.hpool.get()),
                     wgpu::BindGroupEntry {
                         binding: 15,

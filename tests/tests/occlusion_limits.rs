@@ -1,0 +1,178 @@
+//! Cross-worker occlusion's per-ray limits (`strata_common::occlusion::RayLimits`) in both
+//! casters: each ray is cast with the termination threshold of its screen block, or not at
+//! all. The SIMD packets must agree with the scalar march bit for bit, the GPU with the CPU
+//! within 1e-4, a re-cast of some blocks must give exactly those blocks' pixels, and what a
+//! limit leaves out must stay within `1 − t` once the front is composited over it.
+
+use strata_common::image::Rgba;
+use strata_common::occlusion::{BlockGrid, BlockMask, FrontTransmittance, RayLimits, CLEAR};
+use strata_common::scene::{Backend, Scene};
+use strata_tests::scenes::*;
+use strata_worker::engine::{Engine, Outcome};
+use tempfile::TempDir;
+
+const T: f32 = 0.99;
+
+/// The synthetic survey (volume and horizons), dense enough that rays terminate.
+fn survey(dir: &std::path::Path) -> Scene {
+    let out = strata_coordinator::synth::synth(
+        dir,
+        [72, 56, 48],
+        5,
+        false,
+        &indicatif::ProgressBar::hidden(),
+    )
+    .unwrap();
+    let mut s = Scene::parse(&out.scene, &std::fs::read_to_string(&out.scene).unwrap()).unwrap();
+    s.render.width = 96;
+    s.render.height = 64;
+    s.render.early_termination = T as f64;
+    s.volumes[0].opacity = 1.0;
+    s
+}
+
+/// A front map with every kind of block: exactly opaque, hidden at `T`, limited a lot and a
+/// little, and clear.
+fn front(grid: BlockGrid) -> FrontTransmittance {
+    let q = (0..grid.len())
+        .map(|b| match (b * 7 + b / grid.cols() as usize) % 6 {
+            0 => 0,
+            1 => 300,
+            2 => 3000,
+            3 => 20000,
+            _ => CLEAR,
+        })
+        .collect();
+    FrontTransmittance::checked(grid, q).unwrap()
+}
+
+struct Render {
+    px: Vec<Rgba>,
+    samples: u64,
+    rays: u64,
+}
+
+fn render(s: &Scene, backend: Backend, simd: bool, limits: Option<RayLimits<'_>>) -> Render {
+    let mut s = on_backend(s, backend);
+    s.render.simd = simd;
+    let mut e = Engine::new(&s).unwrap();
+    let view = e.view(s.render.width, s.render.height).unwrap();
+    let region = e.scene_region();
+    let r = e.render_batch_limited(&view, &region, limits).unwrap();
+    assert_eq!(r.outcome, Outcome::Converged, "{:?}", r.reports);
+    Render {
+        px: r.image.to_full(),
+        samples: r.last.samples,
+        rays: r.last.rays,
+    }
+}
+
+#[test]
+fn rays_stop_at_their_block_limits_on_both_casters() {
+    let dir = TempDir::new().unwrap();
+    let s = survey(dir.path());
+    let (w, h) = (s.render.width, s.render.height);
+    let grid = BlockGrid::new(w, h, 3);
+    let f = front(grid);
+    let limits = RayLimits {
+        front: &f,
+        only: None,
+        threshold: T,
+    };
+    let full = render(&s, Backend::Cpu, true, None);
+    let lim = render(&s, Backend::Cpu, true, Some(limits));
+    let scalar = render(&s, Backend::Cpu, false, Some(limits));
+    assert!(
+        bit_identical(&lim.px, &scalar.px),
+        "packets and the scalar march differ under limits by {}",
+        max_diff(&lim.px, &scalar.px)
+    );
+    assert_eq!(lim.samples, scalar.samples);
+    assert!(
+        lim.samples < full.samples * 3 / 4,
+        "limits cast {} samples, the full frame {}",
+        lim.samples,
+        full.samples
+    );
+    assert!(
+        lim.rays < full.rays,
+        "rays behind opaque blocks are not cast"
+    );
+    // What a limit leaves out, seen through the front, is at most 1 − t per channel; rays
+    // not cast are transparent.
+    let mut limited = 0;
+    for y in 0..h {
+        for x in 0..w {
+            let i = (y * w + x) as usize;
+            let b = grid.block_of(x, y);
+            let through = f.q[b] as f32 / CLEAR as f32;
+            match f.ray_threshold(b, T) {
+                None => assert_eq!(lim.px[i], [0.0; 4], "({x}, {y}) is not cast"),
+                Some(e) if e < T => limited += (lim.px[i] != full.px[i]) as u32,
+                Some(_) => assert_eq!(lim.px[i], full.px[i], "({x}, {y}) has no limit"),
+            }
+            for c in 0..4 {
+                let lost = through * (full.px[i][c] - lim.px[i][c]);
+                assert!(
+                    (-1e-6..=1.0 - T + 1e-5).contains(&lost),
+                    "({x}, {y}) channel {c}: {lost} lost behind a front passing {through}"
+                );
+            }
+        }
+    }
+    assert!(
+        limited > 0,
+        "no limited ray stopped early: the scene tests nothing"
+    );
+
+    // A re-cast of some blocks gives exactly their pixels and leaves the rest transparent.
+    let mut only = BlockMask::empty(grid);
+    for b in (0..grid.len()).step_by(5) {
+        only.set(b);
+    }
+    let again = render(
+        &s,
+        Backend::Cpu,
+        true,
+        Some(RayLimits {
+            only: Some(&only),
+            ..limits
+        }),
+    );
+    for y in 0..h {
+        for x in 0..w {
+            let i = (y * w + x) as usize;
+            let want = if only.pixel(x, y) {
+                lim.px[i]
+            } else {
+                [0.0; 4]
+            };
+            assert_eq!(again.px[i], want, "({x}, {y}) of the re-cast");
+        }
+    }
+
+    if gpu_available() {
+        let gpu = render(&s, Backend::Gpu, true, Some(limits));
+        assert_clean(&gpu.px);
+        let d = max_diff(&gpu.px, &lim.px);
+        assert!(d <= 1e-4, "GPU differs from CPU under limits by {d}");
+        assert_eq!(gpu.rays, lim.rays, "the GPU leaves out the same rays");
+        for (i, p) in gpu.px.iter().enumerate() {
+            let (x, y) = (i as u32 % w, i as u32 / w);
+            if f.ray_threshold(grid.block_of(x, y), T).is_none() {
+                assert_eq!(*p, [0.0; 4], "GPU ({x}, {y}) is not cast");
+            }
+        }
+        let gpu_again = render(
+            &s,
+            Backend::Gpu,
+            true,
+            Some(RayLimits {
+                only: Some(&only),
+                ..limits
+            }),
+        );
+        let d = max_diff(&gpu_again.px, &again.px);
+        assert!(d <= 1e-4, "GPU re-cast differs from CPU by {d}");
+    }
+}
