@@ -42,7 +42,8 @@ struct Cli {
     #[arg(long, default_value_t = 10)]
     frames: usize,
     /// Transports to compare (`cluster.transport`): `shm` (shared memory between the
-    /// local processes) and `quic` (loopback QUIC).
+    /// local processes), `quic` (loopback QUIC) and `quic-lz4` (loopback QUIC with
+    /// `composite.lz4`).
     #[arg(long, value_delimiter = ',', default_values_t = ["shm".to_string(), "quic".to_string()])]
     transports: Vec<String>,
     /// Fraction of the frame each rank's box covers in the sparse case.
@@ -171,19 +172,22 @@ fn main() -> Result<()> {
     let rate = rt.block_on(loopback_rate(&net))?;
     println!("loopback QUIC, one stream, 256 MiB: {rate:.0} MiB/s");
     let mut rows = Vec::new();
-    let transports: Vec<Transport> = cli
+    // (transport, LZ4 on QUIC pieces, name in the tables)
+    let transports: Vec<(Transport, bool, String)> = cli
         .transports
         .iter()
         .map(|t| match t.as_str() {
-            "shm" => Ok(Transport::Shm),
-            "quic" => Ok(Transport::Quic),
-            "auto" => Ok(Transport::Auto),
-            other => anyhow::bail!("--transports: {other:?} is not shm, quic or auto"),
+            "shm" => Ok((Transport::Shm, false, t.clone())),
+            "quic" => Ok((Transport::Quic, false, t.clone())),
+            "quic-lz4" => Ok((Transport::Quic, true, t.clone())),
+            "auto" => Ok((Transport::Auto, false, t.clone())),
+            other => {
+                anyhow::bail!("--transports: {other:?} is not shm, quic, quic-lz4 or auto")
+            }
         })
         .collect::<Result<_>>()?;
     for &p in &cli.procs {
-        for &transport in &transports {
-            let tname = format!("{transport:?}").to_lowercase();
+        for (transport, lz4, tname) in transports.iter().cloned() {
             let mut opts = ClusterOptions::from_scene(&scene, Some(p))?;
             opts.worker_threads = 1;
             opts.transport = transport;
@@ -201,6 +205,7 @@ fn main() -> Result<()> {
                             k: vec![8],
                             interlace,
                             format: wire,
+                            lz4,
                         };
                         let mut comp = Vec::new();
                         let mut exch = Vec::new();

@@ -52,6 +52,10 @@ pub struct CompositeSettings {
     /// Pixel precision on the wire: `f32` (exact, default) or `f16` (half the bytes).
     #[serde(default)]
     pub wire: crate::composite::WireFormat,
+    /// Compress the pieces that travel over QUIC with LZ4 (byte-shuffled pixel data);
+    /// shared memory never compresses. For links slower than LZ4 itself.
+    #[serde(default)]
+    pub lz4: bool,
 }
 
 impl Default for CompositeSettings {
@@ -61,6 +65,7 @@ impl Default for CompositeSettings {
             k: KSetting::default(),
             interlace: true,
             wire: Default::default(),
+            lz4: false,
         }
     }
 }

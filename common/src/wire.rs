@@ -204,6 +204,8 @@ pub struct CompositeChoice {
     pub interlace: bool,
     /// Pixel precision on the wire.
     pub format: WireFormat,
+    /// LZ4 on the pieces that travel over QUIC (`composite.lz4`).
+    pub lz4: bool,
 }
 
 /// Worker → coordinator.
@@ -242,6 +244,8 @@ pub enum WorkerMsg {
         stats: WorkerFrameStats,
         /// Where the final piece lies in the segment (`None`: it follows as bulk).
         shm: Option<ShmRef>,
+        /// The bulk piece is LZ4-compressed ([`crate::composite::SparsePiece::write_lz4`]).
+        lz4: bool,
     },
     /// Cross-worker occlusion (`FrameRequest::occlusion`): this worker's partial image of
     /// the frame reduced to per-block transmittance over `rect`
@@ -453,6 +457,8 @@ pub enum PeerMsg {
         round: u32,
         /// Sender's position in the visibility order.
         from: u32,
+        /// The bulk is LZ4-compressed ([`crate::composite::SparsePiece::write_lz4`]).
+        lz4: bool,
     },
     /// The shared-memory segment this peer writes its pieces for the receiver to (sent
     /// once, before any `ShmPiece`, when `Setup::shm_peers` says so).
@@ -597,6 +603,7 @@ mod tests {
             frame: 7,
             round: 2,
             from: 3,
+            lz4: true,
         };
         assert_eq!(decode_meta::<PeerMsg>(&encode_meta(&m)).unwrap(), m);
         let w = WorkerMsg::FrameDone {
@@ -610,6 +617,7 @@ mod tests {
                 offset: 64,
                 len: 1000,
             }),
+            lz4: false,
         };
         assert_eq!(decode_meta::<WorkerMsg>(&encode_meta(&w)).unwrap(), w);
         let mut bytes = encode_meta(&m);

@@ -976,14 +976,26 @@ impl Cluster {
                             frame: fno,
                             stats: s,
                             shm,
+                            lz4,
                         }) if fno == frame => {
                             let t = Instant::now();
                             gather_bytes += f.wire_len();
                             let limit = self.piece_limit();
                             let piece = match (shm, &mut self.workers[rank as usize].shm) {
-                                (None, _) => SparsePiece::parse(&f.bulk, width * height)
-                                    .with_context(|| format!("final piece from {who}"))
-                                    .map_err(blame)?,
+                                (None, _) => tokio::task::block_in_place(|| {
+                                    if lz4 {
+                                        SparsePiece::parse_lz4(&f.bulk, width * height)
+                                    } else {
+                                        SparsePiece::parse(&f.bulk, width * height)
+                                    }
+                                })
+                                .with_context(|| format!("final piece from {who}"))
+                                .map_err(blame)?,
+                                (Some(_), _) if lz4 => {
+                                    return Err(blame(anyhow!(
+                                        "{who} announced a compressed final piece in shared memory, which never holds one"
+                                    )))
+                                }
                                 (Some(at), Some(r)) => {
                                     if !f.bulk.is_empty() {
                                         return Err(blame(anyhow!(

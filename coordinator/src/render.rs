@@ -396,6 +396,7 @@ pub fn composite_choice(scene: &Scene, workers: usize) -> Result<CompositeChoice
         k: c.k.to_vec(),
         interlace: c.interlace,
         format: c.wire,
+        lz4: c.lz4,
     };
     let k: Vec<usize> = choice.k.iter().map(|&k| k as usize).collect();
     strata_common::composite::build_plan(

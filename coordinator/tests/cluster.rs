@@ -80,6 +80,13 @@ fn render_scene(scene: &Path, out: &Path, extra: &[&str], env: &[(&str, &str)]) 
     run(&args, env)
 }
 
+fn bit_identical(a: &[[f32; 4]], b: &[[f32; 4]]) -> bool {
+    a.len() == b.len()
+        && a.iter()
+            .zip(b)
+            .all(|(p, q)| (0..4).all(|c| p[c].to_bits() == q[c].to_bits()))
+}
+
 fn max_diff(a: &[[f32; 4]], b: &[[f32; 4]]) -> f32 {
     assert_eq!(a.len(), b.len());
     a.iter()
@@ -206,6 +213,45 @@ fn options_that_change_bytes_not_pixels() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let d = max_diff(reference, &read_exr(&out));
     assert!(d <= 4e-3, "f16 differs by {d}");
+    // LZ4 on the pieces that travel over QUIC is lossless: the same image bit for bit, in
+    // fewer bytes.
+    let quic = |name: &str, lz4: bool| {
+        let out = dir.path().join(format!("{name}.exr"));
+        let stats = dir.path().join(format!("{name}.jsonl"));
+        let lz4 = format!("composite.lz4={lz4}");
+        let o = render(
+            &out,
+            &[
+                "--workers",
+                "3",
+                "--set",
+                "cluster.transport=quic",
+                "--set",
+                &lz4,
+                "--stats",
+                stats.to_str().unwrap(),
+            ],
+            &[],
+        );
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let text = std::fs::read_to_string(&stats).unwrap();
+        let summary: serde_json::Value = serde_json::from_str(
+            text.lines()
+                .find(|l| l.contains("\"kind\":\"summary\""))
+                .unwrap(),
+        )
+        .unwrap();
+        let bytes =
+            summary["exchange_bytes"].as_u64().unwrap() + summary["gather_bytes"].as_u64().unwrap();
+        (read_exr(&out), bytes)
+    };
+    let (plain, plain_bytes) = quic("quic", false);
+    let (packed, packed_bytes) = quic("quic-lz4", true);
+    assert!(bit_identical(&plain, &packed), "LZ4 changed a pixel");
+    assert!(
+        packed_bytes < plain_bytes,
+        "LZ4 moved {packed_bytes} bytes, plain {plain_bytes}"
+    );
     // Factors that do not multiply to the worker count are refused before any worker starts.
     let o = render(
         &dir.path().join("bad.exr"),
@@ -977,6 +1023,7 @@ fn a_bad_shared_memory_segment_of_a_worker_is_refused_naming_it() {
                 offset: at.offset,
                 len: 1000,
             }),
+            lz4: false,
         };
         strata_net::write_frame(&mut send, &wire::encode_meta(&msg), &[])
             .await
@@ -1152,6 +1199,7 @@ fn a_half_sent_stream_loses_its_sender_and_the_frame_is_rendered_without_it() {
             frame: 0,
             round: 0,
             from: 1,
+            lz4: false,
         });
         s.write_all(&wire::encode_header(meta.len() as u32, 1000))
             .await

@@ -241,14 +241,26 @@ async fn node(opts: NodeOptions) -> Result<()> {
                             .ok()
                         });
                         let mut bulk = Vec::new();
-                        if shm.is_none() {
+                        let lz4 = shm.is_none() && node.lz4;
+                        if lz4 {
+                            bulk = tokio::task::block_in_place(|| piece.write_lz4());
+                        } else if shm.is_none() {
                             bulk.reserve_exact(piece.byte_len());
                             piece.write(&mut bulk);
                         }
                         stats.gather_s += t.elapsed().as_secs_f64();
-                        stats.gather_bytes = piece.byte_len() as u64;
+                        stats.gather_bytes = if shm.is_none() {
+                            bulk.len()
+                        } else {
+                            piece.byte_len()
+                        } as u64;
                         stats.composite_s = composite_start.elapsed().as_secs_f64();
-                        let msg = WorkerMsg::FrameDone { frame, stats, shm };
+                        let msg = WorkerMsg::FrameDone {
+                            frame,
+                            stats,
+                            shm,
+                            lz4,
+                        };
                         write_frame(&mut csend, &wire::encode_meta(&msg), &bulk).await?;
                     }
                     Err(e) => {
@@ -435,6 +447,7 @@ async fn mesh(
         suspects: Vec::new(),
         deferred: Default::default(),
         front_last: None,
+        lz4: false,
     };
     Ok((node, ev_rx))
 }
@@ -555,8 +568,20 @@ async fn read_peer(
         };
         let wire_len = f.wire_len();
         let (frame, round, from, piece, wire_len) = match wire::decode_meta::<PeerMsg>(&f.meta) {
-            Ok(PeerMsg::Piece { frame, round, from }) => {
-                match tokio::task::block_in_place(|| SparsePiece::parse(&f.bulk, max_pixels)) {
+            Ok(PeerMsg::Piece {
+                frame,
+                round,
+                from,
+                lz4,
+            }) => {
+                let parsed = tokio::task::block_in_place(|| {
+                    if lz4 {
+                        SparsePiece::parse_lz4(&f.bulk, max_pixels)
+                    } else {
+                        SparsePiece::parse(&f.bulk, max_pixels)
+                    }
+                });
+                match parsed {
                     Ok(p) => (frame, round, from, p, wire_len),
                     Err(e) => {
                         conn.close(3u32.into(), b"malformed piece");
@@ -653,6 +678,8 @@ struct Node {
     suspects: Vec<u32>,
     /// Control messages that arrived during a frame, for after it.
     deferred: std::collections::VecDeque<CoordMsg>,
+    /// This frame's pieces over QUIC are LZ4-compressed (`composite.lz4`).
+    lz4: bool,
     /// Cross-worker occlusion: the last frame's transmittance of what lies in front of this
     /// worker, the prediction for the next frame.
     front_last: Option<FrontLast>,
@@ -769,6 +796,7 @@ impl Node {
             );
         }
         let frame_start = Instant::now();
+        self.lz4 = req.composite.lz4;
         let position = req
             .order
             .iter()
@@ -1005,13 +1033,19 @@ impl Node {
             }
             None => {
                 let te = Instant::now();
-                let mut bytes = Vec::with_capacity(out.piece.byte_len());
-                out.piece.write(&mut bytes);
+                let bytes = if self.lz4 {
+                    tokio::task::block_in_place(|| out.piece.write_lz4())
+                } else {
+                    let mut bytes = Vec::with_capacity(out.piece.byte_len());
+                    out.piece.write(&mut bytes);
+                    bytes
+                };
                 stats.encode_s += te.elapsed().as_secs_f64();
                 let meta = wire::encode_meta(&PeerMsg::Piece {
                     frame: out.frame,
                     round: out.round,
                     from: out.from,
+                    lz4: self.lz4,
                 });
                 (meta, bytes)
             }

@@ -175,6 +175,10 @@ pub enum PieceError {
         /// The destination's span (`u32::MAX`-saturated end).
         dst: Span,
     },
+    /// An LZ4-compressed piece whose stated size is past the limit or whose block does not
+    /// decompress to it.
+    #[error("bad LZ4 piece: {0}")]
+    Lz4(String),
 }
 
 /// Pixels decoded per chunk when the data cannot be used in place.
@@ -353,6 +357,71 @@ impl SparsePiece {
             runs,
             data,
         })
+    }
+
+    /// The wire form compressed for slow links (`composite.lz4`): the uncompressed length
+    /// (`u32`, little-endian), then one LZ4 block of the wire form with the pixel data
+    /// byte-shuffled (the k-th byte of every channel value together, as the page store
+    /// does), which lets LZ4 find the runs in exponents and high mantissa bytes.
+    pub fn write_lz4(&self) -> Vec<u8> {
+        let mut raw = Vec::with_capacity(self.byte_len());
+        for part in &self.wire_parts()[..2] {
+            raw.extend_from_slice(part);
+        }
+        let elem = self.format.bytes_per_pixel() / 4;
+        raw.extend_from_slice(&crate::store::shuffle(&self.data, elem));
+        let block = lz4_flex::block::compress(&raw);
+        let mut out = Vec::with_capacity(4 + block.len());
+        out.extend_from_slice(&(raw.len() as u32).to_le_bytes());
+        out.extend_from_slice(&block);
+        out
+    }
+
+    /// Parses a piece written by [`write_lz4`](Self::write_lz4) (untrusted input): the
+    /// stated size is checked against the largest piece of `max_pixels` pixels before
+    /// anything is allocated, the block must decompress to exactly that size, and the
+    /// result is then checked as [`parse`](Self::parse) checks it.
+    pub fn parse_lz4(bytes: &[u8], max_pixels: u32) -> Result<SparsePiece, PieceError> {
+        let Some((len, block)) = bytes.split_first_chunk::<4>() else {
+            return Err(PieceError::Truncated {
+                what: "LZ4 piece length",
+                offset: 0,
+                needed: 4,
+                available: bytes.len(),
+            });
+        };
+        let len = u32::from_le_bytes(*len) as u64;
+        let limit = crate::wire::max_piece_bytes(max_pixels as u64);
+        if len > limit {
+            return Err(PieceError::Lz4(format!(
+                "it states {len} bytes, more than the {limit} a piece of {max_pixels} pixels can take"
+            )));
+        }
+        let mut raw = lz4_flex::block::decompress(block, len as usize)
+            .map_err(|e| PieceError::Lz4(format!("the block does not decompress: {e}")))?;
+        if raw.len() as u64 != len {
+            return Err(PieceError::Lz4(format!(
+                "the block decompresses to {} bytes, not the {len} stated",
+                raw.len()
+            )));
+        }
+        // Undo the shuffle of the pixel data (the header says where it starts and how wide
+        // its values are; a header `parse` refuses is passed through for it to refuse).
+        if raw.len() >= Self::HEADER_BYTES {
+            let n = u32::from_le_bytes([raw[12], raw[13], raw[14], raw[15]]) as u64;
+            let at = Self::HEADER_BYTES as u64 + 4 * n;
+            let elem = match raw[3] {
+                0 => 4,
+                1 => 2,
+                _ => 1,
+            };
+            if at <= raw.len() as u64 && elem > 1 {
+                let at = at as usize;
+                let data = crate::store::unshuffle(&raw[at..], elem);
+                raw[at..].copy_from_slice(&data);
+            }
+        }
+        Self::parse(&raw, max_pixels)
     }
 
     /// Parses exactly one piece from `bytes` (untrusted input): every count is checked
@@ -614,6 +683,51 @@ mod tests {
         p.write(&mut bytes);
         assert_eq!(bytes.len(), p.byte_len());
         SparsePiece::parse(&bytes, max).unwrap()
+    }
+
+    #[test]
+    fn lz4_pieces_round_trip_shrink_smooth_data_and_refuse_lies() {
+        // A smooth translucent gradient with holes, as a rendered span looks.
+        let pixels: Vec<Rgba> = (0..4000)
+            .map(|i| {
+                if i % 97 < 30 {
+                    [0.0; 4]
+                } else {
+                    px(0.2 + 0.6 * (i as f32 / 4000.0))
+                }
+            })
+            .collect();
+        for format in [WireFormat::F32, WireFormat::F16] {
+            let p = SparsePiece::encode(&pixels, Span::new(100, 4100), format);
+            let z = p.write_lz4();
+            assert_eq!(SparsePiece::parse_lz4(&z, 4100).unwrap(), p);
+            assert!(
+                z.len() * 2 < p.byte_len(),
+                "{format:?}: {} compressed bytes of {}",
+                z.len(),
+                p.byte_len()
+            );
+            // The span must still fit the receiver's limit.
+            assert!(SparsePiece::parse_lz4(&z, 4099).is_err());
+        }
+        let p = SparsePiece::encode(&pixels, Span::new(0, 4000), WireFormat::F32);
+        let z = p.write_lz4();
+        // A stated size past what any piece of the limit can take: refused before
+        // allocating.
+        let mut lie = z.clone();
+        lie[..4].copy_from_slice(&u32::MAX.to_le_bytes());
+        assert!(matches!(
+            SparsePiece::parse_lz4(&lie, 4000),
+            Err(PieceError::Lz4(_))
+        ));
+        // A size that does not match the block, a cut block, garbage, nothing.
+        let mut off = z.clone();
+        let n = u32::from_le_bytes([z[0], z[1], z[2], z[3]]) - 1;
+        off[..4].copy_from_slice(&n.to_le_bytes());
+        assert!(SparsePiece::parse_lz4(&off, 4000).is_err());
+        assert!(SparsePiece::parse_lz4(&z[..z.len() / 2], 4000).is_err());
+        assert!(SparsePiece::parse_lz4(&[9, 0, 0, 0, 1, 2, 3], 4000).is_err());
+        assert!(SparsePiece::parse_lz4(&[1, 2], 4000).is_err());
     }
 
     #[test]
@@ -907,6 +1021,20 @@ mod tests {
 
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(128))]
+
+        #[test]
+        fn lz4_roundtrip_is_exact_and_random_bytes_never_panic(
+            pixels in pixels_strategy(),
+            start in 0u32..1000,
+            f16 in any::<bool>(),
+            junk in prop::collection::vec(any::<u8>(), 0..200),
+        ) {
+            let span = Span::new(start, start + pixels.len() as u32);
+            let format = if f16 { WireFormat::F16 } else { WireFormat::F32 };
+            let p = SparsePiece::encode(&pixels, span, format);
+            prop_assert_eq!(SparsePiece::parse_lz4(&p.write_lz4(), span.end).unwrap(), p);
+            let _ = SparsePiece::parse_lz4(&junk, 1 << 20);
+        }
 
         #[test]
         fn roundtrip_f32_is_exact(pixels in pixels_strategy(), start in 0u32..1000) {

@@ -253,7 +253,7 @@ impl Preamble {
 
 /// Shuffles bytes so that byte `k` of every element is contiguous (LZ4 then finds the
 /// runs in slowly varying high bytes of i16/f32 samples).
-fn shuffle(data: &[u8], elem: usize) -> Vec<u8> {
+pub(crate) fn shuffle(data: &[u8], elem: usize) -> Vec<u8> {
     if elem <= 1 {
         return data.to_vec();
     }
@@ -267,7 +267,7 @@ fn shuffle(data: &[u8], elem: usize) -> Vec<u8> {
     out
 }
 
-fn unshuffle(data: &[u8], elem: usize) -> Vec<u8> {
+pub(crate) fn unshuffle(data: &[u8], elem: usize) -> Vec<u8> {
     if elem <= 1 {
         return data.to_vec();
     }

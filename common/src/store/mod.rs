@@ -30,4 +30,5 @@ pub use format::{
     FORMAT_VERSION, MAGIC, MAX_HEADER_BYTES, PAGE_COMPRESSED, PAGE_CONSTANT, PAGE_EMPTY,
     PREAMBLE_LEN,
 };
+pub(crate) use format::{shuffle, unshuffle};
 pub use reader::{Page, PageStore};
