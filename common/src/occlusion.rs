@@ -460,22 +460,27 @@ impl FrontTransmittance {
         m
     }
 
-    /// The blocks of `image` (cast with this map's thresholds, a prediction) that must be
-    /// cast again with `actual`'s: where a pixel was left out that `actual` does not leave
-    /// out, or where a ray stopped at this map's threshold (its alpha reached it) short of
-    /// `actual`'s. A ray whose alpha stayed below its threshold ran to the end of its
-    /// region and is complete whatever lies in front.
+    /// The blocks of `images` (each cast by itself with this map's thresholds, a
+    /// prediction: one per region a worker casts) that must be cast again with `actual`'s:
+    /// where a pixel was left out that `actual` does not leave out, or where a ray stopped
+    /// at this map's threshold (its alpha reached it) short of `actual`'s. A ray whose
+    /// alpha stayed below its threshold ran to the end of its region and is complete
+    /// whatever lies in front. The test needs each ray's own alpha: in a composite of
+    /// several regions, one region's ray that stopped short can hide behind another's
+    /// opacity.
     pub fn stale(
         &self,
         actual: &FrontTransmittance,
-        image: &PartialImage,
+        images: &[&PartialImage],
         threshold: f32,
     ) -> BlockMask {
         assert_eq!(self.grid, actual.grid);
-        assert_eq!(
-            (image.width, image.height),
-            (self.grid.width, self.grid.height)
-        );
+        for image in images {
+            assert_eq!(
+                (image.width, image.height),
+                (self.grid.width, self.grid.height)
+            );
+        }
         let mut m = BlockMask::empty(self.grid);
         for b in 0..self.q.len() {
             if actual.q[b] <= self.q[b] {
@@ -485,17 +490,18 @@ impl FrontTransmittance {
             let Some(ea) = actual.ray_threshold(b, threshold) else {
                 continue;
             };
-            let ep = self.ray_threshold(b, threshold);
             let (x0, y0, x1, y1) = self.grid.pixels_of(b);
-            let redo = (y0..y1).any(|y| {
-                (x0..x1).any(|x| match ep {
-                    None => true,
-                    Some(ep) => {
-                        let a = image.get(x, y)[3];
-                        a >= ep && a < ea
-                    }
-                })
-            });
+            let redo = match self.ray_threshold(b, threshold) {
+                None => true,
+                Some(ep) => images.iter().any(|image| {
+                    (y0..y1).any(|y| {
+                        (x0..x1).any(|x| {
+                            let a = image.get(x, y)[3];
+                            a >= ep && a < ea
+                        })
+                    })
+                }),
+            };
             if redo {
                 m.set(b);
             }
@@ -734,9 +740,13 @@ mod tests {
             grid: f[2].grid,
             q: vec![600; 4],
         };
-        assert_eq!(hidden.stale(actual, &img(0.0), 0.99).count(), 4, "left out");
         assert_eq!(
-            f[1].stale(actual, &img(0.97), 0.99).count(),
+            hidden.stale(actual, &[&img(0.0)], 0.99).count(),
+            4,
+            "left out"
+        );
+        assert_eq!(
+            f[1].stale(actual, &[&img(0.97)], 0.99).count(),
             0,
             "below 0.980: ran out"
         );
@@ -746,23 +756,44 @@ mod tests {
         };
         let e = pred.ray_threshold(0, 0.99).unwrap();
         assert_eq!(
-            pred.stale(actual, &img(e), 0.99).count(),
+            pred.stale(actual, &[&img(e)], 0.99).count(),
             1,
             "stopped at its threshold"
         );
         assert_eq!(
-            pred.stale(actual, &img(0.995), 0.99).count(),
+            pred.stale(actual, &[&img(0.995)], 0.99).count(),
             0,
             "past both"
         );
         assert_eq!(
-            pred.stale(actual, &img(e * 0.99), 0.99).count(),
+            pred.stale(actual, &[&img(e * 0.99)], 0.99).count(),
             0,
             "ran out"
         );
         assert!(
-            !f[0].stale(&f[1], &img(0.0), 0.99).any(),
+            !f[0].stale(&f[1], &[&img(0.0)], 0.99).any(),
             "less light than predicted"
+        );
+        // Two regions of one worker, each cast with the predicted limits: the front one
+        // stopped at its threshold, the back one is nearly opaque. Their composite passes
+        // the actual threshold, but the front ray stopped short of it: stale.
+        let front_leaf = img(e);
+        let back_leaf = img(0.98);
+        let both = PartialImage::from_full(
+            g,
+            g,
+            &composite_front_to_back(g, g, &[&front_leaf, &back_leaf]),
+        );
+        assert!(both.get(0, 0)[3] >= 0.99);
+        assert_eq!(
+            pred.stale(actual, &[&both], 0.99).count(),
+            0,
+            "the composite hides it"
+        );
+        assert_eq!(
+            pred.stale(actual, &[&front_leaf, &back_leaf], 0.99).count(),
+            1,
+            "each region's own alpha shows it"
         );
     }
 

@@ -883,7 +883,9 @@ impl Cluster {
         // Cross-worker occlusion in blocks of `occlusion_block` pixels, coarser where the
         // maps (two bytes a block, sent as control messages) would not fit one.
         let mut block = self.opts.occlusion_block.max(1);
-        while BlockGrid::new(width, height, block).len() * 2 + 1024 > wire::MAX_META as usize {
+        while block <= occlusion::MAX_BLOCK
+            && BlockGrid::new(width, height, block).len() * 2 + 1024 > wire::MAX_META as usize
+        {
             block += 1;
         }
         let grid = BlockGrid::new(width, height, block);
@@ -941,7 +943,19 @@ impl Cluster {
         };
         while !missing(&stats).is_empty() {
             let Ok(ev) = self.next_event(deadline).await else {
-                let late = missing(&stats);
+                // Before the occlusion maps went out, every worker waits on the ones whose
+                // coverage is missing: those are late, not the rest.
+                let mut late = missing(&stats);
+                if !maps_sent {
+                    let no_coverage: Vec<u32> = slots
+                        .iter()
+                        .copied()
+                        .filter(|&r| coverage[r as usize].is_none())
+                        .collect();
+                    if !no_coverage.is_empty() {
+                        late = no_coverage;
+                    }
+                }
                 return Err(Failure {
                     error: anyhow!(
                         "frame {frame}: no result from {} within {:.0} s (cluster.frame_timeout_s)",
@@ -1039,7 +1053,7 @@ impl Cluster {
                                 .map_err(blame)?;
                             coverage[rank as usize] = Some(map);
                             if slots.iter().all(|&r| coverage[r as usize].is_some()) {
-                                self.send_occlusion(frame, &order, &coverage)
+                                self.send_occlusion(frame, &order, &coverage, deadline)
                                     .await
                                     .map_err(|(e, r)| Failure::blaming(e, r))?;
                                 maps_sent = true;
@@ -1123,6 +1137,7 @@ impl Cluster {
         frame: u64,
         order: &[u32],
         coverage: &[Option<Transmittance>],
+        deadline: Instant,
     ) -> Result<(), (anyhow::Error, u32)> {
         let layers: Vec<&Transmittance> = order
             .iter()
@@ -1137,7 +1152,7 @@ impl Cluster {
                 front: occlusion::levels_to_bytes(&front.q),
             });
             with_timeout(
-                self.opts.frame_timeout,
+                deadline.saturating_duration_since(Instant::now()),
                 format!("sending the occlusion map of frame {frame} to {what}"),
                 write_frame(&mut w.send, &msg, &[]),
             )

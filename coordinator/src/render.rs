@@ -247,7 +247,9 @@ pub struct FrameSummary {
     /// predicted hidden by the workers in front of them (summed over the workers; 0
     /// in-process).
     pub occluded_blocks: u64,
-    /// Of these, blocks the frame's own masks did not confirm, cast afterwards.
+    /// Blocks cast again because the frame's own front transmittance did not confirm the
+    /// prediction (left out, or stopped at a threshold the frame does not allow; summed
+    /// over the workers).
     pub fixup_blocks: u64,
 }
 

@@ -1422,6 +1422,21 @@ fn cross_worker_occlusion_casts_less_and_stays_within_the_termination_bound() {
         on_n.iter().map(|f| f.2).sum::<u64>() > 0,
         "the moving camera made no prediction fail, so no re-cast was exercised: {on_n:?}"
     );
+    // Several leaves per worker: each leaf's own rays decide what is re-cast (a leaf that
+    // stopped short can hide behind the next one's opacity in their composite).
+    let (two, two_n) = go(
+        "two",
+        &[
+            &ert[..],
+            &["--workers", "3", "--set", "cluster.leaves_per_worker=2"],
+        ]
+        .concat(),
+    );
+    for i in 0..4 {
+        let d = max_diff(&two[i], &inp[i]);
+        assert!(d <= 0.01 + 1e-5, "frame {i}, 2 leaves per worker: {d}");
+    }
+    assert!(two_n[1..].iter().all(|f| f.1 > 0), "{two_n:?}");
     // At t = 1 only exactly opaque content hides anything, and the image is the same.
     let (in1, _) = go("in1", &["--in-process"]);
     let (on1, on1_n) = go(

@@ -275,6 +275,11 @@ async fn node(opts: NodeOptions) -> Result<()> {
                 }
             }
             CoordMsg::Shutdown => break,
+            // The map of a frame this worker already gave up waiting for (its deadline
+            // passed as the coordinator sent it).
+            CoordMsg::Occlusion { frame, .. } => {
+                debug!(frame, "ignoring an occlusion map that came after its frame")
+            }
             other => bail!("unexpected message from the coordinator: {other:?}"),
         }
     }
@@ -832,7 +837,16 @@ impl Node {
             threshold,
         });
         stats.leaf_cast_s = vec![0.0; self.setup.leaves.len()];
-        let mut image = tokio::task::block_in_place(|| self.image(req, limits, &mut stats))?;
+        let mut leaves = tokio::task::block_in_place(|| self.image(req, limits, &mut stats))?;
+        // One leaf is the image; several are composited and kept for the occlusion check.
+        let mut image = if leaves.len() == 1 {
+            leaves.pop().expect("one leaf")
+        } else {
+            composite_leaves(req.width, req.height, &leaves)
+        };
+        if predicted.is_none() {
+            leaves = Vec::new();
+        }
         stats.render_s = t.elapsed().as_secs_f64();
         if occlusion {
             // 1b. This frame's front transmittance: blocks where the prediction promised
@@ -847,7 +861,15 @@ impl Node {
                 stats.occluded_blocks = hidden.count();
                 stats.limited_blocks =
                     p.q.iter().filter(|&&q| q < CLEAR).count() as u64 - stats.occluded_blocks;
-                let stale = p.stale(&front, &image, threshold);
+                // Each leaf's own alpha tells whether its rays stopped short.
+                let own: Vec<&PartialImage> = if leaves.is_empty() {
+                    vec![&image]
+                } else {
+                    leaves.iter().collect()
+                };
+                let stale = p.stale(&front, &own, threshold);
+                drop(own);
+                leaves.clear();
                 if stale.any() {
                     let t = Instant::now();
                     stats.fixup_blocks = stale.count();
@@ -858,6 +880,7 @@ impl Node {
                     });
                     let again =
                         tokio::task::block_in_place(|| self.image(req, limits, &mut stats))?;
+                    let again = composite_leaves(req.width, req.height, &again);
                     image = replace_blocks(&image, &again, &stale);
                     stats.fixup_s = t.elapsed().as_secs_f64();
                 }
@@ -1188,23 +1211,24 @@ impl Node {
         }
     }
 
-    /// This worker's partial image for the frame, its rays limited by `limits` (cross-worker
-    /// occlusion). Adds its costs to `stats` (so a re-cast adds to the first render).
+    /// This worker's partial images for the frame, one per leaf, front to back (one for
+    /// a synthetic frame), its rays limited by `limits` (cross-worker occlusion). Adds its
+    /// costs to `stats` (so a re-cast adds to the first render).
     fn image(
         &mut self,
         req: &FrameRequest,
         limits: Option<RayLimits<'_>>,
         stats: &mut WorkerFrameStats,
-    ) -> Result<PartialImage> {
+    ) -> Result<Vec<PartialImage>> {
         match &req.source {
-            FrameSource::Synthetic { coverage, seed } => Ok(synthetic_image(
+            FrameSource::Synthetic { coverage, seed } => Ok(vec![synthetic_image(
                 req.width,
                 req.height,
                 self.rank,
                 self.setup.peers.len() as u32,
                 *coverage,
                 *seed ^ req.frame,
-            )),
+            )]),
             FrameSource::Render => {
                 let view = View::new(&req.camera, &self.engine.settings, req.width, req.height)?;
                 let mut images = Vec::new();
@@ -1235,16 +1259,21 @@ impl Node {
                 if stats.outcome.is_empty() || outcome != Outcome::Converged {
                     stats.outcome = outcome.as_str().into();
                 }
-                Ok(match images.len() {
-                    0 => PartialImage::empty(req.width, req.height),
-                    1 => images.pop().unwrap(),
-                    _ => {
-                        let refs: Vec<&PartialImage> = images.iter().collect();
-                        let full = composite_front_to_back(req.width, req.height, &refs);
-                        PartialImage::from_full(req.width, req.height, &full)
-                    }
-                })
+                Ok(images)
             }
+        }
+    }
+}
+
+/// Leaf images, front to back, composited into one.
+fn composite_leaves(width: u32, height: u32, leaves: &[PartialImage]) -> PartialImage {
+    match leaves {
+        [] => PartialImage::empty(width, height),
+        [one] => one.clone(),
+        _ => {
+            let refs: Vec<&PartialImage> = leaves.iter().collect();
+            let full = composite_front_to_back(width, height, &refs);
+            PartialImage::from_full(width, height, &full)
         }
     }
 }

@@ -306,9 +306,9 @@ impl GpuCaster {
         }
         // The adapter's own limits: the WebGPU defaults cap a storage binding at 128 MiB.
         let limits = adapter.limits();
-        if limits.max_storage_buffers_per_shader_stage < 12 {
+        if limits.max_storage_buffers_per_shader_stage < 13 {
             bail!(
-                "adapter {} binds {} storage buffers per stage; the caster needs 12",
+                "adapter {} binds {} storage buffers per stage; the caster needs 13",
                 info.name,
                 limits.max_storage_buffers_per_shader_stage
             );
