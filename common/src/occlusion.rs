@@ -509,6 +509,34 @@ impl FrontTransmittance {
         m
     }
 
+    /// This map, made at `1/scale` of the resolution in one-pixel blocks (a cheap first
+    /// pass), as a prediction on `grid`: each block takes the largest level of the
+    /// low-resolution pixels it overlaps. Only a prediction: the full-resolution frame's
+    /// own map checks it ([`stale`](Self::stale)).
+    pub fn upsampled(&self, grid: BlockGrid, scale: u32) -> FrontTransmittance {
+        let scale = scale.max(1);
+        let (lw, lh) = (self.grid.width, self.grid.height);
+        if self.q.is_empty() || lw == 0 || lh == 0 {
+            return FrontTransmittance::clear(grid);
+        }
+        let q = (0..grid.len())
+            .map(|b| {
+                let (x0, y0, x1, y1) = grid.pixels_of(b);
+                let (lx0, ly0) = ((x0 / scale).min(lw - 1), (y0 / scale).min(lh - 1));
+                let (lx1, ly1) = (
+                    ((x1 - 1) / scale).min(lw - 1),
+                    ((y1 - 1) / scale).min(lh - 1),
+                );
+                (ly0..=ly1)
+                    .flat_map(|y| (lx0..=lx1).map(move |x| (x, y)))
+                    .map(|(x, y)| self.q[self.grid.block_of(x, y)])
+                    .max()
+                    .unwrap_or(CLEAR)
+            })
+            .collect();
+        FrontTransmittance { grid, q }
+    }
+
     /// Whether some block has anything in front.
     pub fn any(&self) -> bool {
         self.q.iter().any(|&q| q < CLEAR)
@@ -795,6 +823,31 @@ mod tests {
             1,
             "each region's own alpha shows it"
         );
+    }
+
+    #[test]
+    fn a_first_pass_map_upsamples_to_the_largest_level_it_overlaps() {
+        // 3 × 2 low-resolution pixels at 1/4: a 10 × 7 image in 2-pixel blocks.
+        let low = FrontTransmittance {
+            grid: BlockGrid::new(3, 2, 1),
+            q: vec![0, 100, CLEAR, 7, 8, 9],
+        };
+        let grid = BlockGrid::new(10, 7, 2);
+        let up = low.upsampled(grid, 4);
+        assert_eq!(up.grid, grid);
+        // Block (0, 0) covers pixels 0..2 × 0..2: low pixel (0, 0).
+        assert_eq!(up.q[0], 0);
+        // Block (1, 0) covers 2..4: still low pixel (0, 0).
+        assert_eq!(up.q[1], 0);
+        // Block (2, 0) covers 4..6: low pixel (1, 0).
+        assert_eq!(up.q[2], 100);
+        // Block (4, 0) covers 8..10: low pixel (2, 0).
+        assert_eq!(up.q[4], CLEAR);
+        // Row 3 of blocks covers pixels 6..7: low row 1.
+        assert_eq!(up.q[3 * 5], 7);
+        // A block straddling two low pixels takes the larger level.
+        let odd = low.upsampled(BlockGrid::new(10, 7, 3), 4);
+        assert_eq!(odd.q[1], 100, "pixels 3..6 overlap low pixels 0 and 1");
     }
 
     #[test]

@@ -165,6 +165,11 @@ pub struct ClusterSettings {
     /// block and worker, each way, per frame).
     #[serde(default = "default_occlusion_block")]
     pub occlusion_block: u32,
+    /// When occlusion has no prediction from the previous frame (the first frame, a new
+    /// order of the workers in front, a new image size), take one from a first pass at 1/4
+    /// of the resolution, so single frames leave hidden rays uncast too.
+    #[serde(default = "yes")]
+    pub occlusion_prepass: bool,
 }
 
 /// `cluster.on_worker_loss`.
@@ -220,6 +225,7 @@ impl Default for ClusterSettings {
             on_worker_loss: OnWorkerLoss::Reassign,
             occlusion: true,
             occlusion_block: default_occlusion_block(),
+            occlusion_prepass: true,
         }
     }
 }

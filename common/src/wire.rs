@@ -256,6 +256,9 @@ pub enum WorkerMsg {
         frame: u64,
         /// The blocks the values cover.
         rect: BlockRect,
+        /// Of the low-resolution first pass (one-pixel blocks at
+        /// `1/FrameRequest::occlusion_prepass`), not of the frame.
+        prepass: bool,
     },
     /// The worker could not do what was asked.
     Failed {
@@ -287,6 +290,8 @@ pub enum CoordMsg {
         frame: u64,
         /// [`crate::occlusion::FrontTransmittance::q`], two little-endian bytes per level.
         front: Vec<u8>,
+        /// Of the low-resolution first pass.
+        prepass: bool,
     },
     /// Exit cleanly.
     Shutdown,
@@ -418,6 +423,11 @@ pub struct FrameRequest {
     /// (0: off). After rendering, send [`WorkerMsg::Coverage`] and wait for
     /// [`CoordMsg::Occlusion`] before compositing.
     pub occlusion_block: u32,
+    /// Cross-worker occlusion with no prediction from the previous frame (`cluster.occlusion_prepass`):
+    /// first render at `1/occlusion_prepass` of the resolution and exchange its coverage
+    /// ([`WorkerMsg::Coverage`] and [`CoordMsg::Occlusion`] with `prepass`) as the
+    /// prediction; 0: no first pass.
+    pub occlusion_prepass: u32,
 }
 
 /// Leaves one worker may be given.
@@ -550,6 +560,8 @@ pub struct WorkerFrameStats {
     pub occlusion_s: f64,
     /// Seconds of the fix-up render.
     pub fixup_s: f64,
+    /// Seconds of occlusion's low-resolution first pass, its map exchange included.
+    pub prepass_s: f64,
     /// "converged", "round-limit" or "atlas-full".
     pub outcome: String,
     /// The backend and adapter that rendered, e.g. `gpu: NVIDIA H100 (Vulkan)` or `cpu (8 threads)`.

@@ -75,6 +75,30 @@ pub struct ClusterOptions {
     pub occlusion: bool,
     /// `cluster.occlusion_block`: side of its screen blocks in pixels.
     pub occlusion_block: u32,
+    /// `cluster.occlusion_prepass`: a low-resolution first pass when there is no prediction.
+    pub occlusion_prepass: bool,
+}
+
+/// The first pass of cross-worker occlusion renders at 1/PREPASS_SCALE of the resolution
+/// (1/16 of the rays).
+pub const PREPASS_SCALE: u32 = 4;
+
+/// Whether every rank of `b` has the same ranks in front of it as in `a` (their order among
+/// themselves does not matter to opacity).
+fn same_fronts(a: &[u32], b: &[u32]) -> bool {
+    if a.len() != b.len() {
+        return false;
+    }
+    b.iter().all(|r| {
+        let front = |o: &[u32]| -> Option<Vec<u32>> {
+            let pos = o.iter().position(|x| x == r)?;
+            let mut f = o[..pos].to_vec();
+            f.sort_unstable();
+            Some(f)
+        };
+        let fa = front(a);
+        fa.is_some() && fa == front(b)
+    })
 }
 
 /// A re-split of the k-d tree between two frames of a sequence.
@@ -169,6 +193,7 @@ impl ClusterOptions {
             on_worker_loss: c.on_worker_loss,
             occlusion: c.occlusion,
             occlusion_block: c.occlusion_block,
+            occlusion_prepass: c.occlusion_prepass,
             worker_exe: std::env::var_os("STRATA_WORKER_BIN").map(PathBuf::from),
         })
     }
@@ -319,6 +344,9 @@ pub struct Cluster {
     decomposition: Decomposition,
     opts: ClusterOptions,
     frame_no: u64,
+    /// The image size and visibility order of the last frame whose occlusion maps went
+    /// out: the workers' predictions hold while both (the workers in front of each) stay.
+    occlusion_last: Option<(u32, u32, Vec<u32>)>,
     child_pids: Vec<u32>,
     /// The cost boxes the decomposition balances (re-weighted by each re-split).
     costs: decompose::SceneCosts,
@@ -436,6 +464,7 @@ impl Cluster {
             decomposition,
             opts,
             frame_no: 0,
+            occlusion_last: None,
             child_pids,
             costs,
             new_leaves: vec![None; n],
@@ -892,6 +921,20 @@ impl Cluster {
         let occlusion = self.opts.occlusion
             && matches!(source, FrameSource::Render)
             && block <= occlusion::MAX_BLOCK;
+        // Without a prediction from the last frame for some worker, all take one from a
+        // first pass at 1/PREPASS_SCALE of the resolution.
+        let prepass = occlusion
+            && self.opts.occlusion_prepass
+            && !self.occlusion_last.as_ref().is_some_and(|(w, h, last)| {
+                (*w, *h) == (width, height) && same_fronts(last, &order)
+            });
+        let pre_grid = BlockGrid::new(
+            width.div_ceil(PREPASS_SCALE),
+            height.div_ceil(PREPASS_SCALE),
+            1,
+        );
+        let mut pre_coverage: Vec<Option<Transmittance>> = vec![None; self.workers.len()];
+        let mut pre_sent = !prepass;
         // Cross-worker occlusion: each worker's block transmittance, by rank, until all
         // are in and the maps have gone out.
         let mut coverage: Vec<Option<Transmittance>> = vec![None; self.workers.len()];
@@ -916,6 +959,7 @@ impl Cluster {
                 source: source.clone(),
                 leaves: self.new_leaves[rank as usize].take(),
                 occlusion_block: if occlusion { block } else { 0 },
+                occlusion_prepass: if prepass { PREPASS_SCALE } else { 0 },
             });
             let w = &mut self.workers[rank as usize];
             let what = w.describe();
@@ -946,11 +990,18 @@ impl Cluster {
                 // Before the occlusion maps went out, every worker waits on the ones whose
                 // coverage is missing: those are late, not the rest.
                 let mut late = missing(&stats);
-                if !maps_sent {
+                let waiting_on = if !pre_sent {
+                    Some(&pre_coverage)
+                } else if !maps_sent {
+                    Some(&coverage)
+                } else {
+                    None
+                };
+                if let Some(cov) = waiting_on {
                     let no_coverage: Vec<u32> = slots
                         .iter()
                         .copied()
-                        .filter(|&r| coverage[r as usize].is_none())
+                        .filter(|&r| cov[r as usize].is_none())
                         .collect();
                     if !no_coverage.is_empty() {
                         late = no_coverage;
@@ -1043,9 +1094,30 @@ impl Cluster {
                             stats[rank as usize] = Some(s);
                             collect_s += t.elapsed().as_secs_f64();
                         }
-                        Ok(WorkerMsg::Coverage { frame: fno, rect })
-                            if fno == frame && !maps_sent =>
-                        {
+                        Ok(WorkerMsg::Coverage {
+                            frame: fno,
+                            rect,
+                            prepass: true,
+                        }) if fno == frame && !pre_sent => {
+                            let t = Instant::now();
+                            let map = occlusion::levels_from_bytes(&f.bulk)
+                                .and_then(|q| Transmittance::checked(pre_grid, rect, q))
+                                .with_context(|| format!("first-pass coverage from {who}"))
+                                .map_err(blame)?;
+                            pre_coverage[rank as usize] = Some(map);
+                            if slots.iter().all(|&r| pre_coverage[r as usize].is_some()) {
+                                self.send_occlusion(frame, &order, &pre_coverage, deadline, true)
+                                    .await
+                                    .map_err(|(e, r)| Failure::blaming(e, r))?;
+                                pre_sent = true;
+                            }
+                            occlusion_s += t.elapsed().as_secs_f64();
+                        }
+                        Ok(WorkerMsg::Coverage {
+                            frame: fno,
+                            rect,
+                            prepass: false,
+                        }) if fno == frame && pre_sent && !maps_sent => {
                             let t = Instant::now();
                             let map = occlusion::levels_from_bytes(&f.bulk)
                                 .and_then(|q| Transmittance::checked(grid, rect, q))
@@ -1053,10 +1125,11 @@ impl Cluster {
                                 .map_err(blame)?;
                             coverage[rank as usize] = Some(map);
                             if slots.iter().all(|&r| coverage[r as usize].is_some()) {
-                                self.send_occlusion(frame, &order, &coverage, deadline)
+                                self.send_occlusion(frame, &order, &coverage, deadline, false)
                                     .await
                                     .map_err(|(e, r)| Failure::blaming(e, r))?;
                                 maps_sent = true;
+                                self.occlusion_last = Some((width, height, order.clone()));
                             }
                             occlusion_s += t.elapsed().as_secs_f64();
                         }
@@ -1115,7 +1188,7 @@ impl Cluster {
         // Rendering includes waiting for the occlusion maps and the fix-up render.
         let slowest_render = stats
             .iter()
-            .map(|s| s.render_s + s.occlusion_s + s.fixup_s)
+            .map(|s| s.render_s + s.prepass_s + s.occlusion_s + s.fixup_s)
             .fold(0.0, f64::max);
         Ok(FrameResult {
             image,
@@ -1138,6 +1211,7 @@ impl Cluster {
         order: &[u32],
         coverage: &[Option<Transmittance>],
         deadline: Instant,
+        prepass: bool,
     ) -> Result<(), (anyhow::Error, u32)> {
         let layers: Vec<&Transmittance> = order
             .iter()
@@ -1150,6 +1224,7 @@ impl Cluster {
             let msg = wire::encode_meta(&CoordMsg::Occlusion {
                 frame,
                 front: occlusion::levels_to_bytes(&front.q),
+                prepass,
             });
             with_timeout(
                 deadline.saturating_duration_since(Instant::now()),

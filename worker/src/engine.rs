@@ -116,7 +116,7 @@ pub struct Engine {
     frame_no: u32,
     /// Regions rendered in batch mode so far: a region's first batch converges whatever
     /// `render.rounds_per_frame` says.
-    seen_regions: HashSet<[u64; 6]>,
+    seen_regions: HashSet<[u64; 7]>,
     gpu: Option<GpuBackend>,
 }
 
@@ -838,12 +838,12 @@ impl Engine {
         region: &Region,
         limits: Option<RayLimits<'_>>,
     ) -> Result<BatchResult> {
-        let key = [0, 1, 2, 3, 4, 5].map(|i| {
-            if i < 3 {
-                region.lo[i].to_bits()
-            } else {
-                region.hi[i - 3].to_bits()
-            }
+        // A region at an image size (occlusion's low-resolution first pass does not count
+        // as the frame's first batch).
+        let key = [0, 1, 2, 3, 4, 5, 6].map(|i| match i {
+            0..3 => region.lo[i].to_bits(),
+            3..6 => region.hi[i - 3].to_bits(),
+            _ => (view.width as u64) << 32 | view.height as u64,
         });
         let seen = !self.seen_regions.insert(key);
         let rpf = self.settings.rounds_per_frame;

@@ -814,9 +814,9 @@ impl Node {
         };
         test_fault(self.rank, req.frame, "render");
         // 1. The partial image. Under cross-worker occlusion each ray stops where the light
-        //    the last frame's front transmittance predicts, times its own, falls to
-        //    1 − early_termination, and rays behind opaque blocks are not cast.
-        let t = Instant::now();
+        //    the predicted front transmittance (the last frame's, or a first pass's) lets
+        //    through, times its own, falls to 1 − early_termination, and rays behind opaque
+        //    blocks are not cast.
         anyhow::ensure!(
             req.occlusion_block <= MAX_BLOCK,
             "frame {}: occlusion blocks of {} pixels (at most {MAX_BLOCK})",
@@ -826,18 +826,37 @@ impl Node {
         let occlusion = req.occlusion_block > 0 && matches!(req.source, FrameSource::Render);
         let grid = BlockGrid::new(req.width, req.height, req.occlusion_block);
         let threshold = (self.engine.settings.early_termination as f32).min(1.0);
-        let predicted = if occlusion {
+        stats.leaf_cast_s = vec![0.0; self.setup.leaves.len()];
+        let mut predicted = if occlusion {
             self.predicted_front(req, grid)
         } else {
             None
         };
+        if occlusion && req.occlusion_prepass > 0 {
+            // 0. No prediction for some worker: all take one from a first pass at
+            //    1/scale of the resolution (its own map exchange).
+            let tp = Instant::now();
+            let scale = req.occlusion_prepass.clamp(1, MAX_BLOCK);
+            let (pw, ph) = (req.width.div_ceil(scale), req.height.div_ceil(scale));
+            let low = tokio::task::block_in_place(|| {
+                self.first_pass(req, (pw, ph), &mut stats)
+                    .map(|l| composite_leaves(pw, ph, &l))
+            })?;
+            let pre_grid = BlockGrid::new(pw, ph, 1);
+            let pre = self
+                .occlusion_front(req, pre_grid, &low, true, control, csend, frame_start)
+                .await?;
+            predicted = Some(pre.upsampled(grid, scale));
+            stats.prepass_s = tp.elapsed().as_secs_f64();
+        }
+        let t = Instant::now();
         let limits = predicted.as_ref().map(|front| RayLimits {
             front,
             only: None,
             threshold,
         });
-        stats.leaf_cast_s = vec![0.0; self.setup.leaves.len()];
-        let mut leaves = tokio::task::block_in_place(|| self.image(req, limits, &mut stats))?;
+        let size = (req.width, req.height);
+        let mut leaves = tokio::task::block_in_place(|| self.image(req, size, limits, &mut stats))?;
         // One leaf is the image; several are composited and kept for the occlusion check.
         let mut image = if leaves.len() == 1 {
             leaves.pop().expect("one leaf")
@@ -853,7 +872,7 @@ impl Node {
             //     less light than there is are cast again with this frame's thresholds.
             let t = Instant::now();
             let front = self
-                .occlusion_front(req, grid, &image, control, csend, frame_start)
+                .occlusion_front(req, grid, &image, false, control, csend, frame_start)
                 .await?;
             stats.occlusion_s = t.elapsed().as_secs_f64();
             if let Some(p) = &predicted {
@@ -879,7 +898,7 @@ impl Node {
                         threshold,
                     });
                     let again =
-                        tokio::task::block_in_place(|| self.image(req, limits, &mut stats))?;
+                        tokio::task::block_in_place(|| self.image(req, size, limits, &mut stats))?;
                     let again = composite_leaves(req.width, req.height, &again);
                     image = replace_blocks(&image, &again, &stale);
                     stats.fixup_s = t.elapsed().as_secs_f64();
@@ -1146,6 +1165,7 @@ impl Node {
         req: &FrameRequest,
         grid: BlockGrid,
         image: &PartialImage,
+        prepass: bool,
         control: &mut mpsc::Receiver<Result<CoordMsg, String>>,
         csend: &mut quinn::SendStream,
         frame_start: Instant,
@@ -1154,6 +1174,7 @@ impl Node {
         let msg = WorkerMsg::Coverage {
             frame: req.frame,
             rect: map.rect,
+            prepass,
         };
         let deadline = frame_start + self.timeout;
         let left = deadline.saturating_duration_since(Instant::now());
@@ -1176,7 +1197,11 @@ impl Node {
                 ),
             };
             match msg {
-                CoordMsg::Occlusion { frame, front } if frame == req.frame => {
+                CoordMsg::Occlusion {
+                    frame,
+                    front,
+                    prepass: p,
+                } if frame == req.frame && p == prepass => {
                     return levels_from_bytes(&front)
                         .and_then(|q| FrontTransmittance::checked(grid, q))
                         .with_context(|| {
@@ -1211,12 +1236,38 @@ impl Node {
         }
     }
 
+    /// Occlusion's first pass: each leaf cast once at `width × height` with the pages
+    /// resident now (no loads: a first pass that asked for its own coarser pages would
+    /// read more than it saves).
+    fn first_pass(
+        &mut self,
+        req: &FrameRequest,
+        (width, height): (u32, u32),
+        stats: &mut WorkerFrameStats,
+    ) -> Result<Vec<PartialImage>> {
+        let view = View::new(&req.camera, &self.engine.settings, width, height)?;
+        let mut images = Vec::new();
+        for &leaf in &req.leaf_order {
+            let region = *self
+                .setup
+                .leaves
+                .get(leaf as usize)
+                .ok_or_else(|| anyhow!("leaf {leaf} is not one of this worker's"))?;
+            let f = self.engine.render_frame(&view, &region)?;
+            stats.cast_s += f.seconds;
+            stats.samples += f.stats.samples;
+            images.push(f.image);
+        }
+        Ok(images)
+    }
+
     /// This worker's partial images for the frame, one per leaf, front to back (one for
     /// a synthetic frame), its rays limited by `limits` (cross-worker occlusion). Adds its
     /// costs to `stats` (so a re-cast adds to the first render).
     fn image(
         &mut self,
         req: &FrameRequest,
+        (width, height): (u32, u32),
         limits: Option<RayLimits<'_>>,
         stats: &mut WorkerFrameStats,
     ) -> Result<Vec<PartialImage>> {
@@ -1230,7 +1281,7 @@ impl Node {
                 *seed ^ req.frame,
             )]),
             FrameSource::Render => {
-                let view = View::new(&req.camera, &self.engine.settings, req.width, req.height)?;
+                let view = View::new(&req.camera, &self.engine.settings, width, height)?;
                 let mut images = Vec::new();
                 let mut outcome = Outcome::Converged;
                 stats
