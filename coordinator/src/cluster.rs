@@ -1094,42 +1094,40 @@ impl Cluster {
                             stats[rank as usize] = Some(s);
                             collect_s += t.elapsed().as_secs_f64();
                         }
+                        // Coverage of the first pass (while its maps are out) or of the frame
+                        // (after them): once every worker's is in, the maps go out.
                         Ok(WorkerMsg::Coverage {
                             frame: fno,
                             rect,
-                            prepass: true,
-                        }) if fno == frame && !pre_sent => {
+                            prepass,
+                        }) if fno == frame
+                            && if prepass {
+                                !pre_sent
+                            } else {
+                                pre_sent && !maps_sent
+                            } =>
+                        {
                             let t = Instant::now();
+                            let (g, cov, what) = if prepass {
+                                (pre_grid, &mut pre_coverage, "first-pass coverage")
+                            } else {
+                                (grid, &mut coverage, "occlusion coverage")
+                            };
                             let map = occlusion::levels_from_bytes(&f.bulk)
-                                .and_then(|q| Transmittance::checked(pre_grid, rect, q))
-                                .with_context(|| format!("first-pass coverage from {who}"))
+                                .and_then(|q| Transmittance::checked(g, rect, q))
+                                .with_context(|| format!("{what} from {who}"))
                                 .map_err(blame)?;
-                            pre_coverage[rank as usize] = Some(map);
-                            if slots.iter().all(|&r| pre_coverage[r as usize].is_some()) {
-                                self.send_occlusion(frame, &order, &pre_coverage, deadline, true)
+                            cov[rank as usize] = Some(map);
+                            if slots.iter().all(|&r| cov[r as usize].is_some()) {
+                                self.send_occlusion(frame, &order, cov, deadline, prepass)
                                     .await
                                     .map_err(|(e, r)| Failure::blaming(e, r))?;
-                                pre_sent = true;
-                            }
-                            occlusion_s += t.elapsed().as_secs_f64();
-                        }
-                        Ok(WorkerMsg::Coverage {
-                            frame: fno,
-                            rect,
-                            prepass: false,
-                        }) if fno == frame && pre_sent && !maps_sent => {
-                            let t = Instant::now();
-                            let map = occlusion::levels_from_bytes(&f.bulk)
-                                .and_then(|q| Transmittance::checked(grid, rect, q))
-                                .with_context(|| format!("occlusion coverage from {who}"))
-                                .map_err(blame)?;
-                            coverage[rank as usize] = Some(map);
-                            if slots.iter().all(|&r| coverage[r as usize].is_some()) {
-                                self.send_occlusion(frame, &order, &coverage, deadline, false)
-                                    .await
-                                    .map_err(|(e, r)| Failure::blaming(e, r))?;
-                                maps_sent = true;
-                                self.occlusion_last = Some((width, height, order.clone()));
+                                if prepass {
+                                    pre_sent = true;
+                                } else {
+                                    maps_sent = true;
+                                    self.occlusion_last = Some((width, height, order.clone()));
+                                }
                             }
                             occlusion_s += t.elapsed().as_secs_f64();
                         }

@@ -1236,6 +1236,15 @@ impl Node {
         }
     }
 
+    /// This worker's leaf `leaf` (an index from the coordinator, checked).
+    fn leaf(&self, leaf: u32) -> Result<strata_common::kd::Region> {
+        self.setup
+            .leaves
+            .get(leaf as usize)
+            .copied()
+            .ok_or_else(|| anyhow!("leaf {leaf} is not one of this worker's"))
+    }
+
     /// Occlusion's first pass: each leaf cast once at `width × height` with the pages
     /// resident now (no loads: a first pass that asked for its own coarser pages would
     /// read more than it saves).
@@ -1248,11 +1257,7 @@ impl Node {
         let view = View::new(&req.camera, &self.engine.settings, width, height)?;
         let mut images = Vec::new();
         for &leaf in &req.leaf_order {
-            let region = *self
-                .setup
-                .leaves
-                .get(leaf as usize)
-                .ok_or_else(|| anyhow!("leaf {leaf} is not one of this worker's"))?;
+            let region = self.leaf(leaf)?;
             let f = self.engine.render_frame(&view, &region)?;
             stats.cast_s += f.seconds;
             stats.samples += f.stats.samples;
@@ -1288,11 +1293,7 @@ impl Node {
                     .leaf_cast_s
                     .resize(self.setup.leaves.len().max(stats.leaf_cast_s.len()), 0.0);
                 for &leaf in &req.leaf_order {
-                    let region = *self
-                        .setup
-                        .leaves
-                        .get(leaf as usize)
-                        .ok_or_else(|| anyhow!("leaf {leaf} is not one of this worker's"))?;
+                    let region = self.leaf(leaf)?;
                     let r = self.engine.render_batch_limited(&view, &region, limits)?;
                     stats.render_rounds = stats.render_rounds.max(r.rounds);
                     stats.cast_s += r.cast_seconds;
