@@ -306,29 +306,6 @@ impl BlockMask {
         }
     }
 
-    /// Checks a mask received from elsewhere: one word per 64 blocks, no bit past the grid.
-    pub fn checked(grid: BlockGrid, bits: Vec<u64>) -> Result<Self, OcclusionError> {
-        if bits.len() != grid.words() {
-            return Err(OcclusionError::Length {
-                what: "block mask words",
-                got: bits.len(),
-                expected: grid.words(),
-            });
-        }
-        let mut m = BlockMask { grid, bits };
-        m.clear_tail();
-        Ok(m)
-    }
-
-    fn clear_tail(&mut self) {
-        let n = self.grid.len();
-        if !n.is_multiple_of(64) {
-            if let Some(last) = self.bits.last_mut() {
-                *last &= (1u64 << (n % 64)) - 1;
-            }
-        }
-    }
-
     /// Whether block `i` is set.
     #[inline]
     pub fn get(&self, i: usize) -> bool {
@@ -347,18 +324,6 @@ impl BlockMask {
         self.get(self.grid.block_of(x, y))
     }
 
-    /// Whether every block touching the pixel rectangle `[x, x + w) × [y, y + h)` is set.
-    pub fn covers(&self, x: u32, y: u32, w: u32, h: u32) -> bool {
-        if w == 0 || h == 0 {
-            return true;
-        }
-        let b = self.grid.block;
-        let (bx0, by0) = (x / b, y / b);
-        let (bx1, by1) = ((x + w - 1) / b, (y + h - 1) / b);
-        let cols = self.grid.cols() as usize;
-        (by0..=by1).all(|by| (bx0..=bx1).all(|bx| self.get(by as usize * cols + bx as usize)))
-    }
-
     /// Blocks set.
     pub fn count(&self) -> u64 {
         self.bits.iter().map(|w| w.count_ones() as u64).sum()
@@ -367,30 +332,6 @@ impl BlockMask {
     /// Whether any block is set.
     pub fn any(&self) -> bool {
         self.bits.iter().any(|&w| w != 0)
-    }
-
-    /// The blocks set here and not in `other` (same grid).
-    pub fn and_not(&self, other: &BlockMask) -> BlockMask {
-        assert_eq!(self.grid, other.grid);
-        BlockMask {
-            grid: self.grid,
-            bits: self
-                .bits
-                .iter()
-                .zip(&other.bits)
-                .map(|(a, b)| a & !b)
-                .collect(),
-        }
-    }
-
-    /// Every block not set here.
-    pub fn complement(&self) -> BlockMask {
-        let mut m = BlockMask {
-            grid: self.grid,
-            bits: self.bits.iter().map(|w| !w).collect(),
-        };
-        m.clear_tail();
-        m
     }
 }
 
@@ -871,11 +812,6 @@ mod tests {
         ));
         let huge = BlockRect { x: u32::MAX, ..r };
         assert!(Transmittance::checked(grid, huge, vec![0; 4]).is_err());
-        assert!(BlockMask::checked(grid, vec![]).is_err());
-        let m = BlockMask::checked(grid, vec![u64::MAX]).unwrap();
-        assert_eq!(m.count(), 6, "bits past the grid are dropped");
-        assert_eq!(m.complement().count(), 0);
-        assert!(m.covers(0, 0, 10, 7));
     }
 
     fn layer_strategy(g: u32) -> impl Strategy<Value = Vec<(Rect, Vec<f32>)>> {

@@ -87,6 +87,16 @@ fn bit_identical(a: &[[f32; 4]], b: &[[f32; 4]]) -> bool {
             .all(|(p, q)| (0..4).all(|c| p[c].to_bits() == q[c].to_bits()))
 }
 
+/// Generates a synthetic survey of `size` samples into `dir`; returns its scene file.
+fn synth_survey(dir: &Path, size: [&str; 3], seed: &str) -> PathBuf {
+    let mut args = vec!["synth", "-o", dir.to_str().unwrap(), "--size"];
+    args.extend_from_slice(&size);
+    args.extend_from_slice(&["--seed", seed]);
+    let o = run(&args, &[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    dir.join("scene.toml")
+}
+
 fn max_diff(a: &[[f32; 4]], b: &[[f32; 4]]) -> f32 {
     assert_eq!(a.len(), b.len());
     a.iter()
@@ -807,23 +817,7 @@ fn a_sequence_that_re_splits_the_tree_still_equals_in_process_frame_by_frame() {
     let dir = tempfile::tempdir().unwrap();
     // 5×5×2 bricks: fine enough that measured costs move the split planes off the
     // estimate's brick boundaries.
-    let big = dir.path().join("big");
-    let o = run(
-        &[
-            "synth",
-            "-o",
-            big.to_str().unwrap(),
-            "--size",
-            "256",
-            "256",
-            "64",
-            "--seed",
-            "3",
-        ],
-        &[],
-    );
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let scene = big.join("scene.toml");
+    let scene = synth_survey(&dir.path().join("big"), ["256", "256", "64"], "3");
     let go = |name: &str, extra: &[&str]| orbit_run(&scene, dir.path(), name, 4, extra);
     go("in", &["--in-process"]);
     // Threshold 1: any measured imbalance re-splits; 2 leaves per worker, full steps.
@@ -1331,23 +1325,7 @@ fn frame_counts(stats: &str) -> Vec<(u64, u64, u64)> {
 fn cross_worker_occlusion_casts_less_and_stays_within_the_termination_bound() {
     let dir = tempfile::tempdir().unwrap();
     // Opaque horizons and a dense volume: the workers behind have much that is hidden.
-    let survey = dir.path().join("survey");
-    let o = run(
-        &[
-            "synth",
-            "-o",
-            survey.to_str().unwrap(),
-            "--size",
-            "80",
-            "64",
-            "48",
-            "--seed",
-            "5",
-        ],
-        &[],
-    );
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let scene = survey.join("scene.toml");
+    let scene = synth_survey(&dir.path().join("survey"), ["80", "64", "48"], "5");
     // Four frames of a 40-frame orbit (9° apart): each frame predicts from the last, and
     // the camera moves enough that some predictions fail and are re-cast.
     let go = |name: &str, extra: &[&str]| {

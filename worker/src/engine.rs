@@ -492,7 +492,12 @@ impl Engine {
     }
 
     /// Prepares the per-frame structures for `region` seen through `view`.
-    fn setup<'a>(&'a self, view: &View, region: &Region) -> FrameSetup<'a> {
+    fn setup<'a>(
+        &'a self,
+        view: &View,
+        region: &Region,
+        limits: Option<RayLimits<'a>>,
+    ) -> FrameSetup<'a> {
         let s = &self.settings;
         let pa = view.pixel_angle;
         // Finest voxel spacing in display units (reference for step and opacity).
@@ -670,25 +675,19 @@ impl Engine {
             } else {
                 f32::INFINITY
             },
-            limits: None,
+            limits,
         }
     }
 
     /// The sampling bands a frame of `region` through `view` uses: `(start, step)` per band.
     pub fn sampling_bands(&self, view: &View, region: &Region) -> (Vec<f32>, Vec<f32>) {
-        let b = self.setup(view, region).bands;
+        let b = self.setup(view, region, None).bands;
         (b.start, b.dt)
     }
 
     /// Renders one frame of `region` with what is resident now, on the engine's backend.
     pub fn render_frame(&mut self, view: &View, region: &Region) -> Result<Frame> {
         self.render_frame_limited(view, region, None)
-    }
-
-    /// Whether this engine's caster takes per-ray limits ([`Engine::render_batch_limited`]):
-    /// both casters do.
-    pub fn supports_ray_limits(&self) -> bool {
-        true
     }
 
     /// [`Engine::render_frame`] under cross-worker occlusion: each ray with the termination
@@ -701,11 +700,8 @@ impl Engine {
         limits: Option<RayLimits<'_>>,
     ) -> Result<Frame> {
         let t = Instant::now();
-        if self.gpu.is_some() {
-            let mut gpu = self.gpu.take().expect("checked");
-            let mut setup = self.setup(view, region);
-            setup.limits = limits;
-            let res = gpu.render(&setup);
+        if let Some(mut gpu) = self.gpu.take() {
+            let res = gpu.render(&self.setup(view, region, limits));
             self.gpu = Some(gpu);
             let (image, feedback, stats, g) = res?;
             return Ok(Frame {
@@ -716,9 +712,7 @@ impl Engine {
                 gpu: g,
             });
         }
-        let mut setup = self.setup(view, region);
-        setup.limits = limits;
-        let out = setup.render();
+        let out = self.setup(view, region, limits).render();
         let mut feedback = Feedback::default();
         feedback.add(&out.feedback);
         Ok(Frame {

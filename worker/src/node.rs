@@ -1139,7 +1139,7 @@ impl Node {
     }
 
     /// The last frame's front transmittance, when it applies to this frame: same image
-    /// size and workers in front, something in front, and a caster that takes ray limits.
+    /// size and workers in front, and something in front.
     fn predicted_front(&self, req: &FrameRequest, grid: BlockGrid) -> Option<FrontTransmittance> {
         let last = self.front_last.as_ref()?;
         // The same workers in front of this one (their order among themselves does not
@@ -1155,7 +1155,7 @@ impl Node {
             && front(&last.order).is_some()
             && front(&last.order) == front(&req.order)
             && last.front.grid == grid;
-        (same && last.front.any() && self.engine.supports_ray_limits()).then(|| last.front.clone())
+        (same && last.front.any()).then(|| last.front.clone())
     }
 
     /// Sends this worker's block transmittance to the coordinator and waits for the
