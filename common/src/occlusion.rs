@@ -25,10 +25,12 @@
 //! transmittance lost to the f64 product.
 //!
 //! Levels are 16-bit: near the threshold that matters (`1 − t = 0.01`) an 8-bit level
-//! is off by up to 40 %, which left rays behind an almost opaque front cast for nothing. How the maps travel and when
-//! they are known is the caller's business (the cluster predicts from the previous frame
-//! and re-casts the blocks the current frame's maps do not confirm,
-//! [`FrontTransmittance::stale`]).
+//! is off by up to 40 %, which left rays behind an almost opaque front cast for nothing.
+//!
+//! How the maps travel and when they are known is the caller's business (the cluster
+//! predicts from the previous frame or from a low-resolution first pass,
+//! [`FrontTransmittance::upsampled`], and re-casts the blocks the current frame's maps do
+//! not confirm, [`FrontTransmittance::stale`]).
 
 use crate::image::PartialImage;
 use serde::{Deserialize, Serialize};
