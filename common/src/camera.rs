@@ -9,6 +9,7 @@
 use crate::geo::Affine3;
 use crate::kd::Region;
 use crate::scene::{Camera, RenderSettings};
+use crate::wall::{TileMap, WallGeometry};
 
 /// Why a camera cannot be made into a view.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -28,6 +29,9 @@ pub enum ViewError {
     /// No image orientation.
     #[error("camera.up is parallel to the viewing direction")]
     UpParallel,
+    /// A wall layout out of range.
+    #[error("{0}")]
+    Wall(String),
 }
 
 /// Display-space transform of world points: `(x, y, ±z · z_scale)`.
@@ -81,10 +85,15 @@ pub struct View {
     pub eye: [f64; 3],
     /// World → display map.
     pub display: DisplayMap,
-    /// Image width.
+    /// Image width (of the stacked image, for a wall).
     pub width: u32,
-    /// Image height.
+    /// Image height (of the stacked image, for a wall).
     pub height: u32,
+    /// Where image pixels lie on the frustum's image plane: the identity for a plain
+    /// image, a wall's tiles for [`View::wall`]. `dir00`, `du` and `dv` are of the plane.
+    pub tiles: TileMap,
+    /// The frustum's image plane in pixels (a wall's mullions included).
+    pub plane: (u32, u32),
     /// Angle of one pixel (radians): the footprint of a pixel at distance t is `t·pixel_angle`.
     pub pixel_angle: f32,
     /// Ray direction (unnormalized) through the corner of pixel (0, 0).
@@ -146,6 +155,8 @@ impl View {
             display,
             width,
             height,
+            tiles: TileMap::plain(width, height),
+            plane: (width, height),
             pixel_angle: (2.0 * tan / height as f64) as f32,
             dir00: dir00.map(|v| v as f32),
             du: du.map(|v| v as f32),
@@ -154,9 +165,27 @@ impl View {
         })
     }
 
-    /// The unit ray direction through the centre of pixel (x, y), camera-relative.
+    /// The view of a powerwall: one frustum over the whole wall, mullions included, whose
+    /// image is the stacked tiles without the mullion pixels ([`crate::wall`]).
+    pub fn wall(
+        camera: &Camera,
+        render: &RenderSettings,
+        wall: &WallGeometry,
+    ) -> Result<Self, ViewError> {
+        wall.check().map_err(ViewError::Wall)?;
+        let (pw, ph) = wall.plane_size();
+        let mut v = View::new(camera, render, pw, ph)?;
+        let (w, h) = wall.stacked_size();
+        v.width = w;
+        v.height = h;
+        v.tiles = wall.tile_map();
+        Ok(v)
+    }
+
+    /// The unit ray direction through the centre of image pixel (x, y), camera-relative.
     #[inline]
     pub fn ray_dir(&self, x: u32, y: u32) -> [f32; 3] {
+        let (x, y) = self.tiles.to_plane(x, y);
         let fx = x as f32 + 0.5;
         let fy = y as f32 + 0.5;
         let d = [0, 1, 2].map(|a| self.dir00[a] + fx * self.du[a] + fy * self.dv[a]);
@@ -276,5 +305,47 @@ mod tests {
         };
         let v = View::new(&cam, &r, 101, 51).unwrap();
         assert!(v.ray_dir(100, 25)[0] > 0.0);
+    }
+
+    #[test]
+    fn wall_rays_are_the_plane_rays_of_their_tiles() {
+        let cam = Camera {
+            eye: [3.0, -10.0, 2.0],
+            target: [0.0, 0.0, 0.0],
+            up: [0.0, 0.0, -1.0],
+            fov_deg: 50.0,
+        };
+        let r = RenderSettings::default();
+        let g = WallGeometry {
+            cols: 3,
+            rows: 2,
+            tile_w: 7,
+            tile_h: 5,
+            mullion_x: 2,
+            mullion_y: 3,
+        };
+        let wall = View::wall(&cam, &r, &g).unwrap();
+        let (pw, ph) = g.plane_size();
+        let plane = View::new(&cam, &r, pw, ph).unwrap();
+        assert_eq!((wall.width, wall.height), (7, 30));
+        assert_eq!(wall.plane, (pw, ph));
+        assert_eq!(wall.pixel_angle, plane.pixel_angle);
+        for t in 0..6 {
+            let (ox, oy) = g.tile_origin(t);
+            for y in 0..5 {
+                for x in 0..7 {
+                    assert_eq!(
+                        wall.ray_dir(x, t * 5 + y),
+                        plane.ray_dir(ox + x, oy + y),
+                        "tile {t} ({x}, {y})"
+                    );
+                }
+            }
+        }
+        let bad = WallGeometry { cols: 0, ..g };
+        assert!(matches!(
+            View::wall(&cam, &r, &bad),
+            Err(ViewError::Wall(_))
+        ));
     }
 }

@@ -141,6 +141,16 @@ pub struct FrameParams {
     /// thresholds buffer (`strata_common::occlusion::RayLimits`, one `f32` per block, < 0:
     /// not cast); 0: every ray of the rectangle with `ert`.
     pub occl_block: u32,
+    /// A wall's tiles (`strata_common::wall::TileMap`): tile columns (1 for a plain image).
+    /// Image pixel `(x, y)` lies on the plane of `dir00`, `du`, `dv` at
+    /// `((t % tile_cols)·pitch_x + x, (t / tile_cols)·pitch_y + y − t·tile_h)`, `t = y / tile_h`.
+    pub tile_cols: u32,
+    /// Rows of the image per tile (the image height for a plain image).
+    pub tile_h: u32,
+    /// Plane pixels from one tile column to the next.
+    pub pitch_x: u32,
+    /// Plane pixels from one tile row to the next.
+    pub pitch_y: u32,
 }
 
 /// One volume of a frame: its camera-relative → index transform, brick layout, LOD
@@ -400,7 +410,7 @@ pub struct HorizonParams {
 // after every [f32; 3]); the worker's naga test compares them with the shader.
 const _: () = assert!(size_of::<LevelInfo>() == 16);
 const _: () = assert!(size_of::<SlotInfo>() == 16);
-const _: () = assert!(size_of::<FrameParams>() == 176);
+const _: () = assert!(size_of::<FrameParams>() == 192);
 const _: () = assert!(offset_of!(FrameParams, band_start) == 80);
 const _: () = assert!(offset_of!(FrameParams, band_dt) == 112);
 const _: () = assert!(offset_of!(FrameParams, rect_h) == 144);
@@ -441,6 +451,10 @@ pub fn frame_params_offsets() -> Vec<(&'static str, usize)> {
         ("fb_entries", offset_of!(FrameParams, fb_entries)),
         ("n_hors", offset_of!(FrameParams, n_hors)),
         ("occl_block", offset_of!(FrameParams, occl_block)),
+        ("tile_cols", offset_of!(FrameParams, tile_cols)),
+        ("tile_h", offset_of!(FrameParams, tile_h)),
+        ("pitch_x", offset_of!(FrameParams, pitch_x)),
+        ("pitch_y", offset_of!(FrameParams, pitch_y)),
     ]
 }
 

@@ -51,4 +51,5 @@ pub mod sample;
 pub mod scene;
 pub mod store;
 pub mod tf;
+pub mod wall;
 pub mod wire;

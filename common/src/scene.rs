@@ -33,6 +33,64 @@ pub struct Scene {
     /// Workers: how many, where they come from, timeouts.
     #[serde(default)]
     pub cluster: ClusterSettings,
+    /// A powerwall: the frame is a grid of display tiles (`render.width`/`height` are then
+    /// not used).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub wall: Option<WallSettings>,
+}
+
+/// `[wall]`: a powerwall of `tiles` display tiles, each `tile_size` pixels, separated by
+/// `mullion` pixels of bezel, seen as one frustum ([`crate::wall`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WallSettings {
+    /// `[columns, rows]` of tiles.
+    pub tiles: [u32; 2],
+    /// `[width, height]` of one tile in pixels (default 1920×1080).
+    #[serde(default = "default_tile_size")]
+    pub tile_size: [u32; 2],
+    /// `[mx, my]`: bezel widths in pixels between horizontally and vertically neighbouring
+    /// tiles (default none).
+    #[serde(default)]
+    pub mullion: [u32; 2],
+    /// The worker rank that drives each tile, row-major from the top left (default: the
+    /// tiles in consecutive runs spread over the workers). A rank's tiles must be
+    /// consecutive in that order.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ranks: Option<Vec<u32>>,
+    /// Write the preview mosaic (the tiles with the mullions drawn in) to the output path
+    /// itself, assembled from the tile files.
+    #[serde(default = "yes")]
+    pub preview: bool,
+}
+
+impl WallSettings {
+    /// The geometry.
+    pub fn geometry(&self) -> crate::wall::WallGeometry {
+        crate::wall::WallGeometry {
+            cols: self.tiles[0],
+            rows: self.tiles[1],
+            tile_w: self.tile_size[0],
+            tile_h: self.tile_size[1],
+            mullion_x: self.mullion[0],
+            mullion_y: self.mullion[1],
+        }
+    }
+
+    /// The driving rank of each tile over `workers` workers (checked).
+    pub fn drivers(&self, workers: usize) -> Result<Vec<u32>, crate::wall::WallError> {
+        let g = self.geometry();
+        let d = match &self.ranks {
+            Some(r) => r.clone(),
+            None => g.default_drivers(workers),
+        };
+        g.check_drivers(&d, workers)?;
+        Ok(d)
+    }
+}
+
+fn default_tile_size() -> [u32; 2] {
+    [1920, 1080]
 }
 
 /// `[composite]`: the sort-last exchange.
@@ -660,6 +718,37 @@ impl Scene {
                 *f = base.join(&*f);
             }
         }
+        if let Some(w) = &scene.wall {
+            w.geometry().check().map_err(|message| {
+                // Point at the key of the `[wall]` section the message names.
+                let key = ["tiles", "tile_size", "mullion"]
+                    .into_iter()
+                    .find(|k| message.starts_with(&format!("wall.{k} ")))
+                    .unwrap_or("tiles");
+                let (line, column) = wall_key_position(text, key);
+                SceneError {
+                    path: path.to_path_buf(),
+                    line,
+                    column,
+                    message,
+                }
+            })?;
+            if let Some(r) = &w.ranks {
+                let tiles = w.geometry().tiles() as usize;
+                if r.len() != tiles {
+                    let (line, column) = wall_key_position(text, "ranks");
+                    return Err(SceneError {
+                        path: path.to_path_buf(),
+                        line,
+                        column,
+                        message: format!(
+                            "wall.ranks names {} ranks for {tiles} tiles (one per tile, row-major from the top left)",
+                            r.len()
+                        ),
+                    });
+                }
+            }
+        }
         Ok(scene)
     }
 
@@ -669,9 +758,62 @@ impl Scene {
     }
 }
 
+/// Line and column of `key` inside the scene's `[wall]` section (1, 1 when not found, e.g.
+/// for a value that came from `--set`).
+fn wall_key_position(text: &str, key: &str) -> (usize, usize) {
+    let Some(sec) = text.find("[wall]") else {
+        return (1, 1);
+    };
+    let mut at = sec;
+    for line in text[sec..].split_inclusive('\n').skip(1) {
+        at += text[at..].find(line).unwrap_or(0);
+        let t = line.trim_start();
+        if t.starts_with('[') {
+            break;
+        }
+        if t.starts_with(key) && t[key.len()..].trim_start().starts_with('=') {
+            return line_col(text, at + (line.len() - t.len()));
+        }
+    }
+    line_col(text, sec)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn wall_section_parses_and_bad_values_point_at_their_key() {
+        let s = Scene::parse(
+            Path::new("w.toml"),
+            "[wall]\ntiles = [3, 2]\nmullion = [40, 60]\n",
+        )
+        .unwrap();
+        let w = s.wall.as_ref().unwrap();
+        assert_eq!(w.tiles, [3, 2]);
+        assert_eq!(w.tile_size, [1920, 1080]);
+        assert_eq!(w.mullion, [40, 60]);
+        assert!(w.preview);
+        assert_eq!(w.drivers(4).unwrap(), [0, 0, 1, 2, 2, 3]);
+        let e = Scene::parse(
+            Path::new("w.toml"),
+            "[render]\nwidth = 8\n[wall]\ntiles = [3, 2]\ntile_size = [0, 10]\n",
+        )
+        .unwrap_err();
+        assert_eq!((e.line, e.column), (5, 1), "{e}");
+        assert!(e.to_string().contains("wall.tile_size"), "{e}");
+        let e = Scene::parse(
+            Path::new("w.toml"),
+            "[wall]\ntiles = [2, 1]\nranks = [0, 1, 2]\n",
+        )
+        .unwrap_err();
+        assert_eq!((e.line, e.column), (3, 1), "{e}");
+        let e = Scene::parse(Path::new("w.toml"), "[wall]\ntile_size = [4, 4]\n").unwrap_err();
+        assert!(e.to_string().contains("tiles"), "{e}");
+        let e =
+            Scene::parse(Path::new("w.toml"), "[wall]\ntiles = [2, 1]\nbezel = 3\n").unwrap_err();
+        assert_eq!(e.line, 3, "{e}");
+    }
 
     #[test]
     fn parses_and_resolves_paths() {

@@ -28,7 +28,7 @@ use serde::{de::DeserializeOwned, Deserialize, Serialize};
 /// Frame magic.
 pub const MAGIC: [u8; 4] = *b"STRF";
 /// Protocol version; bumped on any incompatible change of the header or the messages.
-pub const PROTOCOL_VERSION: u16 = 3;
+pub const PROTOCOL_VERSION: u16 = 4;
 /// Size of the frame header.
 pub const HEADER_LEN: usize = 24;
 /// Largest meta message any endpoint accepts (control messages are small; the scene text
@@ -428,6 +428,60 @@ pub struct FrameRequest {
     /// ([`WorkerMsg::Coverage`] and [`CoordMsg::Occlusion`] with `prepass`) as the
     /// prediction; 0: no first pass.
     pub occlusion_prepass: u32,
+    /// A powerwall frame: `width × height` is the wall's stacked image, rays follow its
+    /// tiles, compositing delivers each tile to its driver, which writes the tile's files;
+    /// the final pieces sent to the coordinator are empty.
+    pub wall: Option<WallFrame>,
+}
+
+/// A powerwall frame ([`crate::wall`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct WallFrame {
+    /// The tile layout.
+    pub geometry: crate::wall::WallGeometry,
+    /// The rank that drives each tile, row-major (each rank's tiles consecutive).
+    pub drivers: Vec<u32>,
+    /// Each tile's PNG, row-major.
+    pub png: Vec<std::path::PathBuf>,
+    /// Each tile's EXR, row-major, or none.
+    pub exr: Vec<std::path::PathBuf>,
+    /// Background the PNGs are flattened over (linear RGB).
+    pub background: [f32; 3],
+}
+
+impl WallFrame {
+    /// Checks a wall frame from the network against the frame's size and ranks.
+    pub fn check(&self, width: u32, height: u32, order: &[u32]) -> Result<(), String> {
+        let g = &self.geometry;
+        g.check()?;
+        if g.stacked_size() != (width, height) {
+            return Err(format!(
+                "a wall of {}x{} tiles of {}x{} stacks to {:?}, the frame is {width}x{height}",
+                g.cols,
+                g.rows,
+                g.tile_w,
+                g.tile_h,
+                g.stacked_size()
+            ));
+        }
+        let ranks = order.iter().copied().max().map_or(0, |m| m as usize + 1);
+        g.check_drivers(&self.drivers, ranks)
+            .map_err(|e| e.to_string())?;
+        if let Some(r) = self.drivers.iter().find(|r| !order.contains(r)) {
+            return Err(format!(
+                "tile driver rank {r} is not in the frame's order {order:?}"
+            ));
+        }
+        let t = g.tiles() as usize;
+        if self.png.len() != t || !(self.exr.is_empty() || self.exr.len() == t) {
+            return Err(format!(
+                "{} PNG and {} EXR paths for {t} tiles",
+                self.png.len(),
+                self.exr.len()
+            ));
+        }
+        Ok(())
+    }
 }
 
 /// Leaves one worker may be given.
@@ -562,6 +616,10 @@ pub struct WorkerFrameStats {
     pub fixup_s: f64,
     /// Seconds of occlusion's low-resolution first pass, its map exchange included.
     pub prepass_s: f64,
+    /// Wall frames: tiles this worker drives and wrote.
+    pub tiles_written: u32,
+    /// Wall frames: seconds writing them.
+    pub tile_write_s: f64,
     /// "converged", "round-limit" or "atlas-full".
     pub outcome: String,
     /// The backend and adapter that rendered, e.g. `gpu: NVIDIA H100 (Vulkan)` or `cpu (8 threads)`.

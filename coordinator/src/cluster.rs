@@ -25,14 +25,15 @@ use strata_common::image::Rgba;
 use strata_common::kd::Decomposition;
 use strata_common::occlusion::{self, BlockGrid, Transmittance};
 use strata_common::scene::Transport;
-use strata_common::scene::{Camera, Scene};
+use strata_common::scene::{Camera, Scene, WallSettings};
 use strata_common::wire::{
-    self, CompositeChoice, CoordMsg, FrameRequest, FrameSource, Limits, PeerInfo, Setup,
+    self, CompositeChoice, CoordMsg, FrameRequest, FrameSource, Limits, PeerInfo, Setup, WallFrame,
     WorkerFrameStats, WorkerMsg,
 };
 use strata_net::frame::{read_frame, with_timeout, write_frame, NetError};
 use strata_net::shm::ShmReader;
 use strata_net::{secret, tls, transport, Identity, NetConfig};
+use strata_worker::image_out::TileFiles;
 use tokio::sync::mpsc;
 use tracing::{debug, info, warn};
 
@@ -186,7 +187,13 @@ impl ClusterOptions {
             worker_threads: c.worker_threads as usize,
             secret,
             fingerprint_file: c.fingerprint_file.clone(),
-            max_pixels: scene.render.width as u64 * scene.render.height as u64,
+            max_pixels: match &scene.wall {
+                Some(w) => {
+                    let (sw, sh) = w.geometry().stacked_size();
+                    sw as u64 * sh as u64
+                }
+                None => scene.render.width as u64 * scene.render.height as u64,
+            },
             rebalance_threshold: c.rebalance_threshold,
             rebalance_damping: c.rebalance_damping,
             transport: c.transport,
@@ -357,9 +364,80 @@ pub struct Cluster {
     /// The ranks still in the run, in the order of the decomposition's workers (slot →
     /// rank); lost workers drop out.
     slots: Vec<u32>,
+    /// The wall frame [`Cluster::frame_wall`] is rendering.
+    wall: Option<WallJob>,
+}
+
+/// A wall frame's layout and outputs, before drivers are chosen over the ranks left.
+struct WallJob {
+    settings: WallSettings,
+    files: Vec<TileFiles>,
+    background: [f32; 3],
+}
+
+impl WallJob {
+    /// The frame's wall over the ranks `slots`: the scene's drivers, or the default spread
+    /// over those ranks.
+    fn frame(&self, slots: &[u32]) -> Result<WallFrame> {
+        let g = self.settings.geometry();
+        let drivers = match &self.settings.ranks {
+            Some(r) => {
+                if let Some(lost) = r.iter().find(|r| !slots.contains(r)) {
+                    bail!("wall.ranks: rank {lost} drives tiles but is not in the run (ranks {slots:?})");
+                }
+                r.clone()
+            }
+            None => g
+                .default_drivers(slots.len())
+                .into_iter()
+                .map(|i| slots[i as usize])
+                .collect(),
+        };
+        let ranks = slots.iter().copied().max().map_or(0, |m| m as usize + 1);
+        g.check_drivers(&drivers, ranks)?;
+        Ok(WallFrame {
+            geometry: g,
+            drivers,
+            png: self.files.iter().map(|f| f.png.clone()).collect(),
+            exr: self.files.iter().filter_map(|f| f.exr.clone()).collect(),
+            background: self.background,
+        })
+    }
 }
 
 impl Cluster {
+    /// Renders one frame of a powerwall: each tile's pixels are composited on the rank that
+    /// drives it, which writes the tile's `files` (PNG flattened over `background`, and
+    /// EXR); no process holds the whole wall. The result's `image` is empty.
+    pub async fn frame_wall(
+        &mut self,
+        camera: &Camera,
+        wall: &WallSettings,
+        files: &[TileFiles],
+        background: [f32; 3],
+        composite: &CompositeChoice,
+    ) -> Result<FrameResult> {
+        let g = wall.geometry();
+        g.check().map_err(|e| anyhow!(e))?;
+        anyhow::ensure!(
+            files.len() == g.tiles() as usize,
+            "{} tile files for {} tiles",
+            files.len(),
+            g.tiles()
+        );
+        self.wall = Some(WallJob {
+            settings: wall.clone(),
+            files: files.to_vec(),
+            background,
+        });
+        let (w, h) = g.stacked_size();
+        let r = self
+            .frame(camera, w, h, composite, FrameSource::Render)
+            .await;
+        self.wall = None;
+        r
+    }
+
     /// Decomposes the scene, starts (or awaits) the workers and sets them up.
     pub async fn start(scene: &Scene, opts: ClusterOptions) -> Result<Cluster> {
         let n = opts.workers;
@@ -465,6 +543,7 @@ impl Cluster {
             opts,
             frame_no: 0,
             occlusion_last: None,
+            wall: None,
             child_pids,
             costs,
             new_leaves: vec![None; n],
@@ -923,7 +1002,13 @@ impl Cluster {
             && block <= occlusion::MAX_BLOCK;
         // Without a prediction from the last frame for some worker, all take one from a
         // first pass at 1/PREPASS_SCALE of the resolution.
+        let wall = match &self.wall {
+            Some(j) => Some(j.frame(&slots).map_err(Failure::of)?),
+            None => None,
+        };
+        // (A wall's stacked tiles are not a picture a low-resolution pass could stand for.)
         let prepass = occlusion
+            && wall.is_none()
             && self.opts.occlusion_prepass
             && !self.occlusion_last.as_ref().is_some_and(|(w, h, last)| {
                 (*w, *h) == (width, height) && same_fronts(last, &order)
@@ -960,6 +1045,7 @@ impl Cluster {
                 leaves: self.new_leaves[rank as usize].take(),
                 occlusion_block: if occlusion { block } else { 0 },
                 occlusion_prepass: if prepass { PREPASS_SCALE } else { 0 },
+                wall: wall.clone(),
             });
             let w = &mut self.workers[rank as usize];
             let what = w.describe();
@@ -1178,10 +1264,35 @@ impl Cluster {
             .iter()
             .map(|&r| pieces[r as usize].take().unwrap())
             .collect();
-        let interlace = Interlace::new(width, height, slots.len() as u32, composite.interlace);
         let t = Instant::now();
-        let image = tokio::task::block_in_place(|| assemble(width, height, &interlace, &pieces))
-            .map_err(|e| Failure::of(e.into()))?;
+        let image = match &wall {
+            // Tiles were written by their drivers: check each wrote all of its own.
+            Some(w) => {
+                for s in &stats {
+                    let want = w.drivers.iter().filter(|&&d| d == s.rank).count() as u32;
+                    if s.tiles_written != want {
+                        return Err(Failure::of(anyhow!(
+                            "frame {frame}: {} drives {want} wall tiles but wrote {}",
+                            self.workers[s.rank as usize].describe(),
+                            s.tiles_written
+                        )));
+                    }
+                }
+                if let Some(p) = pieces.iter().find(|p| !p.span.is_empty()) {
+                    return Err(Failure::of(anyhow!(
+                        "frame {frame}: a wall frame's final piece holds pixels {}",
+                        p.span
+                    )));
+                }
+                Vec::new()
+            }
+            None => {
+                let interlace =
+                    Interlace::new(width, height, slots.len() as u32, composite.interlace);
+                tokio::task::block_in_place(|| assemble(width, height, &interlace, &pieces))
+                    .map_err(|e| Failure::of(e.into()))?
+            }
+        };
         let assemble_s = t.elapsed().as_secs_f64();
         // Rendering includes waiting for the occlusion maps and the fix-up render.
         let slowest_render = stats

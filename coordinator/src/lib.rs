@@ -20,7 +20,7 @@ pub mod cluster;
 pub mod decompose;
 pub mod demo;
 pub mod horizon_text;
-pub mod image_out;
+pub use strata_worker::image_out;
 pub mod inspect;
 pub mod overrides;
 pub mod render;

@@ -631,6 +631,18 @@ fn run(cli: Cli) -> Result<()> {
                     s.sequence[0].output,
                     s.sequence[s.sequence.len() - 1].output
                 );
+            } else if let Some([c, r]) = s.wall {
+                use strata_common::wall::tile_path;
+                for o in std::iter::once(&a.output).chain(&a.exr) {
+                    println!(
+                        "wrote {c}x{r} wall tiles {} … {}",
+                        tile_path(o, 0, 0).display(),
+                        tile_path(o, c - 1, r - 1).display()
+                    );
+                }
+                if s.wall_preview {
+                    println!("wrote the preview mosaic {}", a.output.display());
+                }
             } else {
                 println!("wrote {}", a.output.display());
                 if let Some(e) = &a.exr {

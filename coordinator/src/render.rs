@@ -108,9 +108,23 @@ fn load_path(p: &Path) -> Result<strata_common::camera_path::CameraPath> {
 /// Whether frame outputs already exist complete (a PNG of the right size that decodes, and
 /// the EXR when one is asked for), so a resumed job skips the frame. Outputs are written
 /// atomically, so a killed job leaves no half-written file under these names.
-fn complete(f: &FramePlan, width: u32, height: u32) -> bool {
-    let png_ok = (|| -> Option<()> {
-        let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&f.png).ok()?));
+fn complete(scene: &Scene, f: &FramePlan, width: u32, height: u32) -> bool {
+    if let Some(wall) = &scene.wall {
+        // Every tile's files, and the preview when one is asked for.
+        let g = wall.geometry();
+        let (pw, ph) = g.plane_size();
+        let tiles = image_out::tile_files(&g, &f.png, f.exr.as_deref());
+        return tiles.iter().all(|t| {
+            png_complete(&t.png, g.tile_w, g.tile_h) && t.exr.as_ref().is_none_or(|e| e.is_file())
+        }) && (!wall.preview || png_complete(&f.png, pw, ph));
+    }
+    png_complete(&f.png, width, height) && f.exr.as_ref().is_none_or(|e| e.is_file())
+}
+
+/// Whether `png` is a PNG of `width × height` that decodes.
+fn png_complete(png: &Path, width: u32, height: u32) -> bool {
+    (|| -> Option<()> {
+        let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(png).ok()?));
         let mut reader = decoder.read_info().ok()?;
         let info = reader.info();
         if (info.width, info.height) != (width, height) {
@@ -120,8 +134,7 @@ fn complete(f: &FramePlan, width: u32, height: u32) -> bool {
         reader.next_frame(&mut buf).ok()?;
         Some(())
     })()
-    .is_some();
-    png_ok && f.exr.as_ref().is_none_or(|e| e.is_file())
+    .is_some()
 }
 
 /// One frame of a sequence: its number, camera and output paths.
@@ -140,6 +153,7 @@ const MAX_FRAMES: u32 = 1_000_000;
 /// were skipped because their outputs are complete already.
 fn plan_frames(
     opts: &RenderOptions,
+    scene: &Scene,
     camera: &Camera,
     width: u32,
     height: u32,
@@ -205,7 +219,7 @@ fn plan_frames(
                 .map(|e| crate::sequence::numbered(e, i))
                 .transpose()?,
         };
-        if complete(&f, width, height) {
+        if complete(scene, &f, width, height) {
             skipped += 1;
         } else {
             plan.push((i, f));
@@ -319,6 +333,10 @@ pub struct RenderSummary {
     /// Re-splits of the k-d tree between frames (distributed sequences).
     #[serde(skip)]
     pub rebalances: Vec<crate::cluster::Rebalance>,
+    /// A powerwall's `[columns, rows]` of tiles (each frame wrote one file per tile).
+    pub wall: Option<[u32; 2]>,
+    /// Whether the wall's preview mosaic was written to the output path.
+    pub wall_preview: bool,
 }
 
 impl RenderSummary {
@@ -386,7 +404,59 @@ fn prepare(opts: &RenderOptions, progress: &ProgressBar) -> Result<(Scene, bool)
         "{}: render.width and render.height must lie in 1..=32768, got {w}x{h}",
         opts.scene.display()
     );
+    if let Some(wall) = &scene.wall {
+        wall.geometry()
+            .check()
+            .map_err(|e| anyhow::anyhow!("{}: {e}", opts.scene.display()))?;
+    }
     Ok((scene, generated))
+}
+
+/// The image a frame renders: the scene's `render.width × height`, or a wall's stacked
+/// tiles.
+fn frame_size(scene: &Scene) -> (u32, u32) {
+    match &scene.wall {
+        Some(w) => w.geometry().stacked_size(),
+        None => (scene.render.width, scene.render.height),
+    }
+}
+
+/// Writes a frame's outputs from its image (`w × h`, the stacked tiles for a wall): the PNG
+/// and EXR, or a wall's tile files and its preview mosaic.
+fn write_outputs(scene: &Scene, f: &FramePlan, w: u32, h: u32, image: &[[f32; 4]]) -> Result<()> {
+    let bg = scene.render.background.map(|c| c as f32);
+    match &scene.wall {
+        None => {
+            image_out::write_png(&f.png, w, h, image, bg)?;
+            if let Some(exr) = &f.exr {
+                image_out::write_exr(exr, w, h, image)?;
+            }
+        }
+        Some(wall) => {
+            let g = wall.geometry();
+            let files = image_out::tile_files(&g, &f.png, f.exr.as_deref());
+            image_out::write_tiles(&g, 0, image, &files, bg)?;
+            if wall.preview {
+                image_out::write_preview(&g, &files, &f.png)?;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The view of a frame: the camera over `w × h` pixels, or over a wall's frustum.
+fn frame_view(
+    scene: &Scene,
+    camera: &Camera,
+    settings: &strata_common::scene::RenderSettings,
+    w: u32,
+    h: u32,
+) -> Result<strata_common::camera::View> {
+    use strata_common::camera::View;
+    Ok(match &scene.wall {
+        Some(wall) => View::wall(camera, settings, &wall.geometry())?,
+        None => View::new(camera, settings, w, h)?,
+    })
 }
 
 /// The composite settings of a scene as carried in frame requests (checked: a plan is
@@ -416,8 +486,12 @@ pub fn composite_choice(scene: &Scene, workers: usize) -> Result<CompositeChoice
 pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Result<RenderSummary> {
     let t0 = Instant::now();
     let (scene, generated) = prepare(opts, progress)?;
-    let (w, h) = (scene.render.width, scene.render.height);
+    let (w, h) = frame_size(&scene);
     let copts = ClusterOptions::from_scene(&scene, opts.workers)?;
+    if let Some(wall) = &scene.wall {
+        wall.drivers(copts.workers)
+            .with_context(|| format!("{}: [wall]", opts.scene.display()))?;
+    }
     let n = copts.workers;
     let choice = composite_choice(&scene, n)?;
     let camera = match &scene.camera {
@@ -427,7 +501,7 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
             strata_common::camera::default_camera(&data.bounds(), &scene.render)
         }
     };
-    let (plan, skipped) = plan_frames(opts, &camera, w, h)?;
+    let (plan, skipped) = plan_frames(opts, &scene, &camera, w, h)?;
     if plan.is_empty() {
         return Ok(RenderSummary::nothing(w, h, skipped, generated, t0));
     }
@@ -446,18 +520,32 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
             for f in &plan {
                 let i = f.index;
                 let t = Instant::now();
-                let fr = cluster
-                    .frame(&f.camera, w, h, &choice, FrameSource::Render)
-                    .await
-                    .with_context(|| format!("frame {i}"))?;
-                tokio::task::block_in_place(|| -> Result<()> {
-                    let bg = scene.render.background.map(|c| c as f32);
-                    image_out::write_png(&f.png, w, h, &fr.image, bg)?;
-                    if let Some(exr) = &f.exr {
-                        image_out::write_exr(exr, w, h, &fr.image)?;
+                let bg = scene.render.background.map(|c| c as f32);
+                let fr = match &scene.wall {
+                    // The drivers write the tiles; the preview is assembled from them.
+                    Some(wall) => {
+                        let g = wall.geometry();
+                        let files = image_out::tile_files(&g, &f.png, f.exr.as_deref());
+                        let fr = cluster
+                            .frame_wall(&f.camera, wall, &files, bg, &choice)
+                            .await
+                            .with_context(|| format!("frame {i}"))?;
+                        if wall.preview {
+                            tokio::task::block_in_place(|| {
+                                image_out::write_preview(&g, &files, &f.png)
+                            })?;
+                        }
+                        fr
                     }
-                    Ok(())
-                })?;
+                    None => {
+                        let fr = cluster
+                            .frame(&f.camera, w, h, &choice, FrameSource::Render)
+                            .await
+                            .with_context(|| format!("frame {i}"))?;
+                        tokio::task::block_in_place(|| write_outputs(&scene, f, w, h, &fr.image))?;
+                        fr
+                    }
+                };
                 sequence.push(FrameSummary {
                     frame: i,
                     output: display(&f.png),
@@ -553,6 +641,8 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
         sequence,
         skipped,
         rebalances,
+        wall: scene.wall.as_ref().map(|w| w.tiles),
+        wall_preview: scene.wall.as_ref().is_some_and(|w| w.preview),
     })
 }
 
@@ -567,32 +657,28 @@ fn worst_outcome<'a>(outcomes: impl Iterator<Item = &'a str>) -> String {
 pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result<RenderSummary> {
     let t0 = Instant::now();
     let (scene, generated) = prepare(opts, progress)?;
-    let (w, h) = (scene.render.width, scene.render.height);
+    let (w, h) = frame_size(&scene);
     let mut engine =
         Engine::new(&scene).with_context(|| format!("scene {}", opts.scene.display()))?;
     let region = engine.scene_region();
-    let (plan, skipped) = plan_frames(opts, &engine.camera().clone(), w, h)?;
+    let (plan, skipped) = plan_frames(opts, &scene, &engine.camera().clone(), w, h)?;
     if plan.is_empty() {
         return Ok(RenderSummary::nothing(w, h, skipped, generated, t0));
     }
     progress.set_message("rendering");
     frame_progress(progress, plan.len());
-    let bg = scene.render.background.map(|c| c as f32);
     let (mut cast_seconds, mut load_seconds) = (0.0, 0.0);
     let mut sequence = Vec::with_capacity(plan.len());
     let mut last = None;
     for f in &plan {
         let i = f.index;
         let t = Instant::now();
-        let view = strata_common::camera::View::new(&f.camera, &engine.settings, w, h)?;
+        let view = frame_view(&scene, &f.camera, &engine.settings, w, h)?;
         let result = engine
             .render_batch(&view, &region)
             .with_context(|| format!("frame {i}"))?;
         let full = result.image.to_full();
-        image_out::write_png(&f.png, w, h, &full, bg)?;
-        if let Some(exr) = &f.exr {
-            image_out::write_exr(exr, w, h, &full)?;
-        }
+        write_outputs(&scene, f, w, h, &full)?;
         cast_seconds += result.cast_seconds;
         load_seconds += result.load_seconds;
         sequence.push(FrameSummary {
@@ -631,6 +717,8 @@ pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result
         frame_count: sequence.len(),
         sequence,
         skipped,
+        wall: scene.wall.as_ref().map(|w| w.tiles),
+        wall_preview: scene.wall.as_ref().is_some_and(|w| w.preview),
         ..RenderSummary::default()
     })
 }

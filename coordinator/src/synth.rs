@@ -374,6 +374,7 @@ pub fn synth(
         synthetic: None,
         composite: Default::default(),
         cluster: Default::default(),
+        wall: None,
     };
     let scene_path = dir.join("scene.toml");
     write_atomically(

@@ -42,17 +42,7 @@ fn run(args: &[&str], env: &[(&str, &str)]) -> Output {
 }
 
 fn read_exr(p: &Path) -> Vec<[f32; 4]> {
-    use exr::prelude::*;
-    let img = read_first_rgba_layer_from_file(
-        p,
-        |res, _| vec![[0f32; 4]; res.width() * res.height()],
-        |px: &mut Vec<[f32; 4]>, pos, (r, g, b, a): (f32, f32, f32, f32)| {
-            let w = 96;
-            px[pos.y() * w + pos.x()] = [r, g, b, a];
-        },
-    )
-    .unwrap();
-    img.layer_data.channel_data.pixels
+    read_exr_sized(p, 96)
 }
 
 /// Renders the survey. Early ray termination is off: a region cannot know the opacity in
@@ -1488,4 +1478,162 @@ fn cross_worker_occlusion_casts_less_and_stays_within_the_termination_bound() {
             "frame {i}: {gpu_n:?} against {gpu_off_n:?}"
         );
     }
+}
+
+fn read_exr_sized(p: &Path, w: usize) -> Vec<[f32; 4]> {
+    use exr::prelude::*;
+    let img = read_first_rgba_layer_from_file(
+        p,
+        |res, _| vec![[0f32; 4]; res.width() * res.height()],
+        move |px: &mut Vec<[f32; 4]>, pos, (r, g, b, a): (f32, f32, f32, f32)| {
+            px[pos.y() * w + pos.x()] = [r, g, b, a];
+        },
+    )
+    .unwrap();
+    img.layer_data.channel_data.pixels
+}
+
+/// A 3×2 wall of 24×20 tiles with 6×4-pixel mullions: every tile equals the crop of one
+/// render of the whole frustum (84×44, mullions included), in-process and distributed; each
+/// tile is written by the rank that drives it, which receives pieces of its own tiles only,
+/// and a rank that drives nothing receives nothing.
+#[test]
+fn a_wall_renders_each_tile_on_its_driver_like_the_crop_of_one_frustum() {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("wall");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let scene = survey().join("scene.toml");
+    let go = |name: &str, extra: &[&str]| -> PathBuf {
+        let png = dir.join(format!("{name}.png"));
+        let exr = dir.join(format!("{name}.exr"));
+        let stats = dir.join(format!("{name}.jsonl"));
+        let mut args = vec![
+            "render",
+            scene.to_str().unwrap(),
+            "-o",
+            png.to_str().unwrap(),
+            "--exr",
+            exr.to_str().unwrap(),
+            "--stats",
+            stats.to_str().unwrap(),
+            "--set",
+            "render.early_termination=1.0",
+        ];
+        args.extend_from_slice(extra);
+        let o = run(&args, &[]);
+        assert!(
+            o.status.success(),
+            "{name}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        png
+    };
+    let wall = [
+        "--set",
+        "wall.tiles=[3,2]",
+        "--set",
+        "wall.tile_size=[24,20]",
+        "--set",
+        "wall.mullion=[6,4]",
+    ];
+    go("plane", &["--in-process", "--size", "84x44"]);
+    let plane = read_exr_sized(&dir.join("plane.exr"), 84);
+    let mut local = wall.to_vec();
+    local.push("--in-process");
+    go("local", &local);
+    let mut dist = wall.to_vec();
+    dist.extend(["--workers", "3", "--set", "wall.ranks=[0,0,0,2,2,2]"]);
+    go("dist", &dist);
+    let mut worst = 0.0f32;
+    for t in 0..6u32 {
+        let (c, r) = (t % 3, t / 3);
+        let crop: Vec<[f32; 4]> = (0..20)
+            .flat_map(|y| {
+                let row = (r * 24 + y) as usize * 84 + (c * 30) as usize;
+                plane[row..row + 24].to_vec()
+            })
+            .collect();
+        let local = read_exr_sized(&dir.join(format!("local_c{c}r{r}.exr")), 24);
+        let dist = read_exr_sized(&dir.join(format!("dist_c{c}r{r}.exr")), 24);
+        worst = worst.max(max_diff(&local, &crop));
+        assert!(
+            max_diff(&local, &crop) <= 1e-5,
+            "tile ({c}, {r}) in-process vs the frustum's crop"
+        );
+        assert!(
+            max_diff(&dist, &local) <= 1e-5,
+            "tile ({c}, {r}) distributed vs in-process"
+        );
+        assert!(dir.join(format!("dist_c{c}r{r}.png")).is_file());
+    }
+    let alpha: f32 = plane.iter().map(|p| p[3]).sum();
+    assert!(
+        alpha > 50.0,
+        "the survey must be visible on the wall (alpha {alpha})"
+    );
+    eprintln!("wall tiles vs the frustum's crop: max difference {worst:e}");
+    // The preview mosaic: the frustum's size, mullions drawn in.
+    let decoder = png::Decoder::new(std::io::BufReader::new(
+        std::fs::File::open(dir.join("dist.png")).unwrap(),
+    ));
+    let mut reader = decoder.read_info().unwrap();
+    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut buf).unwrap();
+    assert_eq!((info.width, info.height), (84, 44));
+    for (x, y) in [(24, 0), (29, 43), (0, 20), (83, 23), (55, 21)] {
+        let i = (y * 84 + x) * 3;
+        assert_eq!(
+            buf[i..i + 3],
+            strata_worker::image_out::MULLION_RGB,
+            "({x}, {y})"
+        );
+    }
+    // Drivers: rank 0 tiles 0-2, rank 2 tiles 3-5, rank 1 none.
+    let stats = std::fs::read_to_string(dir.join("dist.jsonl")).unwrap();
+    let workers: Vec<serde_json::Value> = stats
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .filter(|v| v["kind"] == "worker")
+        .collect();
+    assert_eq!(workers.len(), 3);
+    let tile_bytes = 24 * 20 * 16u64;
+    for w in &workers {
+        let rank = w["rank"].as_u64().unwrap();
+        let written = w["tiles_written"].as_u64().unwrap();
+        let received = w["bytes_received"].as_u64().unwrap();
+        match rank {
+            0 | 2 => {
+                assert_eq!(written, 3, "{w}");
+                // At most the two other ranks' pieces of its three tiles (plus headers).
+                assert!(received <= 2 * 3 * tile_bytes + 2 * 64, "{w}");
+            }
+            _ => {
+                assert_eq!(written, 0, "{w}");
+                assert_eq!(received, 0, "{w}");
+            }
+        }
+    }
+    // A rank's tiles must be consecutive: an error naming the rule, no panic.
+    let png = dir.join("bad.png");
+    let o = run(
+        &[
+            "render",
+            scene.to_str().unwrap(),
+            "-o",
+            png.to_str().unwrap(),
+            "--workers",
+            "2",
+            "--set",
+            "wall.tiles=[3,1]",
+            "--set",
+            "wall.tile_size=[8,8]",
+            "--set",
+            "wall.ranks=[0,1,0]",
+        ],
+        &[],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
+    assert!(err.contains("consecutive"), "{err}");
+    assert!(!png.exists());
 }

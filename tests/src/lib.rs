@@ -212,6 +212,7 @@ pub mod scenes {
             synthetic: None,
             composite: Default::default(),
             cluster: Default::default(),
+            wall: None,
         }
     }
 

@@ -650,6 +650,7 @@ impl Engine {
             dir00: view.dir00,
             du: view.du,
             dv: view.dv,
+            tiles: view.tiles,
             region_lo,
             region_hi,
             rect,
@@ -936,7 +937,8 @@ fn validate(s: &RenderSettings) -> Result<()> {
 }
 
 /// Pixels that can see `region`: the bounding box of its projected corners, or the whole
-/// image when the eye is inside or behind a corner.
+/// image when the eye is inside or behind a corner. For a wall the box is found on the
+/// frustum's plane and then cut to the tiles (mullion pixels are not in the image).
 fn screen_rect(view: &View, region: &Region) -> Rect {
     let full = Rect {
         x: 0,
@@ -950,6 +952,7 @@ fn screen_rect(view: &View, region: &Region) -> Rect {
     let f = view.forward;
     let du2: f32 = view.du.iter().map(|v| v * v).sum();
     let dv2: f32 = view.dv.iter().map(|v| v * v).sum();
+    let (pw, ph) = view.plane;
     let (mut x0, mut y0, mut x1, mut y1) = (f32::MAX, f32::MAX, f32::MIN, f32::MIN);
     for c in 0..8 {
         let w = [0, 1, 2].map(|k| {
@@ -967,8 +970,8 @@ fn screen_rect(view: &View, region: &Region) -> Rect {
         }
         let px = (p[0] * view.du[0] + p[1] * view.du[1] + p[2] * view.du[2]) / (du2 * z);
         let py = (p[0] * view.dv[0] + p[1] * view.dv[1] + p[2] * view.dv[2]) / (dv2 * z);
-        let x = view.width as f32 / 2.0 + px;
-        let y = view.height as f32 / 2.0 + py;
+        let x = pw as f32 / 2.0 + px;
+        let y = ph as f32 / 2.0 + py;
         x0 = x0.min(x);
         x1 = x1.max(x);
         y0 = y0.min(y);
@@ -979,15 +982,48 @@ fn screen_rect(view: &View, region: &Region) -> Rect {
     }
     let xa = (x0.floor() - 1.0).max(0.0) as u32;
     let ya = (y0.floor() - 1.0).max(0.0) as u32;
-    let xb = ((x1.ceil() + 1.0).max(0.0) as u32).min(view.width);
-    let yb = ((y1.ceil() + 1.0).max(0.0) as u32).min(view.height);
+    let xb = ((x1.ceil() + 1.0).max(0.0) as u32).min(pw);
+    let yb = ((y1.ceil() + 1.0).max(0.0) as u32).min(ph);
     if xa >= xb || ya >= yb {
         return Rect::EMPTY;
     }
+    plane_rect_to_image(view, xa, ya, xb, yb)
+}
+
+/// The image pixels whose plane pixels lie in `[xa, xb) × [ya, yb)`: the rectangle itself
+/// for a plain image, the bounding box of its parts in the tiles for a wall.
+fn plane_rect_to_image(view: &View, xa: u32, ya: u32, xb: u32, yb: u32) -> Rect {
+    let m = view.tiles;
+    if m.is_plain() {
+        return Rect {
+            x: xa,
+            y: ya,
+            w: xb - xa,
+            h: yb - ya,
+        };
+    }
+    let (tw, th) = (view.width, m.tile_h);
+    let tiles = view.height / th;
+    let (mut ix0, mut iy0, mut ix1, mut iy1) = (u32::MAX, u32::MAX, 0, 0);
+    for t in 0..tiles {
+        let (c, r) = (t % m.cols, t / m.cols);
+        let (ox, oy) = (c * m.pitch_x, r * m.pitch_y);
+        let (cx0, cx1) = (xa.max(ox), xb.min(ox + tw));
+        let (cy0, cy1) = (ya.max(oy), yb.min(oy + th));
+        if cx0 < cx1 && cy0 < cy1 {
+            ix0 = ix0.min(cx0 - ox);
+            ix1 = ix1.max(cx1 - ox);
+            iy0 = iy0.min(t * th + cy0 - oy);
+            iy1 = iy1.max(t * th + cy1 - oy);
+        }
+    }
+    if ix0 >= ix1 || iy0 >= iy1 {
+        return Rect::EMPTY;
+    }
     Rect {
-        x: xa,
-        y: ya,
-        w: xb - xa,
-        h: yb - ya,
+        x: ix0,
+        y: iy0,
+        w: ix1 - ix0,
+        h: iy1 - iy0,
     }
 }

@@ -19,6 +19,8 @@
 //! functions and colour maps, page transparency, affine inverses) lives in
 //! `strata_common` (`camera`, `tf`, `geo`).
 //! * [`engine`]: frames, feedback → loads → atlas updates, batch convergence.
+//! * [`image_out`]: PNG (sRGB, flattened) and OpenEXR (float RGBA) writers, atomic; a
+//!   wall's tile files and its preview mosaic.
 #![deny(missing_docs)]
 
 pub mod atlas;
@@ -29,6 +31,7 @@ pub mod engine;
 pub mod feedback;
 pub mod gpu;
 pub mod horizon;
+pub mod image_out;
 pub mod macrocell;
 pub mod node;
 pub mod packet;

@@ -17,6 +17,7 @@
 //! turns into an error that names it and blames it (`WorkerMsg::Failed::suspects`).
 
 use crate::engine::{Engine, Outcome};
+use crate::image_out::{write_tiles, TileFiles};
 use anyhow::{anyhow, bail, Context, Result};
 use std::collections::HashMap;
 use std::net::SocketAddr;
@@ -24,8 +25,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use strata_common::camera::View;
 use strata_common::composite::{
-    build_plan, Exchange, ExchangeError, ExchangeEvent, ExchangeLimits, Interlace, Outgoing, Plan,
-    RankCompositor, SparsePiece,
+    build_plan, build_plan_to, Exchange, ExchangeError, ExchangeEvent, ExchangeLimits, Interlace,
+    Outgoing, Plan, RankCompositor, Span, SparsePiece,
 };
 use strata_common::image::{composite_front_to_back, PartialImage, Rect, Rgba};
 use strata_common::occlusion::{
@@ -804,6 +805,10 @@ impl Node {
                 req.order
             );
         }
+        if let Some(w) = &req.wall {
+            w.check(req.width, req.height, &req.order)
+                .map_err(|e| anyhow!("frame {}: bad wall: {e}", req.frame))?;
+        }
         let frame_start = Instant::now();
         self.lz4 = req.composite.lz4;
         let position = req
@@ -836,7 +841,7 @@ impl Node {
         } else {
             None
         };
-        if occlusion && req.occlusion_prepass > 0 {
+        if occlusion && req.occlusion_prepass > 0 && req.wall.is_none() {
             // 0. No prediction for some worker: all take one from a first pass at
             //    1/scale of the resolution (its own map exchange).
             let tp = Instant::now();
@@ -933,9 +938,23 @@ impl Node {
         test_fault(self.rank, req.frame, "exchange");
         // 2. The exchange.
         let key = (n, px, req.composite.clone());
-        let plan = match self.plans.get(&key) {
-            Some(p) => p.clone(),
-            None => {
+        let plan = match (&req.wall, self.plans.get(&key)) {
+            // A wall: direct send to each tile's driver (IceT's multi-tile direct
+            // compositing), its targets following the frame's order.
+            (Some(w), _) => {
+                let spans = w.geometry.driver_spans(&w.drivers, all);
+                let targets: Vec<Span> = req
+                    .order
+                    .iter()
+                    .map(|&r| {
+                        let (a, b) = spans[r as usize];
+                        Span::new(a, b)
+                    })
+                    .collect();
+                Arc::new(build_plan_to(px, &targets)?)
+            }
+            (None, Some(p)) => p.clone(),
+            (None, None) => {
                 let k: Vec<usize> = req.composite.k.iter().map(|&k| k as usize).collect();
                 let p = Arc::new(build_plan(
                     n,
@@ -947,7 +966,13 @@ impl Node {
                 p
             }
         };
-        let interlace = Interlace::new(req.width, req.height, n as u32, req.composite.interlace);
+        // A wall's tiles are runs of whole rows: no interlacing.
+        let interlace = Interlace::new(
+            req.width,
+            req.height,
+            n as u32,
+            req.composite.interlace && req.wall.is_none(),
+        );
         let format = req.composite.format;
         let rc = RankCompositor::new(plan.clone(), position, &image, &interlace)?;
         drop(image);
@@ -1035,6 +1060,28 @@ impl Node {
         stats.bytes_received = x.bytes_received;
         stats.exchange_s =
             (t_exchange.elapsed().as_secs_f64() - stats.encode_s - stats.blend_s).max(0.0);
+        let result = match &req.wall {
+            // The tiles this rank drives go to their files; the coordinator gets nothing.
+            Some(w) if !result.span.is_empty() => {
+                let t = Instant::now();
+                let g = &w.geometry;
+                let first = result.span.start / g.tile_pixels();
+                let mut px = vec![[0.0f32; 4]; result.span.len() as usize];
+                result.decode_into(&mut px, result.span.start)?;
+                let files: Vec<TileFiles> = (0..g.tiles() as usize)
+                    .map(|i| TileFiles {
+                        png: w.png[i].clone(),
+                        exr: w.exr.get(i).cloned(),
+                    })
+                    .collect();
+                tokio::task::block_in_place(|| write_tiles(g, first, &px, &files, w.background))
+                    .with_context(|| format!("frame {}: writing its wall tiles", req.frame))?;
+                stats.tiles_written = result.span.len() / g.tile_pixels();
+                stats.tile_write_s = t.elapsed().as_secs_f64();
+                SparsePiece::encode(&[], Span::EMPTY, format)
+            }
+            _ => result,
+        };
         Ok((stats, result, composite_start))
     }
 
@@ -1290,7 +1337,10 @@ impl Node {
                 *seed ^ req.frame,
             )]),
             FrameSource::Render => {
-                let view = View::new(&req.camera, &self.engine.settings, width, height)?;
+                let view = match &req.wall {
+                    Some(w) => View::wall(&req.camera, &self.engine.settings, &w.geometry)?,
+                    None => View::new(&req.camera, &self.engine.settings, width, height)?,
+                };
                 let mut images = Vec::new();
                 let mut outcome = Outcome::Converged;
                 stats

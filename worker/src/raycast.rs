@@ -41,6 +41,8 @@ pub struct FrameSetup<'a> {
     pub du: [f32; 3],
     /// Per row.
     pub dv: [f32; 3],
+    /// Where image pixels lie on the plane of `dir00`, `du`, `dv` (a wall's tiles).
+    pub tiles: strata_common::wall::TileMap,
     /// Region box, camera-relative display space.
     pub region_lo: [f32; 3],
     /// Upper corner.
@@ -847,6 +849,7 @@ fn sanitize(c: Rgba) -> Rgba {
 
 #[inline]
 fn ray_dir(f: &FrameSetup<'_>, x: u32, y: u32) -> [f32; 3] {
+    let (x, y) = f.tiles.to_plane(x, y);
     let fx = x as f32 + 0.5;
     let fy = y as f32 + 0.5;
     let d = [

@@ -50,4 +50,56 @@ mod tests {
         assert!(one.rounds.is_empty());
         assert_eq!(one.result, [Span::new(0, 100)]);
     }
+
+    #[test]
+    fn plans_to_given_targets_validate_and_composite_in_order() {
+        use super::super::{build_plan_to, composite_in_memory};
+        use crate::image::{PartialImage, Rect};
+        // Ranks 1 and 3 keep nothing; targets out of position order.
+        let targets = [
+            Span::new(6, 20),
+            Span::EMPTY,
+            Span::new(0, 6),
+            Span::EMPTY,
+            Span::new(20, 24),
+        ];
+        let plan = build_plan_to(24, &targets).unwrap();
+        plan.validate().unwrap();
+        assert_eq!(plan.result, targets);
+        assert!(plan.rounds[0].steps[1].blend.is_empty());
+        for (j, step) in plan.rounds[0].steps.iter().enumerate() {
+            let to: Vec<usize> = step.sends.iter().map(|s| s.0).collect();
+            let want: Vec<usize> = [0, 2, 4].into_iter().filter(|&q| q != j).collect();
+            assert_eq!(to, want);
+        }
+        let imgs: Vec<PartialImage> = (0..5)
+            .map(|j| PartialImage {
+                width: 4,
+                height: 6,
+                rect: Rect {
+                    x: 0,
+                    y: 0,
+                    w: 4,
+                    h: 6,
+                },
+                pixels: vec![[0.1 * j as f32, 0.0, 0.05, 0.2 + 0.1 * j as f32]; 24],
+            })
+            .collect();
+        let got = composite_in_memory(&plan, &imgs, false, super::super::WireFormat::F32).unwrap();
+        let mut want = [0.0f32; 4];
+        for im in imgs.iter().rev() {
+            let s = im.pixels[0];
+            want = [0, 1, 2, 3].map(|c| s[c] + (1.0 - s[3]) * want[c]);
+        }
+        for px in &got {
+            for c in 0..4 {
+                assert!((px[c] - want[c]).abs() < 1e-6, "{px:?} vs {want:?}");
+            }
+        }
+        // Targets that leave a gap or overlap are refused.
+        assert!(build_plan_to(24, &[Span::new(0, 6), Span::new(7, 24)]).is_err());
+        assert!(build_plan_to(24, &[Span::new(0, 8), Span::new(6, 24)]).is_err());
+        assert!(build_plan_to(24, &[Span::new(0, 20)]).is_err());
+        assert!(build_plan_to(24, &[]).is_err());
+    }
 }

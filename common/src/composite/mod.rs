@@ -278,6 +278,64 @@ pub fn build_plan(
     })
 }
 
+/// A direct-send plan whose final spans are given: position `j` ends holding
+/// `targets[j]` (possibly empty), e.g. the tiles of a powerwall that the rank at `j`
+/// drives ([`crate::wall`]), as IceT's multi-tile direct compositing delivers each tile's
+/// pixels to its display's rank. Every position sends its part of each non-empty target
+/// to that target's position; the non-empty targets must partition `[0, pixels)`.
+pub fn build_plan_to(pixels: u32, targets: &[Span]) -> Result<Plan, PlanError> {
+    let ranks = targets.len();
+    if ranks == 0 {
+        return Err(PlanError::NoRanks);
+    }
+    let mut parts: Vec<Span> = targets.iter().copied().filter(|s| !s.is_empty()).collect();
+    parts.sort_by_key(|s| s.start);
+    let mut at = 0u32;
+    for s in &parts {
+        if s.start != at || s.end > pixels {
+            return Err(PlanError::Shape(format!(
+                "target spans must partition [0, {pixels}): {s} follows {at}"
+            )));
+        }
+        at = s.end;
+    }
+    if at != pixels {
+        return Err(PlanError::Shape(format!(
+            "target spans must partition [0, {pixels}): they end at {at}"
+        )));
+    }
+    let rounds = if ranks > 1 {
+        let steps = (0..ranks)
+            .map(|j| RankStep {
+                sends: (0..ranks)
+                    .filter(|&q| q != j && !targets[q].is_empty())
+                    .map(|q| (q, targets[q]))
+                    .collect(),
+                keep: targets[j],
+                blend: if targets[j].is_empty() {
+                    Vec::new()
+                } else {
+                    (0..ranks).collect()
+                },
+            })
+            .collect();
+        vec![Round { steps }]
+    } else {
+        Vec::new()
+    };
+    Ok(Plan {
+        ranks,
+        pixels,
+        algorithm: Algorithm::DirectSend,
+        factors: if ranks > 1 { vec![ranks] } else { Vec::new() },
+        rounds,
+        result: targets
+            .iter()
+            .map(|s| if s.is_empty() { Span::EMPTY } else { *s })
+            .collect(),
+    })
+}
+
 impl Plan {
     /// Re-checks the plan's consistency: every expected receive matches a send of the
     /// same span, sends come from the sender's current span, blend lists are front to

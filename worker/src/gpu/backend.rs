@@ -261,6 +261,10 @@ impl GpuBackend {
             fb_entries: self.entries,
             n_hors: setup.hors.len() as u32,
             occl_block: setup.limits.map_or(0, |l| l.front.grid.block),
+            tile_cols: setup.tiles.cols,
+            tile_h: setup.tiles.tile_h,
+            pitch_x: setup.tiles.pitch_x,
+            pitch_y: setup.tiles.pitch_y,
         };
         // Per block: the ray threshold the CPU caster would use, < 0 for rays not cast.
         let occl: Option<Vec<f32>> = setup.limits.map(|l| {

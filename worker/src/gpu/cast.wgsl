@@ -67,6 +67,11 @@ struct Frame {
     n_hors: u32,
     // Cross-worker occlusion: block side of `occl` (0: no per-ray limits).
     occl_block: u32,
+    // A wall's tiles: image pixel -> plane pixel (see `plane_pixel`).
+    tile_cols: u32,
+    tile_h: u32,
+    pitch_x: u32,
+    pitch_y: u32,
 }
 
 struct Volume {
@@ -1163,8 +1168,11 @@ fn cast_rays(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
         casts = ray.ert >= 0.0;
     }
     if (casts) {
-        let x = F.rect_x + gid.x;
-        let y = F.rect_y + gid.y;
+        // Image pixel -> the frustum's plane (a wall's tiles skip the mullions).
+        let iy = F.rect_y + gid.y;
+        let t = iy / F.tile_h;
+        let x = (t % F.tile_cols) * F.pitch_x + F.rect_x + gid.x;
+        let y = (t / F.tile_cols) * F.pitch_y + iy - t * F.tile_h;
         let fx = f32(x) + 0.5;
         let fy = f32(y) + 0.5;
         let d0 = F.dir00 + fx * F.du + fy * F.dv;

@@ -10,6 +10,7 @@ use anyhow::{Context, Result};
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
+use strata_common::wall::{tile_path, WallGeometry};
 
 /// Writes `rgba` (premultiplied linear RGBA, row 0 at the top) as an 8-bit RGB PNG.
 ///
@@ -35,11 +36,7 @@ pub fn write_png(
     }
     write_via_temp(path, |file| {
         let mut w = BufWriter::new(file);
-        let mut enc = png::Encoder::new(&mut w, width, height);
-        enc.set_color(png::ColorType::Rgb);
-        enc.set_depth(png::BitDepth::Eight);
-        enc.set_source_srgb(png::SrgbRenderingIntent::Perceptual);
-        let mut writer = enc.write_header().context("cannot write the PNG header")?;
+        let mut writer = srgb8_png(&mut w, width, height)?;
         writer
             .write_image_data(&bytes)
             .context("cannot write the PNG image data")?;
@@ -91,6 +88,149 @@ fn srgb8(linear: f32) -> u8 {
         1.055 * c.powf(1.0 / 2.4) - 0.055
     };
     (s * 255.0).round().clamp(0.0, 255.0) as u8
+}
+
+/// One tile's output files.
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct TileFiles {
+    /// The PNG.
+    pub png: PathBuf,
+    /// The EXR, when asked for.
+    pub exr: Option<PathBuf>,
+}
+
+/// The files of every tile of a wall for the outputs `png` (and `exr`), row-major.
+pub fn tile_files(wall: &WallGeometry, png: &Path, exr: Option<&Path>) -> Vec<TileFiles> {
+    (0..wall.tiles())
+        .map(|t| {
+            let (c, r) = wall.tile_cr(t);
+            TileFiles {
+                png: tile_path(png, c, r),
+                exr: exr.map(|e| tile_path(e, c, r)),
+            }
+        })
+        .collect()
+}
+
+/// Writes tiles `first..first + n` of a wall from their rows of the stacked image
+/// (`pixels` holds `n · tile_w · tile_h` pixels, tile `first` first), each to its files.
+pub fn write_tiles(
+    wall: &WallGeometry,
+    first: u32,
+    pixels: &[[f32; 4]],
+    files: &[TileFiles],
+    background: [f32; 3],
+) -> Result<()> {
+    let n = wall.tile_pixels() as usize;
+    anyhow::ensure!(
+        n > 0 && pixels.len() % n == 0,
+        "{} pixels are not whole tiles of {}x{}",
+        pixels.len(),
+        wall.tile_w,
+        wall.tile_h
+    );
+    for (i, tile) in pixels.chunks_exact(n).enumerate() {
+        let t = first as usize + i;
+        let f = files
+            .get(t)
+            .with_context(|| format!("no output named for tile {t}"))?;
+        write_png(&f.png, wall.tile_w, wall.tile_h, tile, background)?;
+        if let Some(e) = &f.exr {
+            write_exr(e, wall.tile_w, wall.tile_h, tile)?;
+        }
+    }
+    Ok(())
+}
+
+/// Colour of the mullions in the preview mosaic (8-bit sRGB).
+pub const MULLION_RGB: [u8; 3] = [24, 24, 24];
+
+/// Writes the preview mosaic of a wall to `path`: the tile PNGs (`files`, row-major) placed
+/// where they hang, with the mullions drawn in [`MULLION_RGB`]. It is assembled from the
+/// tile files one row of tiles at a time, so it never holds more than one row of tiles
+/// and the output's rows. A missing or wrong-sized tile is an error naming the file.
+pub fn write_preview(wall: &WallGeometry, files: &[TileFiles], path: &Path) -> Result<()> {
+    anyhow::ensure!(
+        files.len() == wall.tiles() as usize,
+        "{} tile files for {} tiles",
+        files.len(),
+        wall.tiles()
+    );
+    let (pw, ph) = wall.plane_size();
+    let (tw, th) = (wall.tile_w as usize, wall.tile_h as usize);
+    write_via_temp(path, |file| {
+        let mut w = BufWriter::new(file);
+        let mut writer = srgb8_png(&mut w, pw, ph)?;
+        {
+            let mut stream = writer
+                .stream_writer()
+                .context("cannot start the PNG data")?;
+            let mullion_row: Vec<u8> = MULLION_RGB.repeat(pw as usize);
+            for r in 0..wall.rows {
+                if r > 0 {
+                    for _ in 0..wall.mullion_y {
+                        stream.write_all(&mullion_row)?;
+                    }
+                }
+                let tiles: Vec<Vec<u8>> = (0..wall.cols)
+                    .map(|c| read_rgb8(&files[(r * wall.cols + c) as usize].png, wall))
+                    .collect::<Result<_>>()?;
+                let mut row = Vec::with_capacity(pw as usize * 3);
+                for y in 0..th {
+                    row.clear();
+                    for (c, t) in tiles.iter().enumerate() {
+                        if c > 0 {
+                            row.extend(MULLION_RGB.repeat(wall.mullion_x as usize));
+                        }
+                        row.extend_from_slice(&t[y * tw * 3..(y + 1) * tw * 3]);
+                    }
+                    stream.write_all(&row)?;
+                }
+            }
+            stream.finish().context("cannot finish the PNG data")?;
+        }
+        writer.finish().context("cannot finish the PNG")?;
+        w.flush().context("cannot write the PNG")?;
+        Ok(())
+    })
+}
+
+/// Reads a tile PNG written by [`write_tiles`] as 8-bit RGB rows, checking its size.
+fn read_rgb8(path: &Path, wall: &WallGeometry) -> Result<Vec<u8>> {
+    let f =
+        File::open(path).with_context(|| format!("{}: cannot open the tile", path.display()))?;
+    let mut reader = png::Decoder::new(std::io::BufReader::new(f))
+        .read_info()
+        .with_context(|| format!("{}: not a PNG", path.display()))?;
+    let info = reader.info();
+    anyhow::ensure!(
+        (info.width, info.height) == (wall.tile_w, wall.tile_h)
+            && info.color_type == png::ColorType::Rgb
+            && info.bit_depth == png::BitDepth::Eight,
+        "{}: expected an 8-bit RGB tile of {}x{}, found {:?} {:?} {}x{}",
+        path.display(),
+        wall.tile_w,
+        wall.tile_h,
+        info.bit_depth,
+        info.color_type,
+        info.width,
+        info.height
+    );
+    let mut buf = vec![0; reader.output_buffer_size().context("tile too large")?];
+    reader
+        .next_frame(&mut buf)
+        .with_context(|| format!("{}: cannot decode the tile", path.display()))?;
+    buf.truncate(wall.tile_pixels() as usize * 3);
+    Ok(buf)
+}
+
+/// An 8-bit sRGB RGB PNG of `width × height`, its header written.
+fn srgb8_png<W: Write>(out: W, width: u32, height: u32) -> Result<png::Writer<W>> {
+    let mut enc = png::Encoder::new(out, width, height);
+    enc.set_color(png::ColorType::Rgb);
+    enc.set_depth(png::BitDepth::Eight);
+    enc.set_source_srgb(png::SrgbRenderingIntent::Perceptual);
+    enc.write_header().context("cannot write the PNG header")
 }
 
 fn check_size(path: &Path, width: u32, height: u32, rgba: &[[f32; 4]]) -> Result<()> {
@@ -253,5 +393,46 @@ mod tests {
         std::fs::create_dir(dir.path().join("c.png")).unwrap();
         write_png(&dir.path().join("c.png"), 2, 2, &px, [0.0; 3]).unwrap_err();
         assert_eq!(names(dir.path()), ["c.png"]);
+    }
+
+    #[test]
+    fn wall_tiles_and_preview_mosaic() {
+        let dir = tempfile::tempdir().unwrap();
+        let g = WallGeometry {
+            cols: 2,
+            rows: 2,
+            tile_w: 3,
+            tile_h: 2,
+            mullion_x: 1,
+            mullion_y: 2,
+        };
+        let files = tile_files(&g, &dir.path().join("w.png"), None);
+        assert_eq!(files[1].png, dir.path().join("w_c1r0.png"));
+        assert_eq!(files[2].png, dir.path().join("w_c0r1.png"));
+        // Tile t is solid grey level 0.25·t (opaque).
+        let px: Vec<[f32; 4]> = (0..4)
+            .flat_map(|t| vec![[0.25 * t as f32, 0.25 * t as f32, 0.25 * t as f32, 1.0]; 6])
+            .collect();
+        // Tiles 1..4 first, then tile 0: a driver writes only its own.
+        write_tiles(&g, 1, &px[6..], &files, [0.0; 3]).unwrap();
+        let out = dir.path().join("w.png");
+        let e = write_preview(&g, &files, &out).unwrap_err();
+        assert!(format!("{e:#}").contains("w_c0r0.png"), "{e:#}");
+        assert_eq!(names(dir.path()).len(), 3, "nothing half-written");
+        write_tiles(&g, 0, &px[..6], &files, [0.0; 3]).unwrap();
+        write_preview(&g, &files, &out).unwrap();
+        let (w, h, _, rgb) = read_png(&out);
+        assert_eq!((w, h), (7, 6));
+        let at = |x: usize, y: usize| rgb[(y * 7 + x) * 3];
+        assert_eq!(at(0, 0), 0);
+        assert_eq!(at(4, 1), srgb8(0.25));
+        assert_eq!(at(3, 0), MULLION_RGB[0]);
+        assert_eq!(at(0, 2), MULLION_RGB[0]);
+        assert_eq!(at(0, 4), srgb8(0.5));
+        assert_eq!(at(6, 5), srgb8(0.75));
+        // A tile of the wrong size is named.
+        write_png(&files[3].png, 2, 2, &[[0.0; 4]; 4], [0.0; 3]).unwrap();
+        let e = write_preview(&g, &files, &out).unwrap_err();
+        assert!(format!("{e:#}").contains("w_c1r1.png"), "{e:#}");
     }
 }
