@@ -119,6 +119,7 @@ pub(crate) fn bonsai_scene(store: &Path, w: u32, h: u32) -> Scene {
         synthetic: None,
         composite: Default::default(),
         cluster: Default::default(),
+        wall: None,
     }
 }
 

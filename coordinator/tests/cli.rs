@@ -232,6 +232,61 @@ fn example_scene_parses() {
     let s = strata_common::scene::Scene::parse(&p, &std::fs::read_to_string(&p).unwrap()).unwrap();
     assert_eq!((s.volumes.len(), s.horizons.len()), (1, 3));
     assert_eq!(s.render.cache_mb, 1024);
+    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs/wall.toml");
+    let s = strata_common::scene::Scene::parse(&p, &std::fs::read_to_string(&p).unwrap()).unwrap();
+    let w = s.wall.unwrap();
+    assert_eq!(
+        (w.tiles, w.tile_size, w.mullion),
+        ([3, 2], [1920, 1080], [40, 40])
+    );
+}
+
+/// A wall sequence: every frame writes its numbered tiles and preview; a second run finds
+/// them complete and skips every frame; a missing tile makes its frame render again.
+#[test]
+fn wall_sequences_number_their_tiles_and_resume() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let scene = small_survey(d).join("scene.toml");
+    let out = d.join("frames/frame_%05d.png");
+    std::fs::create_dir_all(d.join("frames")).unwrap();
+    let args = [
+        "render",
+        scene.to_str().unwrap(),
+        "--in-process",
+        "--orbit",
+        "3",
+        "-o",
+        out.to_str().unwrap(),
+        "--set",
+        "wall.tiles=[2,1]",
+        "--set",
+        "wall.tile_size=[16,12]",
+        "--set",
+        "wall.mullion=[3,0]",
+    ];
+    let o = coordinator(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for f in 0..3 {
+        for name in [
+            format!("frame_{f:05}.png"),
+            format!("frame_{f:05}_c0r0.png"),
+            format!("frame_{f:05}_c1r0.png"),
+        ] {
+            assert!(d.join("frames").join(&name).is_file(), "{name}");
+        }
+    }
+    let o = coordinator(&args);
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        text.contains("all 3 frame(s) of the range exist complete"),
+        "{text}"
+    );
+    std::fs::remove_file(d.join("frames/frame_00001_c1r0.png")).unwrap();
+    let o = coordinator(&args);
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(text.contains("2 frame(s) skipped"), "{text}");
+    assert!(d.join("frames/frame_00001_c1r0.png").is_file());
 }
 
 /// A 40×32×24 synthetic survey (volume and three horizons) in `dir/survey`.
