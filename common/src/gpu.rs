@@ -350,6 +350,8 @@ impl PoolFormat {
 pub const HORIZON_DEPTH_MAP: u32 = 1;
 /// [`HorizonParams::flags`]: Lambert (headlight) shading.
 pub const HORIZON_LIGHTING: u32 = 2;
+/// [`HorizonParams::attr_vol`] of a horizon not coloured by a volume.
+pub const NO_VOLUME: u32 = u32::MAX;
 /// Horizons the GPU caster intersects at most.
 pub const MAX_HORIZONS: usize = 16;
 
@@ -400,8 +402,10 @@ pub struct HorizonParams {
     pub depth_hi: f32,
     /// First sample of the horizon pool (0: one pool for all horizons).
     pub pool_base: u32,
-    /// Padding.
-    pub _pad: u32,
+    /// `color_by = "volume"`: the volume whose straight transfer-function colour multiplies
+    /// each hit (`color` is then white and `tf[map_base]` holds the no-data colour);
+    /// [`NO_VOLUME`] otherwise.
+    pub attr_vol: u32,
     /// `level_t[l]`: distance from which level `l` is fine enough (`level_t[0] = 0`).
     pub level_t: [f32; MAX_LEVELS],
 }
@@ -506,6 +510,7 @@ pub fn horizon_params_offsets() -> Vec<(&'static str, usize)> {
         ("depth_lo", offset_of!(HorizonParams, depth_lo)),
         ("depth_hi", offset_of!(HorizonParams, depth_hi)),
         ("pool_base", offset_of!(HorizonParams, pool_base)),
+        ("attr_vol", offset_of!(HorizonParams, attr_vol)),
         ("level_t", offset_of!(HorizonParams, level_t)),
     ]
 }

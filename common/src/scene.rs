@@ -395,9 +395,14 @@ pub struct HorizonLayer {
     /// Opacity in 0..1.
     #[serde(default = "one")]
     pub opacity: f64,
-    /// "constant" (the colour above) or "depth" (the colour map over the horizon's range).
+    /// "constant" (the colour above), "depth" (the colour map over the horizon's range) or
+    /// "volume" (the value of the volume `volume` where the surface lies, in that volume's
+    /// colours; where it holds no data the constant colour shows).
     #[serde(default = "default_color_by")]
     pub color_by: String,
+    /// With `color_by = "volume"`: which `[[volume]]` (0-based) colours the surface.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub volume: usize,
     /// Colour map for `color_by = "depth"`.
     #[serde(default = "default_depth_map")]
     pub colormap: String,
@@ -623,6 +628,9 @@ fn yes() -> bool {
 }
 fn default_seed() -> u64 {
     1
+}
+fn is_zero(v: &usize) -> bool {
+    *v == 0
 }
 fn default_color_by() -> String {
     "constant".into()

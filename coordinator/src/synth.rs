@@ -355,6 +355,7 @@ pub fn synth(
                 opacity: 1.0,
                 color_by: "constant".into(),
                 colormap: "viridis".into(),
+                volume: 0,
             })
             .collect(),
         camera: Some(Camera {

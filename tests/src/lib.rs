@@ -182,6 +182,7 @@ pub mod scenes {
             opacity,
             color_by: "constant".into(),
             colormap: "viridis".into(),
+            volume: 0,
         }
     }
 

@@ -54,6 +54,9 @@ pub struct Horizon {
     pub color: [f32; 3],
     /// Colour map over the height range for `color_by = "depth"`.
     pub depth_map: Option<(ColorMap, [f32; 2])>,
+    /// `color_by = "volume"`: the volume whose value colours the surface (then `color` is
+    /// the no-data colour).
+    pub attribute: Option<usize>,
     /// Opacity.
     pub opacity: f32,
     /// `[min, max]` height per tile, in page-table order.
@@ -204,7 +207,7 @@ impl Volume {
 
 impl Horizon {
     /// Opens a horizon layer as data set `ds`.
-    pub fn open(layer: &HorizonLayer, ds: u16) -> Result<Self> {
+    pub fn open(layer: &HorizonLayer, ds: u16, volumes: usize) -> Result<Self> {
         let store = open(&layer.store, DataKind::Horizon)?;
         let h = store.header();
         if !(0.0..=1.0).contains(&layer.opacity) {
@@ -214,14 +217,26 @@ impl Horizon {
                 layer.opacity
             );
         }
+        let mut attribute = None;
         let depth_map = match layer.color_by.as_str() {
             "constant" => None,
+            "volume" => {
+                if layer.volume >= volumes {
+                    bail!(
+                        "horizon {}: color_by = \"volume\" names volume {}, but the scene has {volumes} volume(s) (0-based)",
+                        layer.store.display(),
+                        layer.volume
+                    );
+                }
+                attribute = Some(layer.volume);
+                None
+            }
             "depth" => Some((
                 ColorMap::named(&layer.colormap)?,
                 [h.value_range[0] as f32, h.value_range[1] as f32],
             )),
             other => bail!(
-                "horizon {}: color_by must be \"constant\" or \"depth\", got {other:?}",
+                "horizon {}: color_by must be \"constant\", \"depth\" or \"volume\", got {other:?}",
                 layer.store.display()
             ),
         };
@@ -231,6 +246,7 @@ impl Horizon {
             to_world: h.transform,
             color: layer.color.map(|c| (c.clamp(0.0, 1.0) as f32).powf(2.2)),
             depth_map,
+            attribute,
             opacity: layer.opacity as f32,
             boxes: crate::horizon::tile_boxes(store.pyramid(), &page_bounds(&store)),
             bounds: page_bounds(&store),
@@ -271,7 +287,7 @@ impl SceneData {
             .horizons
             .iter()
             .enumerate()
-            .map(|(i, h)| Horizon::open(h, (nv + i) as u16))
+            .map(|(i, h)| Horizon::open(h, (nv + i) as u16, nv))
             .collect::<Result<Vec<_>>>()?;
         Ok(SceneData { volumes, horizons })
     }

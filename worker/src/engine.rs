@@ -619,8 +619,15 @@ impl Engine {
                 pool: self.hpool.as_ref().unwrap(),
                 bounds: &h.bounds,
                 boxes: &h.boxes,
-                color: h.color,
+                // A surface coloured by a volume is shaded white; the caster multiplies
+                // the volume's colour in at each hit.
+                color: if h.attribute.is_some() {
+                    [1.0; 3]
+                } else {
+                    h.color
+                },
                 depth_map: h.depth_map.as_ref().map(|(m, r)| (m, *r)),
+                attribute: h.attribute.map(|v| (v, h.color)),
                 opacity: h.opacity,
                 lighting: s.lighting,
                 pyramid: &h.pyramid,

@@ -45,6 +45,9 @@ pub struct HorFrame<'a> {
     pub color: [f32; 3],
     /// Colour by height.
     pub depth_map: Option<(&'a ColorMap, [f32; 2])>,
+    /// Colour by a volume's value: the volume (index into the frame's volumes) and the
+    /// no-data colour. Its hits are shaded white; the caster multiplies in the colour.
+    pub attribute: Option<(usize, [f32; 3])>,
     /// Opacity.
     pub opacity: f32,
     /// Lambert shading.
@@ -637,6 +640,7 @@ mod tests {
                 boxes: &self.boxes,
                 color: [1.0, 0.0, 0.0],
                 depth_map: None,
+                attribute: None,
                 opacity: 0.5,
                 lighting: false,
                 pyramid: &self.pyramid,

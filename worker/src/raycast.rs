@@ -591,7 +591,17 @@ impl<'a> FrameSetup<'a> {
             .filter(|h| h.rgba[3] >= 1.0)
             .fold(t1, |m, h| m.min(h.t));
         for h in &self.hors {
+            let first = st.hits.len();
             limit = limit.min(h.intersect(d, t0, limit, &mut st.hits, fb));
+            if let Some((vi, no_data)) = h.attribute {
+                // The volume's colour where the surface lies (the hit is shaded white).
+                for hit in &mut st.hits[first..] {
+                    let c = self.vols[vi].color_at(hit.t, d, fb).unwrap_or(no_data);
+                    for k in 0..3 {
+                        hit.rgba[k] *= c[k];
+                    }
+                }
+            }
         }
         if st.hits.len() > 1 {
             st.hits.sort_by(|a, b| a.t.total_cmp(&b.t));

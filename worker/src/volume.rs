@@ -290,6 +290,34 @@ impl<'a> VolFrame<'a> {
         }
     }
 
+    /// The straight colour of this volume's value at camera-relative point `t·d` (on a
+    /// horizon), through its transfer function; the page is requested at the level the
+    /// distance calls for. `None` outside the volume, where the page is not resident yet,
+    /// or where it holds no data.
+    pub fn color_at(
+        &self,
+        t: f32,
+        d: [f32; 3],
+        feedback: &mut crate::feedback::Requests,
+    ) -> Option<[f32; 3]> {
+        let md = self.index_dir(d);
+        let q = [
+            self.c[0] + t * md[0],
+            self.c[1] + t * md[1],
+            self.c[2] + t * md[2],
+        ];
+        if !(0..3).all(|k| q[k] >= -0.5 && q[k] < self.hi[k]) {
+            return None;
+        }
+        let mut cur = Cursor::default();
+        self.locate_page(&mut cur, t, q, md, feedback, false);
+        if cur.transparent {
+            return None;
+        }
+        let c = self.tf.straight(self.sample(&cur, q));
+        (!c[0].is_nan()).then_some([c[0], c[1], c[2]])
+    }
+
     /// The slot-page coordinate of index position `q` through the cursor, clamped to the
     /// page's interpolation range `[0, p − 1)`.
     #[inline(always)]

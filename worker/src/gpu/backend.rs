@@ -9,7 +9,7 @@ use crate::raycast::{CastStats, FrameSetup};
 use anyhow::{bail, Result};
 use strata_common::gpu::{
     FrameParams, HorizonParams, PoolFormat, VolumeParams, HORIZON_DEPTH_MAP, HORIZON_LIGHTING,
-    MAX_BANDS, MAX_HORIZONS, MAX_LEVELS, MAX_SLICES, TF_SIZE,
+    MAX_BANDS, MAX_HORIZONS, MAX_LEVELS, MAX_SLICES, NO_VOLUME, TF_SIZE,
 };
 use strata_common::image::PartialImage;
 use strata_common::pyramid::Pyramid;
@@ -307,7 +307,7 @@ impl GpuBackend {
                 }
             }
             levels.extend(level_records(v.table));
-            // Slices are coloured by the straight transfer function, after the step tables.
+            // Slices (and horizons by volume) are coloured by the straight transfer function.
             let mut slice_axis = [0u32; MAX_SLICES];
             let mut slice_index = [0f32; MAX_SLICES];
             let mut slice_opacity = [0f32; MAX_SLICES];
@@ -323,7 +323,12 @@ impl GpuBackend {
                 slice_opacity[k] = s.opacity;
             }
             let mut straight_base = 0;
-            if !v.slices.is_empty() {
+            // Slices, and horizons coloured by this volume, read its straight colours.
+            let coloring = setup
+                .hors
+                .iter()
+                .any(|h| h.attribute.map(|a| a.0) == Some(i));
+            if !v.slices.is_empty() || coloring {
                 if v.tf.table.len() != TF_SIZE {
                     bail!(
                         "the GPU caster needs transfer-function tables of {TF_SIZE} entries, got {}",
@@ -383,6 +388,11 @@ impl GpuBackend {
             ));
             let mut flags = 0;
             let (mut map_base, mut map_len, mut depth) = (0, 0, [0.0; 2]);
+            if let Some((_, no_data)) = h.attribute {
+                // The no-data colour where the depth map would start.
+                map_base = tf.len() as u32;
+                tf.push([no_data[0], no_data[1], no_data[2], 1.0]);
+            }
             if let Some((map, range)) = h.depth_map {
                 flags |= HORIZON_DEPTH_MAP;
                 map_base = tf.len() as u32;
@@ -414,7 +424,7 @@ impl GpuBackend {
                 depth_lo: depth[0],
                 depth_hi: depth[1],
                 pool_base: 0,
-                _pad: 0,
+                attr_vol: h.attribute.map_or(NO_VOLUME, |(v, _)| v as u32),
                 level_t,
             });
         }

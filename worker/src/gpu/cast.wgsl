@@ -27,6 +27,7 @@ const BIG: f32 = 3.0e38; // stands in for +infinity (WGSL has no infinity litera
 const MAX_HORS: u32 = 16u;
 const HORIZON_DEPTH_MAP: u32 = 1u;
 const HORIZON_LIGHTING: u32 = 2u;
+const NO_VOLUME: u32 = 0xffffffffu;
 // Surface crossings a ray keeps (the nearest ones; the CPU keeps 32 per horizon).
 const MAX_HITS: u32 = 32u;
 // Tile-tree traversal stack: at most 3 siblings wait per level below the root, plus one.
@@ -123,7 +124,8 @@ struct Horizon {
     depth_lo: f32,
     depth_hi: f32,
     pool_base: u32,
-    _pad0: u32,
+    // color_by = "volume": the volume whose colour multiplies each hit (NO_VOLUME: none).
+    attr_vol: u32,
     level_t: array<f32, 16>,
 }
 
@@ -790,6 +792,39 @@ fn push_hit(t: f32, c: vec4<f32>) {
     hit_c[j] = c;
 }
 
+// Volume `vi`'s straight transfer-function colour of a (non-NaN) value.
+fn straight_color(vi: u32, value: f32) -> vec4<f32> {
+    let v = &vols[vi];
+    let x = clamp(value * (*v).tf_scale + (*v).tf_offset, 0.0, (*v).tf_last);
+    let i = min(u32(x), TF_SIZE - 2u);
+    let f = x - f32(i);
+    let ca = tf[(*v).straight_base + i];
+    let cb = tf[(*v).straight_base + i + 1u];
+    return ca + f * (cb - ca);
+}
+
+// Volume `vi`'s straight colour at the camera-relative point t·d, its page requested at the
+// level the distance calls for (volume.rs `color_at`); w = 0 where there is none (outside the
+// volume, page not resident yet, no data).
+fn volume_color(vi: u32, t: f32, d: vec3<f32>) -> vec4<f32> {
+    let md = index_dir(vi, d);
+    let q = vols[vi].c + t * md;
+    let hi = vols[vi].hi;
+    if (!(q.x >= -0.5 && q.x < hi.x && q.y >= -0.5 && q.y < hi.y && q.z >= -0.5 && q.z < hi.z)) {
+        return vec4<f32>(0.0);
+    }
+    var cur = new_cursor();
+    locate_page(vi, &cur, t, q, md, false);
+    if (cur.transparent) {
+        return vec4<f32>(0.0);
+    }
+    let value = sample_at(vi, &cur, q);
+    if (is_nan(value)) {
+        return vec4<f32>(0.0);
+    }
+    return vec4<f32>(straight_color(vi, value).xyz, 1.0);
+}
+
 // The ray's crossings of volume `vi`'s slices inside [t0, t1) as surface hits in the
 // straight transfer-function colours (volume.rs `slice_hits`, operation for operation).
 fn slice_hits(vi: u32, md: vec3<f32>, t0: f32, t1: f32) {
@@ -824,12 +859,7 @@ fn slice_hits(vi: u32, md: vec3<f32>, t0: f32, t1: f32) {
         if (is_nan(value)) {
             continue;
         }
-        let x = clamp(value * v.tf_scale + v.tf_offset, 0.0, v.tf_last);
-        let i = min(u32(x), TF_SIZE - 2u);
-        let f = x - f32(i);
-        let ca = tf[v.straight_base + i];
-        let cb = tf[v.straight_base + i + 1u];
-        let c = ca + f * (cb - ca);
+        let c = straight_color(vi, value);
         let o = v.slice_opacity[s];
         push_hit(t, vec4<f32>(c.xyz * o, o));
     }
@@ -1024,7 +1054,18 @@ fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f3
                         let vv = clamp(v0 + sroot * dr.y, 0.0, 1.0);
                         let h = h00 + a * uu + bb * vv + cc * uu * vv;
                         let rgb = shade_horizon(hi, d, a + cc * vv, bb + cc * uu, sr, h);
-                        push_hit(t, vec4<f32>(rgb * opacity, opacity));
+                        var hc = vec4<f32>(rgb * opacity, opacity);
+                        let av = (*hz).attr_vol;
+                        if (av != NO_VOLUME) {
+                            // The volume's colour where the surface lies (raycast.rs
+                            // `start_with`); the no-data colour where it has none.
+                            var vc = volume_color(av, t, d);
+                            if (vc.w == 0.0) {
+                                vc = vec4<f32>(tf[(*hz).map_base].xyz, 1.0);
+                            }
+                            hc = hc * vec4<f32>(vc.xyz, 1.0);
+                        }
+                        push_hit(t, hc);
                         if (opacity >= 1.0) {
                             // Nothing behind an opaque surface is visible.
                             *limit = min(*limit, t);
