@@ -49,6 +49,7 @@ pub mod occlusion;
 pub mod pyramid;
 pub mod sample;
 pub mod scene;
+pub mod stats;
 pub mod store;
 pub mod tf;
 pub mod wall;

@@ -28,6 +28,7 @@ use strata_common::geo::{Affine3, SurveyGrid};
 use strata_common::ids::PageId;
 use strata_common::pyramid::{Dim, Pyramid};
 use strata_common::sample::SampleType;
+use strata_common::stats::ValueHistogram;
 use strata_common::store::{
     decode_payload, encode_page, Compression, DataKind, IndexEntry, Preamble, StoreHeader, Units,
     FORMAT_VERSION, PREAMBLE_LEN,
@@ -195,6 +196,7 @@ pub fn build_store(
         valid_samples: 0,
         digest: 0,
         source: opts.source.clone(),
+        stats: None,
     };
 
     let tmp = TempFile {
@@ -215,7 +217,10 @@ pub fn build_store(
         ..Default::default()
     };
     let mut entries: Vec<IndexEntry> = Vec::with_capacity(pyr.total_pages() as usize);
-    let mut stats = Level0Stats::default();
+    let mut stats = Level0Stats {
+        hist: Some(Box::default()),
+        ..Level0Stats::default()
+    };
 
     // Level 0 from the source.
     let mut prev = build_level(
@@ -247,6 +252,7 @@ pub fn build_store(
     if stats.valid > 0 {
         header.value_range = [stats.min as f64, stats.max as f64];
     }
+    header.stats = stats.hist.as_deref().and_then(ValueHistogram::stats);
     report.source_samples = stats.acc.count();
 
     // Coarser levels from the level below, read back from the file being written.
@@ -321,6 +327,10 @@ struct Level0Stats {
     valid: u64,
     min: f32,
     max: f32,
+    /// A page's valid core values, for the data set's histogram.
+    values: Vec<f32>,
+    /// The data set's: every page's values counted (mean, RMS, percentiles).
+    hist: Option<Box<ValueHistogram>>,
 }
 
 /// Min/max of each page of the level just built, for conservative parent bounds.
@@ -469,6 +479,11 @@ fn build_level(
                         }
                         s.valid += t.valid;
                         s.acc = s.acc.combine(t.acc);
+                        if let Some(h) = s.hist.as_deref_mut() {
+                            for &v in &t.values {
+                                h.add(v);
+                            }
+                        }
                     }
                     bounds.insert(e.id, (e.min, e.max));
                     entries.push(e);
@@ -571,6 +586,7 @@ fn core_stats(pyr: &Pyramid, br: [u32; 3], page: &[f32], dims: [u64; 3]) -> Leve
                     s.valid += 1;
                     s.min = s.min.min(v);
                     s.max = s.max.max(v);
+                    s.values.push(v);
                 }
             }
         }

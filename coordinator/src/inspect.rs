@@ -76,6 +76,30 @@ pub fn inspect(path: &Path, verify: bool, progress: &ProgressBar) -> Result<Insp
         total,
         total - h.valid_samples
     );
+    match &h.stats {
+        Some(s) => {
+            let list = |v: &[[f64; 2]]| {
+                v.iter()
+                    .map(|[p, x]| format!("p{p} {x:.6}"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            };
+            let _ = writeln!(t, "mean: {:.6}, rms: {:.6}", s.mean, s.rms);
+            let _ = writeln!(
+                t,
+                "percentiles (within {:.2e} relative): {}",
+                s.resolution,
+                list(&s.percentiles)
+            );
+            let _ = writeln!(t, "percentiles of |value|: {}", list(&s.abs_percentiles));
+        }
+        None => {
+            let _ = writeln!(
+                t,
+                "statistics: none (a format-1 store, or no valid sample; re-ingest to compute them)"
+            );
+        }
+    }
     let _ = writeln!(
         t,
         "page: {}{} samples, border {}, core {} ({:.1}% border overhead)",

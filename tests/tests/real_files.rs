@@ -171,3 +171,77 @@ fn ct_volumes_ingest_as_raw() {
     // Bonsai's empty background becomes constant pages that store no payload.
     assert!(s.index().iter().any(|e| !e.has_payload()));
 }
+
+/// Ingest stores mean, RMS and percentiles of the level-0 values; on F3 they match a direct
+/// computation (sorting every sample) within the stated resolution, `inspect` prints them,
+/// and the seismic display window comes from them. A format-1 store (no statistics) still
+/// opens.
+#[test]
+fn f3_percentile_statistics_match_a_direct_computation() {
+    use std::io::{Seek, SeekFrom, Write};
+    use strata_common::store::Preamble;
+    let dir = tempfile::tempdir().unwrap();
+    let be = ingest_segy("seismic/f3_segyio/f3.sgy", dir.path());
+    let s = be.header().stats.clone().expect("statistics at ingest");
+    let mut v: Vec<f32> = level_grid(&be, 0)
+        .unwrap()
+        .into_iter()
+        .filter(|x| x.is_finite())
+        .collect();
+    let n = v.len() as f64;
+    let mean = v.iter().map(|&x| x as f64).sum::<f64>() / n;
+    let rms = (v.iter().map(|&x| (x as f64).powi(2)).sum::<f64>() / n).sqrt();
+    assert!((s.mean - mean).abs() <= 1e-9 * rms, "{} vs {mean}", s.mean);
+    assert!((s.rms - rms).abs() <= 1e-9 * rms, "{} vs {rms}", s.rms);
+    let rank = |sorted: &[f32], p: f64| {
+        let r = ((p / 100.0 * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len());
+        sorted[r - 1] as f64
+    };
+    v.sort_by(f32::total_cmp);
+    for &[p, got] in &s.percentiles {
+        let want = rank(&v, p);
+        assert!(
+            (got - want).abs() <= s.resolution * want.abs(),
+            "p{p}: {got} vs {want}"
+        );
+    }
+    let mut mags: Vec<f32> = v.iter().map(|x| x.abs()).collect();
+    mags.sort_by(f32::total_cmp);
+    for &[p, got] in &s.abs_percentiles {
+        let want = rank(&mags, p);
+        assert!(
+            (got - want).abs() <= s.resolution * want.abs(),
+            "|p{p}|: {got} vs {want}"
+        );
+    }
+    assert!(s.resolution < 1e-3);
+    let text = inspect(be.path(), false, &ProgressBar::hidden())
+        .unwrap()
+        .text;
+    assert!(text.contains("percentiles of |value|: p50 "), "{text}");
+    assert!(text.contains(&format!("rms: {:.6}", s.rms)), "{text}");
+
+    // The same store as format 1: its header ends before `stats`.
+    let path = be.path().to_path_buf();
+    drop(be);
+    let bytes = std::fs::read(&path).unwrap();
+    let mut pre = Preamble::decode(&path, &bytes[..64]).unwrap();
+    let mut h = PageStore::open(&path).unwrap().header().clone();
+    h.stats = None;
+    let mut hb = bincode::serde::encode_to_vec(&h, bincode::config::standard()).unwrap();
+    assert_eq!(hb.pop(), Some(0), "an absent Option is bincode's 0 tag");
+    assert!(hb.len() as u64 <= pre.header_len);
+    pre.version = 1;
+    pre.header_len = hb.len() as u64;
+    pre.header_crc = crc32c::crc32c(&hb);
+    let mut f = std::fs::OpenOptions::new().write(true).open(&path).unwrap();
+    f.write_all(&pre.encode()).unwrap();
+    f.seek(SeekFrom::Start(pre.header_offset)).unwrap();
+    f.write_all(&hb).unwrap();
+    drop(f);
+    let old = PageStore::open(&path).unwrap();
+    assert!(old.header().stats.is_none());
+    assert_eq!(old.header().dims, [23, 18, 75]);
+    let text = inspect(&path, false, &ProgressBar::hidden()).unwrap().text;
+    assert!(text.contains("statistics: none"), "{text}");
+}

@@ -109,8 +109,10 @@ pub const SEISMIC_CLIP_PERCENTILE: f64 = 99.5;
 
 /// The value window of a layer that sets none. For the diverging `seismic` map over signed
 /// data: ±the [`SEISMIC_CLIP_PERCENTILE`]th percentile of |amplitude|, so white sits exactly
-/// at zero and rare spikes do not wash the section out; the percentile is taken over the
-/// root page's valid samples (the whole volume, coarsened, one page read). Otherwise the
+/// at zero and rare spikes do not wash the section out; the percentile is the one ingest
+/// computed over every level-0 sample (`StoreHeader::stats`), or, for a store without
+/// statistics (format 1), taken over the root page's valid samples (the whole volume,
+/// coarsened, one page read). Otherwise the
 /// store's value range. A constant store (range `[v, v]`) gets a window centred on `v`, so
 /// its value maps to the middle of the colour map instead of the layer being refused.
 fn default_window(store: &PageStore, layer: &VolumeLayer) -> Result<[f64; 2]> {
@@ -126,6 +128,16 @@ fn data_window(store: &PageStore, layer: &VolumeLayer) -> Result<[f64; 2]> {
     let range = store.header().value_range;
     if layer.colormap != "seismic" || !(range[0] < 0.0) {
         return Ok(range);
+    }
+    // Computed at ingest over every level-0 sample.
+    if let Some(c) = store
+        .header()
+        .stats
+        .as_ref()
+        .and_then(|s| s.abs_percentile(SEISMIC_CLIP_PERCENTILE))
+        .filter(|&c| c > 0.0)
+    {
+        return Ok([-c, c]);
     }
     let p = store.pyramid();
     let top = p.level_count() - 1;

@@ -10,8 +10,11 @@ use std::path::Path;
 
 /// File magic.
 pub const MAGIC: [u8; 8] = *b"STRATAPS";
-/// Current format version. Readers refuse other versions with a clear error.
-pub const FORMAT_VERSION: u32 = 1;
+/// Current format version (2: the header holds [`StoreHeader::stats`]). Readers accept
+/// [`MIN_FORMAT_VERSION`]..=this and refuse other versions with a clear error.
+pub const FORMAT_VERSION: u32 = 2;
+/// The oldest format version readers accept: version 1 lacks [`StoreHeader::stats`].
+pub const MIN_FORMAT_VERSION: u32 = 1;
 /// Length of the fixed preamble.
 pub const PREAMBLE_LEN: u64 = 64;
 /// Upper bound on the encoded header, checked before allocating.
@@ -107,6 +110,10 @@ pub struct StoreHeader {
     pub digest: u64,
     /// Where the data came from (file name, text header summary, tool version).
     pub source: String,
+    /// Mean, RMS and percentiles of the valid level-0 values, computed at ingest (`None`
+    /// in stores of format version 1, and for a store without valid samples). Last, so a
+    /// version-1 header decodes with it absent.
+    pub stats: Option<crate::stats::ValueStats>,
 }
 
 impl StoreHeader {
@@ -224,10 +231,10 @@ impl Preamble {
         let u32_at = |o: usize| u32::from_le_bytes(b[o..o + 4].try_into().unwrap());
         let u64_at = |o: usize| u64::from_le_bytes(b[o..o + 8].try_into().unwrap());
         let version = u32_at(8);
-        if version != FORMAT_VERSION {
+        if !(MIN_FORMAT_VERSION..=FORMAT_VERSION).contains(&version) {
             return Err(err(
                 8,
-                &format!("format version {FORMAT_VERSION}"),
+                &format!("format version {MIN_FORMAT_VERSION}..={FORMAT_VERSION}"),
                 format!("version {version}"),
             ));
         }
@@ -456,6 +463,7 @@ mod tests {
             valid_samples: 0,
             digest: 0,
             source: String::new(),
+            stats: None,
         }
     }
 

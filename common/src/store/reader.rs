@@ -93,6 +93,10 @@ impl PageStore {
                 format!("crc32c {crc:08x}"),
             ));
         }
+        if pre.version == 1 {
+            // Version 1 ends before `stats`: its absence is bincode's `None` tag.
+            hb.push(0);
+        }
         let (header, _): (StoreHeader, usize) =
             bincode::serde::decode_from_slice(&hb, bincode::config::standard()).map_err(|e| {
                 fmt(
