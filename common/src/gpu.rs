@@ -202,18 +202,15 @@ pub struct VolumeParams {
     /// First entry of the straight-RGBA transfer-function table the slices are coloured
     /// by (in the transfer-function buffer).
     pub straight_base: u32,
+    /// First slice record in the transfer-function buffer: one `[axis, level-0 index,
+    /// opacity, 0]` per slice (the axis as a float 0, 1 or 2).
+    pub slice_base: u32,
     /// Padding.
-    pub _pad: [u32; 2],
-    /// Grid axis of each slice.
-    pub slice_axis: [u32; MAX_SLICES],
-    /// Level-0 index of each slice along its axis.
-    pub slice_index: [f32; MAX_SLICES],
-    /// Opacity of each slice.
-    pub slice_opacity: [f32; MAX_SLICES],
+    pub _pad: u32,
 }
 
-/// Slices per volume the GPU caster draws.
-pub const MAX_SLICES: usize = 4;
+/// Slices per volume, on either caster.
+pub const MAX_SLICES: usize = 16;
 
 /// [`VolumeParams::flags`]: the volume's samples are signed integers in an 8- or 16-bit pool.
 pub const VOLUME_SIGNED: u32 = 1;
@@ -419,9 +416,9 @@ const _: () = assert!(offset_of!(FrameParams, band_start) == 80);
 const _: () = assert!(offset_of!(FrameParams, band_dt) == 112);
 const _: () = assert!(offset_of!(FrameParams, rect_h) == 144);
 const _: () = assert!(offset_of!(FrameParams, flags) == 160);
-const _: () = assert!(size_of::<VolumeParams>() == 240);
+const _: () = assert!(size_of::<VolumeParams>() == 192);
 const _: () = assert!(offset_of!(VolumeParams, n_slices) == 176);
-const _: () = assert!(offset_of!(VolumeParams, slice_axis) == 192);
+const _: () = assert!(offset_of!(VolumeParams, slice_base) == 184);
 const _: () = assert!(offset_of!(VolumeParams, table_base) == 76);
 const _: () = assert!(offset_of!(VolumeParams, level_base) == 80);
 const _: () = assert!(offset_of!(VolumeParams, level_t) == 112);
@@ -484,6 +481,9 @@ pub fn volume_params_offsets() -> Vec<(&'static str, usize)> {
         ("flags", offset_of!(VolumeParams, flags)),
         ("no_data", offset_of!(VolumeParams, no_data)),
         ("level_t", offset_of!(VolumeParams, level_t)),
+        ("n_slices", offset_of!(VolumeParams, n_slices)),
+        ("straight_base", offset_of!(VolumeParams, straight_base)),
+        ("slice_base", offset_of!(VolumeParams, slice_base)),
     ]
 }
 

@@ -169,3 +169,44 @@ fn a_slice_outside_the_grid_is_refused_naming_it() {
         assert!(e.contains("slice 0") && e.contains(what), "{e}");
     }
 }
+
+/// Many slices per volume (more than the 4 the GPU caster once held in its volume record):
+/// ten translucent inline slices composite nearest first to the analytic colour on both
+/// casters; more than `MAX_SLICES` are refused.
+#[test]
+fn ten_slices_composite_in_order_on_both_casters_and_too_many_are_refused() {
+    let dir = TempDir::new().unwrap();
+    let idx: Vec<f64> = (0..10).map(|k| 2.0 + 4.5 * k as f64).collect();
+    let s = ramp_scene(
+        dir.path(),
+        idx.iter()
+            .map(|&i| slice(SliceAxis::Inline, i, 0.2))
+            .collect(),
+        along_x(),
+    );
+    let c = centre(&render_on_both(&s, 1e-4, "ten slices"));
+    // Seen along +x: the slice at the smallest index is in front.
+    let (mut rgb, mut a) = (0.0f64, 0.0f64);
+    for &i in &idx {
+        let g = i / (N - 1) as f64;
+        rgb += (1.0 - a) * 0.2 * g;
+        a += (1.0 - a) * 0.2;
+    }
+    assert!(
+        (c[0] as f64 - rgb).abs() < 1e-4 && (c[3] as f64 - a).abs() < 1e-4,
+        "{c:?}, want {rgb} / {a}"
+    );
+    let n = strata_common::gpu::MAX_SLICES + 1;
+    let s = ramp_scene(
+        dir.path(),
+        (0..n)
+            .map(|k| slice(SliceAxis::Time, k as f64, 1.0))
+            .collect(),
+        along_x(),
+    );
+    let e = match strata_worker::engine::Engine::new(&s) {
+        Ok(_) => panic!("accepted {n} slices"),
+        Err(e) => format!("{e:#}"),
+    };
+    assert!(e.contains(&format!("{n} slices")), "{e}");
+}

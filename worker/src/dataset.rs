@@ -171,6 +171,14 @@ impl Volume {
         let tf = TransferFunction::from_layer(layer, window)
             .with_context(|| format!("volume {}", layer.store.display()))?;
         let dims = store.pyramid().level(0).dims;
+        if layer.slices.len() > strata_common::gpu::MAX_SLICES {
+            bail!(
+                "volume {}: {} slices; at most {} per volume are drawn",
+                layer.store.display(),
+                layer.slices.len(),
+                strata_common::gpu::MAX_SLICES
+            );
+        }
         let slices = layer
             .slices
             .iter()

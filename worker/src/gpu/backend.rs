@@ -308,20 +308,19 @@ impl GpuBackend {
             }
             levels.extend(level_records(v.table));
             // Slices (and horizons by volume) are coloured by the straight transfer function.
-            let mut slice_axis = [0u32; MAX_SLICES];
-            let mut slice_index = [0f32; MAX_SLICES];
-            let mut slice_opacity = [0f32; MAX_SLICES];
             if v.slices.len() > MAX_SLICES {
                 bail!(
                     "the GPU caster draws at most {MAX_SLICES} slices per volume, got {}",
                     v.slices.len()
                 );
             }
-            for (k, s) in v.slices.iter().enumerate() {
-                slice_axis[k] = s.axis as u32;
-                slice_index[k] = s.index;
-                slice_opacity[k] = s.opacity;
-            }
+            // One record per slice, after the tables.
+            let slice_base = tf.len() as u32;
+            tf.extend(
+                v.slices
+                    .iter()
+                    .map(|s| [s.axis as f32, s.index, s.opacity, 0.0]),
+            );
             let mut straight_base = 0;
             // Slices, and horizons coloured by this volume, read its straight colours.
             let coloring = setup
@@ -360,10 +359,8 @@ impl GpuBackend {
                 level_t,
                 n_slices: v.slices.len() as u32,
                 straight_base,
-                _pad: [0; 2],
-                slice_axis,
-                slice_index,
-                slice_opacity,
+                slice_base,
+                _pad: 0,
             });
         }
         let mut hors = Vec::with_capacity(setup.hors.len());

@@ -97,10 +97,9 @@ struct Volume {
     level_t: array<f32, 16>,
     n_slices: u32,
     straight_base: u32,
-    _pad0: vec2<u32>,
-    slice_axis: vec4<u32>,
-    slice_index: vec4<f32>,
-    slice_opacity: vec4<f32>,
+    // Slice s is tf[slice_base + s] = (axis, level-0 index, opacity, 0).
+    slice_base: u32,
+    _pad0: u32,
 }
 
 struct Horizon {
@@ -830,11 +829,12 @@ fn volume_color(vi: u32, t: f32, d: vec3<f32>) -> vec4<f32> {
 fn slice_hits(vi: u32, md: vec3<f32>, t0: f32, t1: f32) {
     let v = vols[vi];
     for (var s = 0u; s < v.n_slices; s = s + 1u) {
-        let a = v.slice_axis[s];
+        let rec = tf[v.slice_base + s];
+        let a = u32(rec.x);
         if (md[a] == 0.0) {
             continue;
         }
-        let idx = v.slice_index[s];
+        let idx = rec.y;
         let t = (idx - v.c[a]) / md[a];
         if (!(t >= t0 && t < t1)) {
             continue;
@@ -860,7 +860,7 @@ fn slice_hits(vi: u32, md: vec3<f32>, t0: f32, t1: f32) {
             continue;
         }
         let c = straight_color(vi, value);
-        let o = v.slice_opacity[s];
+        let o = rec.z;
         push_hit(t, vec4<f32>(c.xyz * o, o));
     }
 }
