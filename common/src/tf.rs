@@ -61,7 +61,7 @@ fn map_points(name: &str) -> Option<&'static [[f32; 3]]> {
         [1.0, 1.0, 1.0],
     ];
     Some(match name {
-        "seismic" => SEISMIC,
+        "seismic" | "bwr" | "blue-white-red" => SEISMIC,
         "grey" | "gray" => GREY,
         "viridis" => VIRIDIS,
         "bone" => BONE,
@@ -70,8 +70,20 @@ fn map_points(name: &str) -> Option<&'static [[f32; 3]]> {
     })
 }
 
-/// Names of the built-in colour maps.
-pub const COLORMAPS: &[&str] = &["seismic", "grey", "viridis", "bone", "hot"];
+/// Names of the built-in colour maps; each also exists reversed as `NAME_r`.
+/// `seismic` and `bwr` share the diverging blue-white-red colours (white exactly at the
+/// window's middle); `seismic` defaults to opacity rising with |amplitude| ("bright spots"),
+/// `bwr` to opaque.
+pub const COLORMAPS: &[&str] = &["seismic", "bwr", "grey", "viridis", "bone", "hot"];
+
+/// Whether a colour map is diverging (white at the middle of its window), so a signed
+/// volume's default window is symmetric about zero.
+pub fn is_diverging(name: &str) -> bool {
+    matches!(
+        name.strip_suffix("_r").unwrap_or(name),
+        "seismic" | "bwr" | "blue-white-red"
+    )
+}
 
 fn srgb_to_linear(c: f32) -> f32 {
     if c <= 0.04045 {
@@ -90,12 +102,20 @@ pub struct ColorMap {
 impl ColorMap {
     /// A built-in map by name.
     pub fn named(name: &str) -> Result<Self> {
-        match map_points(name) {
-            Some(p) => Ok(ColorMap {
-                points: p.iter().map(|c| c.map(srgb_to_linear)).collect(),
-            }),
+        let (base, reversed) = match name.strip_suffix("_r") {
+            Some(b) => (b, true),
+            None => (name, false),
+        };
+        match map_points(base) {
+            Some(p) => {
+                let mut points: Vec<[f32; 3]> = p.iter().map(|c| c.map(srgb_to_linear)).collect();
+                if reversed {
+                    points.reverse();
+                }
+                Ok(ColorMap { points })
+            }
             None => bail!(
-                "unknown colour map {name:?} (expected one of {})",
+                "unknown colour map {name:?} (expected one of {}, or one of them reversed as NAME_r)",
                 COLORMAPS.join(", ")
             ),
         }
@@ -167,7 +187,15 @@ impl TransferFunction {
                 }
                 p.clone()
             }
-            None if layer.colormap == "seismic" => {
+            // Opaque blue-white-red.
+            None if matches!(
+                layer.colormap.strip_suffix("_r").unwrap_or(&layer.colormap),
+                "bwr" | "blue-white-red"
+            ) =>
+            {
+                vec![[0.0, 1.0], [1.0, 1.0]]
+            }
+            None if layer.colormap.strip_suffix("_r").unwrap_or(&layer.colormap) == "seismic" => {
                 vec![
                     [0.0, 1.0],
                     [0.35, 0.08],
@@ -513,6 +541,39 @@ mod tests {
             opacity_points: None,
             slices: Vec::new(),
         }
+    }
+
+    #[test]
+    fn reversed_and_opaque_diverging_maps() {
+        let m = ColorMap::named("viridis").unwrap();
+        let r = ColorMap::named("viridis_r").unwrap();
+        for i in 0..=10 {
+            let x = i as f32 / 10.0;
+            let (a, b) = (m.at(x), r.at(1.0 - x));
+            for k in 0..3 {
+                assert!((a[k] - b[k]).abs() < 1e-6, "{x}: {a:?} vs {b:?}");
+            }
+        }
+        // bwr: the seismic colours, white exactly at zero, opaque everywhere.
+        let tf = TransferFunction::from_layer(&layer("bwr"), [-1.0, 1.0]).unwrap();
+        let mid = tf.straight(0.0);
+        assert!(mid[0] > 0.85 && (mid[0] - mid[2]).abs() < 1e-6, "{mid:?}");
+        for v in [-1.0f32, -0.3, 0.0, 0.4, 1.0] {
+            assert_eq!(tf.straight(v)[3], 1.0, "{v}");
+        }
+        let lo = tf.straight(-1.0);
+        assert!(lo[2] > lo[0], "negative is blue: {lo:?}");
+        let rev = TransferFunction::from_layer(&layer("bwr_r"), [-1.0, 1.0]).unwrap();
+        assert!(
+            rev.straight(-1.0)[0] > rev.straight(-1.0)[2],
+            "reversed: negative is red"
+        );
+        // seismic_r keeps the bright-spot opacity.
+        let s = TransferFunction::from_layer(&layer("seismic_r"), [-1.0, 1.0]).unwrap();
+        assert!(s.straight(0.0)[3] < 0.01 && s.straight(1.0)[3] > 0.99);
+        assert!(is_diverging("seismic_r") && is_diverging("bwr") && !is_diverging("grey"));
+        let e = ColorMap::named("nope_r").unwrap_err().to_string();
+        assert!(e.contains("NAME_r") && e.contains("bwr"), "{e}");
     }
 
     #[test]

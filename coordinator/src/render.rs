@@ -19,7 +19,7 @@ use std::time::Instant;
 use strata_common::scene::{Camera, Scene};
 use strata_common::wire::{CompositeChoice, FrameSource, WorkerFrameStats};
 use strata_worker::engine::Engine;
-use tracing::info;
+use tracing::{info, warn};
 
 /// What to render and where to put it.
 #[derive(Clone, Debug, Default)]
@@ -408,6 +408,9 @@ fn prepare(opts: &RenderOptions, progress: &ProgressBar) -> Result<(Scene, bool)
         wall.geometry()
             .check()
             .map_err(|e| anyhow::anyhow!("{}: {e}", opts.scene.display()))?;
+        if opts.size.is_some() {
+            warn!("--size is not used with [wall]: each tile is wall.tile_size");
+        }
     }
     Ok((scene, generated))
 }

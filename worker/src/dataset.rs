@@ -107,7 +107,8 @@ fn open(path: &std::path::Path, kind: DataKind) -> Result<Arc<PageStore>> {
 /// default of seismic interpretation tools).
 pub const SEISMIC_CLIP_PERCENTILE: f64 = 99.5;
 
-/// The value window of a layer that sets none. For the diverging `seismic` map over signed
+/// The value window of a layer that sets none. For a diverging map (`seismic`, `bwr`, or one
+/// of them reversed) over signed
 /// data: ±the [`SEISMIC_CLIP_PERCENTILE`]th percentile of |amplitude|, so white sits exactly
 /// at zero and rare spikes do not wash the section out; the percentile is the one ingest
 /// computed over every level-0 sample (`StoreHeader::stats`), or, for a store without
@@ -126,7 +127,7 @@ fn default_window(store: &PageStore, layer: &VolumeLayer) -> Result<[f64; 2]> {
 
 fn data_window(store: &PageStore, layer: &VolumeLayer) -> Result<[f64; 2]> {
     let range = store.header().value_range;
-    if layer.colormap != "seismic" || !(range[0] < 0.0) {
+    if !strata_common::tf::is_diverging(&layer.colormap) || !(range[0] < 0.0) {
         return Ok(range);
     }
     // Computed at ingest over every level-0 sample.
