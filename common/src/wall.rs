@@ -246,6 +246,32 @@ pub fn tile_path(base: &std::path::Path, c: u32, r: u32) -> std::path::PathBuf {
     base.with_file_name(name)
 }
 
+/// One tile's output files.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TileFiles {
+    /// The PNG.
+    pub png: std::path::PathBuf,
+    /// The EXR, when asked for.
+    pub exr: Option<std::path::PathBuf>,
+}
+
+/// The files of every tile of a wall for the outputs `png` (and `exr`), row-major.
+pub fn tile_files(
+    wall: &WallGeometry,
+    png: &std::path::Path,
+    exr: Option<&std::path::Path>,
+) -> Vec<TileFiles> {
+    (0..wall.tiles())
+        .map(|t| {
+            let (c, r) = wall.tile_cr(t);
+            TileFiles {
+                png: tile_path(png, c, r),
+                exr: exr.map(|e| tile_path(e, c, r)),
+            }
+        })
+        .collect()
+}
+
 /// Where stacked-image pixels lie on the frustum's image plane. A plain image is one tile
 /// of its own size (`cols = 1`, `tile_h = height`), and the map is the identity.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]

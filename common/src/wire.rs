@@ -441,10 +441,8 @@ pub struct WallFrame {
     pub geometry: crate::wall::WallGeometry,
     /// The rank that drives each tile, row-major (each rank's tiles consecutive).
     pub drivers: Vec<u32>,
-    /// Each tile's PNG, row-major.
-    pub png: Vec<std::path::PathBuf>,
-    /// Each tile's EXR, row-major, or none.
-    pub exr: Vec<std::path::PathBuf>,
+    /// Each tile's files, row-major.
+    pub files: Vec<crate::wall::TileFiles>,
     /// Background the PNGs are flattened over (linear RGB).
     pub background: [f32; 3],
 }
@@ -473,12 +471,8 @@ impl WallFrame {
             ));
         }
         let t = g.tiles() as usize;
-        if self.png.len() != t || !(self.exr.is_empty() || self.exr.len() == t) {
-            return Err(format!(
-                "{} PNG and {} EXR paths for {t} tiles",
-                self.png.len(),
-                self.exr.len()
-            ));
+        if self.files.len() != t {
+            return Err(format!("{} tile outputs for {t} tiles", self.files.len()));
         }
         Ok(())
     }

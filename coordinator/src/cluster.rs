@@ -26,6 +26,7 @@ use strata_common::kd::Decomposition;
 use strata_common::occlusion::{self, BlockGrid, Transmittance};
 use strata_common::scene::Transport;
 use strata_common::scene::{Camera, Scene, WallSettings};
+use strata_common::wall::TileFiles;
 use strata_common::wire::{
     self, CompositeChoice, CoordMsg, FrameRequest, FrameSource, Limits, PeerInfo, Setup, WallFrame,
     WorkerFrameStats, WorkerMsg,
@@ -33,7 +34,6 @@ use strata_common::wire::{
 use strata_net::frame::{read_frame, with_timeout, write_frame, NetError};
 use strata_net::shm::ShmReader;
 use strata_net::{secret, tls, transport, Identity, NetConfig};
-use strata_worker::image_out::TileFiles;
 use tokio::sync::mpsc;
 use tracing::{debug, info, warn};
 
@@ -398,8 +398,7 @@ impl WallJob {
         Ok(WallFrame {
             geometry: g,
             drivers,
-            png: self.files.iter().map(|f| f.png.clone()).collect(),
-            exr: self.files.iter().filter_map(|f| f.exr.clone()).collect(),
+            files: self.files.clone(),
             background: self.background,
         })
     }

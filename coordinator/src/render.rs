@@ -404,13 +404,9 @@ fn prepare(opts: &RenderOptions, progress: &ProgressBar) -> Result<(Scene, bool)
         "{}: render.width and render.height must lie in 1..=32768, got {w}x{h}",
         opts.scene.display()
     );
-    if let Some(wall) = &scene.wall {
-        wall.geometry()
-            .check()
-            .map_err(|e| anyhow::anyhow!("{}: {e}", opts.scene.display()))?;
-        if opts.size.is_some() {
-            warn!("--size is not used with [wall]: each tile is wall.tile_size");
-        }
+    // (`Scene::parse` has checked the wall's layout.)
+    if scene.wall.is_some() && opts.size.is_some() {
+        warn!("--size is not used with [wall]: each tile is wall.tile_size");
     }
     Ok((scene, generated))
 }

@@ -10,7 +10,8 @@ use anyhow::{Context, Result};
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
-use strata_common::wall::{tile_path, WallGeometry};
+use strata_common::wall::WallGeometry;
+pub use strata_common::wall::{tile_files, TileFiles};
 
 /// Writes `rgba` (premultiplied linear RGBA, row 0 at the top) as an 8-bit RGB PNG.
 ///
@@ -88,28 +89,6 @@ fn srgb8(linear: f32) -> u8 {
         1.055 * c.powf(1.0 / 2.4) - 0.055
     };
     (s * 255.0).round().clamp(0.0, 255.0) as u8
-}
-
-/// One tile's output files.
-#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-pub struct TileFiles {
-    /// The PNG.
-    pub png: PathBuf,
-    /// The EXR, when asked for.
-    pub exr: Option<PathBuf>,
-}
-
-/// The files of every tile of a wall for the outputs `png` (and `exr`), row-major.
-pub fn tile_files(wall: &WallGeometry, png: &Path, exr: Option<&Path>) -> Vec<TileFiles> {
-    (0..wall.tiles())
-        .map(|t| {
-            let (c, r) = wall.tile_cr(t);
-            TileFiles {
-                png: tile_path(png, c, r),
-                exr: exr.map(|e| tile_path(e, c, r)),
-            }
-        })
-        .collect()
 }
 
 /// Writes tiles `first..first + n` of a wall from their rows of the stacked image

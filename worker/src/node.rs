@@ -17,7 +17,7 @@
 //! turns into an error that names it and blames it (`WorkerMsg::Failed::suspects`).
 
 use crate::engine::{Engine, Outcome};
-use crate::image_out::{write_tiles, TileFiles};
+use crate::image_out::write_tiles;
 use anyhow::{anyhow, bail, Context, Result};
 use std::collections::HashMap;
 use std::net::SocketAddr;
@@ -1068,13 +1068,7 @@ impl Node {
                 let first = result.span.start / g.tile_pixels();
                 let mut px = vec![[0.0f32; 4]; result.span.len() as usize];
                 result.decode_into(&mut px, result.span.start)?;
-                let files: Vec<TileFiles> = (0..g.tiles() as usize)
-                    .map(|i| TileFiles {
-                        png: w.png[i].clone(),
-                        exr: w.exr.get(i).cloned(),
-                    })
-                    .collect();
-                tokio::task::block_in_place(|| write_tiles(g, first, &px, &files, w.background))
+                tokio::task::block_in_place(|| write_tiles(g, first, &px, &w.files, w.background))
                     .with_context(|| format!("frame {}: writing its wall tiles", req.frame))?;
                 stats.tiles_written = result.span.len() / g.tile_pixels();
                 stats.tile_write_s = t.elapsed().as_secs_f64();

@@ -273,15 +273,10 @@ impl<'a> VolFrame<'a> {
             if (0..3).any(|k| k != a && !(q[k] >= -0.5 && q[k] < self.hi[k])) {
                 continue;
             }
-            let mut cur = Cursor::default();
-            self.locate_page(&mut cur, t, q, md, feedback, false);
-            if cur.transparent {
-                continue; // not resident yet
-            }
-            let c = self.tf.straight(self.sample(&cur, q));
-            if c[0].is_nan() {
+            // Not resident yet, or no data: nothing this round.
+            let Some(c) = self.straight_at(t, q, md, feedback) else {
                 continue;
-            }
+            };
             let o = s.opacity;
             hits.push(crate::horizon::Hit {
                 t,
@@ -309,13 +304,28 @@ impl<'a> VolFrame<'a> {
         if !(0..3).all(|k| q[k] >= -0.5 && q[k] < self.hi[k]) {
             return None;
         }
+        self.straight_at(t, q, md, feedback)
+            .map(|c| [c[0], c[1], c[2]])
+    }
+
+    /// The straight transfer-function colour of the value at index position `q` (at ray
+    /// distance `t`, direction `md`), its page located and requested even where the
+    /// transfer function hides it; `None` where the page is not resident yet or holds no
+    /// data.
+    fn straight_at(
+        &self,
+        t: f32,
+        q: [f32; 3],
+        md: [f32; 3],
+        feedback: &mut crate::feedback::Requests,
+    ) -> Option<[f32; 4]> {
         let mut cur = Cursor::default();
         self.locate_page(&mut cur, t, q, md, feedback, false);
         if cur.transparent {
             return None;
         }
         let c = self.tf.straight(self.sample(&cur, q));
-        (!c[0].is_nan()).then_some([c[0], c[1], c[2]])
+        (!c[0].is_nan()).then_some(c)
     }
 
     /// The slot-page coordinate of index position `q` through the cursor, clamped to the

@@ -812,16 +812,27 @@ fn volume_color(vi: u32, t: f32, d: vec3<f32>) -> vec4<f32> {
     if (!(q.x >= -0.5 && q.x < hi.x && q.y >= -0.5 && q.y < hi.y && q.z >= -0.5 && q.z < hi.z)) {
         return vec4<f32>(0.0);
     }
+    let c = straight_at(vi, t, q, md);
+    if (c.w < 0.0) {
+        return vec4<f32>(0.0);
+    }
+    return vec4<f32>(c.xyz, 1.0);
+}
+
+// The straight colour of volume `vi`'s value at index position q (ray distance t, direction
+// md), its page located and requested even where the transfer function hides it
+// (volume.rs `straight_at`); w = -1 where the page is not resident yet or holds no data.
+fn straight_at(vi: u32, t: f32, q: vec3<f32>, md: vec3<f32>) -> vec4<f32> {
     var cur = new_cursor();
     locate_page(vi, &cur, t, q, md, false);
     if (cur.transparent) {
-        return vec4<f32>(0.0);
+        return vec4<f32>(-1.0);
     }
     let value = sample_at(vi, &cur, q);
     if (is_nan(value)) {
-        return vec4<f32>(0.0);
+        return vec4<f32>(-1.0);
     }
-    return vec4<f32>(straight_color(vi, value).xyz, 1.0);
+    return straight_color(vi, value);
 }
 
 // The ray's crossings of volume `vi`'s slices inside [t0, t1) as surface hits in the
@@ -850,16 +861,11 @@ fn slice_hits(vi: u32, md: vec3<f32>, t0: f32, t1: f32) {
         if (!inside) {
             continue;
         }
-        var cur = new_cursor();
-        locate_page(vi, &cur, t, q, md, false);
-        if (cur.transparent) {
+        // Not resident yet, or no data: nothing this round.
+        let c = straight_at(vi, t, q, md);
+        if (c.w < 0.0) {
             continue;
         }
-        let value = sample_at(vi, &cur, q);
-        if (is_nan(value)) {
-            continue;
-        }
-        let c = straight_color(vi, value);
         let o = rec.z;
         push_hit(t, vec4<f32>(c.xyz * o, o));
     }
