@@ -98,7 +98,7 @@ fn table(name: &str, base: impl Fn() -> Result<Scene>, args: &CasterArgs) -> Res
 }
 
 /// The demo scene (configs/demo.toml, generated on first use), with the volume's opacity.
-fn demo(opacity: f64) -> Result<Scene> {
+pub(crate) fn demo(opacity: f64) -> Result<Scene> {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/demo.toml");
     let mut scene = strata_coordinator::overrides::load_scene(&path, &[], None)?;
     if let Some(spec) = &scene.synthetic {

@@ -51,6 +51,13 @@ struct Cli {
     /// with macrocells and compact slots on and off.
     #[arg(long)]
     only_caster: bool,
+    /// Only what each effect costs, used and unused (specialised code against the effect
+    /// compiled in and the general path; issue 12).
+    #[arg(long)]
+    only_effects: bool,
+    /// Frame size of `--only-effects`.
+    #[arg(long, num_args = 2, default_values_t = [960u32, 540])]
+    effects_size: Vec<u32>,
     /// Threads for `--only-caster` (each a separate rayon pool).
     #[arg(long, value_delimiter = ',', default_values_t = [1usize, 2])]
     threads: Vec<usize>,
@@ -124,6 +131,7 @@ pub(crate) fn bonsai_scene(store: &Path, w: u32, h: u32) -> Scene {
 }
 
 mod caster;
+mod effects;
 use caster::CasterArgs;
 
 pub(crate) struct Timed {
@@ -433,6 +441,18 @@ fn main() -> Result<()> {
             threads: cli.threads.clone(),
             case: cli.case.clone(),
             path_filter: cli.path_filter.clone(),
+        })?;
+        println!("peak RSS {:.0} MiB", peak_rss_mib());
+        return Ok(());
+    }
+    if cli.only_effects {
+        effects::run(&effects::EffectsArgs {
+            bonsai: bonsai_store(&cli)?,
+            raw: bonsai_path(&cli),
+            dir: cli.dir.clone(),
+            frames: cli.frames,
+            size: [cli.effects_size[0], cli.effects_size[1]],
+            gpu: !cli.no_gpu && !strata_worker::gpu::list_adapters().is_empty(),
         })?;
         println!("peak RSS {:.0} MiB", peak_rss_mib());
         return Ok(());

@@ -131,7 +131,8 @@ pub struct FrameParams {
     pub n_vols: u32,
     /// Early ray termination threshold.
     pub ert: f32,
-    /// Reserved (0).
+    /// [`FRAME_SHADING`]: read by the general pipeline, whose `SHADING` is compiled in
+    /// whether the frame shades or not.
     pub flags: u32,
     /// Entries of the feedback buffer (the global page-table index space).
     pub fb_entries: u32,
@@ -345,6 +346,8 @@ impl PoolFormat {
 
 /// [`HorizonParams::flags`]: colour by height through the colour map.
 pub const HORIZON_DEPTH_MAP: u32 = 1;
+/// [`FrameParams::flags`]: gradient shading of volumes.
+pub const FRAME_SHADING: u32 = 1;
 /// [`HorizonParams::flags`]: Lambert (headlight) shading.
 pub const HORIZON_LIGHTING: u32 = 2;
 /// [`HorizonParams::attr_vol`] of a horizon not coloured by a volume.

@@ -14,6 +14,8 @@
 //! * [`digest`]: an order-independent digest of a data set's level-0 samples,
 //!   so two stores with the same data print the same digest whatever their
 //!   brick size, compression or source byte order.
+//! * [`effects`]: the effect sets the casters' code is specialised to, and a frame's variant
+//!   (its effects and the effects its code path has compiled in).
 //! * [`geo`]: f64 affine transforms (and their inverses) and the lateral survey grid.
 //! * [`camera`]: the view: f64 camera and data transforms, camera-relative f32 rays, the
 //!   default camera that frames a scene, and orbits around it.
@@ -39,6 +41,7 @@ pub mod camera;
 pub mod camera_path;
 pub mod composite;
 pub mod digest;
+pub mod effects;
 pub mod filter;
 pub mod geo;
 pub mod gpu;

@@ -521,6 +521,24 @@ pub struct RenderSettings {
     /// where volumes overlap the mix stays post-classified.
     #[serde(default)]
     pub preintegrated: bool,
+    /// Which copy of the casters' code renders: `specialised` (compiled for the frame's
+    /// effects only, so an unused effect costs nothing) or `general` (one path with every
+    /// effect compiled in, deciding at run time). The image is the same; stats and the log
+    /// name the effects and the path of every frame.
+    #[serde(default)]
+    pub variant: CodePath,
+}
+
+/// `render.variant`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CodePath {
+    /// The code compiled for the frame's effect set.
+    #[default]
+    #[serde(alias = "specialized")]
+    Specialised,
+    /// The code with every effect compiled in.
+    General,
 }
 
 /// `render.gpu_filter`.
@@ -595,6 +613,7 @@ impl Default for RenderSettings {
             gpu_adapter: None,
             gpu_filter: GpuFilter::Exact,
             preintegrated: false,
+            variant: CodePath::Specialised,
         }
     }
 }

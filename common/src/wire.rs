@@ -28,7 +28,7 @@ use serde::{de::DeserializeOwned, Deserialize, Serialize};
 /// Frame magic.
 pub const MAGIC: [u8; 4] = *b"STRF";
 /// Protocol version; bumped on any incompatible change of the header or the messages.
-pub const PROTOCOL_VERSION: u16 = 4;
+pub const PROTOCOL_VERSION: u16 = 5;
 /// Size of the frame header.
 pub const HEADER_LEN: usize = 24;
 /// Largest meta message any endpoint accepts (control messages are small; the scene text
@@ -618,6 +618,11 @@ pub struct WorkerFrameStats {
     pub outcome: String,
     /// The backend and adapter that rendered, e.g. `gpu: NVIDIA H100 (Vulkan)` or `cpu (8 threads)`.
     pub backend: String,
+    /// The effects of the frame's final renders (`strata_common::effects`), e.g.
+    /// `volume+horizons`; leaves that differ are joined by `; `.
+    pub effects: String,
+    /// Their code paths, e.g. `specialised [volume+horizons] simd`.
+    pub variant: String,
 }
 
 #[cfg(test)]

@@ -598,6 +598,7 @@ fn run(cli: Cli) -> Result<()> {
                 s.samples as f64 / s.last_frame_seconds.max(1e-9) / 1e6
             );
             println!("backend: {}", s.backend);
+            println!("effects: {}; code path: {}", s.effects, s.variant);
             println!(
                 "cast {:.2} s, load {:.2} s; pages read {} ({:.1} MiB), cache hit rate {:.1}%",
                 s.cast_seconds,

@@ -265,6 +265,35 @@ pub struct FrameSummary {
     /// prediction (left out, or stopped at a threshold the frame does not allow; summed
     /// over the workers).
     pub fixup_blocks: u64,
+    /// The effects the frame drew (`volume+horizons+lighting`; workers whose leaves differ
+    /// are joined by `; `).
+    pub effects: String,
+    /// The code path that drew them, e.g. `specialised [volume+horizons] simd`.
+    pub variant: String,
+}
+
+/// Joins the distinct non-empty strings, in order of first appearance, by `; `.
+fn distinct<'a>(items: impl Iterator<Item = &'a str>) -> String {
+    let mut out: Vec<&str> = Vec::new();
+    for list in items {
+        for s in list.split("; ").filter(|s| !s.is_empty()) {
+            if !out.contains(&s) {
+                out.push(s);
+            }
+        }
+    }
+    out.join("; ")
+}
+
+/// Logs a frame's effects and code path.
+fn log_frame(s: &FrameSummary) {
+    info!(
+        frame = s.frame,
+        seconds = format!("{:.3}", s.seconds),
+        effects = %s.effects,
+        variant = %s.variant,
+        "frame rendered"
+    );
 }
 
 /// What a render did.
@@ -295,6 +324,10 @@ pub struct RenderSummary {
     pub bytes_read: u64,
     /// The backend(s) and adapter(s) that rendered.
     pub backend: String,
+    /// The effects of the last frame (see [`FrameSummary::effects`]).
+    pub effects: String,
+    /// The code path of the last frame (see [`FrameSummary::variant`]).
+    pub variant: String,
     /// Bytes written to the GPU (pages, tables) over the batch (in-process GPU runs).
     pub gpu_uploaded_bytes: u64,
     /// Feedback bytes read back from the GPU in the final frame (in-process GPU runs).
@@ -554,7 +587,10 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
                     samples: fr.stats.iter().map(|s| s.samples).sum(),
                     occluded_blocks: fr.stats.iter().map(|s| s.occluded_blocks).sum(),
                     fixup_blocks: fr.stats.iter().map(|s| s.fixup_blocks).sum(),
+                    effects: distinct(fr.stats.iter().map(|s| s.effects.as_str())),
+                    variant: distinct(fr.stats.iter().map(|s| s.variant.as_str())),
                 });
+                log_frame(sequence.last().expect("just pushed"));
                 progress.inc(1);
                 if f.index != plan.last().map_or(f.index, |l| l.index) {
                     if let Some(r) = cluster.rebalance(&fr, i as u64) {
@@ -623,6 +659,8 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
             b.dedup();
             b.join("; ")
         },
+        effects: distinct(fr.stats.iter().map(|s| s.effects.as_str())),
+        variant: distinct(fr.stats.iter().map(|s| s.variant.as_str())),
         gpu_uploaded_bytes: 0,
         gpu_feedback_bytes: 0,
         generated_synthetic: generated,
@@ -689,7 +727,10 @@ pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result
             samples: result.last.samples,
             occluded_blocks: 0,
             fixup_blocks: 0,
+            effects: result.variant.effects.to_string(),
+            variant: result.variant_name.clone(),
         });
+        log_frame(sequence.last().expect("just pushed"));
         progress.inc(1);
         last = Some(result);
     }
@@ -709,6 +750,8 @@ pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result
         pages_read: cs.pages_read,
         bytes_read: cs.bytes_read,
         backend: result.backend.clone(),
+        effects: result.variant.effects.to_string(),
+        variant: result.variant_name.clone(),
         gpu_uploaded_bytes: result.uploaded_bytes,
         gpu_feedback_bytes: result.last_gpu.feedback_bytes,
         generated_synthetic: generated,

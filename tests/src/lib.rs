@@ -11,6 +11,8 @@ pub fn real_data(rel: &str) -> PathBuf {
         .join(rel)
 }
 
+pub mod fuzz;
+
 pub use strata_coordinator::inspect::level_grid;
 
 /// Bitwise equality that treats all NaNs as equal.
@@ -329,17 +331,20 @@ pub mod scenes {
     /// Renders the scene on the CPU and, where an adapter exists, on the GPU too, asserting
     /// that the two images agree within `tol` (largest channel difference) and that the GPU
     /// image is clean; returns the CPU image. The CPU renders twice, with its SIMD packets
-    /// (where the CPU has AVX2) and with the scalar march forced, and the two must agree bit
-    /// for bit: every scene that goes through here checks the packet path and the scalar
-    /// fallback.
+    /// (where the CPU has AVX2) on the code specialised to its effects, and with the scalar
+    /// march on the general code path (`render.variant = "general"`), and the two must agree
+    /// bit for bit: every scene that goes through here checks the packet path, the scalar
+    /// fallback and the general path.
     pub fn render_on_both(scene: &Scene, tol: f32, what: &str) -> Vec<Rgba> {
         let cpu = render_whole(&on_backend(scene, Backend::Cpu));
         let mut scalar = on_backend(scene, Backend::Cpu);
         scalar.render.simd = false;
+        scalar.render.variant = strata_common::scene::CodePath::General;
         let scalar = render_whole(&scalar);
         assert!(
             bit_identical(&cpu, &scalar),
-            "{what}: SIMD packets and the scalar march differ by {}",
+            "{what}: SIMD packets on the specialised path and the scalar march on the general \
+             path differ by {}",
             max_diff(&cpu, &scalar)
         );
         if gpu_available() {

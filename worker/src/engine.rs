@@ -13,12 +13,13 @@ use anyhow::{bail, Context, Result};
 use std::collections::HashSet;
 use std::time::{Duration, Instant};
 use strata_common::camera::{default_camera, View};
+use strata_common::effects::{EffectSet, Variant};
 use strata_common::geo::Affine3;
 use strata_common::image::{PartialImage, Rect};
 use strata_common::kd::Region;
 use strata_common::occlusion::RayLimits;
 use strata_common::sample::SampleType;
-use strata_common::scene::{Backend, Camera, RenderSettings, Scene};
+use strata_common::scene::{Backend, Camera, CodePath, RenderSettings, Scene};
 
 /// How long a batch round waits for its page loads before failing.
 pub const LOAD_TIMEOUT: Duration = Duration::from_secs(300);
@@ -35,6 +36,10 @@ pub struct Frame {
     pub seconds: f64,
     /// GPU transfer counters (zero on the CPU backend).
     pub gpu: GpuFrameStats,
+    /// The frame's effects and the code path that rendered them.
+    pub variant: Variant,
+    /// The code path in words (see [`Engine::variant_name`]).
+    pub variant_name: String,
 }
 
 /// What one feedback round did.
@@ -98,6 +103,10 @@ pub struct BatchResult {
     pub last_gpu: GpuFrameStats,
     /// Bytes written to the GPU over the batch (pages and tables).
     pub uploaded_bytes: u64,
+    /// The final frame's effects and code path.
+    pub variant: Variant,
+    /// The final frame's code path in words.
+    pub variant_name: String,
 }
 
 /// A worker's renderer for one scene.
@@ -118,6 +127,10 @@ pub struct Engine {
     /// `render.rounds_per_frame` says.
     seen_regions: HashSet<[u64; 7]>,
     gpu: Option<GpuBackend>,
+    /// Effects compiled into every frame's code beyond its own (all of them when
+    /// `render.variant = "general"`). The feature-cost benchmark sets single effects here
+    /// to measure what each costs a frame that does not use it.
+    pub extra_effects: EffectSet,
 }
 
 type PreintCache =
@@ -327,7 +340,6 @@ impl Engine {
             None => default_camera(&data.bounds(), &s),
         };
         let mut e = Engine {
-            settings: s,
             data,
             camera,
             cache,
@@ -337,6 +349,11 @@ impl Engine {
             preint: Default::default(),
             frame_no: 0,
             seen_regions: HashSet::new(),
+            extra_effects: match s.variant {
+                CodePath::Specialised => EffectSet::NONE,
+                CodePath::General => EffectSet::ALL,
+            },
+            settings: s,
             gpu,
         };
         if let Some(g) = &e.gpu {
@@ -651,6 +668,18 @@ impl Engine {
         let packet_indices_fit = vols
             .iter()
             .all(|v| v.samples.len() < i32::MAX as usize && v.flat.rgba.len() < i32::MAX as usize);
+        let marched = !all_invisible;
+        let effects = EffectSet::NONE
+            .with_if(EffectSet::VOLUME, marched)
+            .with_if(EffectSet::VOLUMES, marched && vols_n > 1)
+            .with_if(EffectSet::HORIZONS, !hors.is_empty())
+            .with_if(EffectSet::LIGHTING, hors.iter().any(|h| h.lighting))
+            .with_if(EffectSet::SLICES, vols.iter().any(|v| !v.slices.is_empty()))
+            .with_if(EffectSet::SHADING, marched && s.volume_shading)
+            .with_if(
+                EffectSet::PREINTEGRATED,
+                marched && vols.iter().any(|v| v.pre.is_some()),
+            );
         FrameSetup {
             width: view.width,
             height: view.height,
@@ -684,7 +713,24 @@ impl Engine {
                 f32::INFINITY
             },
             limits,
+            variant: Variant::new(effects, self.extra_effects),
         }
+    }
+
+    /// The code path of a frame in words: `specialised`, `general` or
+    /// `specialised+EFFECTS`, then the effects compiled in, then how the CPU marched
+    /// (`simd` packets or `scalar`) or the GPU pipeline's effects, e.g.
+    /// `specialised [volume+horizons] simd`.
+    pub fn variant_name(&self, v: Variant, packets: bool) -> String {
+        let how = match &self.gpu {
+            Some(_) => format!(
+                "gpu pipeline [{}]",
+                crate::gpu::pipeline_effects(v.compiled)
+            ),
+            None if packets => "simd".into(),
+            None => "scalar".into(),
+        };
+        format!("{} [{}] {how}", v.path_name(), v.compiled)
     }
 
     /// The sampling bands a frame of `region` through `view` uses: `(start, step)` per band.
@@ -709,7 +755,10 @@ impl Engine {
     ) -> Result<Frame> {
         let t = Instant::now();
         if let Some(mut gpu) = self.gpu.take() {
-            let res = gpu.render(&self.setup(view, region, limits));
+            let setup = self.setup(view, region, limits);
+            let res = gpu.render(&setup);
+            let variant = setup.variant;
+            drop(setup);
             self.gpu = Some(gpu);
             let (image, feedback, stats, g) = res?;
             return Ok(Frame {
@@ -718,9 +767,14 @@ impl Engine {
                 stats,
                 seconds: t.elapsed().as_secs_f64(),
                 gpu: g,
+                variant,
+                variant_name: self.variant_name(variant, false),
             });
         }
-        let out = self.setup(view, region, limits).render();
+        let setup = self.setup(view, region, limits);
+        let (variant, packets) = (setup.variant, setup.packets);
+        let out = setup.render();
+        drop(setup);
         let mut feedback = Feedback::default();
         feedback.add(&out.feedback);
         Ok(Frame {
@@ -729,6 +783,8 @@ impl Engine {
             stats: out.stats,
             seconds: t.elapsed().as_secs_f64(),
             gpu: GpuFrameStats::default(),
+            variant,
+            variant_name: self.variant_name(variant, packets),
         })
     }
 
@@ -883,6 +939,8 @@ impl Engine {
                 requested = rep.requested,
                 missing = rep.missing,
                 uploaded = rep.uploaded,
+                effects = %f.variant.effects,
+                variant = %f.variant_name,
                 "feedback round"
             );
             reports.push(rep);
@@ -900,6 +958,8 @@ impl Engine {
                     backend: self.backend_name(),
                     last_gpu: f.gpu,
                     uploaded_bytes,
+                    variant: f.variant,
+                    variant_name: f.variant_name,
                 });
             }
         }

@@ -261,12 +261,25 @@ impl<'a> HorFrame<'a> {
         hits: &mut Vec<Hit>,
         feedback: &mut crate::feedback::Requests,
     ) -> f32 {
+        self.intersect_with::<true>(d, ta, tb, hits, feedback)
+    }
+
+    /// [`intersect`](Self::intersect) compiled with (`LIT`) or without the lighting code;
+    /// without it, hits take the unlit colour whatever [`lighting`](Self::lighting) says.
+    pub fn intersect_with<const LIT: bool>(
+        &self,
+        d: [f32; 3],
+        ta: f32,
+        tb: f32,
+        hits: &mut Vec<Hit>,
+        feedback: &mut crate::feedback::Requests,
+    ) -> f32 {
         let md = self.index_dir(d);
         let top = self.pyramid.level_count() - 1;
         let mut limit = tb;
         let start = hits.len();
         let inv = md.map(|m| 1.0 / m);
-        self.visit(top, [0, 0, 0], d, md, inv, ta, &mut limit, hits, feedback);
+        self.visit::<LIT>(top, [0, 0, 0], d, md, inv, ta, &mut limit, hits, feedback);
         // Keep the nearest MAX_HITS.
         if hits.len() - start > MAX_HITS {
             hits[start..].sort_by(|a, b| a.t.total_cmp(&b.t));
@@ -276,7 +289,7 @@ impl<'a> HorFrame<'a> {
     }
 
     #[allow(clippy::too_many_arguments)]
-    fn visit(
+    fn visit<const LIT: bool>(
         &self,
         level: usize,
         b: [u32; 3],
@@ -302,7 +315,7 @@ impl<'a> HorFrame<'a> {
         let want = self.level_at(e0.max(0.0));
         if level == 0 || level <= want {
             feedback.push(self.pyramid.id(level, b).with_dataset(self.ds).0);
-            self.leaf(level, b, d, md, ta, limit, hits);
+            self.leaf::<LIT>(level, b, d, md, ta, limit, hits);
             return;
         }
         // Children front to back, ordered by where the ray crosses the two split lines
@@ -347,13 +360,13 @@ impl<'a> HorFrame<'a> {
             }
         }
         for &(_, cb) in &kids[..n] {
-            self.visit(level - 1, cb, d, md, inv, ta, limit, hits, feedback);
+            self.visit::<LIT>(level - 1, cb, d, md, inv, ta, limit, hits, feedback);
         }
     }
 
     /// Walks the cells of tile `b` at `level`, using the finest resident data.
     #[allow(clippy::too_many_arguments)]
-    fn leaf(
+    fn leaf<const LIT: bool>(
         &self,
         level: usize,
         b: [u32; 3],
@@ -434,7 +447,7 @@ impl<'a> HorFrame<'a> {
         };
         let mut t_cell = t_lo;
         let mut guard = 0usize;
-        let lighting = self.lighting;
+        let lighting = LIT && self.lighting;
         // Each axis's exit is recomputed (by the same formula) only when the DDA steps on
         // that axis.
         let mut tx = next_t(0, cell[0]);

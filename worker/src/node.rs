@@ -1349,6 +1349,8 @@ impl Node {
                     stats.last_round_s += r.last_seconds;
                     stats.leaf_cast_s[leaf as usize] += r.last_seconds;
                     stats.backend = r.backend.clone();
+                    push_distinct(&mut stats.effects, &r.variant.effects.to_string());
+                    push_distinct(&mut stats.variant, &r.variant_name);
                     stats.samples += r.last.samples;
                     if r.outcome != Outcome::Converged {
                         outcome = r.outcome;
@@ -1366,6 +1368,16 @@ impl Node {
 }
 
 /// Leaf images, front to back, composited into one.
+/// Appends `item` to the `; `-joined list `list` unless it is there already.
+fn push_distinct(list: &mut String, item: &str) {
+    if !list.split("; ").any(|x| x == item) {
+        if !list.is_empty() {
+            list.push_str("; ");
+        }
+        list.push_str(item);
+    }
+}
+
 fn composite_leaves(width: u32, height: u32, leaves: &[PartialImage]) -> PartialImage {
     match leaves {
         [] => PartialImage::empty(width, height),

@@ -7,13 +7,18 @@
 //! over their boxes, seed 002); in a fragment every active volume is classified at each
 //! sample, the results are mixed, and the mix is composited once.
 //!
-//! Effects are chosen once per frame: with no horizons no intersection code runs, with one
-//! volume the mixing path never runs, gradient shading only when asked for.
+//! The code is specialised to the frame's effect set ([`strata_common::effects`]): the ray
+//! loop is compiled once per set of volume, horizon, lighting and slice effects (`const R`),
+//! the sample loop once per set of shading and pre-integration (`const S`), and a frame runs
+//! the copy its [`Variant`] names. With no horizons no intersection code is compiled in,
+//! with one volume no mixing, without gradient shading no gradient. The general path
+//! (`render.variant = "general"`) runs the copy with every effect in, deciding at run time.
 
 use crate::atlas::{Samples, Voxel};
 use crate::horizon::{Hit, HorFrame};
 use crate::volume::{first_k, first_k_near, trilinear_at, Cursor, VolFrame};
 use rayon::prelude::*;
+use strata_common::effects::{EffectSet, Variant};
 use strata_common::image::{PartialImage, Rect, Rgba};
 use strata_common::occlusion::RayLimits;
 
@@ -70,6 +75,30 @@ pub struct FrameSetup<'a> {
     /// termination threshold from what lies in front, or not cast at all (left
     /// transparent, asking for no page). `None`: every ray of the rectangle, with `ert`.
     pub limits: Option<RayLimits<'a>>,
+    /// The frame's effects and the code path that renders them.
+    pub variant: Variant,
+}
+
+/// Bits of the ray loop's effects (`const R`).
+const RAY_EFFECTS: u8 = EffectSet::VOLUME.bits()
+    | EffectSet::VOLUMES.bits()
+    | EffectSet::HORIZONS.bits()
+    | EffectSet::LIGHTING.bits()
+    | EffectSet::SLICES.bits();
+/// Bits of the sample loop's effects (`const S`).
+const SAMPLE_EFFECTS: u8 = EffectSet::SHADING.bits() | EffectSet::PREINTEGRATED.bits();
+const VOLUME: u8 = EffectSet::VOLUME.bits();
+const VOLUMES: u8 = EffectSet::VOLUMES.bits();
+const HORIZONS: u8 = EffectSet::HORIZONS.bits();
+const LIGHTING: u8 = EffectSet::LIGHTING.bits();
+const SLICES: u8 = EffectSet::SLICES.bits();
+const SHADING: u8 = EffectSet::SHADING.bits();
+const PRE: u8 = EffectSet::PREINTEGRATED.bits();
+
+/// Whether the code compiled for effect bits `code` includes effect `e`.
+#[inline(always)]
+const fn has(code: u8, e: u8) -> bool {
+    code & e != 0
 }
 
 /// Counters of one frame.
@@ -157,19 +186,37 @@ impl<'s, 'a> RayCtx<'s, 'a> {
         tb: f32,
         fb: &mut crate::feedback::Requests,
     ) {
-        // One copy of the loop per element type of the pool.
+        // One copy of the loop per sample effect set, per element type of the pool.
+        match self.f.variant.compiled.bits() & SAMPLE_EFFECTS {
+            0 => self.march_pool::<0>(v, cur, md, ta, tb, fb),
+            SHADING => self.march_pool::<SHADING>(v, cur, md, ta, tb, fb),
+            PRE => self.march_pool::<PRE>(v, cur, md, ta, tb, fb),
+            _ => self.march_pool::<SAMPLE_EFFECTS>(v, cur, md, ta, tb, fb),
+        }
+    }
+
+    #[inline(always)]
+    fn march_pool<const S: u8>(
+        &mut self,
+        v: &VolFrame<'a>,
+        cur: &mut Cursor,
+        md: [f32; 3],
+        ta: f32,
+        tb: f32,
+        fb: &mut crate::feedback::Requests,
+    ) {
         match v.samples {
-            Samples::F32(d) => self.march_typed(v, d, cur, md, ta, tb, fb),
-            Samples::U8(d) => self.march_typed(v, d, cur, md, ta, tb, fb),
-            Samples::I8(d) => self.march_typed(v, d, cur, md, ta, tb, fb),
-            Samples::U16(d) => self.march_typed(v, d, cur, md, ta, tb, fb),
-            Samples::I16(d) => self.march_typed(v, d, cur, md, ta, tb, fb),
+            Samples::F32(d) => self.march_typed::<_, S>(v, d, cur, md, ta, tb, fb),
+            Samples::U8(d) => self.march_typed::<_, S>(v, d, cur, md, ta, tb, fb),
+            Samples::I8(d) => self.march_typed::<_, S>(v, d, cur, md, ta, tb, fb),
+            Samples::U16(d) => self.march_typed::<_, S>(v, d, cur, md, ta, tb, fb),
+            Samples::I16(d) => self.march_typed::<_, S>(v, d, cur, md, ta, tb, fb),
         }
     }
 
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
-    fn march_typed<T: Voxel>(
+    fn march_typed<T: Voxel, const S: u8>(
         &mut self,
         v: &VolFrame<'a>,
         data: &[T],
@@ -199,7 +246,11 @@ impl<'s, 'a> RayCtx<'s, 'a> {
             let band_end = bands.start.get(band + 1).copied().unwrap_or(f32::INFINITY);
             let seg_end = tb.min(band_end);
             let table = &v.tables[band];
-            let pre = v.pre.as_ref().map(|p| &*p[band]);
+            let pre = if has(S, PRE) {
+                v.pre.as_ref().map(|p| &*p[band])
+            } else {
+                None
+            };
             let mut k = first_k(t_start, dt);
             let inv_dt = 1.0 / dt;
             // Hot loop: accumulate in locals, write back once.
@@ -207,7 +258,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
             let mut samples = 0u64;
             let mut skipped = 0u64;
             let ert = self.ert;
-            let shading = f.volume_shading;
+            let shading = has(S, SHADING) && f.volume_shading;
             let mut terminated = false;
             // Samples before `cell_exit` lie in a macrocell already found visible.
             let mut cell_exit = no_cell;
@@ -256,10 +307,12 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                 let mut rgba = match pre {
                     // The segment from the previous sample; the first sample of a span has
                     // none and is classified alone.
-                    Some(pre) if !cur.prev.is_nan() => pre.lookup(cur.prev, s),
+                    Some(pre) if has(S, PRE) && !cur.prev.is_nan() => pre.lookup(cur.prev, s),
                     _ => table.lookup(s),
                 };
-                cur.prev = s;
+                if has(S, PRE) {
+                    cur.prev = s;
+                }
                 if shading {
                     if rgba[3] <= 0.0 {
                         continue; // no gradient for what does not show
@@ -290,7 +343,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
 
     /// Marches several overlapping volumes over `[ta, tb)`: classify each, mix, composite.
     #[allow(clippy::too_many_arguments)]
-    fn march_mixed(
+    fn march_mixed<const S: u8>(
         &mut self,
         active: &[usize],
         curs: &mut [Cursor],
@@ -340,7 +393,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                     if rgba[3] <= 0.0 {
                         continue;
                     }
-                    if f.volume_shading {
+                    if has(S, SHADING) && f.volume_shading {
                         shade(v, cur, q, self.d, &mut rgba);
                     }
                     sum[0] += rgba[0];
@@ -473,15 +526,27 @@ impl<'s, 'a> RayState<'s, 'a> {
         self.cur_t = then;
     }
 
-    /// Marches (volumes and surfaces, front to back) up to `until` (exclusive).
+    /// Marches (volumes and surfaces, front to back) up to `until` (exclusive), with the
+    /// general path's code.
     pub fn advance(&mut self, until: f32, fb: &mut crate::feedback::Requests) {
+        self.advance_with::<RAY_EFFECTS>(until, fb)
+    }
+
+    /// [`advance`](Self::advance) compiled for the ray effects `R` (which hold the frame's).
+    #[inline(always)]
+    fn advance_with<const R: u8>(&mut self, until: f32, fb: &mut crate::feedback::Requests) {
         let f = self.ctx.f;
-        let nv = f.vols.len();
+        let nv = if has(R, VOLUME) { f.vols.len() } else { 0 };
+        let surfaces = has(R, HORIZONS | SLICES);
         loop {
             if self.ctx.done {
                 return;
             }
-            let next_hit = self.hits.get(self.hi).map_or(f32::INFINITY, |h| h.t);
+            let next_hit = if surfaces {
+                self.hits.get(self.hi).map_or(f32::INFINITY, |h| h.t)
+            } else {
+                f32::INFINITY
+            };
             let seg_end = next_hit.min(self.t1).min(until);
             if seg_end > self.cur_t {
                 match nv {
@@ -494,7 +559,7 @@ impl<'s, 'a> RayState<'s, 'a> {
                                 .march_one(&f.vols[0], &mut self.single, self.md0, a, b, fb);
                         }
                     }
-                    _ => f.march_fragments(
+                    _ if has(R, VOLUMES) => f.march_fragments(
                         &mut self.ctx,
                         &mut self.curs,
                         &self.mds,
@@ -503,6 +568,7 @@ impl<'s, 'a> RayState<'s, 'a> {
                         seg_end,
                         fb,
                     ),
+                    _ => unreachable!("several volumes run only where R has them"),
                 }
                 self.cur_t = seg_end;
             }
@@ -510,7 +576,7 @@ impl<'s, 'a> RayState<'s, 'a> {
                 return;
             }
             // The next surface is reached (it lies before `until` and inside the region).
-            if next_hit < self.t1 && next_hit <= until && seg_end >= next_hit {
+            if surfaces && next_hit < self.t1 && next_hit <= until && seg_end >= next_hit {
                 let h = self.hits[self.hi];
                 blend(&mut self.ctx.acc, h.rgba);
                 self.ctx.stats.hits += 1;
@@ -542,8 +608,19 @@ impl<'a> FrameSetup<'a> {
     }
 
     /// [`start`](Self::start), keeping the ray's surface crossings in `hits` (cleared
-    /// first), so a caller can reuse one buffer for many rays.
+    /// first), so a caller can reuse one buffer for many rays. General path.
     pub fn start_with<'s>(
+        &'s self,
+        d: [f32; 3],
+        fb: &mut crate::feedback::Requests,
+        hits: Vec<Hit>,
+    ) -> RayState<'s, 'a> {
+        self.start_r::<RAY_EFFECTS>(d, fb, hits)
+    }
+
+    /// [`start_with`](Self::start_with) compiled for the ray effects `R`.
+    #[inline(always)]
+    fn start_r<'s, const R: u8>(
         &'s self,
         d: [f32; 3],
         fb: &mut crate::feedback::Requests,
@@ -580,9 +657,11 @@ impl<'a> FrameSetup<'a> {
         }
         // Slices first, then each horizon searched only up to the nearest opaque surface
         // found so far: what lies behind it is invisible.
-        for v in &self.vols {
-            if !v.slices.is_empty() {
-                v.slice_hits(v.index_dir(d), t0, t1, &mut st.hits, fb);
+        if has(R, SLICES) {
+            for v in &self.vols {
+                if !v.slices.is_empty() {
+                    v.slice_hits(v.index_dir(d), t0, t1, &mut st.hits, fb);
+                }
             }
         }
         let mut limit = st
@@ -590,9 +669,14 @@ impl<'a> FrameSetup<'a> {
             .iter()
             .filter(|h| h.rgba[3] >= 1.0)
             .fold(t1, |m, h| m.min(h.t));
-        for h in &self.hors {
+        let hors: &[HorFrame<'a>] = if has(R, HORIZONS) { &self.hors } else { &[] };
+        for h in hors {
             let first = st.hits.len();
-            limit = limit.min(h.intersect(d, t0, limit, &mut st.hits, fb));
+            limit = limit.min(if has(R, LIGHTING) {
+                h.intersect_with::<true>(d, t0, limit, &mut st.hits, fb)
+            } else {
+                h.intersect_with::<false>(d, t0, limit, &mut st.hits, fb)
+            });
             if let Some((vi, no_data)) = h.attribute {
                 // The volume's colour where the surface lies (the hit is shaded white).
                 for hit in &mut st.hits[first..] {
@@ -606,7 +690,7 @@ impl<'a> FrameSetup<'a> {
         if st.hits.len() > 1 {
             st.hits.sort_by(|a, b| a.t.total_cmp(&b.t));
         }
-        let nv = self.vols.len();
+        let nv = if has(R, VOLUME) { self.vols.len() } else { 0 };
         // A volume whose transfer function shows nothing is never marched (its slices
         // still show).
         if nv == 1 {
@@ -617,7 +701,7 @@ impl<'a> FrameSetup<'a> {
             } else {
                 (a.max(t0), b.min(t1))
             };
-        } else if nv > 1 {
+        } else if has(R, VOLUMES) && nv > 1 {
             for v in &self.vols {
                 let md = v.index_dir(d);
                 let (a, b) = v.interval(md);
@@ -683,14 +767,56 @@ impl<'a> FrameSetup<'a> {
                     let i = active[0];
                     ctx.march_one(&self.vols[i], &mut curs[i], mds[i], fa, fbnd, fb);
                 }
-                _ => ctx.march_mixed(&active, curs, mds, fa, fbnd, fb),
+                // Shading is the only sample effect of the mix (it stays post-classified).
+                _ if has(self.variant.compiled.bits(), SHADING) => {
+                    ctx.march_mixed::<SHADING>(&active, curs, mds, fa, fbnd, fb)
+                }
+                _ => ctx.march_mixed::<0>(&active, curs, mds, fa, fbnd, fb),
             }
         }
     }
 
     /// Casts every pixel of the region's rectangle with rayon over tiles; each tile writes
-    /// its pixels straight into the image.
+    /// its pixels straight into the image. Runs the copy of the ray loop compiled for the
+    /// frame's [`Variant`].
     pub fn render(&self) -> CastOutput {
+        // Every closed set of ray effects: volumes (none, one, several) × horizons (none,
+        // unlit, lit) × slices. A set outside the list (not closed) takes the general path.
+        const V1: u8 = VOLUME;
+        const V2: u8 = VOLUME | VOLUMES;
+        const H1: u8 = HORIZONS;
+        const H2: u8 = HORIZONS | LIGHTING;
+        const SL: u8 = SLICES;
+        macro_rules! one_of {
+            ($($v:expr),*) => {
+                match self.variant.compiled.bits() & RAY_EFFECTS {
+                    $(b if b == $v => self.render_with::<{ $v }>(),)*
+                    _ => self.render_with::<RAY_EFFECTS>(),
+                }
+            };
+        }
+        one_of!(
+            0,
+            V1,
+            V2,
+            H1,
+            V1 | H1,
+            V2 | H1,
+            H2,
+            V1 | H2,
+            V2 | H2,
+            SL,
+            V1 | SL,
+            V2 | SL,
+            H1 | SL,
+            V1 | H1 | SL,
+            V2 | H1 | SL,
+            H2 | SL,
+            V1 | H2 | SL
+        )
+    }
+
+    fn render_with<const R: u8>(&self) -> CastOutput {
         let r = self.rect;
         let tiles_x = r.w.div_ceil(TILE);
         let tiles_y = r.h.div_ceil(TILE);
@@ -721,9 +847,9 @@ impl<'a> FrameSetup<'a> {
                     for y in ty..ty + h {
                         for x in tx..tx + w {
                             let Some(e) = ert(x, y) else { continue };
-                            let mut ray = self.start_with(ray_dir(self, x, y), &mut fb, hits);
+                            let mut ray = self.start_r::<R>(ray_dir(self, x, y), &mut fb, hits);
                             ray.ctx.ert = e;
-                            ray.advance(f32::INFINITY, &mut fb);
+                            ray.advance_with::<R>(f32::INFINITY, &mut fb);
                             st += ray.ctx.stats;
                             let i = (y - r.y) * r.w + (x - r.x);
                             // SAFETY: (x, y) lies in this tile, inside the rectangle; tiles do
@@ -740,7 +866,7 @@ impl<'a> FrameSetup<'a> {
                 for y in ty..ty + h {
                     for x in tx..tx + w {
                         let Some(e) = ert(x, y) else { continue };
-                        let mut ray = self.start(ray_dir(self, x, y), &mut fb);
+                        let mut ray = self.start_r::<R>(ray_dir(self, x, y), &mut fb, Vec::new());
                         ray.ctx.ert = e;
                         rays.push(ray);
                         at.push((y - r.y) * r.w + (x - r.x));
@@ -783,7 +909,7 @@ impl<'a> FrameSetup<'a> {
                     let mut next = f32::INFINITY;
                     for r in rays.iter_mut() {
                         if r.active() && r.cur_t < until {
-                            r.advance(until, &mut fb);
+                            r.advance_with::<R>(until, &mut fb);
                         }
                         if r.active() {
                             next = next.min((r.cur_t / self.chunk).floor());

@@ -257,7 +257,11 @@ impl GpuBackend {
             n_bands: nb as u32,
             n_vols: setup.vols.len() as u32,
             ert: setup.ert,
-            flags: 0,
+            flags: if setup.volume_shading {
+                strata_common::gpu::FRAME_SHADING
+            } else {
+                0
+            },
             fb_entries: self.entries,
             n_hors: setup.hors.len() as u32,
             occl_block: setup.limits.map_or(0, |l| l.front.grid.block),
@@ -427,9 +431,13 @@ impl GpuBackend {
         }
         self.caster.sync_frame_tables(&bits, &levels, &tf, &hbounds);
         stats.uploaded_bytes = self.caster.take_uploaded();
-        let out = self
-            .caster
-            .cast(&frame, &vols, &hors, setup.volume_shading, occl.as_deref())?;
+        let out = self.caster.cast(
+            &frame,
+            &vols,
+            &hors,
+            setup.variant.compiled,
+            occl.as_deref(),
+        )?;
         stats.readback_bytes = out.readback_bytes;
         stats.feedback_bytes = out.feedback_bytes;
         let mut feedback = Feedback::default();

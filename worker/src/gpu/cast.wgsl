@@ -16,8 +16,10 @@
 // DDA, solving the ray against each cell's bilinear patch exactly. The crossings, sorted, cut
 // the volume march into segments; each surface is composited when the march reaches it.
 //
-// Effects are pipeline-overridable constants, so a scene without them runs no code for them:
-// SHADING (gradient shading), MULTI (several volumes mixed per sample), HORIZONS.
+// Effects are pipeline-overridable constants, so a scene without them runs no code for them
+// (strata_common::effects): SHADING (gradient shading), MULTI (several volumes mixed per
+// sample), HORIZONS, LIGHTING (of horizons), SLICES. The general pipeline has them all on
+// and decides per frame (F.flags) and per horizon (flags).
 
 const TF_SIZE: u32 = 1024u;
 const MAX_VOLS: u32 = 4u;
@@ -27,6 +29,7 @@ const BIG: f32 = 3.0e38; // stands in for +infinity (WGSL has no infinity litera
 const MAX_HORS: u32 = 16u;
 const HORIZON_DEPTH_MAP: u32 = 1u;
 const HORIZON_LIGHTING: u32 = 2u;
+const FRAME_SHADING: u32 = 1u;
 const NO_VOLUME: u32 = 0xffffffffu;
 // Surface crossings a ray keeps (the nearest ones; the CPU keeps 32 per horizon).
 const MAX_HITS: u32 = 32u;
@@ -36,6 +39,7 @@ const STACK: u32 = 52u;
 override SHADING: bool = false;
 override MULTI: bool = false;
 override HORIZONS: bool = false;
+override LIGHTING: bool = false;
 // Bits per element of the volume pool (strata_common::gpu::PoolFormat): 8, 16 or 32.
 override POOL_BITS: u32 = 32u;
 // Volume samples through the texture unit's filter (render.gpu_filter = "hardware") from the
@@ -551,7 +555,7 @@ fn march_one(vi: u32, cur: ptr<function, Cursor>, md: vec3<f32>, d: vec3<f32>, t
             if (is_nan(s)) { continue; }
             var rgba = classify(vi, band, s);
             if (rgba.w <= 0.0) { continue; }
-            if (SHADING) {
+            if (SHADING && (F.flags & FRAME_SHADING) != 0u) {
                 rgba = shade(vi, cur, q, d, rgba);
             }
             (*ray).acc = blend((*ray).acc, rgba);
@@ -605,7 +609,7 @@ fn march_mixed(active_set: u32, curs: ptr<function, array<Cursor, 4>>, mds: ptr<
                     (*curs)[vi] = cur;
                     continue;
                 }
-                if (SHADING) {
+                if (SHADING && (F.flags & FRAME_SHADING) != 0u) {
                     rgba = shade(vi, &cur, q, d, rgba);
                 }
                 (*curs)[vi] = cur;
@@ -921,7 +925,7 @@ fn shade_horizon(hi: u32, d: vec3<f32>, hu: f32, hv: f32, sr: f32, h: f32) -> ve
         let b = tf[(*hz).map_base + i + 1u].xyz;
         base = a + f * (b - a);
     }
-    if (((*hz).flags & HORIZON_LIGHTING) == 0u) {
+    if (!LIGHTING || ((*hz).flags & HORIZON_LIGHTING) == 0u) {
         return base;
     }
     // Normal in index space (per level-0 node), then to camera space by Mᵀ.

@@ -23,7 +23,10 @@ use std::sync::{mpsc, Arc, Mutex};
 use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context, Result};
-use strata_common::gpu::{FrameParams, HorizonParams, VolumeParams, MAX_HORIZONS};
+use strata_common::effects::EffectSet;
+use strata_common::gpu::{
+    FrameParams, HorizonParams, VolumeParams, FRAME_SHADING, HORIZON_LIGHTING, MAX_HORIZONS,
+};
 
 pub mod backend;
 
@@ -126,9 +129,10 @@ pub struct GpuCaster {
     info: wgpu::AdapterInfo,
     limits: wgpu::Limits,
     module: wgpu::ShaderModule,
-    /// Cast pipelines by effect set (shading, several volumes, horizons), pool width and
-    /// filter (texture unit or shader).
-    pipelines: HashMap<(bool, bool, bool, bool, u32, bool), wgpu::ComputePipeline>,
+    /// Cast pipelines by the effects compiled in (shading, several volumes, horizons,
+    /// lighting, slices: [`pipeline_effects`]), pool width and filter (texture unit or
+    /// shader).
+    pipelines: HashMap<(EffectSet, u32, bool), wgpu::ComputePipeline>,
     compact: wgpu::ComputePipeline,
     frame: wgpu::Buffer,
     vols: wgpu::Buffer,
@@ -163,6 +167,17 @@ pub struct GpuCaster {
     /// Bytes written to the device since the last [`take_uploaded`](Self::take_uploaded).
     uploaded: u64,
     uncaptured: Arc<Mutex<Option<String>>>,
+}
+
+/// The effects a cast pipeline is specialised on: those `cast.wgsl` has override constants
+/// for (it has no separate volume or pre-integration code).
+pub fn pipeline_effects(compiled: EffectSet) -> EffectSet {
+    let on = EffectSet::VOLUMES
+        .union(EffectSet::HORIZONS)
+        .union(EffectSet::LIGHTING)
+        .union(EffectSet::SLICES)
+        .union(EffectSet::SHADING);
+    EffectSet::from_bits(compiled.bits() & on.bits())
 }
 
 const STORAGE_DST: wgpu::BufferUsages =
@@ -717,27 +732,24 @@ impl GpuCaster {
         std::mem::take(&mut self.uploaded)
     }
 
-    fn pipeline(
-        &mut self,
-        shading: bool,
-        multi: bool,
-        horizons: bool,
-        slices: bool,
-    ) -> Result<wgpu::ComputePipeline> {
+    fn pipeline(&mut self, compiled: EffectSet) -> Result<wgpu::ComputePipeline> {
         let hw = self.tex.is_some();
-        let key = (shading, multi, horizons, slices, self.pool_bits, hw);
+        let effects = pipeline_effects(compiled);
+        let key = (effects, self.pool_bits, hw);
+        let on = |e| if effects.contains(e) { 1.0 } else { 0.0 };
         if let Some(p) = self.pipelines.get(&key) {
             return Ok(p.clone());
         }
         let (device, module) = (&self.device, &self.module);
         let p = checked(device, "building a cast pipeline", || {
             let constants = [
-                ("SHADING", if shading { 1.0 } else { 0.0 }),
-                ("MULTI", if multi { 1.0 } else { 0.0 }),
-                ("HORIZONS", if horizons { 1.0 } else { 0.0 }),
+                ("SHADING", on(EffectSet::SHADING)),
+                ("MULTI", on(EffectSet::VOLUMES)),
+                ("HORIZONS", on(EffectSet::HORIZONS)),
+                ("LIGHTING", on(EffectSet::LIGHTING)),
                 ("POOL_BITS", self.pool_bits as f64),
                 ("HW_FILTER", if hw { 1.0 } else { 0.0 }),
-                ("SLICES", if slices { 1.0 } else { 0.0 }),
+                ("SLICES", on(EffectSet::SLICES)),
             ];
             device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some("cast"),
@@ -763,7 +775,7 @@ impl GpuCaster {
         frame: &FrameParams,
         vols: &[VolumeParams],
         hors: &[HorizonParams],
-        shading: bool,
+        compiled: EffectSet,
         occl: Option<&[f32]>,
     ) -> Result<GpuCast> {
         if vols.len() > MAX_VOLUMES || hors.len() > MAX_HORIZONS || vols.len() + hors.len() == 0 {
@@ -802,8 +814,19 @@ impl GpuCaster {
             self.uploaded += std::mem::size_of_val(o) as u64;
         }
         let px = frame.rect_w as u64 * frame.rect_h as u64;
-        let slices = vols.iter().any(|v| v.n_slices > 0);
-        let pipeline = self.pipeline(shading, vols.len() > 1, !hors.is_empty(), slices)?;
+        let needs = EffectSet::NONE
+            .with_if(EffectSet::VOLUMES, vols.len() > 1)
+            .with_if(EffectSet::HORIZONS, !hors.is_empty())
+            .with_if(EffectSet::SLICES, vols.iter().any(|v| v.n_slices > 0))
+            .with_if(EffectSet::SHADING, frame.flags & FRAME_SHADING != 0)
+            .with_if(
+                EffectSet::LIGHTING,
+                hors.iter().any(|h| h.flags & HORIZON_LIGHTING != 0),
+            );
+        if !compiled.contains(needs) {
+            bail!("GPU caster: the frame needs {needs}, the pipeline asked for has {compiled}");
+        }
+        let pipeline = self.pipeline(compiled)?;
         let out_bytes = px * 16;
         let clock = Instant::now();
         let device = &self.device;
