@@ -1,12 +1,17 @@
 //! `bench-render --only-effects`: what each effect costs a frame that does not use it, and
 //! what it costs when used (issue 12, part 3).
 //!
-//! For each effect, a scene without it renders on the code specialised to its effects, on
-//! the same code with that one effect compiled in as well, and on the general path (every
-//! effect compiled in); then the scene with the effect renders on its own specialised code.
-//! All engines converge first and then render their frames interleaved (A, B, C, D, A, B, …),
-//! so drift of the machine hits every column alike; medians are reported. The images of the
-//! scene without the effect must be identical bit for bit on all three paths.
+//! For each effect, a scene without it renders on the code specialised to its effects
+//! (twice, in two engines: their difference is the noise floor of the run), on the same
+//! code with that one effect compiled in as well, and on the general path (every effect
+//! compiled in); then the scene with the effect renders on its own specialised code.
+//! All engines converge first and then render their frames interleaved, in rounds whose
+//! order alternates (A B C D, then D C B A), so drift of the machine hits every column
+//! alike. Times are the process's CPU time per frame (`CLOCK_PROCESS_CPUTIME_ID`): on a
+//! shared virtual machine, time stolen by other guests inflates wall time but not CPU
+//! time. A cost is the median over rounds of the ratio of two configurations' times in the
+//! same round. The images of the scene without the effect must be identical bit for bit on
+//! all three paths.
 
 use anyhow::{bail, Result};
 use std::path::PathBuf;
@@ -27,8 +32,12 @@ pub(crate) struct EffectsArgs {
     pub(crate) frames: usize,
     /// Frame size.
     pub(crate) size: [u32; 2],
-    /// Also the GPU caster (any adapter, lavapipe included).
+    /// The CPU caster's tables.
+    pub(crate) cpu: bool,
+    /// The GPU caster's table (any adapter, lavapipe included).
     pub(crate) gpu: bool,
+    /// Threads of the CPU caster's pool (1: no scheduling noise between rayon threads).
+    pub(crate) threads: usize,
 }
 
 /// One effect's comparison.
@@ -44,12 +53,34 @@ struct Case {
 
 struct Run {
     median: f64,
+    /// CPU seconds per round.
+    times: Vec<f64>,
     samples: u64,
     image: Vec<Rgba>,
     variant: String,
 }
 
-/// Converges every engine, then renders `frames` frames round-robin.
+/// CPU seconds of this process so far, all threads (the scheduler's own accounting,
+/// nanosecond resolution, unlike `getrusage`'s ticks).
+fn cpu_seconds() -> f64 {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes into the struct we own.
+    unsafe { libc::clock_gettime(libc::CLOCK_PROCESS_CPUTIME_ID, &mut ts) };
+    ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
+}
+
+/// Median over rounds of `b / a − 1`, in per cent.
+fn paired_cost(a: &Run, b: &Run) -> f64 {
+    let mut r: Vec<f64> = a.times.iter().zip(&b.times).map(|(x, y)| y / x).collect();
+    r.sort_by(|x, y| x.total_cmp(y));
+    100.0 * (r[r.len() / 2] - 1.0)
+}
+
+/// Converges every engine, then renders `frames` rounds of one frame each, the order
+/// reversed every other round.
 fn interleaved(configs: &[(&Scene, EffectSet)], frames: usize) -> Result<Vec<Run>> {
     let mut engines = Vec::new();
     for (scene, extra) in configs {
@@ -62,24 +93,32 @@ fn interleaved(configs: &[(&Scene, EffectSet)], frames: usize) -> Result<Vec<Run
     }
     let mut times = vec![Vec::new(); engines.len()];
     let mut last = Vec::new();
+    let n = engines.len();
     for round in 0..frames.max(1) + 1 {
         last.clear();
-        for (i, (e, view, region)) in engines.iter_mut().enumerate() {
+        last.resize_with(n, || None);
+        for k in 0..n {
+            let i = if round % 2 == 0 { k } else { n - 1 - k };
+            let (e, view, region) = &mut engines[i];
+            let c0 = cpu_seconds();
             let f = e.render_frame(view, region)?;
             // The first round warms caches and builds GPU pipelines.
             if round > 0 {
-                times[i].push(f.seconds);
+                times[i].push(cpu_seconds() - c0);
             }
-            last.push(f);
+            last[i] = Some(f);
         }
     }
     Ok(times
         .into_iter()
         .zip(last)
-        .map(|(mut t, f)| {
-            t.sort_by(|a, b| a.total_cmp(b));
+        .map(|(t, f)| {
+            let f = f.expect("every engine rendered");
+            let mut sorted = t.clone();
+            sorted.sort_by(|a, b| a.total_cmp(b));
             Run {
-                median: t[t.len() / 2],
+                median: sorted[sorted.len() / 2],
+                times: t,
                 samples: f.stats.samples,
                 image: f.image.to_full(),
                 variant: f.variant_name,
@@ -196,23 +235,24 @@ fn shifted_bonsai(args: &EffectsArgs) -> Result<PathBuf> {
     Ok(out)
 }
 
-fn pct(a: f64, b: f64) -> f64 {
-    100.0 * (b / a - 1.0)
-}
-
 fn table(args: &EffectsArgs, backend: Backend, scalar: bool) -> Result<()> {
     let what = match (backend, scalar) {
-        (Backend::Gpu, _) => "GPU caster",
+        // lavapipe runs the shader on the CPU, so CPU time is the shader's time; on a
+        // hardware GPU it would be the driver's.
+        (Backend::Gpu, _) => "GPU caster (CPU time: on lavapipe, the shader's)",
         (_, false) => "CPU caster, SIMD packets where they apply (the default)",
         (_, true) => "CPU caster, scalar march (`render.simd = false`)",
     };
     println!(
-        "### {what}, {}×{}, median of {} interleaved frames",
-        args.size[0], args.size[1], args.frames
+        "### {what}, {}×{}, {} thread(s), CPU time, medians of {} interleaved rounds",
+        args.size[0],
+        args.size[1],
+        rayon::current_num_threads(),
+        args.frames
     );
     println!();
-    println!("| effect | scene without it | specialised | effect compiled in | unused cost | general path | general cost | ≤ 2 % | scene with it | cost when used | samples/s (specialised) |");
-    println!("|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("| effect | scene without it | specialised | noise (same code again) | effect compiled in | unused cost | general path | general cost | compiled in ≤ 2 % | scene with it | cost when used | samples/s (specialised) |");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
     for case in cases(args, scalar)? {
         if backend == Backend::Gpu && case.effect == EffectSet::PREINTEGRATED {
             continue; // the GPU caster has no pre-integration
@@ -225,11 +265,15 @@ fn table(args: &EffectsArgs, backend: Backend, scalar: bool) -> Result<()> {
                 (&without, case.effect),
                 (&without, EffectSet::ALL),
                 (&with, EffectSet::NONE),
+                (&without, EffectSet::NONE),
             ],
             args.frames,
         )?;
-        let [a, b, g, w] = [&runs[0], &runs[1], &runs[2], &runs[3]];
-        if !identical(&a.image, &b.image) || !identical(&a.image, &g.image) {
+        let [a, b, g, w, a2] = [&runs[0], &runs[1], &runs[2], &runs[3], &runs[4]];
+        if !identical(&a.image, &b.image)
+            || !identical(&a.image, &g.image)
+            || !identical(&a.image, &a2.image)
+        {
             bail!(
                 "{}: the code paths gave different images ({} / {} / {})",
                 case.effect,
@@ -238,20 +282,21 @@ fn table(args: &EffectsArgs, backend: Backend, scalar: bool) -> Result<()> {
                 g.variant
             );
         }
-        let unused = pct(a.median, b.median);
+        let unused = paired_cost(a, b);
         println!(
-            "| {} | {} (`{}`) | {:.1} ms | {:.1} ms | {:+.1} % | {:.1} ms | {:+.1} % | {} | {:.1} ms | {:+.0} % | {:.0} M/s |",
+            "| {} | {} (`{}`) | {:.1} ms | {:+.1} % | {:.1} ms | {:+.1} % | {:.1} ms | {:+.1} % | {} | {:.1} ms | {:+.0} % | {:.0} M/s |",
             case.effect,
             case.without_name,
             a.variant,
             a.median * 1e3,
+            paired_cost(a, a2),
             b.median * 1e3,
             unused,
             g.median * 1e3,
-            pct(a.median, g.median),
+            paired_cost(a, g),
             if unused <= 2.0 { "met" } else { "**not met**" },
             w.median * 1e3,
-            pct(a.median, w.median),
+            paired_cost(a, w),
             a.samples as f64 / a.median / 1e6,
         );
     }
@@ -263,10 +308,17 @@ fn table(args: &EffectsArgs, backend: Backend, scalar: bool) -> Result<()> {
 pub(crate) fn run(args: &EffectsArgs) -> Result<()> {
     println!("## What effects cost (issue 12, part 3)");
     println!();
-    table(args, Backend::Cpu, false)?;
-    table(args, Backend::Cpu, true)?;
-    if args.gpu {
-        table(args, Backend::Gpu, false)?;
-    }
-    Ok(())
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(args.threads)
+        .build()?;
+    pool.install(|| -> Result<()> {
+        if args.cpu {
+            table(args, Backend::Cpu, false)?;
+            table(args, Backend::Cpu, true)?;
+        }
+        if args.gpu {
+            table(args, Backend::Gpu, false)?;
+        }
+        Ok(())
+    })
 }

@@ -56,8 +56,14 @@ struct Cli {
     #[arg(long)]
     only_effects: bool,
     /// Frame size of `--only-effects`.
-    #[arg(long, num_args = 2, default_values_t = [960u32, 540])]
+    #[arg(long, num_args = 2, default_values_t = [640u32, 360])]
     effects_size: Vec<u32>,
+    /// `--only-effects`: only the GPU caster's table.
+    #[arg(long)]
+    effects_gpu_only: bool,
+    /// CPU caster threads of `--only-effects`.
+    #[arg(long, default_value_t = 1)]
+    effects_threads: usize,
     /// Threads for `--only-caster` (each a separate rayon pool).
     #[arg(long, value_delimiter = ',', default_values_t = [1usize, 2])]
     threads: Vec<usize>,
@@ -452,7 +458,9 @@ fn main() -> Result<()> {
             dir: cli.dir.clone(),
             frames: cli.frames,
             size: [cli.effects_size[0], cli.effects_size[1]],
+            cpu: !cli.effects_gpu_only,
             gpu: !cli.no_gpu && !strata_worker::gpu::list_adapters().is_empty(),
+            threads: cli.effects_threads,
         })?;
         println!("peak RSS {:.0} MiB", peak_rss_mib());
         return Ok(());

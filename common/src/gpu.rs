@@ -192,7 +192,7 @@ pub struct VolumeParams {
     pub tf_last: f32,
     /// First pool element of the pool this volume's pages live in (0: one pool).
     pub pool_base: u32,
-    /// [`VOLUME_SIGNED`] | [`VOLUME_NO_DATA`].
+    /// [`VOLUME_SIGNED`] | [`VOLUME_NO_DATA`] | [`VOLUME_INVISIBLE`].
     pub flags: u32,
     /// The integer pool value that means "no data" (with [`VOLUME_NO_DATA`]).
     pub no_data: i32,
@@ -218,6 +218,9 @@ pub const VOLUME_SIGNED: u32 = 1;
 /// [`VolumeParams::flags`]: the pool value [`VolumeParams::no_data`] stands for no data (the
 /// NaN of the decoded `f32` page).
 pub const VOLUME_NO_DATA: u32 = 2;
+/// [`VolumeParams::flags`]: the transfer function shows nothing of the volume (with
+/// empty-space skipping): it is not marched, as on the CPU (its slices still show).
+pub const VOLUME_INVISIBLE: u32 = 4;
 
 /// How the device pool stores volume samples: in the narrowest width that holds every
 /// volume's sample type (`u8`/`i8` → 8 bits, `u16`/`i16` → 16, `f32` → 32), so 8- and 16-bit

@@ -10,10 +10,11 @@ use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 /// The targets by name, as the fuzzer and the corpus folders name them.
-pub const TARGETS: [(&str, fn(&[u8])); 7] = [
+pub const TARGETS: [(&str, fn(&[u8])); 8] = [
     ("segy", segy),
     ("horizon_text", horizon_text),
     ("store", store),
+    ("store_sealed", store_sealed),
     ("wire_header", wire_header),
     ("wire_message", wire_message),
     ("sparse_piece", sparse_piece),
@@ -108,6 +109,55 @@ pub fn store(data: &[u8]) {
         }
         let _ = s.sample_level(0, [0, 0, 0]);
     }
+}
+
+/// A page store whose checksums are made right after mutation (structure-aware): the
+/// preamble's, the header's, the index's and every in-range page's CRC-32C are recomputed
+/// from the bytes, so mutations reach the header's fields, the index and the page codec
+/// instead of stopping at a checksum — a crafted file passes every CRC.
+pub fn store_sealed(data: &[u8]) {
+    let mut b = data.to_vec();
+    seal_store(&mut b);
+    store(&b);
+}
+
+/// Recomputes a store file's CRCs in place where its offsets lie inside it.
+pub fn seal_store(b: &mut [u8]) {
+    const PRE: usize = 64;
+    const ENTRY: usize = 40;
+    if b.len() < PRE {
+        return;
+    }
+    let u64_at = |b: &[u8], at: usize| u64::from_le_bytes(b[at..at + 8].try_into().unwrap());
+    let u32_at = |b: &[u8], at: usize| u32::from_le_bytes(b[at..at + 4].try_into().unwrap());
+    let range = |off: u64, len: u64, total: usize| -> Option<std::ops::Range<usize>> {
+        let end = off.checked_add(len)?;
+        (end <= total as u64).then(|| off as usize..end as usize)
+    };
+    let n = b.len();
+    let (ho, hl) = (u64_at(b, 16), u64_at(b, 24));
+    let (io, ic) = (u64_at(b, 32), u64_at(b, 40));
+    if let Some(r) = ic
+        .checked_mul(ENTRY as u64)
+        .and_then(|len| range(io, len, n))
+    {
+        // Each page's checksum over its stored bytes, then the index's over the entries.
+        for e in r.clone().step_by(ENTRY) {
+            let (off, len) = (u64_at(b, e + 8), u32_at(b, e + 16) as u64);
+            if let Some(p) = range(off, len, n) {
+                let c = crc32c::crc32c(&b[p]);
+                b[e + 20..e + 24].copy_from_slice(&c.to_le_bytes());
+            }
+        }
+        let c = crc32c::crc32c(&b[r]);
+        b[52..56].copy_from_slice(&c.to_le_bytes());
+    }
+    if let Some(r) = range(ho, hl, n) {
+        let c = crc32c::crc32c(&b[r]);
+        b[48..52].copy_from_slice(&c.to_le_bytes());
+    }
+    let c = crc32c::crc32c(&b[..60]);
+    b[60..64].copy_from_slice(&c.to_le_bytes());
 }
 
 /// A frame header of the cluster protocol, under the handshake limits and a frame's.
@@ -255,6 +305,13 @@ pub fn seeds() -> Vec<(&'static str, String, Vec<u8>)> {
             "horizon".into(),
             std::fs::read(&p).expect("store seed"),
         ));
+        // The sealed target starts from the same valid files.
+        let sealed: Vec<_> = out
+            .iter()
+            .filter(|(t, _, _)| *t == "store")
+            .map(|(_, n, b)| ("store_sealed", n.clone(), b.clone()))
+            .collect();
+        out.extend(sealed);
     }
     // The cluster protocol: frame headers and one message of each kind.
     {

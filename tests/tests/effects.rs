@@ -26,6 +26,8 @@ struct Parts {
     slices: bool,
     /// The first volume's transfer function shows nothing (only its slices do).
     invisible: bool,
+    /// Every volume's transfer function shows nothing.
+    all_invisible: bool,
 }
 
 fn build(dir: &std::path::Path, p: Parts) -> Scene {
@@ -42,7 +44,7 @@ fn build(dir: &std::path::Path, p: Parts) -> Scene {
         // both, mixed).
         let t = Affine3::scale_offset([1.0; 3], [i as f64 * 9.0, i as f64 * 4.0, 0.0]);
         let store = volume_store(dir, &format!("v{i}"), [N, N, N], data, t, 32);
-        let points = if p.invisible && i == 0 {
+        let points = if (p.invisible && i == 0) || p.all_invisible {
             vec![[0.0, 0.0], [1.0, 0.0]]
         } else {
             vec![[0.0, 0.05], [0.5, 0.0], [1.0, 0.08]]
@@ -148,7 +150,10 @@ fn check(s: &Scene, want: EffectSet, what: &str) {
     general.render.variant = CodePath::General;
     let g = batch(&general, EffectSet::NONE);
     assert!(g.variant.is_general() && g.variant_name.starts_with("general"));
-    assert!(bit_identical(&img, &g.image.to_full()), "{what}: general path");
+    assert!(
+        bit_identical(&img, &g.image.to_full()),
+        "{what}: general path"
+    );
     // The scalar march, specialised and general.
     let mut scalar = s.clone();
     scalar.render.simd = false;
@@ -189,7 +194,7 @@ fn check(s: &Scene, want: EffectSet, what: &str) {
 fn every_effect_set_renders_the_same_on_its_specialised_path_as_on_the_general_one() {
     let dir = TempDir::new().unwrap();
     let v = EffectSet::VOLUME;
-    let cases: [(Parts, EffectSet, &str); 8] = [
+    let cases: [(Parts, EffectSet, &str); 9] = [
         (
             Parts {
                 volumes: 1,
@@ -245,6 +250,19 @@ fn every_effect_set_renders_the_same_on_its_specialised_path_as_on_the_general_o
                 .union(EffectSet::LIGHTING)
                 .union(EffectSet::SLICES),
             "slices of an invisible volume and a lit horizon",
+        ),
+        (
+            // Shading asked for, two volumes, but none marched: only the slices show, and
+            // neither shading nor mixing is in the code.
+            Parts {
+                volumes: 2,
+                all_invisible: true,
+                shading: true,
+                slices: true,
+                ..Parts::default()
+            },
+            EffectSet::SLICES,
+            "slices of two invisible volumes, shading asked for",
         ),
         (
             Parts {

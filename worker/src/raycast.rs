@@ -95,6 +95,19 @@ const SLICES: u8 = EffectSet::SLICES.bits();
 const SHADING: u8 = EffectSet::SHADING.bits();
 const PRE: u8 = EffectSet::PREINTEGRATED.bits();
 
+/// How many of a frame's `n` volumes the code for ray effects `R` marches: none without
+/// the volume effect, and none of several without the several-volumes effect (the frame's
+/// effects include it whenever one of several is marched, so code without it only meets
+/// several volumes that show nothing).
+#[inline(always)]
+const fn marched_volumes<const R: u8>(n: usize) -> usize {
+    if !has(R, VOLUME) || (n > 1 && !has(R, VOLUMES)) {
+        0
+    } else {
+        n
+    }
+}
+
 /// Whether the code compiled for effect bits `code` includes effect `e`.
 #[inline(always)]
 const fn has(code: u8, e: u8) -> bool {
@@ -536,7 +549,7 @@ impl<'s, 'a> RayState<'s, 'a> {
     #[inline(always)]
     fn advance_with<const R: u8>(&mut self, until: f32, fb: &mut crate::feedback::Requests) {
         let f = self.ctx.f;
-        let nv = if has(R, VOLUME) { f.vols.len() } else { 0 };
+        let nv = marched_volumes::<R>(f.vols.len());
         let surfaces = has(R, HORIZONS | SLICES);
         loop {
             if self.ctx.done {
@@ -690,7 +703,7 @@ impl<'a> FrameSetup<'a> {
         if st.hits.len() > 1 {
             st.hits.sort_by(|a, b| a.t.total_cmp(&b.t));
         }
-        let nv = if has(R, VOLUME) { self.vols.len() } else { 0 };
+        let nv = marched_volumes::<R>(self.vols.len());
         // A volume whose transfer function shows nothing is never marched (its slices
         // still show).
         if nv == 1 {

@@ -97,8 +97,13 @@ impl PageStore {
             // Version 1 ends before `stats`: its absence is bincode's `None` tag.
             hb.push(0);
         }
-        let (header, _): (StoreHeader, usize) =
-            bincode::serde::decode_from_slice(&hb, bincode::config::standard()).map_err(|e| {
+        // A length prefix inside the header is untrusted: bincode claims what a string or
+        // list would take before allocating it, and the limit refuses more than a header of
+        // at most MAX_HEADER_BYTES can hold (no element decodes from under 1 byte to over 16).
+        let limited =
+            bincode::config::standard().with_limit::<{ 16 * MAX_HEADER_BYTES as usize }>();
+        let (header, _): (StoreHeader, usize) = bincode::serde::decode_from_slice(&hb, limited)
+            .map_err(|e| {
                 fmt(
                     pre.header_offset,
                     "a bincode-encoded store header".into(),

@@ -257,7 +257,13 @@ impl GpuBackend {
             n_bands: nb as u32,
             n_vols: setup.vols.len() as u32,
             ert: setup.ert,
-            flags: if setup.volume_shading {
+            // Shading where a volume is marched (the frame's effects): an invisible volume
+            // is not, and its slices are not shaded.
+            flags: if setup
+                .variant
+                .effects
+                .contains(strata_common::effects::EffectSet::SHADING)
+            {
                 strata_common::gpu::FRAME_SHADING
             } else {
                 0
@@ -358,7 +364,12 @@ impl GpuBackend {
                 tf_offset: t0.offset,
                 tf_last: t0.last,
                 pool_base: 0,
-                flags: vflags,
+                flags: vflags
+                    | if v.invisible {
+                        strata_common::gpu::VOLUME_INVISIBLE
+                    } else {
+                        0
+                    },
                 no_data: vno_data,
                 level_t,
                 n_slices: v.slices.len() as u32,

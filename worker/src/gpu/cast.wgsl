@@ -49,6 +49,7 @@ override HW_FILTER: bool = false;
 override SLICES: bool = false;
 const VOLUME_SIGNED: u32 = 1u;
 const VOLUME_NO_DATA: u32 = 2u;
+const VOLUME_INVISIBLE: u32 = 4u;
 
 struct Frame {
     dir00: vec3<f32>,
@@ -1239,6 +1240,10 @@ fn cast_rays(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
                 let iv = interval(i, md);
                 mds[i] = md;
                 spans[i] = vec2<f32>(max(iv.x, tt.x), min(iv.y, tt.y));
+                // A volume whose transfer function shows nothing is not marched (raycast.rs).
+                if ((vols[i].flags & VOLUME_INVISIBLE) != 0u) {
+                    spans[i] = vec2<f32>(0.0, 0.0);
+                }
                 curs[i] = new_cursor();
             }
             var nh = 0u;

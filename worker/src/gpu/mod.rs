@@ -814,8 +814,10 @@ impl GpuCaster {
             self.uploaded += std::mem::size_of_val(o) as u64;
         }
         let px = frame.rect_w as u64 * frame.rect_h as u64;
+        // What the frame's tables need the pipeline to have. (Several volumes need `MULTI`
+        // only where one is marched, which the engine's effects say: without it the
+        // pipeline marches no volume of a multi-volume frame.)
         let needs = EffectSet::NONE
-            .with_if(EffectSet::VOLUMES, vols.len() > 1)
             .with_if(EffectSet::HORIZONS, !hors.is_empty())
             .with_if(EffectSet::SLICES, vols.iter().any(|v| v.n_slices > 0))
             .with_if(EffectSet::SHADING, frame.flags & FRAME_SHADING != 0)
