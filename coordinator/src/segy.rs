@@ -712,8 +712,9 @@ pub struct SegyWriter {
 
 impl SegyWriter {
     /// Creates `path` and writes the EBCDIC textual header (from `text`: up to 40 lines of
-    /// up to 80 characters) and a rev 1 binary header. `format` is 1 (IBM float), 3 (int16)
-    /// or 5 (IEEE float).
+    /// up to 80 characters) and a rev 1 binary header (rev 2 for the three-byte formats).
+    /// `format` is 1 (IBM float), 3 (int16), 5 (IEEE float), 7 (int24) or 15 (uint24);
+    /// integers are rounded and clamped to their range, NaN written as 0.
     pub fn create(
         path: &Path,
         text: &str,
@@ -724,8 +725,8 @@ impl SegyWriter {
         endian: Endian,
     ) -> Result<Self> {
         let p = path.display();
-        if !matches!(format, 1 | 3 | 5) {
-            bail!("{p}: cannot write sample format {format}; the writer supports 1 (IBM float), 3 (int16), 5 (IEEE float)");
+        if !matches!(format, 1 | 3 | 5 | 7 | 15) {
+            bail!("{p}: cannot write sample format {format}; the writer supports 1 (IBM float), 3 (int16), 5 (IEEE float), 7 (int24), 15 (uint24)");
         }
         if !(1..=u16::MAX as u32).contains(&n_samples) {
             bail!("{p}: {n_samples} samples per trace; a rev 1 file holds 1..=65535");
@@ -747,7 +748,8 @@ impl SegyWriter {
         put_u16(&mut bin, 27, 1, endian); // ensemble fold
         put_u16(&mut bin, 29, 4, endian); // sorting: post-stack
         put_u16(&mut bin, 55, 1, endian); // metres
-        bin[300] = 1; // rev 1.0
+                                          // Rev 1.0; the three-byte formats are rev 2.0.
+        bin[300] = if matches!(format, 7 | 15) { 2 } else { 1 };
         bin[301] = 0;
         put_u16(&mut bin, 303, 1, endian); // fixed-length traces
         put_u16(&mut bin, 305, 0, endian); // no extended textual headers
@@ -834,6 +836,22 @@ impl SegyWriter {
                     } else {
                         q.to_le_bytes()
                     });
+                    continue;
+                }
+                7 | 15 => {
+                    let (lo, hi) = if self.format == 7 {
+                        (-8_388_608.0, 8_388_607.0)
+                    } else {
+                        (0.0, 16_777_215.0)
+                    };
+                    let q = if v.is_nan() {
+                        0
+                    } else {
+                        v.round().clamp(lo, hi) as i32
+                    };
+                    let w = (q as u32).to_be_bytes();
+                    let three = [w[1], w[2], w[3]];
+                    h.extend_from_slice(&if big { three } else { [w[3], w[2], w[1]] });
                     continue;
                 }
                 1 => b = f32_to_ibm(v).to_be_bytes(),
@@ -1051,6 +1069,10 @@ enum Format {
     Ibm,
     I32,
     I16,
+    /// Rev 2 code 7: three-byte two's-complement integer.
+    I24,
+    /// Rev 2 code 15: three-byte unsigned integer.
+    U24,
     F32,
     F64,
     I8,
@@ -1069,6 +1091,8 @@ impl Format {
             3 => Format::I16,
             5 => Format::F32,
             6 => Format::F64,
+            7 => Format::I24,
+            15 => Format::U24,
             8 => Format::I8,
             9 => Format::I64,
             10 => Format::U32,
@@ -1082,6 +1106,7 @@ impl Format {
         match self {
             Format::I8 | Format::U8 => 1,
             Format::I16 | Format::U16 => 2,
+            Format::I24 | Format::U24 => 3,
             Format::Ibm | Format::I32 | Format::F32 | Format::U32 => 4,
             Format::F64 | Format::I64 | Format::U64 => 8,
         }
@@ -1103,8 +1128,8 @@ fn is_segy_format(c: u16) -> bool {
 }
 
 fn supported_list() -> &'static str {
-    "1 (4-byte IBM float), 2 (int32), 3 (int16), 5 (4-byte IEEE float), 6 (8-byte IEEE float), 8 (int8), \
-     9 (int64), 10 (uint32), 11 (uint16), 12 (uint64), 16 (uint8)"
+    "1 (4-byte IBM float), 2 (int32), 3 (int16), 5 (4-byte IEEE float), 6 (8-byte IEEE float), 7 (int24), \
+     8 (int8), 9 (int64), 10 (uint32), 11 (uint16), 12 (uint64), 15 (uint24), 16 (uint8)"
 }
 
 /// Decodes the samples in `src` into `out[start]`, `out[start + stride]`, …
@@ -1145,6 +1170,24 @@ fn decode_strided(
         Format::U16 => run!(2, u16, |v: u16| v as f32),
         Format::U64 => run!(8, u64, |v: u64| v as f32),
         Format::U8 => run!(1, u8, |v: u8| v as f32),
+        // Three-byte integers (every one is exact in f32's 24-bit significand).
+        Format::I24 | Format::U24 => {
+            let dst = out[start..].iter_mut().step_by(stride);
+            for (o, c) in dst.zip(src.chunks_exact(3)) {
+                let (hi, mid, lo) = if big {
+                    (c[0], c[1], c[2])
+                } else {
+                    (c[2], c[1], c[0])
+                };
+                let u = u32::from(hi) << 16 | u32::from(mid) << 8 | u32::from(lo);
+                *o = if fmt == Format::I24 {
+                    // Sign-extend bit 23.
+                    ((u << 8) as i32 >> 8) as f32
+                } else {
+                    u as f32
+                };
+            }
+        }
     }
 }
 
@@ -1366,6 +1409,85 @@ mod tests {
         match r {
             Ok(_) => panic!("expected an error"),
             Err(e) => format!("{e}"),
+        }
+    }
+
+    #[test]
+    fn three_byte_integer_formats_read_exactly_in_both_byte_orders() {
+        // Rev 2 formats 7 (int24) and 15 (uint24), which segyio cannot read: the extremes,
+        // both sides of zero and values past 16 bits come back exactly.
+        let dir = tempfile::TempDir::new().unwrap();
+        for (format, values) in [
+            (
+                7u16,
+                vec![
+                    -8_388_608.0f32,
+                    8_388_607.0,
+                    -1.0,
+                    0.0,
+                    1.0,
+                    -65_537.0,
+                    123_456.0,
+                ],
+            ),
+            (
+                15u16,
+                vec![
+                    0.0f32,
+                    16_777_215.0,
+                    1.0,
+                    65_536.0,
+                    8_388_608.0,
+                    255.0,
+                    70_000.0,
+                ],
+            ),
+        ] {
+            for endian in [Endian::Big, Endian::Little] {
+                let p = dir.path().join(format!("f{format}-{endian:?}.sgy"));
+                let n = values.len() as u32;
+                let mut w =
+                    SegyWriter::create(&p, "C 1 int24", n, 2000, 0, format, endian).unwrap();
+                for i in 0..2 {
+                    for j in 0..3 {
+                        // Each trace its own rotation of the values.
+                        let mut t = values.clone();
+                        t.rotate_left(i * 3 + j);
+                        w.write_trace(10 + i as i32, 20 + j as i32, i as f64, j as f64, &t)
+                            .unwrap();
+                    }
+                }
+                w.finish().unwrap();
+                let v = open(&p, &SegyOptions::default()).unwrap();
+                assert_eq!(v.info().format_code, format);
+                assert_eq!(v.info().bytes_per_sample, 3);
+                assert_eq!(v.info().endian, endian);
+                let mut out = vec![0.0f32; values.len()];
+                for i in 0..2u64 {
+                    for j in 0..3u64 {
+                        let t = v.trace_at(i, j).unwrap();
+                        v.read_trace(t, &mut out).unwrap();
+                        let mut want = values.clone();
+                        want.rotate_left((i * 3 + j) as usize);
+                        assert_eq!(out, want, "format {format} {endian:?} trace ({i}, {j})");
+                    }
+                }
+                // The strided path the store builder reads bricks through: a box of the
+                // whole cube against the traces.
+                let d = v.dims();
+                let mut cube = vec![0.0f32; (d[0] * d[1] * d[2]) as usize];
+                v.read_box([0, 0, 0], d, &mut cube).unwrap();
+                for i in 0..d[0] {
+                    for j in 0..d[1] {
+                        let t = v.trace_at(i, j).unwrap();
+                        v.read_trace(t, &mut out).unwrap();
+                        for k in 0..d[2] {
+                            let got = cube[((k * d[1] + j) * d[0] + i) as usize];
+                            assert_eq!(got, out[k as usize], "box ({i}, {j}, {k})");
+                        }
+                    }
+                }
+            }
         }
     }
 

@@ -236,7 +236,13 @@ pub fn seeds() -> Vec<(&'static str, String, Vec<u8>)> {
     // SEG-Y: a 3×4×6 cube in each sample format and byte order the writer has.
     {
         use strata_coordinator::segy::{Endian, SegyWriter};
-        for (format, endian) in [(1, Endian::Big), (5, Endian::Little), (3, Endian::Big)] {
+        for (format, endian) in [
+            (1, Endian::Big),
+            (5, Endian::Little),
+            (3, Endian::Big),
+            (7, Endian::Big),
+            (15, Endian::Little),
+        ] {
             let p = dir.join("seed.sgy");
             let mut w = SegyWriter::create(&p, "C 1 fuzz seed", 6, 4000, 0, format, endian)
                 .expect("segy writer");
