@@ -220,19 +220,12 @@ fn cases(args: &EffectsArgs, scalar: bool) -> Result<Vec<Case>> {
 /// The bonsai moved by half its size along x and y (a second volume that overlaps the first
 /// in a quarter of its footprint).
 fn shifted_bonsai(args: &EffectsArgs) -> Result<PathBuf> {
-    use indicatif::ProgressBar;
-    use strata_common::geo::Affine3;
-    use strata_common::sample::SampleType;
-    use strata_coordinator::builder::{build_store, BuildOptions};
-    use strata_coordinator::source::RawSource;
-    let out = args.dir.join("bonsai-shifted.strata");
-    if !out.exists() {
-        let src = RawSource::open(&args.raw, [256, 256, 256], SampleType::U8, false)?;
-        let mut o = BuildOptions::volume("bonsai-shifted", SampleType::U8);
-        o.transform = Affine3::scale_offset([1.0; 3], [128.0, 128.0, 0.0]);
-        build_store(&src, &out, &o, &ProgressBar::hidden())?;
-    }
-    Ok(out)
+    crate::bonsai_store_at(
+        &args.raw,
+        &args.dir,
+        "bonsai-shifted",
+        strata_common::geo::Affine3::scale_offset([1.0; 3], [128.0, 128.0, 0.0]),
+    )
 }
 
 fn table(args: &EffectsArgs, backend: Backend, scalar: bool) -> Result<()> {

@@ -91,10 +91,26 @@ fn bonsai_path(cli: &Cli) -> PathBuf {
 }
 
 fn bonsai_store(cli: &Cli) -> Result<PathBuf> {
-    let out = cli.dir.join("bonsai.strata");
+    bonsai_store_at(
+        &bonsai_path(cli),
+        &cli.dir,
+        "bonsai",
+        strata_common::geo::Affine3::IDENTITY,
+    )
+}
+
+/// `DIR/NAME.strata` built once from the bonsai raw file, placed by `transform`.
+pub(crate) fn bonsai_store_at(
+    raw: &Path,
+    dir: &Path,
+    name: &str,
+    transform: strata_common::geo::Affine3,
+) -> Result<PathBuf> {
+    let out = dir.join(format!("{name}.strata"));
     if !out.exists() {
-        let src = RawSource::open(&bonsai_path(cli), [256, 256, 256], SampleType::U8, false)?;
-        let o = BuildOptions::volume("bonsai", SampleType::U8);
+        let src = RawSource::open(raw, [256, 256, 256], SampleType::U8, false)?;
+        let mut o = BuildOptions::volume(name, SampleType::U8);
+        o.transform = transform;
         build_store(&src, &out, &o, &ProgressBar::hidden())?;
     }
     Ok(out)
