@@ -347,20 +347,31 @@ fn loader(shared: Arc<Shared>) {
         let result = read(&shared.stores, job.key);
         let mut st = shared.state.lock().unwrap();
         st.in_flight -= 1;
-        let class = st.pending.remove(&job.key).unwrap_or(job.class);
+        // The pending entry is what a real request was counted against. Two jobs for one
+        // page can be in flight (a prefetch already loading when a real request queues it
+        // again); the first to finish takes the entry, and the other finds none and must
+        // not count the request done a second time.
+        let counted = st.pending.remove(&job.key);
+        let real = counted == Some(Class::Real);
         match result {
             Ok((data, stored)) => {
                 st.stats.pages_read += 1;
                 st.stats.bytes_read += stored;
-                insert(&shared, &mut st, job.key, data, class);
+                insert(
+                    &shared,
+                    &mut st,
+                    job.key,
+                    data,
+                    counted.unwrap_or(job.class),
+                );
             }
             Err(e) => {
-                if class == Class::Real {
+                if real {
                     st.errors.push(format!("{e:#}"));
                 }
             }
         }
-        if class == Class::Real {
+        if real {
             st.real_outstanding -= 1;
         }
         drop(st);
