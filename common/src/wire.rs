@@ -28,7 +28,7 @@ use serde::{de::DeserializeOwned, Deserialize, Serialize};
 /// Frame magic.
 pub const MAGIC: [u8; 4] = *b"STRF";
 /// Protocol version; bumped on any incompatible change of the header or the messages.
-pub const PROTOCOL_VERSION: u16 = 5;
+pub const PROTOCOL_VERSION: u16 = 6;
 /// Size of the frame header.
 pub const HEADER_LEN: usize = 24;
 /// Largest meta message any endpoint accepts (control messages are small; the scene text
@@ -221,17 +221,21 @@ pub enum WorkerMsg {
         pid: u32,
         /// Fingerprint of the worker's own certificate, which its peers will pin.
         fingerprint: Fingerprint,
-        /// Where the worker could share memory: its host's boot id and shared-memory
-        /// folder (`strata_net::shm::host_id`); `None` where it has none. Two processes
+        /// Where the worker could share memory: its host's boot id and pid namespace
+        /// (`strata_net::shm::host_id`); `None` where it has none. Two processes
         /// with the same id can exchange pieces through shared memory.
         host: Option<String>,
     },
-    /// The shared-memory segment (a file name in the host's shared-memory folder) that
-    /// this worker's final pieces will be written to; sent before `Ready` when
+    /// The shared-memory segment (an anonymous memory file, `strata_net::shm`) that this
+    /// worker's final pieces will be written to; sent before `Ready` when
     /// `Setup::shm_gather` asks for it.
     ShmSegment {
-        /// File name, `strata-shm-` and 32 hex digits.
+        /// The segment's name, `strata-shm-` and 32 hex digits.
         name: String,
+        /// The worker's process id.
+        pid: u32,
+        /// The segment's descriptor in the worker.
+        fd: i32,
     },
     /// Peer connections are up; ready for frames.
     Ready,
@@ -521,8 +525,12 @@ pub enum PeerMsg {
     /// The shared-memory segment this peer writes its pieces for the receiver to (sent
     /// once, before any `ShmPiece`, when `Setup::shm_peers` says so).
     ShmSegment {
-        /// File name, `strata-shm-` and 32 hex digits.
+        /// The segment's name, `strata-shm-` and 32 hex digits.
         name: String,
+        /// The sender's process id.
+        pid: u32,
+        /// The segment's descriptor in the sender.
+        fd: i32,
     },
     /// One piece of a compositing round, written to the sender's segment at `at`.
     ShmPiece {

@@ -6,13 +6,15 @@
 //! completes, and every failure must name the guilty rank.
 
 use std::collections::BTreeMap;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use strata_common::composite::{
     assemble, build_plan, composite_in_memory, Algorithm, Exchange, ExchangeError, ExchangeEvent,
-    ExchangeLimits, Interlace, RankCompositor, SparsePiece, WireFormat,
+    ExchangeLimits, Interlace, OutgoingPiece, PieceLayout, PieceSink, RankCompositor, Span,
+    SparsePiece, WireFormat,
 };
 use strata_common::image::{PartialImage, Rect, Rgba};
+use strata_common::wire::ShmRef;
 
 const W: u32 = 37;
 const H: u32 = 23;
@@ -82,6 +84,42 @@ struct Faults {
     silent: Option<u32>,
     /// This rank claims position 0 in every piece.
     liar: Option<u32>,
+    /// Every rank has a [`PieceSink`] that writes pieces into a shared buffer (as the
+    /// worker writes them into a peer's shared-memory segment), declining some.
+    sink: bool,
+}
+
+/// A sink that writes each placed piece into its rank's buffer, as a shared-memory
+/// segment would hold it, and declines pieces to every third rank (those go encoded).
+struct BufferSink(Arc<Mutex<Vec<u8>>>);
+
+impl PieceSink for BufferSink {
+    fn start_frame(&mut self, _frame: u64) {}
+
+    fn place(
+        &mut self,
+        to_rank: u32,
+        _frame: u64,
+        _round: u32,
+        _from: u32,
+        pixels: &[Rgba],
+        layout: &PieceLayout,
+        span: Span,
+        format: WireFormat,
+    ) -> Option<ShmRef> {
+        if to_rank % 3 == 2 {
+            return None;
+        }
+        let mut buf = self.0.lock().unwrap();
+        let offset = buf.len();
+        let len = layout.byte_len(format);
+        buf.resize(offset + len, 0xEE);
+        layout.write_into(pixels, span, format, &mut buf[offset..]);
+        Some(ShmRef {
+            offset: offset as u64,
+            len: len as u64,
+        })
+    }
 }
 
 struct Outcome {
@@ -96,6 +134,8 @@ struct Outcome {
     duplicates: u64,
     /// Deliveries after which the receiver held early pieces (a later round or frame).
     buffered: u64,
+    /// Pieces the sinks placed.
+    placed: u64,
 }
 
 /// Runs `frames` frames of `p` ranks through the simulated network.
@@ -126,6 +166,13 @@ fn simulate(p: usize, algorithm: Algorithm, frames: u64, faults: Faults, seed: u
     }
     let limits = ExchangeLimits::for_ranks(p, strata_common::wire::max_piece_bytes(px as u64));
     let mut ex: Vec<Exchange> = (0..p as u32).map(|r| Exchange::new(r, p, limits)).collect();
+    let buffers: Vec<Arc<Mutex<Vec<u8>>>> = (0..p).map(|_| Arc::default()).collect();
+    let mut placed = 0u64;
+    if faults.sink {
+        for (e, b) in ex.iter_mut().zip(&buffers) {
+            e.set_sink(Box::new(BufferSink(b.clone())));
+        }
+    }
     let mut next_frame = vec![0u64; p];
     let mut results = vec![vec![None; p]; frames as usize];
     let mut when = vec![vec![Duration::ZERO; p]; frames as usize];
@@ -215,7 +262,16 @@ fn simulate(p: usize, algorithm: Algorithm, frames: u64, faults: Faults, seed: u
                             frame: out.frame,
                             round: out.round,
                             from: out.from,
-                            piece: out.piece.clone(),
+                            piece: match &out.piece {
+                                OutgoingPiece::Encoded(p) => p.clone(),
+                                OutgoingPiece::Placed(at) => {
+                                    placed += 1;
+                                    let buf = buffers[r as usize].lock().unwrap();
+                                    let bytes =
+                                        &buf[at.offset as usize..(at.offset + at.len) as usize];
+                                    SparsePiece::parse(bytes, W * H).unwrap()
+                                }
+                            },
                         },
                     );
                     seq += 1;
@@ -223,7 +279,7 @@ fn simulate(p: usize, algorithm: Algorithm, frames: u64, faults: Faults, seed: u
             }
             while let Some(ev) = e.poll_event() {
                 let (frame, res) = match ev {
-                    ExchangeEvent::Done { frame, result } => (frame, Ok(result)),
+                    ExchangeEvent::Done { frame, result } => (frame, Ok(result.encode())),
                     ExchangeEvent::Failed { frame, error } => (frame, Err(error)),
                 };
                 results[frame as usize][r as usize] = Some(res);
@@ -249,6 +305,7 @@ fn simulate(p: usize, algorithm: Algorithm, frames: u64, faults: Faults, seed: u
         interlaces,
         duplicates,
         buffered,
+        placed,
     }
 }
 
@@ -256,15 +313,18 @@ fn simulate(p: usize, algorithm: Algorithm, frames: u64, faults: Faults, seed: u
 fn latency_reordering_and_duplication_leave_every_frame_exact() {
     let mut duplicates = 0;
     let mut buffered = 0;
+    let mut placed = 0;
     for p in [1usize, 2, 3, 4, 5, 8] {
         for algorithm in [
             Algorithm::DirectSend,
             Algorithm::BinarySwap,
             Algorithm::RadixK,
         ] {
-            for seed in 0..3u64 {
+            for seed in 0..4u64 {
+                // Every other seed with sinks (pieces written where the peer reads them).
                 let faults = Faults {
                     duplicate: 0.3,
+                    sink: seed % 2 == 1,
                     ..Faults::default()
                 };
                 let o = simulate(p, algorithm, 4, faults, seed * 1000 + p as u64);
@@ -288,11 +348,13 @@ fn latency_reordering_and_duplication_leave_every_frame_exact() {
                 }
                 duplicates += o.duplicates;
                 buffered += o.buffered;
+                placed += o.placed;
             }
         }
     }
     assert!(duplicates > 0, "the simulation never duplicated a delivery");
     assert!(buffered > 0, "no piece ever arrived early");
+    assert!(placed > 0, "no sink ever placed a piece");
 }
 
 #[test]

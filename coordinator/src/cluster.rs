@@ -32,7 +32,7 @@ use strata_common::wire::{
     WorkerFrameStats, WorkerMsg,
 };
 use strata_net::frame::{read_frame, with_timeout, write_frame, NetError};
-use strata_net::shm::ShmReader;
+use strata_net::shm::{SegmentId, ShmReader};
 use strata_net::{secret, tls, transport, Identity, NetConfig};
 use tokio::sync::mpsc;
 use tracing::{debug, info, warn};
@@ -737,14 +737,14 @@ impl Cluster {
                         );
                         ready[rank as usize] = true
                     }
-                    Ok(WorkerMsg::ShmSegment { name })
+                    Ok(WorkerMsg::ShmSegment { name, pid, fd })
                         if gather[rank as usize] && self.workers[rank as usize].shm.is_none() =>
                     {
                         let w = &mut self.workers[rank as usize];
-                        let r = tokio::task::block_in_place(|| ShmReader::open(&name))
-                            .with_context(|| {
-                                format!("the shared-memory segment of {}", w.describe())
-                            })?;
+                        let id = SegmentId { name, pid, fd };
+                        let r = tokio::task::block_in_place(|| ShmReader::open(&id)).with_context(
+                            || format!("the shared-memory segment of {}", w.describe()),
+                        )?;
                         w.shm = Some(r);
                     }
                     Ok(WorkerMsg::Failed { message, .. }) => bail!(

@@ -923,8 +923,11 @@ async fn fake_ready(
     use strata_common::wire::{self, WorkerMsg};
     let gather = shm_gather.then(|| strata_net::shm::ShmWriter::create().unwrap());
     if let Some(g) = &gather {
+        let id = g.id();
         let msg = WorkerMsg::ShmSegment {
-            name: g.name().to_string(),
+            name: id.name,
+            pid: id.pid,
+            fd: id.fd,
         };
         strata_net::write_frame(send, &wire::encode_meta(&msg), &[])
             .await
@@ -963,6 +966,8 @@ fn a_bad_shared_memory_segment_of_a_worker_is_refused_naming_it() {
         );
         let msg = WorkerMsg::ShmSegment {
             name: format!("strata-shm-{}", "0f".repeat(16)),
+            pid: std::process::id(),
+            fd: 1 << 20,
         };
         strata_net::write_frame(&mut send, &wire::encode_meta(&msg), &[])
             .await
@@ -982,8 +987,11 @@ fn a_bad_shared_memory_segment_of_a_worker_is_refused_naming_it() {
     rt.block_on(async {
         let (_ep, _conn, mut send, mut recv, _setup) = fake_worker(&w).await;
         let mut seg = strata_net::shm::ShmWriter::create().unwrap();
+        let id = seg.id();
         let msg = WorkerMsg::ShmSegment {
-            name: seg.name().to_string(),
+            name: id.name,
+            pid: id.pid,
+            fd: id.fd,
         };
         strata_net::write_frame(&mut send, &wire::encode_meta(&msg), &[])
             .await
@@ -1004,8 +1012,8 @@ fn a_bad_shared_memory_segment_of_a_worker_is_refused_naming_it() {
             frame: req.frame,
             stats: Default::default(),
             shm: Some(ShmRef {
-                offset: at.offset,
-                len: 1000,
+                offset: at.offset + seg.size() - 16,
+                len: 100,
             }),
             lz4: false,
         };
@@ -1045,6 +1053,8 @@ fn a_bad_segment_from_a_peer_fails_the_frame_naming_that_peer() {
         let peer = accept_dialling_peer(&ep).await;
         let msg = PeerMsg::ShmSegment {
             name: format!("strata-shm-{}", "ab".repeat(16)),
+            pid: std::process::id(),
+            fd: 1 << 20,
         };
         strata_net::send_uni(&peer, &wire::encode_meta(&msg), &[])
             .await

@@ -1,37 +1,58 @@
 //! Shared-memory segments between processes on one host, as MPI implementations pass
 //! messages within a node.
 //!
-//! A segment is a file in the host's shared-memory folder (`/dev/shm`, a tmpfs): bytes
-//! written to it stay in memory and never touch a disk. Each sender owns one segment per
-//! receiver; per frame it writes its records from the start of the segment again, so
-//! the pages it allocated in the first frame are reused by every later one.
+//! A segment is an anonymous memory file (`memfd_create`) of its sender: nothing is ever
+//! named in a file system, and the memory goes when both sides have closed it. Each
+//! sender owns one segment per receiver; per frame it writes its records from the start
+//! of the segment again, so the pages it touched in the first frame serve every later one.
+//! Both sides **map** the segment: the sender encodes each piece straight into its
+//! mapping ([`ShmWriter::write_with`]), the receiver parses and blends straight from its
+//! own read-only mapping ([`ShmReader::read_piece`]). A piece costs one pass over its
+//! pixels on each side, the encode and the blend, and no copy in between.
 //!
-//! Authorisation rides on the authenticated QUIC connection: the sender creates the file
-//! with a random 128-bit name, exclusively and readable by its own user only, and tells
-//! the receiver the name over the connection. The receiver opens only names of that form,
-//! refuses anything that is not a regular file of its own user with no group or other
-//! permissions, and unlinks the name as soon as it has the file open, so nothing is
-//! left in `/dev/shm` once both have it (and the memory goes when both close it).
+//! **Authorisation** rides on the authenticated QUIC connection: the sender tells the
+//! receiver, over it, its process id, the segment's descriptor and the segment's random
+//! 128-bit name. The receiver opens `/proc/<pid>/fd/<fd>` (the kernel lets only the same
+//! user do so), and keeps it only if the descriptor it got names exactly that memory
+//! file, belongs to this user, and carries the seals below.
 //!
-//! The receiver reads with `pread`, never through a mapping: a segment that a broken
-//! peer truncates yields a short read (an error naming the peer), not a `SIGBUS`. Every
-//! record starts with a header ([`strata_common::wire::encode_shm_record`]) that must
-//! match the announcing message, and every size is checked against the receiver's limit
-//! and the segment's length before anything is allocated.
+//! **Why a mapping is safe to read.** A mapped file that shrinks under its reader turns
+//! reads past the new end into `SIGBUS`. The sender seals the segment against shrinking
+//! (`F_SEAL_SHRINK`, then `F_SEAL_SEAL`, so no one can undo it) before announcing it, and
+//! the receiver refuses a segment without that seal: no one, the sender included, can
+//! truncate it, and every byte below the size the receiver mapped stays readable. A
+//! sender only grows its segment, with its memory allocated up front (`fallocate`), so a
+//! host out of memory fails the write with an error (the piece then goes over QUIC), not
+//! with a fault on first touch.
+//!
+//! **What a peer can still do** is write into its own segment while the receiver reads
+//! it. Every record starts with a header ([`strata_common::wire::encode_shm_record`]) that
+//! must match the announcing message, every size is checked against the receiver's limit
+//! and the size it mapped before anything is used, and the piece's header and run lengths
+//! are copied out and checked: a peer rewriting a record it announced can garble pixel
+//! values, never make the receiver read outside its mapping. Well-behaved senders never
+//! do: a frame completes only once every rank has blended all its pieces, and a sender
+//! rewrites its segment only in a later frame.
 
-use std::fs::{File, OpenOptions};
-use std::os::unix::fs::{FileExt, MetadataExt, OpenOptionsExt};
-use std::path::{Path, PathBuf};
-use strata_common::composite::SparsePiece;
+use std::fs::File;
+use std::os::fd::{AsRawFd, FromRawFd};
+use std::os::unix::fs::MetadataExt;
+use std::sync::Arc;
+
+use bytes::Bytes;
+use memmap2::{Mmap, MmapMut, MmapOptions};
+use strata_common::composite::{PieceLayout, Span, SparsePiece, WireFormat};
+use strata_common::image::Rgba;
 use strata_common::wire::{check_shm_record, encode_shm_record, ShmRef, SHM_RECORD_HEADER};
 
-/// The host's shared-memory folder.
-pub const SHM_DIR: &str = "/dev/shm";
-/// Prefix of every segment's file name.
+/// Prefix of every segment's name.
 pub const PREFIX: &str = "strata-shm-";
 
 /// Records start on cache-line boundaries.
 const ALIGN: u64 = 64;
+
+/// Segments grow to at least this many bytes, then by doubling.
+const MIN_SIZE: u64 = 1 << 20;
 
 /// Why a segment could not be used.
 #[derive(Debug, thiserror::Error)]
@@ -39,18 +60,18 @@ pub enum ShmError {
     /// The announced name is not one a Strata sender creates.
     #[error("segment name {0:?} is not `{PREFIX}` and 32 hex digits")]
     BadName(String),
-    /// Opening or creating failed.
+    /// Opening, creating, growing or mapping failed.
     #[error("segment {path}: {source}")]
     Io {
-        /// The file.
+        /// The segment.
         path: String,
         /// The error.
         source: std::io::Error,
     },
-    /// The file is not a private regular file of this user.
+    /// The descriptor is not a private, sealed segment of this user.
     #[error("segment {path}: {why}")]
     NotPrivate {
-        /// The file.
+        /// The segment.
         path: String,
         /// What is wrong.
         why: String,
@@ -93,16 +114,14 @@ pub enum ShmError {
     },
 }
 
-/// This host's identity for shared memory: the kernel's boot id and the device and inode
-/// of [`SHM_DIR`]. Two processes with the same id see the same segments (containers with
-/// a private `/dev/shm` differ in the device). `None` where there is no such folder.
+/// This host's identity for shared memory: the kernel's boot id and this process's pid
+/// namespace. Two processes with the same id can open each other's segments through
+/// `/proc/<pid>/fd` (containers with their own pid namespace differ). `None` where
+/// `/proc` does not say.
 pub fn host_id() -> Option<String> {
     let boot = std::fs::read_to_string("/proc/sys/kernel/random/boot_id").ok()?;
-    let m = std::fs::metadata(SHM_DIR).ok()?;
-    if !m.is_dir() {
-        return None;
-    }
-    Some(format!("{}/{}:{}", boot.trim(), m.dev(), m.ino()))
+    let ns = std::fs::read_link("/proc/self/ns/pid").ok()?;
+    Some(format!("{}/{}", boot.trim(), ns.display()))
 }
 
 /// Whether `name` has the form a sender creates (no path separators, nothing else).
@@ -111,57 +130,145 @@ pub fn valid_name(name: &str) -> bool {
         .is_some_and(|h| h.len() == 32 && h.bytes().all(|b| b.is_ascii_hexdigit()))
 }
 
+/// What a receiver needs to open a segment, sent over the authenticated connection.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct SegmentId {
+    /// `strata-shm-` and 32 hex digits.
+    pub name: String,
+    /// The sender's process id.
+    pub pid: u32,
+    /// The segment's descriptor in the sender.
+    pub fd: i32,
+}
+
+fn io_error(path: &str) -> impl Fn(std::io::Error) -> ShmError + '_ {
+    move |source| ShmError::Io {
+        path: path.to_string(),
+        source,
+    }
+}
+
 /// The sending side of one segment.
 #[derive(Debug)]
 pub struct ShmWriter {
     file: File,
-    path: PathBuf,
+    map: Option<MmapMut>,
+    size: u64,
     name: String,
     cursor: u64,
 }
 
 impl ShmWriter {
-    /// Creates a fresh segment in [`SHM_DIR`].
+    /// Creates a fresh, empty segment, sealed against shrinking.
     pub fn create() -> Result<ShmWriter, ShmError> {
-        Self::create_in(Path::new(SHM_DIR))
-    }
-
-    /// Creates a fresh segment in `dir` (exclusively, mode 0600).
-    pub fn create_in(dir: &Path) -> Result<ShmWriter, ShmError> {
         let hex: String = crate::secret::random_bytes::<16>()
             .iter()
             .map(|b| format!("{b:02x}"))
             .collect();
         let name = format!("{PREFIX}{hex}");
-        let path = dir.join(&name);
-        let file = OpenOptions::new()
-            .read(true)
-            .write(true)
-            .create_new(true)
-            .mode(0o600)
-            .open(&path)
-            .map_err(|source| ShmError::Io {
-                path: path.display().to_string(),
-                source,
-            })?;
+        let c_name = std::ffi::CString::new(name.clone()).expect("no NUL in a hex name");
+        // SAFETY: a valid C string and flags; the result is checked.
+        let fd = unsafe {
+            libc::memfd_create(c_name.as_ptr(), libc::MFD_CLOEXEC | libc::MFD_ALLOW_SEALING)
+        };
+        if fd < 0 {
+            return Err(io_error(&name)(std::io::Error::last_os_error()));
+        }
+        // SAFETY: `fd` is a fresh descriptor that nothing else owns.
+        let file = unsafe { File::from_raw_fd(fd) };
+        // SAFETY: fcntl on a descriptor we own; the result is checked.
+        let r = unsafe {
+            libc::fcntl(
+                fd,
+                libc::F_ADD_SEALS,
+                libc::F_SEAL_SHRINK | libc::F_SEAL_SEAL,
+            )
+        };
+        if r < 0 {
+            return Err(io_error(&name)(std::io::Error::last_os_error()));
+        }
         Ok(ShmWriter {
             file,
-            path,
+            map: None,
+            size: 0,
             name,
             cursor: 0,
         })
     }
 
-    /// The file name to announce to the receiver.
+    /// The name to announce to the receiver.
     pub fn name(&self) -> &str {
         &self.name
     }
 
+    /// What the receiver needs to open this segment.
+    pub fn id(&self) -> SegmentId {
+        SegmentId {
+            name: self.name.clone(),
+            pid: std::process::id(),
+            fd: self.file.as_raw_fd(),
+        }
+    }
+
+    /// The segment's size in bytes (it only grows).
+    pub fn size(&self) -> u64 {
+        self.size
+    }
+
     /// Starts a new frame: records are written from the start again. The receiver has
-    /// read every record of the frame before (a frame completes only once every rank has
-    /// received all its pieces).
+    /// used every record of the frame before (a frame completes only once every rank has
+    /// blended all its pieces).
     pub fn reset(&mut self) {
         self.cursor = 0;
+    }
+
+    /// Makes the segment at least `end` bytes long, its memory allocated.
+    fn reserve(&mut self, end: u64) -> Result<(), ShmError> {
+        if end <= self.size {
+            return Ok(());
+        }
+        let size = end.next_power_of_two().max(MIN_SIZE);
+        let io = io_error(&self.name);
+        // Allocate the memory now, so that a host out of memory is an error here and
+        // not a fault on first touch of the mapping.
+        // SAFETY: fallocate on a descriptor we own; the result is checked.
+        let r = unsafe { libc::fallocate(self.file.as_raw_fd(), 0, 0, size as libc::off_t) };
+        if r != 0 {
+            return Err(io(std::io::Error::last_os_error()));
+        }
+        self.map = None;
+        // SAFETY: the file is sealed against shrinking and only this writer writes it;
+        // the mapping covers its current size.
+        let map =
+            unsafe { MmapOptions::new().len(size as usize).map_mut(&self.file) }.map_err(io)?;
+        self.map = Some(map);
+        self.size = size;
+        Ok(())
+    }
+
+    /// Appends one record of `len` payload bytes that `fill` writes straight into the
+    /// segment (given exactly `len` bytes), and returns where it lies.
+    pub fn write_with(
+        &mut self,
+        frame: u64,
+        round: u32,
+        from: u32,
+        len: u64,
+        fill: impl FnOnce(&mut [u8]),
+    ) -> Result<ShmRef, ShmError> {
+        let at = ShmRef {
+            offset: self.cursor,
+            len,
+        };
+        let start = at.offset + SHM_RECORD_HEADER as u64;
+        let end = start + len;
+        self.reserve(end)?;
+        let map = self.map.as_mut().expect("reserved");
+        map[at.offset as usize..start as usize]
+            .copy_from_slice(&encode_shm_record(frame, round, from, len));
+        fill(&mut map[start as usize..end as usize]);
+        self.cursor = end.next_multiple_of(ALIGN);
+        Ok(at)
     }
 
     /// Appends one record (header, then `payload`) and returns where it lies.
@@ -175,8 +282,7 @@ impl ShmWriter {
         self.write_parts(frame, round, from, &[payload])
     }
 
-    /// Appends one record whose payload is `parts` one after the other (written straight
-    /// from where they lie, never joined first).
+    /// Appends one record whose payload is `parts` one after the other.
     pub fn write_parts(
         &mut self,
         frame: u64,
@@ -184,31 +290,33 @@ impl ShmWriter {
         from: u32,
         parts: &[&[u8]],
     ) -> Result<ShmRef, ShmError> {
-        let at = ShmRef {
-            offset: self.cursor,
-            len: parts.iter().map(|p| p.len() as u64).sum(),
-        };
-        let header = encode_shm_record(frame, round, from, at.len);
-        let io = |source| ShmError::Io {
-            path: self.path.display().to_string(),
-            source,
-        };
-        self.file.write_all_at(&header, at.offset).map_err(io)?;
-        let mut pos = at.offset + SHM_RECORD_HEADER as u64;
-        for part in parts {
-            self.file.write_all_at(part, pos).map_err(io)?;
-            pos += part.len() as u64;
-        }
-        self.cursor = pos.next_multiple_of(ALIGN);
-        Ok(at)
+        let len = parts.iter().map(|p| p.len() as u64).sum();
+        self.write_with(frame, round, from, len, |out| {
+            let mut at = 0;
+            for p in parts {
+                out[at..at + p.len()].copy_from_slice(p);
+                at += p.len();
+            }
+        })
     }
-}
 
-impl Drop for ShmWriter {
-    fn drop(&mut self) {
-        // Normally the receiver unlinked the name already; this covers a receiver that
-        // never opened it.
-        let _ = std::fs::remove_file(&self.path);
+    /// Encodes the piece of `pixels` (covering `span`, run lengths `layout`) straight
+    /// into a record: the same bytes as [`SparsePiece::write`], with no buffer between.
+    #[allow(clippy::too_many_arguments)]
+    pub fn write_piece(
+        &mut self,
+        frame: u64,
+        round: u32,
+        from: u32,
+        pixels: &[Rgba],
+        layout: &PieceLayout,
+        span: Span,
+        format: WireFormat,
+    ) -> Result<ShmRef, ShmError> {
+        let len = layout.byte_len(format) as u64;
+        self.write_with(frame, round, from, len, |out| {
+            layout.write_into(pixels, span, format, out)
+        })
     }
 }
 
@@ -217,59 +325,150 @@ impl Drop for ShmWriter {
 pub struct ShmReader {
     file: File,
     path: String,
+    /// The current mapping; pieces read from it share it, so growing maps anew and
+    /// leaves the old mapping to the pieces still using it.
+    map: Option<Arc<Mmap>>,
+}
+
+/// Payload bytes of a mapping, owned by a piece.
+struct MapSlice {
+    map: Arc<Mmap>,
+    start: usize,
+    end: usize,
+}
+
+impl AsRef<[u8]> for MapSlice {
+    fn as_ref(&self) -> &[u8] {
+        &self.map[self.start..self.end]
+    }
 }
 
 impl ShmReader {
-    /// Opens the segment `name` in [`SHM_DIR`] that a peer announced, and unlinks it.
-    pub fn open(name: &str) -> Result<ShmReader, ShmError> {
-        Self::open_in(Path::new(SHM_DIR), name)
-    }
-
-    /// Opens the segment `name` in `dir`: only a regular file owned by this user with no
-    /// group or other permissions. The name is unlinked once the file is open.
-    pub fn open_in(dir: &Path, name: &str) -> Result<ShmReader, ShmError> {
-        if !valid_name(name) {
-            return Err(ShmError::BadName(name.chars().take(80).collect()));
+    /// Opens the segment a peer announced (`id`, as received over the authenticated
+    /// connection): only the memory file of that name, of this user, sealed against
+    /// shrinking.
+    pub fn open(id: &SegmentId) -> Result<ShmReader, ShmError> {
+        if !valid_name(&id.name) {
+            return Err(ShmError::BadName(id.name.chars().take(80).collect()));
         }
-        let path = dir.join(name);
-        let shown = path.display().to_string();
-        let file = OpenOptions::new()
+        let path = format!("/proc/{}/fd/{}", id.pid, id.fd);
+        let shown = format!("{} ({path})", id.name);
+        let file = std::fs::OpenOptions::new()
             .read(true)
-            .custom_flags(libc::O_NOFOLLOW)
             .open(&path)
-            .map_err(|source| ShmError::Io {
-                path: shown.clone(),
-                source,
-            })?;
-        let m = file.metadata().map_err(|source| ShmError::Io {
+            .map_err(io_error(&shown))?;
+        let refuse = |why: String| ShmError::NotPrivate {
             path: shown.clone(),
-            source,
-        })?;
+            why,
+        };
+        // What this process holds now (the sender's descriptor could have been reused
+        // between the announcement and the open).
+        let held = std::fs::read_link(format!("/proc/self/fd/{}", file.as_raw_fd()))
+            .map_err(io_error(&shown))?;
+        let want = format!("/memfd:{} (deleted)", id.name);
+        if held.as_os_str() != want.as_str() {
+            return Err(refuse(format!(
+                "the descriptor is {}, not the announced segment",
+                held.display()
+            )));
+        }
+        let m = file.metadata().map_err(io_error(&shown))?;
         // SAFETY: geteuid has no preconditions and cannot fail.
         let me = unsafe { libc::geteuid() };
-        let why = if !m.is_file() {
-            Some("not a regular file".to_string())
-        } else if m.uid() != me {
-            Some(format!("owned by uid {}, not this user ({me})", m.uid()))
-        } else if m.mode() & 0o077 != 0 {
-            Some(format!(
-                "mode {:o} lets other users in (expected 600)",
-                m.mode() & 0o777
-            ))
-        } else {
-            None
-        };
-        if let Some(why) = why {
-            return Err(ShmError::NotPrivate { path: shown, why });
+        if !m.is_file() {
+            return Err(refuse("not a regular file".into()));
         }
-        let _ = std::fs::remove_file(&path);
-        Ok(ShmReader { file, path: shown })
+        if m.uid() != me {
+            return Err(refuse(format!(
+                "owned by uid {}, not this user ({me})",
+                m.uid()
+            )));
+        }
+        // SAFETY: fcntl on a descriptor we own; the result is checked.
+        let seals = unsafe { libc::fcntl(file.as_raw_fd(), libc::F_GET_SEALS) };
+        if seals < 0 || seals & libc::F_SEAL_SHRINK == 0 {
+            return Err(refuse(
+                "not sealed against shrinking (a mapping of it could fault)".into(),
+            ));
+        }
+        Ok(ShmReader {
+            file,
+            path: shown,
+            map: None,
+        })
     }
 
-    /// Reads the image piece in the record at `at` (checked as [`record`](Self::record)
-    /// does, then as [`SparsePiece::parse`] does, with spans up to `max_pixels`): header
-    /// and run lengths first, then the pixel data straight into the piece's own buffer,
-    /// so the piece costs one copy out of the segment.
+    /// A mapping that covers `[0, end)`, or why the segment is shorter.
+    fn mapping(&mut self, offset: u64, len: u64, end: u64) -> Result<Arc<Mmap>, ShmError> {
+        if let Some(m) = &self.map {
+            if m.len() as u64 >= end {
+                return Ok(m.clone());
+            }
+        }
+        let size = self.file.metadata().map_err(io_error(&self.path))?.len();
+        if end > size {
+            return Err(ShmError::PastEnd { offset, len, size });
+        }
+        // SAFETY: the segment is sealed against shrinking (checked at open), so every
+        // byte below `size` stays mapped and readable; see the module docs for what a
+        // peer writing while this reads can and cannot do.
+        let map = unsafe {
+            MmapOptions::new()
+                .len(size as usize)
+                .populate()
+                .map(&self.file)
+        }
+        .map_err(io_error(&self.path))?;
+        let map = Arc::new(map);
+        self.map = Some(map.clone());
+        Ok(map)
+    }
+
+    /// The payload of the record at `at`, checked (length against `limit` and the
+    /// segment's end, header against the announced frame, round and sender position),
+    /// shared with the mapping (no copy).
+    pub fn read(
+        &mut self,
+        at: ShmRef,
+        limit: u64,
+        frame: u64,
+        round: u32,
+        from: u32,
+    ) -> Result<Bytes, ShmError> {
+        if at.len > limit {
+            return Err(ShmError::TooLarge { len: at.len, limit });
+        }
+        let end = at
+            .offset
+            .checked_add(SHM_RECORD_HEADER as u64)
+            .and_then(|e| e.checked_add(at.len));
+        let Some(end) = end.filter(|&e| usize::try_from(e).is_ok()) else {
+            return Err(ShmError::PastEnd {
+                offset: at.offset,
+                len: at.len,
+                size: self.map.as_ref().map_or(0, |m| m.len() as u64),
+            });
+        };
+        let map = self.mapping(at.offset, at.len, end)?;
+        let start = at.offset as usize + SHM_RECORD_HEADER;
+        let header: [u8; SHM_RECORD_HEADER] = map[at.offset as usize..start]
+            .try_into()
+            .expect("a header's length");
+        check_shm_record(&header, frame, round, from, at.len).map_err(|why| ShmError::Header {
+            offset: at.offset,
+            why,
+        })?;
+        Ok(Bytes::from_owner(MapSlice {
+            map,
+            start,
+            end: end as usize,
+        }))
+    }
+
+    /// Reads the image piece in the record at `at` (checked as [`read`](Self::read)
+    /// does, then as [`SparsePiece::parse`] does, with spans up to `max_pixels`): the
+    /// header and run lengths are copied out and checked, the pixel data stays in the
+    /// mapping and is blended from there.
     pub fn read_piece(
         &mut self,
         at: ShmRef,
@@ -279,137 +478,30 @@ impl ShmReader {
         from: u32,
         max_pixels: u32,
     ) -> Result<SparsePiece, ShmError> {
-        let mut rec = self.record(at, limit, frame, round, from)?;
-        let h = SparsePiece::HEADER_BYTES as u64;
-        let header = rec.read(0, h.min(rec.len()))?;
+        let payload = self.read(at, limit, frame, round, from)?;
         let bad = |source| ShmError::Piece {
             offset: at.offset,
             source,
         };
-        let Ok(header) = <&[u8; SparsePiece::HEADER_BYTES]>::try_from(header.as_slice()) else {
+        let h = SparsePiece::HEADER_BYTES;
+        let Some(header) = payload.first_chunk::<{ SparsePiece::HEADER_BYTES }>() else {
             // Shorter than a header: let the parser say so.
-            return SparsePiece::parse(&header, max_pixels).map_err(bad);
+            return SparsePiece::parse(&payload, max_pixels).map_err(bad);
         };
-        let head_len = h.saturating_add(SparsePiece::runs_bytes_in_header(header));
-        if head_len > rec.len() {
-            let all = rec.read(0, rec.len())?;
-            return SparsePiece::parse(&all, max_pixels).map_err(bad);
+        let head_len = (h as u64).saturating_add(SparsePiece::runs_bytes_in_header(header));
+        if head_len > payload.len() as u64 {
+            return SparsePiece::parse(&payload, max_pixels).map_err(bad);
         }
-        let head = rec.read(0, head_len)?;
-        let data = rec.read(head_len, rec.len() - head_len)?;
-        SparsePiece::parse_split(&head, data, max_pixels).map_err(bad)
-    }
-
-    /// Checks the record at `at` (length against `limit` and the segment's end, header
-    /// against the announced frame, round and sender position) and returns it for reading
-    /// in parts.
-    pub fn record(
-        &mut self,
-        at: ShmRef,
-        limit: u64,
-        frame: u64,
-        round: u32,
-        from: u32,
-    ) -> Result<ShmRecord<'_>, ShmError> {
-        if at.len > limit {
-            return Err(ShmError::TooLarge { len: at.len, limit });
-        }
-        let size = self
-            .file
-            .metadata()
-            .map_err(|source| ShmError::Io {
-                path: self.path.clone(),
-                source,
-            })?
-            .len();
-        let end = at
-            .offset
-            .checked_add(SHM_RECORD_HEADER as u64)
-            .and_then(|e| e.checked_add(at.len));
-        if !matches!(end, Some(e) if e <= size) {
-            return Err(ShmError::PastEnd {
-                offset: at.offset,
-                len: at.len,
-                size,
-            });
-        }
-        let mut rec = ShmRecord {
-            reader: self,
-            at,
-            size,
-        };
-        let header = rec.read_raw(at.offset, SHM_RECORD_HEADER as u64)?;
-        let header: &[u8; SHM_RECORD_HEADER] = header.as_slice().try_into().unwrap();
-        check_shm_record(header, frame, round, from, at.len).map_err(|why| ShmError::Header {
-            offset: at.offset,
-            why,
-        })?;
-        Ok(rec)
-    }
-}
-
-/// A checked record of a segment, read in parts.
-#[derive(Debug)]
-pub struct ShmRecord<'a> {
-    reader: &'a mut ShmReader,
-    at: ShmRef,
-    size: u64,
-}
-
-impl ShmRecord<'_> {
-    /// The payload's length.
-    pub fn len(&self) -> u64 {
-        self.at.len
-    }
-
-    /// Whether the payload is empty.
-    pub fn is_empty(&self) -> bool {
-        self.at.len == 0
-    }
-
-    /// Reads `len` payload bytes from `offset` (within the payload) into a new buffer,
-    /// without zero-filling it first.
-    pub fn read(&mut self, offset: u64, len: u64) -> Result<Vec<u8>, ShmError> {
-        match offset.checked_add(len) {
-            Some(e) if e <= self.at.len => {}
-            _ => {
-                return Err(ShmError::PastEnd {
-                    offset: (self.at.offset + SHM_RECORD_HEADER as u64).saturating_add(offset),
-                    len,
-                    size: self.at.offset + SHM_RECORD_HEADER as u64 + self.at.len,
-                })
-            }
-        }
-        self.read_raw(self.at.offset + SHM_RECORD_HEADER as u64 + offset, len)
-    }
-
-    fn read_raw(&mut self, pos: u64, len: u64) -> Result<Vec<u8>, ShmError> {
-        use std::io::{Read, Seek, SeekFrom};
-        let io = |source| ShmError::Io {
-            path: self.reader.path.clone(),
-            source,
-        };
-        let mut f = &self.reader.file;
-        f.seek(SeekFrom::Start(pos)).map_err(io)?;
-        // `read_to_end` fills the spare capacity without zeroing it first (a fresh 16 MB
-        // zero-fill costs as much as the copy).
-        let mut out = Vec::with_capacity(len as usize);
-        f.take(len).read_to_end(&mut out).map_err(io)?;
-        if out.len() as u64 != len {
-            // The segment shrank under us.
-            return Err(ShmError::PastEnd {
-                offset: pos,
-                len,
-                size: self.size.min(pos + out.len() as u64),
-            });
-        }
-        Ok(out)
+        let head_len = head_len as usize;
+        let head = payload[..head_len].to_vec();
+        SparsePiece::parse_split(&head, payload.slice(head_len..), max_pixels).map_err(bad)
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::os::unix::fs::FileExt;
 
     /// A whole record, checked.
     fn read(
@@ -420,36 +512,37 @@ mod tests {
         round: u32,
         from: u32,
     ) -> Result<Vec<u8>, ShmError> {
-        let mut rec = r.record(at, limit, frame, round, from)?;
-        let n = rec.len();
-        rec.read(0, n)
+        r.read(at, limit, frame, round, from).map(|b| b.to_vec())
     }
 
-    fn pair(dir: &Path) -> (ShmWriter, ShmReader) {
-        let w = ShmWriter::create_in(dir).unwrap();
-        let r = ShmReader::open_in(dir, w.name()).unwrap();
+    fn pair() -> (ShmWriter, ShmReader) {
+        let w = ShmWriter::create().unwrap();
+        let r = ShmReader::open(&w.id()).unwrap();
         (w, r)
     }
 
     #[test]
-    fn records_round_trip_and_the_name_is_gone_once_open() {
-        let dir = tempfile::tempdir().unwrap();
-        let (mut w, mut r) = pair(dir.path());
-        assert!(
-            std::fs::read_dir(dir.path()).unwrap().next().is_none(),
-            "the receiver unlinks the name"
-        );
+    fn records_round_trip_across_frames_and_growth() {
+        let (mut w, mut r) = pair();
         let a = w.write(3, 0, 1, b"hello").unwrap();
         let b = w.write(3, 1, 1, &[7u8; 1000]).unwrap();
         assert_eq!(a.offset, 0);
         assert_eq!(b.offset % ALIGN, 0);
         assert_eq!(read(&mut r, a, 1 << 20, 3, 0, 1).unwrap(), b"hello");
         assert_eq!(read(&mut r, b, 1 << 20, 3, 1, 1).unwrap(), vec![7u8; 1000]);
+        // A record past the first mapping: the segment grows, the reader maps anew, and
+        // what it read before stays valid.
+        let held = r.read(b, 1 << 20, 3, 1, 1).unwrap();
+        let big: Vec<u8> = (0..3 << 20).map(|i| (i % 251) as u8).collect();
+        let c = w.write(3, 2, 1, &big).unwrap();
+        assert!(w.size() >= 4 << 20);
+        assert_eq!(read(&mut r, c, 1 << 30, 3, 2, 1).unwrap(), big);
+        assert_eq!(&held[..], &[7u8; 1000][..]);
         // The next frame reuses the segment from its start.
         w.reset();
-        let c = w.write(4, 0, 1, b"again").unwrap();
-        assert_eq!(c.offset, 0);
-        assert_eq!(read(&mut r, c, 1 << 20, 4, 0, 1).unwrap(), b"again");
+        let d = w.write(4, 0, 1, b"again").unwrap();
+        assert_eq!(d.offset, 0);
+        assert_eq!(read(&mut r, d, 1 << 20, 4, 0, 1).unwrap(), b"again");
         // The old record's announcement no longer matches what lies there.
         assert!(matches!(
             read(&mut r, a, 1 << 20, 3, 0, 1),
@@ -459,11 +552,13 @@ mod tests {
 
     #[test]
     fn sizes_past_the_end_or_the_limit_are_refused_before_allocating() {
-        let dir = tempfile::tempdir().unwrap();
-        let (mut w, mut r) = pair(dir.path());
+        let (mut w, mut r) = pair();
         let a = w.write(1, 0, 0, &[1u8; 100]).unwrap();
-        let long = ShmRef { len: 101, ..a };
-        let e = read(&mut r, long, 1 << 20, 1, 0, 0).unwrap_err();
+        let past = ShmRef {
+            offset: w.size() - 16,
+            len: 100,
+        };
+        let e = read(&mut r, past, 1 << 20, 1, 0, 0).unwrap_err();
         assert!(matches!(e, ShmError::PastEnd { .. }), "{e}");
         let huge = ShmRef {
             offset: u64::MAX - 8,
@@ -475,63 +570,66 @@ mod tests {
         ));
         let e = read(&mut r, ShmRef { len: u64::MAX, ..a }, 1 << 20, 1, 0, 0).unwrap_err();
         assert!(matches!(e, ShmError::TooLarge { .. }), "{e}");
-        // A segment truncated under the reader: a clear error, no SIGBUS.
-        w.file.set_len(50).unwrap();
-        let e = read(&mut r, a, 1 << 20, 1, 0, 0).unwrap_err();
-        assert!(e.to_string().contains("past the segment's end"), "{e}");
+        // A record longer than announced reads as its header says, not further.
+        let long = ShmRef { len: 101, ..a };
+        let e = read(&mut r, long, 1 << 20, 1, 0, 0).unwrap_err();
+        assert!(matches!(e, ShmError::Header { .. }), "{e}");
     }
 
     #[test]
-    fn records_read_in_parts_stay_inside_the_record() {
-        let dir = tempfile::tempdir().unwrap();
-        let (mut w, mut r) = pair(dir.path());
-        let payload: Vec<u8> = (0..200u8).collect();
-        let a = w.write(1, 0, 0, &payload).unwrap();
-        let _next = w.write(1, 1, 0, &[9u8; 64]).unwrap();
-        let mut rec = r.record(a, 1 << 20, 1, 0, 0).unwrap();
-        assert_eq!(rec.len(), 200);
-        assert_eq!(rec.read(10, 5).unwrap(), payload[10..15]);
-        assert_eq!(rec.read(0, 200).unwrap(), payload);
-        // Not a byte beyond the record, though the segment goes on.
-        assert!(matches!(rec.read(150, 51), Err(ShmError::PastEnd { .. })));
-        assert!(matches!(
-            rec.read(u64::MAX, 2),
-            Err(ShmError::PastEnd { .. })
-        ));
+    fn the_segment_cannot_shrink_under_its_reader() {
+        let (mut w, mut r) = pair();
+        let a = w.write(1, 0, 0, &[5u8; 4096]).unwrap();
+        let held = r.read(a, 1 << 20, 1, 0, 0).unwrap();
+        // Not even its sender can truncate it: a mapping of it never faults.
+        let e = w.file.set_len(10).unwrap_err();
+        assert_eq!(e.raw_os_error(), Some(libc::EPERM), "{e}");
+        // Nor lift the seal.
+        // SAFETY: fcntl on a descriptor the writer owns.
+        let lifted = unsafe { libc::fcntl(w.file.as_raw_fd(), libc::F_ADD_SEALS, 0) };
+        assert!(lifted < 0);
+        assert_eq!(&held[..], &[5u8; 4096][..]);
     }
 
     #[test]
     fn pieces_read_from_records_equal_the_written_ones_and_bad_ones_are_refused() {
-        use strata_common::composite::{Span, WireFormat};
-        let dir = tempfile::tempdir().unwrap();
-        let (mut w, mut r) = pair(dir.path());
+        let (mut w, mut r) = pair();
         let z = [0.0f32; 4];
         let px = [0.5f32, 0.25, 0.125, 0.5];
-        let piece = SparsePiece::encode(&[z, px, px, z, px], Span::new(10, 15), WireFormat::F32);
-        let parts = piece.wire_parts();
-        let refs: Vec<&[u8]> = parts.iter().map(|p| &**p).collect();
-        let a = w.write_parts(2, 1, 3, &refs).unwrap();
-        assert_eq!(r.read_piece(a, 1 << 20, 2, 1, 3, 100).unwrap(), piece);
-        // The span must fit the frame.
-        let e = r.read_piece(a, 1 << 20, 2, 1, 3, 12).unwrap_err();
-        assert!(matches!(e, ShmError::Piece { .. }), "{e}");
-        // Not a piece: garbage, a short record, runs announced past the record.
-        for junk in [vec![0xEEu8; 40], vec![b'S'; 3], {
-            let mut b = Vec::new();
-            piece.write(&mut b);
-            b[12] = 200;
-            b
-        }] {
-            let a = w.write(2, 2, 3, &junk).unwrap();
-            let e = r.read_piece(a, 1 << 20, 2, 2, 3, 100).unwrap_err();
+        let pixels = [z, px, px, z, px];
+        for format in [WireFormat::F32, WireFormat::F16] {
+            let piece = SparsePiece::encode(&pixels, Span::new(10, 15), format);
+            let parts = piece.wire_parts();
+            let refs: Vec<&[u8]> = parts.iter().map(|p| &**p).collect();
+            let a = w.write_parts(2, 1, 3, &refs).unwrap();
+            assert_eq!(r.read_piece(a, 1 << 20, 2, 1, 3, 100).unwrap(), piece);
+            // Encoded straight into the segment: the same piece.
+            let layout = PieceLayout::of(&pixels);
+            let b = w
+                .write_piece(2, 1, 3, &pixels, &layout, Span::new(10, 15), format)
+                .unwrap();
+            assert_eq!(b.len, piece.byte_len() as u64);
+            assert_eq!(r.read_piece(b, 1 << 20, 2, 1, 3, 100).unwrap(), piece);
+            // The span must fit the frame.
+            let e = r.read_piece(a, 1 << 20, 2, 1, 3, 12).unwrap_err();
             assert!(matches!(e, ShmError::Piece { .. }), "{e}");
+            // Not a piece: garbage, a short record, runs announced past the record.
+            for junk in [vec![0xEEu8; 40], vec![b'S'; 3], {
+                let mut b = Vec::new();
+                piece.write(&mut b);
+                b[12] = 200;
+                b
+            }] {
+                let a = w.write(2, 2, 3, &junk).unwrap();
+                let e = r.read_piece(a, 1 << 20, 2, 2, 3, 100).unwrap_err();
+                assert!(matches!(e, ShmError::Piece { .. }), "{e}");
+            }
         }
     }
 
     #[test]
     fn a_malformed_record_is_refused() {
-        let dir = tempfile::tempdir().unwrap();
-        let (mut w, mut r) = pair(dir.path());
+        let (mut w, mut r) = pair();
         let a = w.write(1, 0, 0, &[1u8; 100]).unwrap();
         // Another sender position, round or frame than announced.
         for (f, round, from) in [(2, 0, 0), (1, 1, 0), (1, 0, 1)] {
@@ -547,8 +645,9 @@ mod tests {
     }
 
     #[test]
-    fn only_private_files_with_a_sender_name_are_opened() {
-        let dir = tempfile::tempdir().unwrap();
+    fn only_the_announced_sealed_segment_of_this_user_is_opened() {
+        let w = ShmWriter::create().unwrap();
+        let id = w.id();
         for bad in [
             "../etc/passwd",
             "strata-shm-",
@@ -556,36 +655,61 @@ mod tests {
             "strata-shm-0123456789abcdef0123456789abcdef/x",
             "other-0123456789abcdef0123456789abcdef",
         ] {
-            assert!(matches!(
-                ShmReader::open_in(dir.path(), bad),
-                Err(ShmError::BadName(_))
-            ));
+            let e = ShmReader::open(&SegmentId {
+                name: bad.into(),
+                ..id.clone()
+            });
+            assert!(matches!(e, Err(ShmError::BadName(_))));
         }
-        let name = format!("{PREFIX}{}", "0".repeat(32));
-        // Missing.
-        assert!(matches!(
-            ShmReader::open_in(dir.path(), &name),
-            Err(ShmError::Io { .. })
-        ));
-        // World-readable.
-        let p = dir.path().join(&name);
-        std::fs::write(&p, b"x").unwrap();
-        std::fs::set_permissions(&p, std::os::unix::fs::PermissionsExt::from_mode(0o644)).unwrap();
-        let e = ShmReader::open_in(dir.path(), &name).unwrap_err();
+        // Another segment's name for this descriptor.
+        let other = ShmWriter::create().unwrap();
+        let e = ShmReader::open(&SegmentId {
+            name: other.name().into(),
+            ..id.clone()
+        })
+        .unwrap_err();
+        assert!(e.to_string().contains("not the announced segment"), "{e}");
+        // A descriptor that is not open, or not a segment (this test's stdin or a file).
+        let e = ShmReader::open(&SegmentId {
+            fd: 1 << 20,
+            ..id.clone()
+        })
+        .unwrap_err();
+        assert!(matches!(e, ShmError::Io { .. }), "{e}");
+        let plain = tempfile::tempfile().unwrap();
+        let e = ShmReader::open(&SegmentId {
+            fd: plain.as_raw_fd(),
+            ..id.clone()
+        })
+        .unwrap_err();
         assert!(matches!(e, ShmError::NotPrivate { .. }), "{e}");
-        // A symbolic link to a private file.
-        std::fs::remove_file(&p).unwrap();
-        let target = dir.path().join("target");
-        std::fs::write(&target, b"x").unwrap();
-        std::os::unix::fs::symlink(&target, &p).unwrap();
-        assert!(ShmReader::open_in(dir.path(), &name).is_err());
+        // A memory file of the right name without the seal.
+        let name = format!("{PREFIX}{}", "0".repeat(32));
+        let c = std::ffi::CString::new(name.clone()).unwrap();
+        // SAFETY: a valid C string; the descriptor is owned by the File below.
+        let fd = unsafe { libc::memfd_create(c.as_ptr(), libc::MFD_CLOEXEC) };
+        assert!(fd >= 0);
+        // SAFETY: a fresh descriptor nothing else owns.
+        let unsealed = unsafe { File::from_raw_fd(fd) };
+        let e = ShmReader::open(&SegmentId {
+            name,
+            pid: std::process::id(),
+            fd: unsealed.as_raw_fd(),
+        })
+        .unwrap_err();
+        assert!(
+            e.to_string().contains("not sealed against shrinking"),
+            "{e}"
+        );
+        // The real one opens.
+        assert!(ShmReader::open(&id).is_ok());
     }
 
     #[test]
-    fn the_host_id_is_stable_and_names_the_folder() {
+    fn the_host_id_is_stable_and_names_the_namespace() {
         if let Some(id) = host_id() {
             assert_eq!(host_id().as_deref(), Some(id.as_str()));
-            assert!(id.contains('/') && id.contains(':'), "{id}");
+            assert!(id.contains("pid:["), "{id}");
         }
     }
 }

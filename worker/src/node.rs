@@ -25,8 +25,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use strata_common::camera::View;
 use strata_common::composite::{
-    build_plan, build_plan_to, Exchange, ExchangeError, ExchangeEvent, ExchangeLimits, Interlace,
-    Outgoing, Plan, RankCompositor, Span, SparsePiece,
+    build_plan, build_plan_to, Exchange, ExchangeError, ExchangeEvent, ExchangeLimits, FinalPiece,
+    Interlace, Outgoing, OutgoingPiece, PieceLayout, PieceSink, Plan, RankCompositor, Span,
+    SparsePiece, WireFormat,
 };
 use strata_common::image::{composite_front_to_back, PartialImage, Rect, Rgba};
 use strata_common::occlusion::{
@@ -39,7 +40,7 @@ use strata_common::wire::{
     PeerMsg, Setup, WorkerFrameStats, WorkerMsg,
 };
 use strata_net::frame::{read_frame, send_uni, with_timeout, write_frame, NetError};
-use strata_net::shm::{ShmReader, ShmWriter};
+use strata_net::shm::{SegmentId, ShmReader, ShmWriter};
 use strata_net::{transport, Identity, NetConfig};
 use tokio::sync::{mpsc, watch};
 use tracing::{debug, info, warn};
@@ -179,8 +180,11 @@ async fn node(opts: NodeOptions) -> Result<()> {
         // The final pieces go to the coordinator through shared memory.
         let w = ShmWriter::create()
             .context("creating the shared-memory segment for the coordinator")?;
+        let id = w.id();
         let msg = WorkerMsg::ShmSegment {
-            name: w.name().to_string(),
+            name: id.name,
+            pid: id.pid,
+            fd: id.fd,
         };
         write_frame(&mut csend, &wire::encode_meta(&msg), &[]).await?;
         node.gather_shm = Some(w);
@@ -232,32 +236,47 @@ async fn node(opts: NodeOptions) -> Result<()> {
                     Ok((mut stats, piece, composite_start)) => {
                         test_fault(rank, frame, "gather");
                         // Through shared memory when the coordinator shares this host
-                        // (written straight from the piece); QUIC when not, or when the
-                        // segment cannot take it (a full /dev/shm).
+                        // (encoded straight into the segment); QUIC when not, or when the
+                        // segment cannot take it (a host out of memory).
                         let t = Instant::now();
+                        let layout = PieceLayout::of(&piece.pixels);
                         let shm = node.gather_shm.as_mut().and_then(|w| {
                             w.reset();
                             tokio::task::block_in_place(|| {
-                                let parts = piece.wire_parts();
-                                let refs: Vec<&[u8]> = parts.iter().map(|p| &**p).collect();
-                                w.write_parts(frame, wire::GATHER_ROUND, rank, &refs)
+                                w.write_piece(
+                                    frame,
+                                    wire::GATHER_ROUND,
+                                    rank,
+                                    &piece.pixels,
+                                    &layout,
+                                    piece.span,
+                                    piece.format,
+                                )
                             })
                             .map_err(|e| warn!(frame, "final piece over QUIC instead: {e}"))
                             .ok()
                         });
                         let mut bulk = Vec::new();
                         let lz4 = shm.is_none() && node.lz4;
-                        if lz4 {
-                            bulk = tokio::task::block_in_place(|| piece.write_lz4());
-                        } else if shm.is_none() {
-                            bulk.reserve_exact(piece.byte_len());
-                            piece.write(&mut bulk);
+                        if shm.is_none() {
+                            let encoded = SparsePiece::encode_with(
+                                &piece.pixels,
+                                layout.clone(),
+                                piece.span,
+                                piece.format,
+                            );
+                            if lz4 {
+                                bulk = tokio::task::block_in_place(|| encoded.write_lz4());
+                            } else {
+                                bulk.reserve_exact(encoded.byte_len());
+                                encoded.write(&mut bulk);
+                            }
                         }
                         stats.gather_s += t.elapsed().as_secs_f64();
                         stats.gather_bytes = if shm.is_none() {
                             bulk.len()
                         } else {
-                            piece.byte_len()
+                            layout.byte_len(piece.format)
                         } as u64;
                         stats.composite_s = composite_start.elapsed().as_secs_f64();
                         let msg = WorkerMsg::FrameDone {
@@ -393,8 +412,11 @@ async fn mesh(
                         describe(&setup.peers, r as u32)
                     )
                 })?;
+                let id = w.id();
                 let msg = PeerMsg::ShmSegment {
-                    name: w.name().to_string(),
+                    name: id.name,
+                    pid: id.pid,
+                    fd: id.fd,
                 };
                 with_timeout(
                     mesh_timeout,
@@ -440,19 +462,23 @@ async fn mesh(
     }
     let engine = tokio::task::block_in_place(|| Engine::new(&scene))
         .context("opening the scene's stores")?;
+    let mut exchange = Exchange::new(
+        rank,
+        n as usize,
+        ExchangeLimits::for_ranks(n as usize, limits.max_bulk),
+    );
+    if shm_count > 0 {
+        // Pieces for peers on this host are encoded straight into their segments.
+        exchange.set_sink(Box::new(ShmSink { writers: shm_out }));
+    }
     let node = Node {
         rank,
         setup,
         peers,
         engine,
-        exchange: Exchange::new(
-            rank,
-            n as usize,
-            ExchangeLimits::for_ranks(n as usize, limits.max_bulk),
-        ),
+        exchange,
         plans: HashMap::new(),
         timeout,
-        shm_out,
         gather_shm: None,
         suspects: Vec::new(),
         deferred: Default::default(),
@@ -599,8 +625,9 @@ async fn read_peer(
                     }
                 }
             }
-            Ok(PeerMsg::ShmSegment { name }) if shm_allowed && shm.is_none() => {
-                match tokio::task::block_in_place(|| ShmReader::open(&name)) {
+            Ok(PeerMsg::ShmSegment { name, pid, fd }) if shm_allowed && shm.is_none() => {
+                let id = SegmentId { name, pid, fd };
+                match tokio::task::block_in_place(|| ShmReader::open(&id)) {
                     Ok(r) => {
                         debug!(peer = rank, "shared-memory segment open");
                         shm = Some(r);
@@ -671,6 +698,39 @@ async fn read_peer(
     let _ = out.send(PeerEvent::Lost { rank, error: err }).await;
 }
 
+/// The exchange's sink for pieces to peers on this host: each is encoded straight into
+/// this worker's segment for that peer (by rank; `None` for peers over QUIC).
+struct ShmSink {
+    writers: Vec<Option<ShmWriter>>,
+}
+
+impl PieceSink for ShmSink {
+    fn start_frame(&mut self, _frame: u64) {
+        // Every record of the last frame has been used (the frame completed only once
+        // every rank had blended all its pieces): the segments start over.
+        for w in self.writers.iter_mut().flatten() {
+            w.reset();
+        }
+    }
+
+    fn place(
+        &mut self,
+        to_rank: u32,
+        frame: u64,
+        round: u32,
+        from: u32,
+        pixels: &[Rgba],
+        layout: &PieceLayout,
+        span: Span,
+        format: WireFormat,
+    ) -> Option<wire::ShmRef> {
+        let w = self.writers.get_mut(to_rank as usize)?.as_mut()?;
+        w.write_piece(frame, round, from, pixels, layout, span, format)
+            .map_err(|e| warn!(peer = to_rank, "piece over QUIC instead: {e}"))
+            .ok()
+    }
+}
+
 struct Node {
     rank: u32,
     setup: Setup,
@@ -680,8 +740,6 @@ struct Node {
     exchange: Exchange,
     plans: HashMap<(usize, u32, CompositeChoice), Arc<Plan>>,
     timeout: Duration,
-    /// By rank: this worker's segment for that peer (peers on this host).
-    shm_out: Vec<Option<ShmWriter>>,
     /// The segment for the final pieces (a coordinator on this host).
     gather_shm: Option<ShmWriter>,
     /// The peers the last failed frame is blamed on (reported to the coordinator).
@@ -747,7 +805,7 @@ impl Node {
         events: &mut mpsc::Receiver<PeerEvent>,
         control: &mut mpsc::Receiver<Result<CoordMsg, String>>,
         csend: &mut quinn::SendStream,
-    ) -> Result<(WorkerFrameStats, SparsePiece, Instant)> {
+    ) -> Result<(WorkerFrameStats, FinalPiece, Instant)> {
         if let Some(leaves) = &req.leaves {
             // A re-split: new regions from this frame on. The engine keeps its resident
             // pages; those the new regions need are still there.
@@ -974,13 +1032,8 @@ impl Node {
             req.composite.interlace && req.wall.is_none(),
         );
         let format = req.composite.format;
-        let rc = RankCompositor::new(plan.clone(), position, &image, &interlace)?;
-        drop(image);
-        // Every record of the last frame has been read (the frame completed only once
-        // every rank had all its pieces): the segments start over.
-        for w in self.shm_out.iter_mut().flatten() {
-            w.reset();
-        }
+        // A dense image becomes the compositor's buffer as it is.
+        let rc = RankCompositor::from_image(plan.clone(), position, image, &interlace)?;
         // The exchange itself is the sans-IO state machine; this loop only moves its
         // pieces and the time.
         let t_exchange = Instant::now();
@@ -1066,13 +1119,17 @@ impl Node {
                 let t = Instant::now();
                 let g = &w.geometry;
                 let first = result.span.start / g.tile_pixels();
-                let mut px = vec![[0.0f32; 4]; result.span.len() as usize];
-                result.decode_into(&mut px, result.span.start)?;
-                tokio::task::block_in_place(|| write_tiles(g, first, &px, &w.files, w.background))
-                    .with_context(|| format!("frame {}: writing its wall tiles", req.frame))?;
+                tokio::task::block_in_place(|| {
+                    write_tiles(g, first, &result.pixels, &w.files, w.background)
+                })
+                .with_context(|| format!("frame {}: writing its wall tiles", req.frame))?;
                 stats.tiles_written = result.span.len() / g.tile_pixels();
                 stats.tile_write_s = t.elapsed().as_secs_f64();
-                SparsePiece::encode(&[], Span::EMPTY, format)
+                FinalPiece {
+                    span: Span::EMPTY,
+                    format,
+                    pixels: Vec::new(),
+                }
             }
             _ => result,
         };
@@ -1094,19 +1151,10 @@ impl Node {
             .cloned()
             .flatten()
             .ok_or_else(|| anyhow!("no connection to rank {to_rank}"))?;
-        // Shared memory to a peer on this host, written straight from the piece; QUIC
-        // otherwise, or when the segment cannot take the piece (a full /dev/shm).
-        let shm = self.shm_out[to_rank as usize].as_mut().and_then(|w| {
-            tokio::task::block_in_place(|| {
-                let parts = out.piece.wire_parts();
-                let refs: Vec<&[u8]> = parts.iter().map(|p| &**p).collect();
-                w.write_parts(out.frame, out.round, out.from, &refs)
-            })
-            .map_err(|e| warn!(peer = to_rank, "piece over QUIC instead: {e}"))
-            .ok()
-        });
-        let (meta, bytes) = match shm {
-            Some(at) => {
+        // A peer on this host has the piece in its segment already (the exchange's sink
+        // encoded it there): only the announcement goes over QUIC. Otherwise the piece.
+        let (meta, bytes) = match out.piece {
+            OutgoingPiece::Placed(at) => {
                 let moved = wire::SHM_RECORD_HEADER as u64 + at.len;
                 stats.shm_bytes_sent += moved;
                 stats.bytes_sent += moved;
@@ -1118,13 +1166,13 @@ impl Node {
                 });
                 (meta, Vec::new())
             }
-            None => {
+            OutgoingPiece::Encoded(piece) => {
                 let te = Instant::now();
                 let bytes = if self.lz4 {
-                    tokio::task::block_in_place(|| out.piece.write_lz4())
+                    tokio::task::block_in_place(|| piece.write_lz4())
                 } else {
-                    let mut bytes = Vec::with_capacity(out.piece.byte_len());
-                    out.piece.write(&mut bytes);
+                    let mut bytes = Vec::with_capacity(piece.byte_len());
+                    piece.write(&mut bytes);
                     bytes
                 };
                 stats.encode_s += te.elapsed().as_secs_f64();

@@ -15,6 +15,13 @@
 //!   [`poll_event`](Exchange::poll_event) (the frame's result, or why it failed),
 //!   [`poll_timeout`](Exchange::poll_timeout) (when to call `handle_timeout`).
 //!
+//! **Zero-copy sends.** A driver may give the exchange a [`PieceSink`]: each outgoing
+//! piece is then offered to it unencoded, and a sink that writes it straight where the
+//! peer reads it (the peer's shared-memory segment, `strata_net::shm`) returns where it
+//! lies; [`poll_send`](Exchange::poll_send) then hands out an announcement
+//! ([`OutgoingPiece::Placed`]) instead of an encoded piece. The final span is handed out
+//! unencoded ([`FinalPiece`]), so the driver encodes it once, where it goes.
+//!
 //! Time is an argument, never read for decisions, so the tests drive many ranks through a
 //! simulated network in virtual time (latency, reordering, duplication, a silent rank, a
 //! rank lying about its position, pieces of later frames).
@@ -32,7 +39,59 @@
 use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
 
-use super::{CompositeError, RankCompositor, SparsePiece, WireFormat};
+use super::{CompositeError, PieceLayout, RankCompositor, Span, SparsePiece, WireFormat};
+use crate::image::Rgba;
+use crate::wire::ShmRef;
+
+/// Where a driver puts outgoing pieces without an intermediate buffer.
+pub trait PieceSink: Send {
+    /// A frame starts: the pieces of the last one have all been used by their receivers
+    /// (a frame completes only once every rank has blended all its pieces).
+    fn start_frame(&mut self, frame: u64);
+
+    /// Encodes the piece of `pixels` (covering `span`, in `format`) for rank `to_rank`
+    /// straight where that rank reads it and returns where it lies, or `None` to have it
+    /// encoded into an owned [`SparsePiece`] (a peer without a segment, a full segment).
+    #[allow(clippy::too_many_arguments)]
+    fn place(
+        &mut self,
+        to_rank: u32,
+        frame: u64,
+        round: u32,
+        from: u32,
+        pixels: &[Rgba],
+        layout: &PieceLayout,
+        span: Span,
+        format: WireFormat,
+    ) -> Option<ShmRef>;
+}
+
+/// An outgoing piece: encoded, or already written by the [`PieceSink`].
+#[derive(Clone, Debug, PartialEq)]
+pub enum OutgoingPiece {
+    /// Encoded, for the driver to send.
+    Encoded(SparsePiece),
+    /// Written by the sink at this place; the driver announces it.
+    Placed(ShmRef),
+}
+
+/// This rank's final span, composited and not yet encoded.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FinalPiece {
+    /// The span (empty if this rank keeps nothing).
+    pub span: Span,
+    /// The frame's wire format.
+    pub format: WireFormat,
+    /// The span's pixels, logical order.
+    pub pixels: Vec<Rgba>,
+}
+
+impl FinalPiece {
+    /// The piece encoded into an owned buffer.
+    pub fn encode(&self) -> SparsePiece {
+        SparsePiece::encode(&self.pixels, self.span, self.format)
+    }
+}
 
 /// What a peer may make this rank buffer.
 #[derive(Copy, Clone, Debug, PartialEq, Eq)]
@@ -67,8 +126,8 @@ pub struct Outgoing {
     pub round: u32,
     /// This rank's position in the frame's visibility order.
     pub from: u32,
-    /// The piece.
-    pub piece: SparsePiece,
+    /// The piece, or where the sink put it.
+    pub piece: OutgoingPiece,
 }
 
 /// What the exchange reports.
@@ -78,8 +137,8 @@ pub enum ExchangeEvent {
     Done {
         /// Frame number.
         frame: u64,
-        /// The final piece (empty span if this rank keeps nothing).
-        result: SparsePiece,
+        /// The final span's pixels (empty span if this rank keeps nothing).
+        result: FinalPiece,
     },
     /// The frame cannot complete.
     Failed {
@@ -228,6 +287,7 @@ pub struct Exchange {
     sends: VecDeque<Outgoing>,
     events: VecDeque<ExchangeEvent>,
     stats: ExchangeStats,
+    sink: Option<Box<dyn PieceSink>>,
 }
 
 impl Exchange {
@@ -246,7 +306,13 @@ impl Exchange {
             sends: VecDeque::new(),
             events: VecDeque::new(),
             stats: ExchangeStats::default(),
+            sink: None,
         }
+    }
+
+    /// Offers every later outgoing piece to `sink` before encoding it.
+    pub fn set_sink(&mut self, sink: Box<dyn PieceSink>) {
+        self.sink = Some(sink);
     }
 
     /// The frame in progress, if any.
@@ -279,6 +345,9 @@ impl Exchange {
     ) {
         self.stats = ExchangeStats::default();
         self.sends.clear();
+        if let Some(sink) = self.sink.as_mut() {
+            sink.start_frame(frame);
+        }
         if let Some(a) = self.active.take() {
             // The driver abandoned a frame (e.g. its request failed): it is over.
             self.last = Some(a.frame);
@@ -518,24 +587,47 @@ impl Exchange {
         while let Some(a) = self.active.as_mut() {
             let Some(round) = a.rc.round() else {
                 let a = self.active.take().unwrap();
-                let t = Instant::now();
-                let result = a.rc.result(a.format);
-                self.stats.encode_s += t.elapsed().as_secs_f64();
+                let (span, pixels) = a.rc.into_result();
                 self.events.push_back(ExchangeEvent::Done {
                     frame: a.frame,
-                    result,
+                    result: FinalPiece {
+                        span,
+                        format: a.format,
+                        pixels,
+                    },
                 });
                 return;
             };
             if !a.sent {
                 a.sent = true;
                 let t = Instant::now();
-                for (to, piece) in a.rc.outgoing(a.format) {
+                let from = a.rc.position() as u32;
+                for (to, span, pixels) in a.rc.outgoing_pixels() {
+                    let to_rank = a.order[to];
+                    let layout = PieceLayout::of(pixels);
+                    let placed = self.sink.as_mut().and_then(|s| {
+                        s.place(
+                            to_rank,
+                            a.frame,
+                            round as u32,
+                            from,
+                            pixels,
+                            &layout,
+                            span,
+                            a.format,
+                        )
+                    });
+                    let piece = match placed {
+                        Some(at) => OutgoingPiece::Placed(at),
+                        None => OutgoingPiece::Encoded(SparsePiece::encode_with(
+                            pixels, layout, span, a.format,
+                        )),
+                    };
                     self.sends.push_back(Outgoing {
-                        to_rank: a.order[to],
+                        to_rank,
                         frame: a.frame,
                         round: round as u32,
-                        from: a.rc.position() as u32,
+                        from,
                         piece,
                     });
                 }

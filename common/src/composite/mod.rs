@@ -51,13 +51,14 @@ mod rank;
 mod sparse;
 
 pub use exchange::{
-    Exchange, ExchangeError, ExchangeEvent, ExchangeLimits, ExchangeStats, Outgoing,
+    Exchange, ExchangeError, ExchangeEvent, ExchangeLimits, ExchangeStats, FinalPiece, Outgoing,
+    OutgoingPiece, PieceSink,
 };
 pub use interlace::Interlace;
 pub use memory::{composite_in_memory, run_in_memory, MemoryRun};
 pub use radix_k::auto_factors;
 pub use rank::{assemble, CompositeError, RankCompositor};
-pub use sparse::{PieceError, SparsePiece, WireFormat};
+pub use sparse::{PieceError, PieceLayout, SparsePiece, WireFormat};
 
 /// The target group size used when radix-k is asked for without an explicit `k`.
 pub const DEFAULT_TARGET_K: usize = 8;

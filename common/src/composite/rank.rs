@@ -164,6 +164,52 @@ impl RankCompositor {
         image: &PartialImage,
         interlace: &Interlace,
     ) -> Result<Self, CompositeError> {
+        Self::check(&plan, position, image, interlace)?;
+        let buf = logical_buffer(image, interlace);
+        Ok(Self::with_buffer(plan, position, buf))
+    }
+
+    /// [`new`](Self::new), taking the image: when it covers the whole frame and the
+    /// rows are not interlaced (a dense image), its pixels become the buffer as they are,
+    /// without a copy.
+    pub fn from_image(
+        plan: Arc<Plan>,
+        position: usize,
+        image: PartialImage,
+        interlace: &Interlace,
+    ) -> Result<Self, CompositeError> {
+        Self::check(&plan, position, &image, interlace)?;
+        let r = image.rect;
+        let whole =
+            interlace.is_identity() && (r.x, r.y, r.w, r.h) == (0, 0, image.width, image.height);
+        let buf = if whole {
+            image.pixels
+        } else {
+            logical_buffer(&image, interlace)
+        };
+        Ok(Self::with_buffer(plan, position, buf))
+    }
+
+    fn with_buffer(plan: Arc<Plan>, position: usize, buf: Vec<Rgba>) -> Self {
+        let pixels = buf.len() as u32;
+        let mut c = RankCompositor {
+            plan,
+            position,
+            round: 0,
+            span: Span::new(0, pixels),
+            buf,
+            received: Vec::new(),
+        };
+        c.reset_received();
+        c
+    }
+
+    fn check(
+        plan: &Plan,
+        position: usize,
+        image: &PartialImage,
+        interlace: &Interlace,
+    ) -> Result<(), CompositeError> {
         plan.validate()?;
         if position >= plan.ranks {
             return Err(CompositeError::PositionOutOfRange {
@@ -203,24 +249,7 @@ impl RankCompositor {
         {
             return Err(bad(format!("rectangle {r:?} exceeds the {w}×{h} image")));
         }
-        let mut buf = vec![[0.0f32; 4]; plan.pixels as usize];
-        if !r.is_empty() {
-            for (row, src) in image.pixels.chunks_exact(r.w as usize).enumerate() {
-                let l = interlace.logical_row(r.y + row as u32) as usize;
-                let at = l * w as usize + r.x as usize;
-                buf[at..at + src.len()].copy_from_slice(src);
-            }
-        }
-        let mut c = RankCompositor {
-            plan,
-            position,
-            round: 0,
-            span: Span::new(0, w * h),
-            buf,
-            received: Vec::new(),
-        };
-        c.reset_received();
-        Ok(c)
+        Ok(())
     }
 
     fn reset_received(&mut self) {
@@ -257,6 +286,15 @@ impl RankCompositor {
 
     /// The pieces to send this round, as `(to position, piece)`; empty when done.
     pub fn outgoing(&self, format: WireFormat) -> Vec<(usize, SparsePiece)> {
+        self.outgoing_pixels()
+            .into_iter()
+            .map(|(to, span, px)| (to, SparsePiece::encode(px, span, format)))
+            .collect()
+    }
+
+    /// The pieces to send this round before encoding, as `(to position, span, pixels)`,
+    /// for a driver that encodes each straight where it goes; empty when done.
+    pub fn outgoing_pixels(&self) -> Vec<(usize, Span, &[Rgba])> {
         let Some(step) = self.step() else {
             return Vec::new();
         };
@@ -264,8 +302,7 @@ impl RankCompositor {
             .iter()
             .map(|&(to, span)| {
                 let off = (span.start - self.span.start) as usize;
-                let px = &self.buf[off..off + span.len() as usize];
-                (to, SparsePiece::encode(px, span, format))
+                (to, span, &self.buf[off..off + span.len() as usize])
             })
             .collect()
     }
@@ -419,6 +456,44 @@ impl RankCompositor {
         let off = (r.start - self.span.start) as usize;
         SparsePiece::encode(&self.buf[off..off + r.len() as usize], r, format)
     }
+
+    /// This rank's final span and its pixels, unencoded (the buffer itself, no copy when
+    /// the last round kept exactly the result span). Meaningful once
+    /// [`round`](Self::round) is `None`, as [`result`](Self::result).
+    pub fn into_result(mut self) -> (Span, Vec<Rgba>) {
+        let r = self.result_span();
+        if r.is_empty() || !self.span.contains(&r) {
+            return (Span::new(r.start, r.start), Vec::new());
+        }
+        let off = (r.start - self.span.start) as usize;
+        if off != 0 || self.buf.len() != r.len() as usize {
+            self.buf.copy_within(off..off + r.len() as usize, 0);
+            self.buf.truncate(r.len() as usize);
+        }
+        (r, self.buf)
+    }
+}
+
+/// The whole frame in logical order (physical row `y` at logical row
+/// `interlace.logical_row(y)`), transparent outside the image's rectangle; each pixel
+/// is written once (no zero-fill first: a fresh frame-sized buffer costs a page fault
+/// per 4 KiB, a second pass over it as much again).
+fn logical_buffer(image: &PartialImage, interlace: &Interlace) -> Vec<Rgba> {
+    let (w, h) = (image.width as usize, image.height as usize);
+    let r = image.rect;
+    let mut buf: Vec<Rgba> = Vec::with_capacity(w * h);
+    for l in 0..h as u32 {
+        let y = interlace.physical_row(l);
+        if r.w == 0 || y < r.y || y >= r.y + r.h {
+            buf.resize(buf.len() + w, [0.0; 4]);
+            continue;
+        }
+        let row = (y - r.y) as usize * r.w as usize;
+        buf.resize(buf.len() + r.x as usize, [0.0; 4]);
+        buf.extend_from_slice(&image.pixels[row..row + r.w as usize]);
+        buf.resize(buf.len() + w - (r.x + r.w) as usize, [0.0; 4]);
+    }
+    buf
 }
 
 /// Builds the full physical row-major `width × height` image from gathered pieces
@@ -489,6 +564,82 @@ mod tests {
     use super::super::{build_plan, Algorithm};
     use super::*;
     use crate::image::Rect;
+
+    /// The logical buffer built the plain way: zeros, then each row copied in place.
+    fn reference_buffer(image: &PartialImage, il: &Interlace) -> Vec<Rgba> {
+        let (w, h) = (image.width, image.height);
+        let r = image.rect;
+        let mut buf = vec![[0.0f32; 4]; (w * h) as usize];
+        if !r.is_empty() {
+            for (row, src) in image.pixels.chunks_exact(r.w as usize).enumerate() {
+                let l = il.logical_row(r.y + row as u32) as usize;
+                let at = l * w as usize + r.x as usize;
+                buf[at..at + src.len()].copy_from_slice(src);
+            }
+        }
+        buf
+    }
+
+    #[test]
+    fn the_buffer_holds_every_row_at_its_logical_place_built_or_taken() {
+        let (w, h) = (13u32, 11u32);
+        let plan = Arc::new(build_plan(3, w * h, Algorithm::BinarySwap, None).unwrap());
+        let rects = [
+            Rect { x: 0, y: 0, w, h },
+            Rect {
+                x: 2,
+                y: 3,
+                w: 7,
+                h: 5,
+            },
+            Rect {
+                x: 0,
+                y: 10,
+                w: 13,
+                h: 1,
+            },
+            Rect {
+                x: 12,
+                y: 0,
+                w: 1,
+                h: 11,
+            },
+            Rect {
+                x: 4,
+                y: 4,
+                w: 0,
+                h: 0,
+            },
+        ];
+        for rect in rects {
+            for interlaced in [false, true] {
+                let il = Interlace::new(w, h, 3, interlaced);
+                let pixels = (0..rect.area())
+                    .map(|i| [i as f32 + 1.0, 0.5, -0.0, 1.0])
+                    .collect();
+                let image = PartialImage {
+                    width: w,
+                    height: h,
+                    rect,
+                    pixels,
+                };
+                let want = reference_buffer(&image, &il);
+                let built = RankCompositor::new(plan.clone(), 1, &image, &il).unwrap();
+                let taken = RankCompositor::from_image(plan.clone(), 1, image, &il).unwrap();
+                let bits = |b: &[Rgba]| b.iter().flatten().map(|v| v.to_bits()).collect::<Vec<_>>();
+                assert_eq!(
+                    bits(&built.buf),
+                    bits(&want),
+                    "{rect:?} interlaced {interlaced}"
+                );
+                assert_eq!(
+                    bits(&taken.buf),
+                    bits(&want),
+                    "{rect:?} interlaced {interlaced}"
+                );
+            }
+        }
+    }
 
     fn solid(w: u32, h: u32, c: Rgba) -> PartialImage {
         PartialImage {

@@ -8,6 +8,7 @@
 //!
 //! The wire layout is documented on [`SparsePiece`].
 
+use bytes::Bytes;
 use half::f16;
 use half::slice::{HalfBitsSliceExt, HalfFloatSliceExt};
 use serde::{Deserialize, Serialize};
@@ -72,8 +73,88 @@ pub struct SparsePiece {
     pub format: WireFormat,
     /// (inactive, active) run-length pairs.
     pub runs: Vec<u32>,
-    /// The active pixels' RGBA in `format`, little-endian, in order.
-    pub data: Vec<u8>,
+    /// The active pixels' RGBA in `format`, little-endian, in order. Shared, not owned:
+    /// a piece read from a peer's shared-memory segment borrows the mapping (no copy).
+    pub data: Bytes,
+}
+
+/// The run lengths of a span's pixels, computed before anything is written, so the
+/// piece can be encoded straight into memory of exactly its size (a peer's segment).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct PieceLayout {
+    /// (inactive, active) run-length pairs, in [`SparsePiece`]'s canonical form.
+    pub runs: Vec<u32>,
+    /// Active pixels.
+    pub active: usize,
+}
+
+impl PieceLayout {
+    /// The run lengths of `pixels`.
+    pub fn of(pixels: &[Rgba]) -> PieceLayout {
+        let bits: &[[u32; 4]] = bytemuck::cast_slice(pixels);
+        let n = bits.len();
+        let mut runs = Vec::new();
+        let mut active = 0usize;
+        let mut i = 0usize;
+        while i < n {
+            let s = i;
+            while i < n && is_inactive(&bits[i]) {
+                i += 1;
+            }
+            let a = i;
+            while i < n && !is_inactive(&bits[i]) {
+                i += 1;
+            }
+            runs.push((a - s) as u32);
+            runs.push((i - a) as u32);
+            active += i - a;
+        }
+        PieceLayout { runs, active }
+    }
+
+    /// Bytes of the piece's wire form (header, run lengths, data) in `format`.
+    pub fn byte_len(&self, format: WireFormat) -> usize {
+        SparsePiece::HEADER_BYTES + 4 * self.runs.len() + self.active * format.bytes_per_pixel()
+    }
+
+    /// Writes the wire form of the piece of `pixels` (those this layout was computed
+    /// from, covering `span`) into `out`, which must be exactly
+    /// [`byte_len`](Self::byte_len) bytes: the same bytes as [`SparsePiece::write`] of
+    /// [`SparsePiece::encode`], with no intermediate buffer.
+    ///
+    /// # Panics
+    /// If `out` or `pixels` has the wrong length (a caller bug).
+    pub fn write_into(&self, pixels: &[Rgba], span: Span, format: WireFormat, out: &mut [u8]) {
+        assert_eq!(
+            pixels.len(),
+            span.len() as usize,
+            "PieceLayout::write_into: pixels"
+        );
+        assert_eq!(
+            out.len(),
+            self.byte_len(format),
+            "PieceLayout::write_into: out"
+        );
+        let (head, rest) = out.split_at_mut(SparsePiece::HEADER_BYTES);
+        head.copy_from_slice(&SparsePiece::header(span, format, self.runs.len()));
+        let (runs, mut data) = rest.split_at_mut(4 * self.runs.len());
+        for (d, r) in runs.chunks_exact_mut(4).zip(&self.runs) {
+            d.copy_from_slice(&r.to_le_bytes());
+        }
+        let bpp = format.bytes_per_pixel();
+        let mut at = 0usize;
+        for pair in self.runs.chunks_exact(2) {
+            at += pair[0] as usize;
+            let px = &pixels[at..at + pair[1] as usize];
+            let (d, tail) = data.split_at_mut(px.len() * bpp);
+            match format {
+                WireFormat::F32 => put_f32_le(d, px),
+                WireFormat::F16 => put_f16_le(d, px),
+            }
+            data = tail;
+            at += pair[1] as usize;
+        }
+    }
 }
 
 /// Why bytes are not a valid [`SparsePiece`], or a piece does not fit where it is used.
@@ -210,6 +291,29 @@ fn extend_f32_le(out: &mut Vec<u8>, px: &[Rgba]) {
     }
 }
 
+fn put_f32_le(out: &mut [u8], px: &[Rgba]) {
+    if cfg!(target_endian = "little") {
+        out.copy_from_slice(bytemuck::cast_slice(px));
+    } else {
+        for (d, v) in out.chunks_exact_mut(4).zip(px.iter().flatten()) {
+            d.copy_from_slice(&v.to_le_bytes());
+        }
+    }
+}
+
+fn put_f16_le(out: &mut [u8], px: &[Rgba]) {
+    let mut halves = [f16::ZERO; CHUNK * 4];
+    for (chunk, out) in px.chunks(CHUNK).zip(out.chunks_mut(CHUNK * 8)) {
+        let src: &[f32] = bytemuck::cast_slice(chunk);
+        let h = &mut halves[..src.len()];
+        h.convert_from_f32_slice(src);
+        let bits: &[u16] = h.reinterpret_cast();
+        for (d, b) in out.chunks_exact_mut(2).zip(bits) {
+            d.copy_from_slice(&b.to_le_bytes());
+        }
+    }
+}
+
 fn extend_f16_le(out: &mut Vec<u8>, px: &[Rgba]) {
     let mut halves = [f16::ZERO; CHUNK * 4];
     for chunk in px.chunks(CHUNK) {
@@ -246,24 +350,23 @@ impl SparsePiece {
             "SparsePiece::encode: {} pixels for span {span}",
             pixels.len()
         );
-        let bits: &[[u32; 4]] = bytemuck::cast_slice(pixels);
-        let n = bits.len();
-        let mut runs = Vec::new();
-        let mut active = 0usize;
-        let mut i = 0usize;
-        while i < n {
-            let s = i;
-            while i < n && is_inactive(&bits[i]) {
-                i += 1;
-            }
-            let a = i;
-            while i < n && !is_inactive(&bits[i]) {
-                i += 1;
-            }
-            runs.push((a - s) as u32);
-            runs.push((i - a) as u32);
-            active += i - a;
-        }
+        Self::encode_with(pixels, PieceLayout::of(pixels), span, format)
+    }
+
+    /// [`encode`](Self::encode) with the run lengths already computed (`layout`, of
+    /// these `pixels`).
+    pub fn encode_with(
+        pixels: &[Rgba],
+        layout: PieceLayout,
+        span: Span,
+        format: WireFormat,
+    ) -> SparsePiece {
+        assert_eq!(
+            pixels.len(),
+            span.len() as usize,
+            "SparsePiece::encode_with"
+        );
+        let PieceLayout { runs, active } = layout;
         let mut data = Vec::with_capacity(active * format.bytes_per_pixel());
         let mut at = 0usize;
         for pair in runs.chunks_exact(2) {
@@ -279,8 +382,18 @@ impl SparsePiece {
             span,
             format,
             runs,
-            data,
+            data: data.into(),
         }
+    }
+
+    /// The 16 header bytes of a piece (layout in the [type docs](SparsePiece)).
+    fn header(span: Span, format: WireFormat, runs: usize) -> [u8; Self::HEADER_BYTES] {
+        let mut h = [0u8; Self::HEADER_BYTES];
+        h[..4].copy_from_slice(&[b'S', b'P', 1, format.tag()]);
+        h[4..8].copy_from_slice(&span.start.to_le_bytes());
+        h[8..12].copy_from_slice(&span.end.to_le_bytes());
+        h[12..16].copy_from_slice(&(runs as u32).to_le_bytes());
+        h
     }
 
     /// Number of active pixels (from the data length).
@@ -306,11 +419,7 @@ impl SparsePiece {
     /// straight from the piece).
     pub fn wire_parts(&self) -> [std::borrow::Cow<'_, [u8]>; 3] {
         use std::borrow::Cow;
-        let mut head = Vec::with_capacity(Self::HEADER_BYTES);
-        head.extend_from_slice(&[b'S', b'P', 1, self.format.tag()]);
-        head.extend_from_slice(&self.span.start.to_le_bytes());
-        head.extend_from_slice(&self.span.end.to_le_bytes());
-        head.extend_from_slice(&(self.runs.len() as u32).to_le_bytes());
+        let head = Self::header(self.span, self.format, self.runs.len()).to_vec();
         let runs: Cow<'_, [u8]> = if cfg!(target_endian = "little") {
             Cow::Borrowed(bytemuck::cast_slice(&self.runs))
         } else {
@@ -328,11 +437,12 @@ impl SparsePiece {
     }
 
     /// Parses a piece whose header and run lengths are `head` (exactly) and whose pixel
-    /// data is `data` (exactly), taking `data` as the piece's without a copy. The same
-    /// checks as [`parse`](Self::parse).
+    /// data is `data` (exactly), taking `data` as the piece's without a copy (a buffer
+    /// read for it, or a shared-memory mapping's bytes). The same checks as
+    /// [`parse`](Self::parse).
     pub fn parse_split(
         head: &[u8],
-        data: Vec<u8>,
+        data: Bytes,
         max_pixels: u32,
     ) -> Result<SparsePiece, PieceError> {
         let (span, format, runs, active, used) = Self::parse_head(head, max_pixels)?;
@@ -451,7 +561,7 @@ impl SparsePiece {
                 available: rest.len(),
             });
         }
-        let data = rest[..data_bytes as usize].to_vec();
+        let data = Bytes::copy_from_slice(&rest[..data_bytes as usize]);
         Ok((
             SparsePiece {
                 span,
@@ -840,7 +950,7 @@ mod tests {
         assert!(e.to_string().contains("[5, 9)"), "{e}");
         // An inconsistent in-memory piece is refused, not indexed out of bounds.
         let mut bad = p.clone();
-        bad.data.pop();
+        bad.data.truncate(bad.data.len() - 1);
         assert!(matches!(
             bad.blend_over(&mut dst, 5),
             Err(PieceError::DataLength { .. })
@@ -1008,19 +1118,35 @@ mod tests {
         let head_len = SparsePiece::HEADER_BYTES
             + SparsePiece::runs_bytes_in_header(&bytes[..16].try_into().unwrap()) as usize;
         let data = bytes[head_len..].to_vec();
-        let split = SparsePiece::parse_split(&bytes[..head_len], data.clone(), 1 << 20).unwrap();
+        let split =
+            SparsePiece::parse_split(&bytes[..head_len], data.clone().into(), 1 << 20).unwrap();
         assert_eq!(split, whole);
         // Data one byte short or long, or head with a trailing byte: refused.
         let short = data[..data.len() - 1].to_vec();
-        assert!(SparsePiece::parse_split(&bytes[..head_len], short, 1 << 20).is_err());
+        assert!(SparsePiece::parse_split(&bytes[..head_len], short.into(), 1 << 20).is_err());
         let mut long = data.clone();
         long.push(0);
-        assert!(SparsePiece::parse_split(&bytes[..head_len], long, 1 << 20).is_err());
-        assert!(SparsePiece::parse_split(&bytes[..head_len + 1], data, 1 << 20).is_err());
+        assert!(SparsePiece::parse_split(&bytes[..head_len], long.into(), 1 << 20).is_err());
+        assert!(SparsePiece::parse_split(&bytes[..head_len + 1], data.into(), 1 << 20).is_err());
     }
 
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(128))]
+
+        /// Encoding straight into memory of the layout's size gives the very bytes of
+        /// encoding into a piece and writing it, in both formats.
+        #[test]
+        fn write_into_equals_encode_then_write(pixels in pixels_strategy(), start in 0u32..1000) {
+            let span = Span::new(start, start + pixels.len() as u32);
+            for format in [WireFormat::F32, WireFormat::F16] {
+                let mut want = Vec::new();
+                SparsePiece::encode(&pixels, span, format).write(&mut want);
+                let layout = PieceLayout::of(&pixels);
+                let mut got = vec![0xAAu8; layout.byte_len(format)];
+                layout.write_into(&pixels, span, format, &mut got);
+                prop_assert_eq!(got, want);
+            }
+        }
 
         #[test]
         fn lz4_roundtrip_is_exact_and_random_bytes_never_panic(
