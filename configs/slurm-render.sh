@@ -6,6 +6,8 @@
 #
 # Needs: the `coordinator` and `worker` binaries on PATH (cargo build --release) on every
 # node, and the scene's stores on a file system all nodes see (workers open the same paths).
+# STRATA_QUIC_MTU=N starts QUIC datagrams at N bytes on coordinator and workers alike
+# (cluster.quic_mtu; default 1200): set it only where every link carries it (jumbo frames).
 #SBATCH --job-name=strata-render
 #SBATCH --time=00:30:00
 #SBATCH --cpus-per-task=8
@@ -15,6 +17,7 @@ SCENE=${1:?usage: slurm-render.sh SCENE.toml OUT.png}
 OUT=${2:?usage: slurm-render.sh SCENE.toml OUT.png}
 PORT=${STRATA_PORT:-7000}
 WORKERS=${SLURM_NTASKS:?run under sbatch/salloc}
+MTU=${STRATA_QUIC_MTU:-1200}
 
 # A run folder on the shared file system, readable only by us: the secret and the
 # coordinator's certificate fingerprint travel through it.
@@ -31,7 +34,8 @@ coordinator render "$SCENE" -o "$OUT" --workers "$WORKERS" \
     --set "cluster.listen=\"0.0.0.0:$PORT\"" \
     --set "cluster.secret_file=\"$RUN/secret\"" \
     --set "cluster.fingerprint_file=\"$RUN/fingerprint\"" \
-    --set cluster.connect_timeout_s=300 &
+    --set cluster.connect_timeout_s=300 \
+    --set "cluster.quic_mtu=$MTU" &
 COORD=$!
 
 # Workers need the fingerprint, which exists once the coordinator listens.
@@ -40,7 +44,7 @@ for _ in $(seq 300); do [ -s "$RUN/fingerprint" ] && break; sleep 1; done
 
 srun --kill-on-bad-exit=1 worker --connect "$COORD_HOST:$PORT" \
     --fingerprint-file "$RUN/fingerprint" --secret-file "$RUN/secret" \
-    --connect-timeout-s 300 &
+    --connect-timeout-s 300 --quic-mtu "$MTU" &
 WORKERS_PID=$!
 
 STATUS=0

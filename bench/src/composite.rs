@@ -43,9 +43,14 @@ struct Cli {
     frames: usize,
     /// Transports to compare (`cluster.transport`): `shm` (shared memory between the
     /// local processes), `quic` (loopback QUIC) and `quic-lz4` (loopback QUIC with
-    /// `composite.lz4`).
+    /// `composite.lz4`); `quic@4000` starts QUIC datagrams at 4000 bytes
+    /// (`cluster.quic_mtu`).
     #[arg(long, value_delimiter = ',', default_values_t = ["shm".to_string(), "quic".to_string()])]
     transports: Vec<String>,
+    /// Also measure the loopback QUIC rate starting at these datagram sizes
+    /// (`cluster.quic_mtu`), e.g. `1452,4000,9000`.
+    #[arg(long, value_delimiter = ',')]
+    loopback_mtus: Vec<u16>,
     /// Fraction of the frame each rank's box covers in the sparse case.
     #[arg(long, default_value_t = 0.2)]
     sparse_coverage: f32,
@@ -171,26 +176,48 @@ fn main() -> Result<()> {
     let net = NetConfig::default();
     let rate = rt.block_on(loopback_rate(&net))?;
     println!("loopback QUIC, one stream, 256 MiB: {rate:.0} MiB/s");
+    for &mtu in &cli.loopback_mtus {
+        let n = NetConfig {
+            initial_mtu: mtu,
+            ..NetConfig::default()
+        };
+        match rt.block_on(loopback_rate(&n)) {
+            Ok(r) => println!("  initial MTU {mtu}: {r:.0} MiB/s"),
+            Err(e) => println!("  initial MTU {mtu}: {e:#}"),
+        }
+    }
     let mut rows = Vec::new();
-    // (transport, LZ4 on QUIC pieces, name in the tables)
-    let transports: Vec<(Transport, bool, String)> = cli
+    // (transport, LZ4 on QUIC pieces, first QUIC datagram size, name in the tables)
+    let transports: Vec<(Transport, bool, u16, String)> = cli
         .transports
         .iter()
-        .map(|t| match t.as_str() {
-            "shm" => Ok((Transport::Shm, false, t.clone())),
-            "quic" => Ok((Transport::Quic, false, t.clone())),
-            "quic-lz4" => Ok((Transport::Quic, true, t.clone())),
-            "auto" => Ok((Transport::Auto, false, t.clone())),
-            other => {
-                anyhow::bail!("--transports: {other:?} is not shm, quic, quic-lz4 or auto")
+        .map(|t| {
+            let (kind, mtu) = match t.split_once('@') {
+                Some((k, m)) => match m.parse::<u16>() {
+                    Ok(m) if m >= 1200 && m <= 65527 => (k, m),
+                    _ => anyhow::bail!(
+                        "--transports: {t:?}: the size after @ must be 1200..=65527 bytes"
+                    ),
+                },
+                None => (t.as_str(), 1200),
+            };
+            match kind {
+                "shm" => Ok((Transport::Shm, false, mtu, t.clone())),
+                "quic" => Ok((Transport::Quic, false, mtu, t.clone())),
+                "quic-lz4" => Ok((Transport::Quic, true, mtu, t.clone())),
+                "auto" => Ok((Transport::Auto, false, mtu, t.clone())),
+                other => anyhow::bail!(
+                    "--transports: {other:?} is not shm, quic, quic-lz4 or auto (each with an optional @MTU)"
+                ),
             }
         })
         .collect::<Result<_>>()?;
     for &p in &cli.procs {
-        for (transport, lz4, tname) in transports.iter().cloned() {
+        for (transport, lz4, mtu, tname) in transports.iter().cloned() {
             let mut opts = ClusterOptions::from_scene(&scene, Some(p))?;
             opts.worker_threads = 1;
             opts.transport = transport;
+            opts.quic_mtu = mtu;
             let rows_p = rt.block_on(async {
             let mut cluster = Cluster::start(&scene, opts).await?;
             let mut rows = Vec::new();

@@ -182,6 +182,12 @@ pub struct ClusterSettings {
     /// healthy connections from idling).
     #[serde(default = "default_idle_timeout")]
     pub idle_timeout_s: f64,
+    /// First QUIC datagram size in bytes (1200 to 65527). 1200 is safe on any path; a
+    /// cluster whose links carry jumbo frames (or one host's loopback) can start larger,
+    /// which costs fewer datagrams per piece. Larger than the path allows, connections
+    /// never come up.
+    #[serde(default = "default_quic_mtu")]
+    pub quic_mtu: u16,
     /// Rayon threads per spawned worker; 0 = the cores divided among the workers.
     #[serde(default)]
     pub worker_threads: u32,
@@ -274,6 +280,7 @@ impl Default for ClusterSettings {
             connect_timeout_s: default_connect_timeout(),
             frame_timeout_s: default_frame_timeout(),
             idle_timeout_s: default_idle_timeout(),
+            quic_mtu: default_quic_mtu(),
             worker_threads: 0,
             secret_file: None,
             fingerprint_file: None,
@@ -305,6 +312,9 @@ fn default_frame_timeout() -> f64 {
 }
 fn default_idle_timeout() -> f64 {
     10.0
+}
+fn default_quic_mtu() -> u16 {
+    1200
 }
 
 /// A synthetic survey that the first command needing it generates into a cache folder.

@@ -54,6 +54,8 @@ pub struct ClusterOptions {
     pub frame_timeout: Duration,
     /// Connection idle timeout.
     pub idle_timeout: Duration,
+    /// First QUIC datagram size (`cluster.quic_mtu`), of this endpoint and spawned workers.
+    pub quic_mtu: u16,
     /// Rayon threads per spawned worker (0: divide the cores).
     pub worker_threads: usize,
     /// Shared secret (None: generate one; only allowed when spawning).
@@ -163,6 +165,11 @@ impl ClusterOptions {
                 "cluster.{k} must be a positive number of seconds, got {v}"
             );
         }
+        anyhow::ensure!(
+            (1200..=65527).contains(&c.quic_mtu),
+            "cluster.quic_mtu must lie in 1200..=65527 bytes, got {}",
+            c.quic_mtu
+        );
         let listen: SocketAddr = c.listen.parse().with_context(|| {
             format!(
                 "cluster.listen = {:?}: expected IP:PORT, e.g. 0.0.0.0:7000",
@@ -184,6 +191,7 @@ impl ClusterOptions {
             connect_timeout: Duration::from_secs_f64(c.connect_timeout_s),
             frame_timeout: Duration::from_secs_f64(c.frame_timeout_s),
             idle_timeout: Duration::from_secs_f64(c.idle_timeout_s),
+            quic_mtu: c.quic_mtu,
             worker_threads: c.worker_threads as usize,
             secret,
             fingerprint_file: c.fingerprint_file.clone(),
@@ -457,6 +465,7 @@ impl Cluster {
         let id = Identity::generate()?;
         let net = NetConfig {
             idle_timeout: opts.idle_timeout,
+            initial_mtu: opts.quic_mtu,
             ..NetConfig::default()
         };
         let ep = transport::endpoint(opts.listen, &id, &net)?;
@@ -496,6 +505,8 @@ impl Cluster {
                     .arg(opts.idle_timeout.as_secs_f64().to_string())
                     .arg("--connect-timeout-s")
                     .arg(opts.connect_timeout.as_secs_f64().to_string())
+                    .arg("--quic-mtu")
+                    .arg(opts.quic_mtu.to_string())
                     .env(
                         secret::SECRET_ENV,
                         std::ffi::OsString::from_vec(secret.clone()),
@@ -1110,7 +1121,7 @@ impl Cluster {
                 {
                     debug!(child, "a worker given up on has exited");
                 }
-                Event::Msg { rank, frame: f } => {
+                Event::Msg { rank, frame: mut f } => {
                     let who = self.workers[rank as usize].describe();
                     let blame = |e: anyhow::Error| Failure::blaming(e, rank);
                     match wire::decode_meta::<WorkerMsg>(&f.meta) {
@@ -1136,7 +1147,8 @@ impl Cluster {
                                     if lz4 {
                                         SparsePiece::parse_lz4(&f.bulk, width * height)
                                     } else {
-                                        SparsePiece::parse(&f.bulk, width * height)
+                                        let bulk = std::mem::take(&mut f.bulk);
+                                        SparsePiece::parse_shared(bulk.into(), width * height)
                                     }
                                 })
                                 .with_context(|| format!("final piece from {who}"))

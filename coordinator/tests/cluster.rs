@@ -268,11 +268,12 @@ fn options_that_change_bytes_not_pixels() {
 fn shared_memory_and_forced_quic_give_identical_images_and_report_their_transport() {
     let reference = reference();
     let dir = tempfile::tempdir().unwrap();
-    let go = |name: &str, transport: &str, algorithm: &str| {
+    let go_with = |name: &str, transport: &str, algorithm: &str, mtu: u16| {
         let out = dir.path().join(format!("{name}.exr"));
         let stats = dir.path().join(format!("{name}.jsonl"));
         let t = format!("cluster.transport={transport}");
         let a = format!("composite.algorithm={algorithm}");
+        let m = format!("cluster.quic_mtu={mtu}");
         let o = render(
             &out,
             &[
@@ -284,6 +285,8 @@ fn shared_memory_and_forced_quic_give_identical_images_and_report_their_transpor
                 &a,
                 "--set",
                 "composite.k=2",
+                "--set",
+                &m,
                 "--stats",
                 stats.to_str().unwrap(),
             ],
@@ -295,6 +298,8 @@ fn shared_memory_and_forced_quic_give_identical_images_and_report_their_transpor
             serde_json::from_str(text.lines().last().unwrap()).unwrap();
         (read_exr(&out), summary)
     };
+    let go =
+        |name: &str, transport: &str, algorithm: &str| go_with(name, transport, algorithm, 1200);
     let shm_host = strata_net::shm::host_id().is_some();
     for algorithm in ["binary-swap", "radix-k"] {
         let (quic, qs) = go(&format!("quic-{algorithm}"), "quic", algorithm);
@@ -303,6 +308,10 @@ fn shared_memory_and_forced_quic_give_identical_images_and_report_their_transpor
         assert_eq!(qs["exchange_shm_bytes"], 0, "{qs}");
         let (auto, s) = go(&format!("auto-{algorithm}"), "auto", algorithm);
         assert!(quic == auto, "{algorithm}: the transport changed pixels");
+        // QUIC datagrams starting at 4000 bytes (`cluster.quic_mtu`, as on loopback or
+        // jumbo frames): the same pixels.
+        let (big, _) = go_with(&format!("quic-mtu-{algorithm}"), "quic", algorithm, 4000);
+        assert!(big == quic, "{algorithm}: the datagram size changed pixels");
         assert!(max_diff(reference, &auto) <= 1e-5);
         if shm_host {
             // Four processes on one host: every pair and gather through shared memory,
@@ -316,6 +325,18 @@ fn shared_memory_and_forced_quic_give_identical_images_and_report_their_transpor
             );
         }
     }
+    // A datagram size no path can take is refused before anything starts.
+    let o = render(
+        &dir.path().join("bad-mtu.exr"),
+        &["--workers", "2", "--set", "cluster.quic_mtu=100"],
+        &[],
+    );
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("cluster.quic_mtu must lie in 1200..=65527"),
+        "{err}"
+    );
     if shm_host {
         // `shm` forced on one host works as `auto` does.
         let (forced, s) = go("shm-forced", "shm", "radix-k");

@@ -111,6 +111,21 @@ pub async fn write_frame(
     Ok((HEADER_LEN + meta.len() + bulk.len()) as u64)
 }
 
+/// [`write_frame`] of a bulk payload in chunks that are sent as they are: quinn keeps
+/// each chunk instead of copying it into its send buffer.
+pub async fn write_frame_chunks(
+    send: &mut quinn::SendStream,
+    meta: &[u8],
+    mut bulk: Vec<bytes::Bytes>,
+) -> Result<u64, NetError> {
+    let bulk_len: usize = bulk.iter().map(|b| b.len()).sum();
+    let header = wire::encode_header(meta.len() as u32, bulk_len as u64);
+    send.write_all(&header).await?;
+    send.write_all(meta).await?;
+    send.write_all_chunks(&mut bulk).await?;
+    Ok((HEADER_LEN + meta.len() + bulk_len) as u64)
+}
+
 /// Reads one frame, refusing it by its header before allocating the body.
 pub async fn read_frame(recv: &mut quinn::RecvStream, limits: &Limits) -> Result<Frame, NetError> {
     let mut header = [0u8; HEADER_LEN];
@@ -143,6 +158,18 @@ async fn read_exactly(recv: &mut quinn::RecvStream, len: usize) -> Result<Vec<u8
         }
     }
     Ok(out)
+}
+
+/// [`send_uni`] with the bulk in chunks sent as they are ([`write_frame_chunks`]).
+pub async fn send_uni_chunks(
+    conn: &quinn::Connection,
+    meta: &[u8],
+    bulk: Vec<bytes::Bytes>,
+) -> Result<u64, NetError> {
+    let mut s = conn.open_uni().await?;
+    let n = write_frame_chunks(&mut s, meta, bulk).await?;
+    s.finish()?;
+    Ok(n)
 }
 
 /// Sends one frame on a new unidirectional stream and finishes it.

@@ -20,7 +20,10 @@ pub mod shm;
 pub mod tls;
 pub mod transport;
 
-pub use frame::{read_frame, send_uni, with_timeout, write_frame, Frame, NetError};
+pub use frame::{
+    read_frame, send_uni, send_uni_chunks, with_timeout, write_frame, write_frame_chunks, Frame,
+    NetError,
+};
 pub use tls::Identity;
 pub use transport::NetConfig;
 

@@ -73,6 +73,48 @@ pub fn trust(conn: &quinn::Connection) {
     conn.set_max_concurrent_bi_streams(quinn::VarInt::from_u32(4));
 }
 
+/// Bytes asked for each UDP socket's receive and send buffer. A piece of tens of MB
+/// arrives as a burst of datagrams faster than one task drains them; the default buffer
+/// (about 208 KiB on Linux) overflows, every dropped datagram is a loss to the congestion
+/// controller, and the stream crawls. The kernel caps the request at
+/// `net.core.rmem_max` / `wmem_max` (raise those for fast links).
+pub const SOCKET_BUFFER: usize = 16 << 20;
+
+/// Asks for `bytes` of receive and send buffer on `socket` and returns what the kernel
+/// granted (it caps the request at its limit, and reports twice the usable size).
+pub fn size_socket_buffers(socket: &std::net::UdpSocket, bytes: usize) -> (usize, usize) {
+    use std::os::fd::AsRawFd;
+    let fd = socket.as_raw_fd();
+    let want = bytes.min(i32::MAX as usize) as libc::c_int;
+    let mut got = [0usize; 2];
+    for (i, opt) in [libc::SO_RCVBUF, libc::SO_SNDBUF].into_iter().enumerate() {
+        // SAFETY: setsockopt/getsockopt on a socket we own, with an int-sized option
+        // value; failures leave the default, which works, only slower.
+        unsafe {
+            libc::setsockopt(
+                fd,
+                libc::SOL_SOCKET,
+                opt,
+                (&want as *const libc::c_int).cast(),
+                std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+            );
+            let mut v: libc::c_int = 0;
+            let mut len = std::mem::size_of::<libc::c_int>() as libc::socklen_t;
+            if libc::getsockopt(
+                fd,
+                libc::SOL_SOCKET,
+                opt,
+                (&mut v as *mut libc::c_int).cast(),
+                &mut len,
+            ) == 0
+            {
+                got[i] = v.max(0) as usize;
+            }
+        }
+    }
+    (got[0], got[1])
+}
+
 /// An endpoint bound to `bind` that accepts connections with `id` (and can open them).
 pub fn endpoint(bind: SocketAddr, id: &Identity, cfg: &NetConfig) -> Result<quinn::Endpoint> {
     let server = tls::server_config(id, cfg.transport()?, cfg.client_auth)?;
@@ -83,6 +125,8 @@ pub fn endpoint(bind: SocketAddr, id: &Identity, cfg: &NetConfig) -> Result<quin
         .map_err(|e| anyhow::anyhow!("max UDP payload: {e:?}"))?;
     let socket =
         std::net::UdpSocket::bind(bind).with_context(|| format!("cannot bind UDP {bind}"))?;
+    let (rcv, snd) = size_socket_buffers(&socket, SOCKET_BUFFER);
+    tracing::debug!(%bind, receive_buffer = rcv, send_buffer = snd, "UDP socket buffers");
     quinn::Endpoint::new(ec, Some(server), socket, Arc::new(quinn::TokioRuntime))
         .with_context(|| format!("cannot start a QUIC endpoint on {bind}"))
 }

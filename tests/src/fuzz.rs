@@ -27,22 +27,41 @@ pub fn target(name: &str) -> Option<fn(&[u8])> {
 }
 
 /// A scratch file of this process (in `/dev/shm` where there is one: the fuzzer writes it
-/// once per execution), overwritten with `data`.
-fn scratch(name: &str, data: &[u8]) -> PathBuf {
+/// once per execution) holding `data`; removed when dropped, so no run leaves files behind.
+fn scratch(name: &str, data: &[u8]) -> Scratch {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     let dir = DIR.get_or_init(|| {
-        let base = if Path::new("/dev/shm").is_dir() {
+        if Path::new("/dev/shm").is_dir() {
             PathBuf::from("/dev/shm")
         } else {
             std::env::temp_dir()
-        };
-        let d = base.join(format!("strata-fuzz-{}", std::process::id()));
-        std::fs::create_dir_all(&d).expect("scratch folder");
-        d
+        }
     });
-    let p = dir.join(name);
+    let p = dir.join(format!("strata-fuzz-{}-{name}", std::process::id()));
     std::fs::write(&p, data).expect("scratch file");
-    p
+    Scratch(p)
+}
+
+/// A scratch file, removed on drop.
+struct Scratch(PathBuf);
+
+impl std::ops::Deref for Scratch {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl AsRef<Path> for Scratch {
+    fn as_ref(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.0);
+    }
 }
 
 /// A SEG-Y file: headers, trace scan and grid fit; if it opens, its first and last traces

@@ -39,6 +39,10 @@ pub struct JoinArgs {
     /// Seconds of silence after which the coordinator counts as gone.
     #[arg(long, default_value_t = 10.0)]
     pub idle_timeout_s: f64,
+    /// First QUIC datagram size in bytes, 1200..=65527 (the coordinator's
+    /// `cluster.quic_mtu`): larger only where every link carries it (jumbo frames).
+    #[arg(long, default_value_t = 1200, value_parser = clap::value_parser!(u16).range(1200..=65527))]
+    pub quic_mtu: u16,
 }
 
 /// Joins the run described by `a`; returns when the coordinator shuts the run down.
@@ -90,5 +94,6 @@ pub fn join(a: JoinArgs) -> Result<()> {
         bind,
         connect_timeout: Duration::from_secs_f64(a.connect_timeout_s),
         idle_timeout: Duration::from_secs_f64(a.idle_timeout_s),
+        quic_mtu: a.quic_mtu,
     })
 }

@@ -39,7 +39,9 @@ use strata_common::wire::{
     self, CompositeChoice, CoordMsg, Fingerprint, FrameRequest, FrameSource, Limits, PeerInfo,
     PeerMsg, Setup, WorkerFrameStats, WorkerMsg,
 };
-use strata_net::frame::{read_frame, send_uni, with_timeout, write_frame, NetError};
+use strata_net::frame::{
+    read_frame, send_uni, send_uni_chunks, with_timeout, write_frame, write_frame_chunks, NetError,
+};
 use strata_net::shm::{SegmentId, ShmReader, ShmWriter};
 use strata_net::{transport, Identity, NetConfig};
 use tokio::sync::{mpsc, watch};
@@ -62,6 +64,8 @@ pub struct NodeOptions {
     pub connect_timeout: Duration,
     /// Idle timeout of the coordinator connection.
     pub idle_timeout: Duration,
+    /// First QUIC datagram size.
+    pub quic_mtu: u16,
 }
 
 /// Keeps freed image buffers in this process's heap instead of handing them back to the
@@ -110,6 +114,7 @@ async fn node(opts: NodeOptions) -> Result<()> {
     // Peers dialling this endpoint must present their certificate (pinned both ways).
     let net = NetConfig {
         idle_timeout: opts.idle_timeout,
+        initial_mtu: opts.quic_mtu,
         client_auth: true,
         ..NetConfig::default()
     };
@@ -265,16 +270,15 @@ async fn node(opts: NodeOptions) -> Result<()> {
                                 piece.span,
                                 piece.format,
                             );
-                            if lz4 {
-                                bulk = tokio::task::block_in_place(|| encoded.write_lz4());
+                            bulk = if lz4 {
+                                vec![tokio::task::block_in_place(|| encoded.write_lz4()).into()]
                             } else {
-                                bulk.reserve_exact(encoded.byte_len());
-                                encoded.write(&mut bulk);
-                            }
+                                encoded.wire_chunks().to_vec()
+                            };
                         }
                         stats.gather_s += t.elapsed().as_secs_f64();
                         stats.gather_bytes = if shm.is_none() {
-                            bulk.len()
+                            bulk.iter().map(|b| b.len()).sum()
                         } else {
                             layout.byte_len(piece.format)
                         } as u64;
@@ -285,7 +289,7 @@ async fn node(opts: NodeOptions) -> Result<()> {
                             shm,
                             lz4,
                         };
-                        write_frame(&mut csend, &wire::encode_meta(&msg), &bulk).await?;
+                        write_frame_chunks(&mut csend, &wire::encode_meta(&msg), bulk).await?;
                     }
                     Err(e) => {
                         warn!(frame, "frame failed: {e:#}");
@@ -585,7 +589,7 @@ async fn read_peer(
         };
         // A stream, once opened, must arrive whole within the frame timeout: a half-sent
         // one would otherwise block every later piece of this peer.
-        let f = match with_timeout(
+        let mut f = match with_timeout(
             stream_timeout,
             "a piece stream",
             read_frame(&mut s, &limits),
@@ -610,11 +614,12 @@ async fn read_peer(
                 from,
                 lz4,
             }) => {
+                // The piece keeps the buffer it arrived in (no copy of its pixels).
                 let parsed = tokio::task::block_in_place(|| {
                     if lz4 {
                         SparsePiece::parse_lz4(&f.bulk, max_pixels)
                     } else {
-                        SparsePiece::parse(&f.bulk, max_pixels)
+                        SparsePiece::parse_shared(std::mem::take(&mut f.bulk).into(), max_pixels)
                     }
                 });
                 match parsed {
@@ -1153,7 +1158,7 @@ impl Node {
             .ok_or_else(|| anyhow!("no connection to rank {to_rank}"))?;
         // A peer on this host has the piece in its segment already (the exchange's sink
         // encoded it there): only the announcement goes over QUIC. Otherwise the piece.
-        let (meta, bytes) = match out.piece {
+        let (meta, chunks) = match out.piece {
             OutgoingPiece::Placed(at) => {
                 let moved = wire::SHM_RECORD_HEADER as u64 + at.len;
                 stats.shm_bytes_sent += moved;
@@ -1168,12 +1173,11 @@ impl Node {
             }
             OutgoingPiece::Encoded(piece) => {
                 let te = Instant::now();
-                let bytes = if self.lz4 {
-                    tokio::task::block_in_place(|| piece.write_lz4())
+                // The piece's own buffers go to the stream as they are (no joined copy).
+                let chunks = if self.lz4 {
+                    vec![tokio::task::block_in_place(|| piece.write_lz4()).into()]
                 } else {
-                    let mut bytes = Vec::with_capacity(piece.byte_len());
-                    piece.write(&mut bytes);
-                    bytes
+                    piece.wire_chunks().to_vec()
                 };
                 stats.encode_s += te.elapsed().as_secs_f64();
                 let meta = wire::encode_meta(&PeerMsg::Piece {
@@ -1182,7 +1186,7 @@ impl Node {
                     from: out.from,
                     lz4: self.lz4,
                 });
-                (meta, bytes)
+                (meta, chunks)
             }
         };
         let what = describe(&self.setup.peers, to_rank);
@@ -1190,7 +1194,7 @@ impl Node {
         Ok((
             what,
             tokio::spawn(async move {
-                send_uni(&conn, &meta, &bytes)
+                send_uni_chunks(&conn, &meta, chunks)
                     .await
                     .map_err(|e| anyhow!("sending to {task_what}: {e}"))
             }),

@@ -428,6 +428,17 @@ impl SparsePiece {
         [Cow::Owned(head), runs, Cow::Borrowed(&self.data)]
     }
 
+    /// The wire form in three shared chunks (header, run lengths, pixel data), the pixel
+    /// data not copied: for a transport that sends chunks as they are (QUIC streams do).
+    pub fn wire_chunks(&self) -> [Bytes; 3] {
+        let [head, runs, _] = self.wire_parts();
+        [
+            Bytes::copy_from_slice(&head),
+            Bytes::copy_from_slice(&runs),
+            self.data.clone(),
+        ]
+    }
+
     /// Bytes of run lengths announced by a piece's header (the first
     /// [`HEADER_BYTES`](Self::HEADER_BYTES) bytes), so a reader can fetch header and runs
     /// first and the pixel data straight into its own buffer. Unchecked: the parse that
@@ -531,7 +542,7 @@ impl SparsePiece {
                 raw[at..].copy_from_slice(&data);
             }
         }
-        Self::parse(&raw, max_pixels)
+        Self::parse_shared(raw.into(), max_pixels)
     }
 
     /// Parses exactly one piece from `bytes` (untrusted input): every count is checked
@@ -546,6 +557,36 @@ impl SparsePiece {
             });
         }
         Ok(piece)
+    }
+
+    /// [`parse`](Self::parse) of a received buffer the piece takes over: its pixel data
+    /// is a slice of `bytes`, not a copy (a piece received over QUIC is blended from the
+    /// buffer it arrived in).
+    pub fn parse_shared(bytes: Bytes, max_pixels: u32) -> Result<SparsePiece, PieceError> {
+        let (span, format, runs, active, data_at) = Self::parse_head(&bytes, max_pixels)?;
+        let data_bytes = active * format.bytes_per_pixel() as u64;
+        let available = bytes.len() - data_at;
+        if data_bytes > available as u64 {
+            return Err(PieceError::Truncated {
+                what: "pixel data",
+                offset: data_at,
+                needed: data_bytes,
+                available,
+            });
+        }
+        let used = data_at + data_bytes as usize;
+        if used != bytes.len() {
+            return Err(PieceError::TrailingBytes {
+                offset: used,
+                extra: bytes.len() - used,
+            });
+        }
+        Ok(SparsePiece {
+            span,
+            format,
+            runs,
+            data: bytes.slice(data_at..used),
+        })
     }
 
     /// Parses one piece from the start of `bytes`, returning it and the bytes it used.
@@ -1109,6 +1150,26 @@ mod tests {
             ],
             0..300,
         )
+    }
+
+    #[test]
+    fn shared_parse_matches_the_copying_parse_and_refuses_alike() {
+        let bytes = valid_bytes();
+        let whole = SparsePiece::parse(&bytes, 1 << 20).unwrap();
+        let shared = SparsePiece::parse_shared(Bytes::from(bytes.clone()), 1 << 20).unwrap();
+        assert_eq!(shared, whole);
+        for cut in [0, 3, 15, 17, bytes.len() - 1] {
+            let a = SparsePiece::parse(&bytes[..cut], 1 << 20).unwrap_err();
+            let b = SparsePiece::parse_shared(Bytes::copy_from_slice(&bytes[..cut]), 1 << 20)
+                .unwrap_err();
+            assert_eq!(a, b, "cut at {cut}");
+        }
+        let mut long = bytes.clone();
+        long.push(0);
+        assert_eq!(
+            SparsePiece::parse(&long, 1 << 20).unwrap_err(),
+            SparsePiece::parse_shared(long.into(), 1 << 20).unwrap_err()
+        );
     }
 
     #[test]
