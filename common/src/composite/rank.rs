@@ -533,28 +533,42 @@ pub fn assemble(
             return Err(CompositeError::Overlap { a: w[0], b: w[1] });
         }
     }
-    let mut out = vec![[0.0f32; 4]; n as usize];
+    // Each pixel of the frame is written once: no zero-fill first (a fresh frame-sized
+    // buffer costs a page fault per 4 KiB, a second pass over it as much again).
+    let mut out: Vec<Rgba> = Vec::with_capacity(n as usize);
+    let mut order: Vec<&SparsePiece> = pieces.iter().filter(|p| !p.span.is_empty()).collect();
+    order.sort_by_key(|p| p.span.start);
     if interlace.is_identity() {
-        for p in pieces {
-            p.decode_into(&mut out, 0)?;
+        for p in order {
+            let base = p.span.start as usize;
+            out.resize(base, [0.0; 4]);
+            p.for_each_active(|off, px| {
+                out.resize(base + off, [0.0; 4]);
+                out.extend_from_slice(px);
+            });
         }
+        out.resize(n as usize, [0.0; 4]);
         return Ok(out);
     }
+    // Interlaced: logical row l is physical row `physical_row(l)`; every active run is
+    // copied straight to its rows.
+    out.resize(n as usize, [0.0; 4]);
     let w = width as usize;
-    let mut tmp: Vec<Rgba> = Vec::new();
-    for p in pieces.iter().filter(|p| !p.span.is_empty()) {
-        let len = p.span.len() as usize;
-        tmp.clear();
-        tmp.resize(len, [0.0; 4]);
-        p.decode_into(&mut tmp, p.span.start)?;
-        let (s, e) = (p.span.start as usize, p.span.end as usize);
-        for l in s / w..=(e - 1) / w {
-            let a = s.max(l * w);
-            let b = e.min((l + 1) * w);
-            let y = interlace.physical_row(l as u32) as usize;
-            let dst = y * w + (a - l * w);
-            out[dst..dst + (b - a)].copy_from_slice(&tmp[a - s..b - s]);
-        }
+    for p in order {
+        let start = p.span.start as usize;
+        p.for_each_active(|off, px| {
+            let mut i = start + off;
+            let mut px = px;
+            while !px.is_empty() {
+                let l = i / w;
+                let x = i - l * w;
+                let take = px.len().min(w - x);
+                let dst = interlace.physical_row(l as u32) as usize * w + x;
+                out[dst..dst + take].copy_from_slice(&px[..take]);
+                px = &px[take..];
+                i += take;
+            }
+        });
     }
     Ok(out)
 }

@@ -740,7 +740,7 @@ impl SparsePiece {
 
     /// Calls `f(offset in span, pixels)` for the active pixels, run by run (long runs
     /// in chunks when they must be decoded). The piece must have passed [`check`](Self::check).
-    fn for_each_active(&self, mut f: impl FnMut(usize, &[Rgba])) {
+    pub(super) fn for_each_active(&self, mut f: impl FnMut(usize, &[Rgba])) {
         let bpp = self.format.bytes_per_pixel();
         let mut scratch = [[0f32; 4]; CHUNK];
         let mut pos = 0usize;
