@@ -10,8 +10,8 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use strata_common::composite::{
     assemble, build_plan, composite_in_memory, Algorithm, Exchange, ExchangeError, ExchangeEvent,
-    ExchangeLimits, Interlace, OutgoingPiece, PieceLayout, PieceSink, RankCompositor, Span,
-    SparsePiece, WireFormat,
+    ExchangeLimits, Interlace, OutgoingPiece, PieceLayout, PieceSink, RankCompositor, Segment,
+    Span, SparsePiece, WireFormat,
 };
 use strata_common::image::{PartialImage, Rect, Rgba};
 use strata_common::wire::ShmRef;
@@ -102,7 +102,7 @@ impl PieceSink for BufferSink {
         _frame: u64,
         _round: u32,
         _from: u32,
-        pixels: &[Rgba],
+        segments: &[Segment<'_>],
         layout: &PieceLayout,
         span: Span,
         format: WireFormat,
@@ -114,7 +114,7 @@ impl PieceSink for BufferSink {
         let offset = buf.len();
         let len = layout.byte_len(format);
         buf.resize(offset + len, 0xEE);
-        layout.write_into(pixels, span, format, &mut buf[offset..]);
+        layout.write_segments_into(segments, span, format, &mut buf[offset..]);
         Some(ShmRef {
             offset: offset as u64,
             len: len as u64,

@@ -41,8 +41,7 @@ use std::sync::Arc;
 
 use bytes::Bytes;
 use memmap2::{Mmap, MmapMut, MmapOptions};
-use strata_common::composite::{PieceLayout, Span, SparsePiece, WireFormat};
-use strata_common::image::Rgba;
+use strata_common::composite::{PieceLayout, Segment, Span, SparsePiece, WireFormat};
 use strata_common::wire::{check_shm_record, encode_shm_record, ShmRef, SHM_RECORD_HEADER};
 
 /// Prefix of every segment's name.
@@ -300,22 +299,23 @@ impl ShmWriter {
         })
     }
 
-    /// Encodes the piece of `pixels` (covering `span`, run lengths `layout`) straight
-    /// into a record: the same bytes as [`SparsePiece::write`], with no buffer between.
+    /// Encodes the piece of the pixels `segments` stand for (covering `span`, run
+    /// lengths `layout`) straight into a record: the same bytes as
+    /// [`SparsePiece::write`], with no buffer between.
     #[allow(clippy::too_many_arguments)]
     pub fn write_piece(
         &mut self,
         frame: u64,
         round: u32,
         from: u32,
-        pixels: &[Rgba],
+        segments: &[Segment<'_>],
         layout: &PieceLayout,
         span: Span,
         format: WireFormat,
     ) -> Result<ShmRef, ShmError> {
         let len = layout.byte_len(format) as u64;
         self.write_with(frame, round, from, len, |out| {
-            layout.write_into(pixels, span, format, out)
+            layout.write_segments_into(segments, span, format, out)
         })
     }
 }
@@ -605,8 +605,9 @@ mod tests {
             assert_eq!(r.read_piece(a, 1 << 20, 2, 1, 3, 100).unwrap(), piece);
             // Encoded straight into the segment: the same piece.
             let layout = PieceLayout::of(&pixels);
+            let segs = [Segment::Pixels(&pixels)];
             let b = w
-                .write_piece(2, 1, 3, &pixels, &layout, Span::new(10, 15), format)
+                .write_piece(2, 1, 3, &segs, &layout, Span::new(10, 15), format)
                 .unwrap();
             assert_eq!(b.len, piece.byte_len() as u64);
             assert_eq!(r.read_piece(b, 1 << 20, 2, 1, 3, 100).unwrap(), piece);

@@ -26,8 +26,8 @@ use std::time::{Duration, Instant};
 use strata_common::camera::View;
 use strata_common::composite::{
     build_plan, build_plan_to, Exchange, ExchangeError, ExchangeEvent, ExchangeLimits, FinalPiece,
-    Interlace, Outgoing, OutgoingPiece, PieceLayout, PieceSink, Plan, RankCompositor, Span,
-    SparsePiece, WireFormat,
+    Interlace, Outgoing, OutgoingPiece, PieceLayout, PieceSink, Plan, RankCompositor, Segment,
+    Span, SparsePiece, WireFormat,
 };
 use strata_common::image::{composite_front_to_back, PartialImage, Rect, Rgba};
 use strata_common::occlusion::{
@@ -252,7 +252,7 @@ async fn node(opts: NodeOptions) -> Result<()> {
                                     frame,
                                     wire::GATHER_ROUND,
                                     rank,
-                                    &piece.pixels,
+                                    &[Segment::Pixels(&piece.pixels)],
                                     &layout,
                                     piece.span,
                                     piece.format,
@@ -724,13 +724,13 @@ impl PieceSink for ShmSink {
         frame: u64,
         round: u32,
         from: u32,
-        pixels: &[Rgba],
+        segments: &[Segment<'_>],
         layout: &PieceLayout,
         span: Span,
         format: WireFormat,
     ) -> Option<wire::ShmRef> {
         let w = self.writers.get_mut(to_rank as usize)?.as_mut()?;
-        w.write_piece(frame, round, from, pixels, layout, span, format)
+        w.write_piece(frame, round, from, segments, layout, span, format)
             .map_err(|e| warn!(peer = to_rank, "piece over QUIC instead: {e}"))
             .ok()
     }

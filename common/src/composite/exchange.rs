@@ -39,7 +39,7 @@
 use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
 
-use super::{CompositeError, PieceLayout, RankCompositor, Span, SparsePiece, WireFormat};
+use super::{CompositeError, PieceLayout, RankCompositor, Segment, Span, SparsePiece, WireFormat};
 use crate::image::Rgba;
 use crate::wire::ShmRef;
 
@@ -49,9 +49,10 @@ pub trait PieceSink: Send {
     /// (a frame completes only once every rank has blended all its pieces).
     fn start_frame(&mut self, frame: u64);
 
-    /// Encodes the piece of `pixels` (covering `span`, in `format`) for rank `to_rank`
-    /// straight where that rank reads it and returns where it lies, or `None` to have it
-    /// encoded into an owned [`SparsePiece`] (a peer without a segment, a full segment).
+    /// Encodes the piece of the pixels `segments` stand for (covering `span`, run lengths
+    /// `layout`, in `format`) for rank `to_rank` straight where that rank reads it and
+    /// returns where it lies, or `None` to have it encoded into an owned [`SparsePiece`]
+    /// (a peer without a segment, a full segment).
     #[allow(clippy::too_many_arguments)]
     fn place(
         &mut self,
@@ -59,7 +60,7 @@ pub trait PieceSink: Send {
         frame: u64,
         round: u32,
         from: u32,
-        pixels: &[Rgba],
+        segments: &[Segment<'_>],
         layout: &PieceLayout,
         span: Span,
         format: WireFormat,
@@ -602,16 +603,16 @@ impl Exchange {
                 a.sent = true;
                 let t = Instant::now();
                 let from = a.rc.position() as u32;
-                for (to, span, pixels) in a.rc.outgoing_pixels() {
+                for (to, span, segments) in a.rc.outgoing_segments() {
                     let to_rank = a.order[to];
-                    let layout = PieceLayout::of(pixels);
+                    let layout = PieceLayout::of_segments(&segments);
                     let placed = self.sink.as_mut().and_then(|s| {
                         s.place(
                             to_rank,
                             a.frame,
                             round as u32,
                             from,
-                            pixels,
+                            &segments,
                             &layout,
                             span,
                             a.format,
@@ -619,8 +620,8 @@ impl Exchange {
                     });
                     let piece = match placed {
                         Some(at) => OutgoingPiece::Placed(at),
-                        None => OutgoingPiece::Encoded(SparsePiece::encode_with(
-                            pixels, layout, span, a.format,
+                        None => OutgoingPiece::Encoded(SparsePiece::encode_segments(
+                            &segments, layout, span, a.format,
                         )),
                     };
                     self.sends.push_back(Outgoing {

@@ -50,7 +50,9 @@ pub fn run_in_memory(
     let mut ranks = images
         .iter()
         .enumerate()
-        .map(|(j, img)| RankCompositor::new(Arc::clone(&shared), j, img, &interlace))
+        // Taking the images (a sparse one stays the image until the first round, as in a
+        // worker); `new` is what the exchange simulation uses.
+        .map(|(j, img)| RankCompositor::from_image(Arc::clone(&shared), j, img.clone(), &interlace))
         .collect::<Result<Vec<_>, _>>()?;
 
     let mut bytes_sent = vec![0u64; plan.ranks];

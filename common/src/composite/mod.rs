@@ -58,7 +58,7 @@ pub use interlace::Interlace;
 pub use memory::{composite_in_memory, run_in_memory, MemoryRun};
 pub use radix_k::auto_factors;
 pub use rank::{assemble, CompositeError, RankCompositor};
-pub use sparse::{PieceError, PieceLayout, SparsePiece, WireFormat};
+pub use sparse::{PieceError, PieceLayout, Segment, SparsePiece, WireFormat};
 
 /// The target group size used when radix-k is asked for without an explicit `k`.
 pub const DEFAULT_TARGET_K: usize = 8;

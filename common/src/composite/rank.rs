@@ -9,7 +9,9 @@
 
 use std::sync::Arc;
 
-use super::{Interlace, PieceError, Plan, PlanError, Span, SparsePiece, WireFormat};
+use super::{
+    Interlace, PieceError, PieceLayout, Plan, PlanError, Segment, Span, SparsePiece, WireFormat,
+};
 use crate::image::{PartialImage, Rgba};
 
 /// Why compositing could not proceed.
@@ -152,6 +154,11 @@ pub struct RankCompositor {
     buf: Vec<Rgba>,
     /// Indexed like the current step's blend list; `None` for this rank itself.
     received: Vec<Option<SparsePiece>>,
+    /// Until the first round is blended, the image itself when it is not the whole
+    /// frame (`from_image`): the first round's pieces are encoded from its rows (rows
+    /// outside it are known transparent, never written nor read), and only the span
+    /// kept is laid out. `buf` is empty meanwhile.
+    source: Option<Box<(PartialImage, Interlace)>>,
 }
 
 impl RankCompositor {
@@ -182,12 +189,14 @@ impl RankCompositor {
         let r = image.rect;
         let whole =
             interlace.is_identity() && (r.x, r.y, r.w, r.h) == (0, 0, image.width, image.height);
-        let buf = if whole {
-            image.pixels
-        } else {
-            logical_buffer(&image, interlace)
-        };
-        Ok(Self::with_buffer(plan, position, buf))
+        if whole {
+            return Ok(Self::with_buffer(plan, position, image.pixels));
+        }
+        let pixels = image.width * image.height;
+        let mut c = Self::with_buffer(plan, position, Vec::new());
+        c.span = Span::new(0, pixels);
+        c.source = Some(Box::new((image, *interlace)));
+        Ok(c)
     }
 
     fn with_buffer(plan: Arc<Plan>, position: usize, buf: Vec<Rgba>) -> Self {
@@ -199,6 +208,7 @@ impl RankCompositor {
             span: Span::new(0, pixels),
             buf,
             received: Vec::new(),
+            source: None,
         };
         c.reset_received();
         c
@@ -286,23 +296,35 @@ impl RankCompositor {
 
     /// The pieces to send this round, as `(to position, piece)`; empty when done.
     pub fn outgoing(&self, format: WireFormat) -> Vec<(usize, SparsePiece)> {
-        self.outgoing_pixels()
+        self.outgoing_segments()
             .into_iter()
-            .map(|(to, span, px)| (to, SparsePiece::encode(px, span, format)))
+            .map(|(to, span, segs)| {
+                let layout = PieceLayout::of_segments(&segs);
+                (
+                    to,
+                    SparsePiece::encode_segments(&segs, layout, span, format),
+                )
+            })
             .collect()
     }
 
-    /// The pieces to send this round before encoding, as `(to position, span, pixels)`,
-    /// for a driver that encodes each straight where it goes; empty when done.
-    pub fn outgoing_pixels(&self) -> Vec<(usize, Span, &[Rgba])> {
+    /// The pieces to send this round before encoding, as `(to position, span, pixels in
+    /// segments)`, for a driver that encodes each straight where it goes; empty when done.
+    pub fn outgoing_segments(&self) -> Vec<(usize, Span, Vec<Segment<'_>>)> {
         let Some(step) = self.step() else {
             return Vec::new();
         };
         step.sends
             .iter()
             .map(|&(to, span)| {
-                let off = (span.start - self.span.start) as usize;
-                (to, span, &self.buf[off..off + span.len() as usize])
+                let segs = match &self.source {
+                    Some(src) => segments_of(&src.0, &src.1, span),
+                    None => {
+                        let off = (span.start - self.span.start) as usize;
+                        vec![Segment::Pixels(&self.buf[off..off + span.len() as usize])]
+                    }
+                };
+                (to, span, segs)
             })
             .collect()
     }
@@ -410,13 +432,16 @@ impl RankCompositor {
         let plan = Arc::clone(&self.plan);
         let step = &plan.rounds[round].steps[position];
         let keep = step.keep;
+        let source = self.source.take();
         if keep.is_empty() {
             self.buf = Vec::new();
         } else {
             // `keep` lies inside the current span (the plan is validated).
             let off = (keep.start - self.span.start) as usize;
             let len = keep.len() as usize;
-            if 2 * len <= self.buf.capacity() {
+            if let Some(src) = source {
+                self.buf = logical_span(&src.0, &src.1, keep);
+            } else if 2 * len <= self.buf.capacity() {
                 self.buf = self.buf[off..off + len].to_vec();
             } else {
                 self.buf.copy_within(off..off + len, 0);
@@ -453,6 +478,9 @@ impl RankCompositor {
         if r.is_empty() || !self.span.contains(&r) {
             return SparsePiece::encode(&[], Span::new(r.start, r.start), format);
         }
+        if let Some(src) = &self.source {
+            return SparsePiece::encode(&logical_span(&src.0, &src.1, r), r, format);
+        }
         let off = (r.start - self.span.start) as usize;
         SparsePiece::encode(&self.buf[off..off + r.len() as usize], r, format)
     }
@@ -465,6 +493,9 @@ impl RankCompositor {
         if r.is_empty() || !self.span.contains(&r) {
             return (Span::new(r.start, r.start), Vec::new());
         }
+        if let Some(src) = self.source.take() {
+            return (r, logical_span(&src.0, &src.1, r));
+        }
         let off = (r.start - self.span.start) as usize;
         if off != 0 || self.buf.len() != r.len() as usize {
             self.buf.copy_within(off..off + r.len() as usize, 0);
@@ -475,25 +506,70 @@ impl RankCompositor {
 }
 
 /// The whole frame in logical order (physical row `y` at logical row
-/// `interlace.logical_row(y)`), transparent outside the image's rectangle; each pixel
-/// is written once (no zero-fill first: a fresh frame-sized buffer costs a page fault
-/// per 4 KiB, a second pass over it as much again).
+/// `interlace.logical_row(y)`), transparent outside the image's rectangle.
 fn logical_buffer(image: &PartialImage, interlace: &Interlace) -> Vec<Rgba> {
-    let (w, h) = (image.width as usize, image.height as usize);
+    logical_span(image, interlace, Span::new(0, image.width * image.height))
+}
+
+/// The pixels of logical span `span` of the frame, each written once (no zero-fill first:
+/// a fresh frame-sized buffer costs a page fault per 4 KiB, a second pass as much again).
+fn logical_span(image: &PartialImage, interlace: &Interlace, span: Span) -> Vec<Rgba> {
+    let mut buf: Vec<Rgba> = Vec::with_capacity(span.len() as usize);
+    for_each_part(image, interlace, span, |seg| match seg {
+        Segment::Zeros(n) => buf.resize(buf.len() + n, [0.0; 4]),
+        Segment::Pixels(p) => buf.extend_from_slice(p),
+    });
+    buf
+}
+
+/// The pixels of logical span `span` as segments: the image's row pieces, and the rest as
+/// (merged) runs of zeros.
+fn segments_of<'a>(image: &'a PartialImage, interlace: &Interlace, span: Span) -> Vec<Segment<'a>> {
+    let mut out: Vec<Segment<'a>> = Vec::new();
+    for_each_part(image, interlace, span, |seg| match (out.last_mut(), seg) {
+        (Some(Segment::Zeros(a)), Segment::Zeros(b)) => *a += b,
+        (_, seg) => out.push(seg),
+    });
+    out
+}
+
+/// Calls `f` with the parts of logical span `span` in order: `Zeros` where the image's
+/// rectangle does not reach, `Pixels` (slices of the image's rows) where it does.
+fn for_each_part<'a>(
+    image: &'a PartialImage,
+    interlace: &Interlace,
+    span: Span,
+    mut f: impl FnMut(Segment<'a>),
+) {
+    if span.is_empty() {
+        return;
+    }
+    let w = image.width as usize;
     let r = image.rect;
-    let mut buf: Vec<Rgba> = Vec::with_capacity(w * h);
-    for l in 0..h as u32 {
-        let y = interlace.physical_row(l);
+    let (a, b) = (span.start as usize, span.end as usize);
+    let (x0, x1) = (r.x as usize, r.x as usize + r.w as usize);
+    for l in a / w..=(b - 1) / w {
+        let row = l * w;
+        let (lo, hi) = (a.max(row) - row, b.min(row + w) - row);
+        let y = interlace.physical_row(l as u32);
         if r.w == 0 || y < r.y || y >= r.y + r.h {
-            buf.resize(buf.len() + w, [0.0; 4]);
+            f(Segment::Zeros(hi - lo));
             continue;
         }
-        let row = (y - r.y) as usize * r.w as usize;
-        buf.resize(buf.len() + r.x as usize, [0.0; 4]);
-        buf.extend_from_slice(&image.pixels[row..row + r.w as usize]);
-        buf.resize(buf.len() + w - (r.x + r.w) as usize, [0.0; 4]);
+        let src = &image.pixels[(y - r.y) as usize * r.w as usize..][..r.w as usize];
+        let (p0, p1) = (lo.max(x0), hi.min(x1));
+        if p0 >= p1 {
+            f(Segment::Zeros(hi - lo));
+            continue;
+        }
+        if p0 > lo {
+            f(Segment::Zeros(p0 - lo));
+        }
+        f(Segment::Pixels(&src[p0 - x0..p1 - x0]));
+        if hi > p1 {
+            f(Segment::Zeros(hi - p1));
+        }
     }
-    buf
 }
 
 /// Builds the full physical row-major `width × height` image from gathered pieces
@@ -638,19 +714,45 @@ mod tests {
                     pixels,
                 };
                 let want = reference_buffer(&image, &il);
-                let built = RankCompositor::new(plan.clone(), 1, &image, &il).unwrap();
-                let taken = RankCompositor::from_image(plan.clone(), 1, image, &il).unwrap();
                 let bits = |b: &[Rgba]| b.iter().flatten().map(|v| v.to_bits()).collect::<Vec<_>>();
+                // Every sub-span, laid out or as segments, is that part of the frame.
+                let n = w * h;
+                for (a, b) in [
+                    (0, n),
+                    (0, 1),
+                    (5, 40),
+                    (13, 26),
+                    (27, 27),
+                    (60, n),
+                    (n - 1, n),
+                ] {
+                    let span = Span::new(a, b);
+                    let part = &want[a as usize..b as usize];
+                    let laid = logical_span(&image, &il, span);
+                    assert_eq!(bits(&laid), bits(part), "{rect:?} {interlaced} {span}");
+                    let mut flat = Vec::new();
+                    for seg in segments_of(&image, &il, span) {
+                        match seg {
+                            Segment::Zeros(k) => flat.resize(flat.len() + k, [0.0f32; 4]),
+                            Segment::Pixels(p) => flat.extend_from_slice(p),
+                        }
+                    }
+                    assert_eq!(bits(&flat), bits(part), "{rect:?} {interlaced} {span}");
+                }
+                let built = RankCompositor::new(plan.clone(), 1, &image, &il).unwrap();
                 assert_eq!(
                     bits(&built.buf),
                     bits(&want),
                     "{rect:?} interlaced {interlaced}"
                 );
-                assert_eq!(
-                    bits(&taken.buf),
-                    bits(&want),
-                    "{rect:?} interlaced {interlaced}"
-                );
+                // Taken: the whole frame becomes the buffer; anything else stays the
+                // image until the first round.
+                let whole = !interlaced && rect == Rect { x: 0, y: 0, w, h };
+                let taken = RankCompositor::from_image(plan.clone(), 1, image, &il).unwrap();
+                assert_eq!(taken.source.is_none(), whole);
+                if whole {
+                    assert_eq!(bits(&taken.buf), bits(&want));
+                }
             }
         }
     }

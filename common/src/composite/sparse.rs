@@ -88,28 +88,143 @@ pub struct PieceLayout {
     pub active: usize,
 }
 
+/// A span's pixels in logical order, in parts: stretches known to be transparent (rows
+/// outside a rank's image, never read) and stretches of pixels.
+#[derive(Clone, Copy, Debug)]
+pub enum Segment<'a> {
+    /// This many inactive (transparent black) pixels.
+    Zeros(usize),
+    /// These pixels.
+    Pixels(&'a [Rgba]),
+}
+
+impl Segment<'_> {
+    /// Pixels covered.
+    pub fn len(&self) -> usize {
+        match self {
+            Segment::Zeros(n) => *n,
+            Segment::Pixels(p) => p.len(),
+        }
+    }
+
+    /// Whether it covers no pixel.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// Builds canonical run lengths from inactive and active counts in order.
+#[derive(Default)]
+struct RunBuilder {
+    runs: Vec<u32>,
+    zeros: usize,
+    act: usize,
+    active: usize,
+}
+
+impl RunBuilder {
+    fn inactive(&mut self, n: usize) {
+        if n == 0 {
+            return;
+        }
+        if self.act > 0 {
+            self.runs.push(self.zeros as u32);
+            self.runs.push(self.act as u32);
+            self.zeros = 0;
+            self.act = 0;
+        }
+        self.zeros += n;
+    }
+
+    fn active(&mut self, n: usize) {
+        self.act += n;
+        self.active += n;
+    }
+
+    fn finish(mut self) -> PieceLayout {
+        if self.zeros > 0 || self.act > 0 {
+            self.runs.push(self.zeros as u32);
+            self.runs.push(self.act as u32);
+        }
+        PieceLayout {
+            runs: self.runs,
+            active: self.active,
+        }
+    }
+}
+
 impl PieceLayout {
     /// The run lengths of `pixels`.
     pub fn of(pixels: &[Rgba]) -> PieceLayout {
-        let bits: &[[u32; 4]] = bytemuck::cast_slice(pixels);
-        let n = bits.len();
-        let mut runs = Vec::new();
-        let mut active = 0usize;
-        let mut i = 0usize;
-        while i < n {
-            let s = i;
-            while i < n && is_inactive(&bits[i]) {
-                i += 1;
+        Self::of_segments(&[Segment::Pixels(pixels)])
+    }
+
+    /// The run lengths of the pixels `segments` stand for, one after the other; `Zeros`
+    /// are taken as they are, without a pixel to read.
+    pub fn of_segments(segments: &[Segment<'_>]) -> PieceLayout {
+        let mut b = RunBuilder::default();
+        for seg in segments {
+            match *seg {
+                Segment::Zeros(n) => b.inactive(n),
+                Segment::Pixels(pixels) => {
+                    let bits: &[[u32; 4]] = bytemuck::cast_slice(pixels);
+                    let n = bits.len();
+                    let mut i = 0usize;
+                    while i < n {
+                        let s = i;
+                        while i < n && is_inactive(&bits[i]) {
+                            i += 1;
+                        }
+                        let a = i;
+                        while i < n && !is_inactive(&bits[i]) {
+                            i += 1;
+                        }
+                        b.inactive(a - s);
+                        b.active(i - a);
+                    }
+                }
             }
-            let a = i;
-            while i < n && !is_inactive(&bits[i]) {
-                i += 1;
-            }
-            runs.push((a - s) as u32);
-            runs.push((i - a) as u32);
-            active += i - a;
         }
-        PieceLayout { runs, active }
+        b.finish()
+    }
+
+    /// Calls `f` with the active pixels of `segments` (those this layout was computed
+    /// from), run by run, in order.
+    ///
+    /// # Panics
+    /// If the layout was not computed from these segments (a caller bug).
+    fn for_each_active_run(&self, segments: &[Segment<'_>], mut f: impl FnMut(&[Rgba])) {
+        let (mut k, mut o) = (0usize, 0usize);
+        let skip = |mut n: usize, k: &mut usize, o: &mut usize| {
+            while n > 0 {
+                let left = segments[*k].len() - *o;
+                if n < left {
+                    *o += n;
+                    n = 0;
+                } else {
+                    n -= left;
+                    *k += 1;
+                    *o = 0;
+                }
+            }
+        };
+        for pair in self.runs.chunks_exact(2) {
+            skip(pair[0] as usize, &mut k, &mut o);
+            let mut n = pair[1] as usize;
+            while n > 0 {
+                while segments[k].len() == o {
+                    k += 1;
+                    o = 0;
+                }
+                let Segment::Pixels(px) = segments[k] else {
+                    panic!("PieceLayout: active pixels in a Zeros segment");
+                };
+                let take = n.min(px.len() - o);
+                f(&px[o..o + take]);
+                o += take;
+                n -= take;
+            }
+        }
     }
 
     /// Bytes of the piece's wire form (header, run lengths, data) in `format`.
@@ -125,15 +240,29 @@ impl PieceLayout {
     /// # Panics
     /// If `out` or `pixels` has the wrong length (a caller bug).
     pub fn write_into(&self, pixels: &[Rgba], span: Span, format: WireFormat, out: &mut [u8]) {
+        self.write_segments_into(&[Segment::Pixels(pixels)], span, format, out)
+    }
+
+    /// [`write_into`](Self::write_into) of the pixels `segments` stand for.
+    ///
+    /// # Panics
+    /// If `out` or the segments have the wrong length (a caller bug).
+    pub fn write_segments_into(
+        &self,
+        segments: &[Segment<'_>],
+        span: Span,
+        format: WireFormat,
+        out: &mut [u8],
+    ) {
         assert_eq!(
-            pixels.len(),
+            segments.iter().map(Segment::len).sum::<usize>(),
             span.len() as usize,
-            "PieceLayout::write_into: pixels"
+            "PieceLayout::write_segments_into: pixels"
         );
         assert_eq!(
             out.len(),
             self.byte_len(format),
-            "PieceLayout::write_into: out"
+            "PieceLayout::write_segments_into: out"
         );
         let (head, rest) = out.split_at_mut(SparsePiece::HEADER_BYTES);
         head.copy_from_slice(&SparsePiece::header(span, format, self.runs.len()));
@@ -142,18 +271,14 @@ impl PieceLayout {
             d.copy_from_slice(&r.to_le_bytes());
         }
         let bpp = format.bytes_per_pixel();
-        let mut at = 0usize;
-        for pair in self.runs.chunks_exact(2) {
-            at += pair[0] as usize;
-            let px = &pixels[at..at + pair[1] as usize];
-            let (d, tail) = data.split_at_mut(px.len() * bpp);
+        self.for_each_active_run(segments, |px| {
+            let (d, tail) = std::mem::take(&mut data).split_at_mut(px.len() * bpp);
             match format {
                 WireFormat::F32 => put_f32_le(d, px),
                 WireFormat::F16 => put_f16_le(d, px),
             }
             data = tail;
-            at += pair[1] as usize;
-        }
+        });
     }
 }
 
@@ -361,27 +486,30 @@ impl SparsePiece {
         span: Span,
         format: WireFormat,
     ) -> SparsePiece {
+        Self::encode_segments(&[Segment::Pixels(pixels)], layout, span, format)
+    }
+
+    /// [`encode_with`](Self::encode_with) of the pixels `segments` stand for.
+    pub fn encode_segments(
+        segments: &[Segment<'_>],
+        layout: PieceLayout,
+        span: Span,
+        format: WireFormat,
+    ) -> SparsePiece {
         assert_eq!(
-            pixels.len(),
+            segments.iter().map(Segment::len).sum::<usize>(),
             span.len() as usize,
-            "SparsePiece::encode_with"
+            "SparsePiece::encode_segments"
         );
-        let PieceLayout { runs, active } = layout;
-        let mut data = Vec::with_capacity(active * format.bytes_per_pixel());
-        let mut at = 0usize;
-        for pair in runs.chunks_exact(2) {
-            at += pair[0] as usize;
-            let px = &pixels[at..at + pair[1] as usize];
-            match format {
-                WireFormat::F32 => extend_f32_le(&mut data, px),
-                WireFormat::F16 => extend_f16_le(&mut data, px),
-            }
-            at += pair[1] as usize;
-        }
+        let mut data = Vec::with_capacity(layout.active * format.bytes_per_pixel());
+        layout.for_each_active_run(segments, |px| match format {
+            WireFormat::F32 => extend_f32_le(&mut data, px),
+            WireFormat::F16 => extend_f16_le(&mut data, px),
+        });
         SparsePiece {
             span,
             format,
-            runs,
+            runs: layout.runs,
             data: data.into(),
         }
     }
