@@ -53,6 +53,10 @@ const ALIGN: u64 = 64;
 /// Segments grow to at least this many bytes, then by doubling.
 const MIN_SIZE: u64 = 1 << 20;
 
+/// Records one frame may put in a segment, at most (one per compositing round, or the
+/// final piece): a reader refuses offsets further than this many largest records.
+const MAX_RECORDS: u64 = 64;
+
 /// Why a segment could not be used.
 #[derive(Debug, thiserror::Error)]
 pub enum ShmError {
@@ -82,6 +86,14 @@ pub enum ShmError {
         len: u64,
         /// The limit.
         limit: u64,
+    },
+    /// The record lies further into the segment than one frame's records can reach.
+    #[error("record at offset {offset} lies past the {reach} bytes one frame's records can reach")]
+    TooFar {
+        /// Announced offset.
+        offset: u64,
+        /// How far records may reach.
+        reach: u64,
     },
     /// The record runs past the segment's end.
     #[error(
@@ -226,8 +238,17 @@ impl ShmWriter {
         if end <= self.size {
             return Ok(());
         }
-        let size = end.next_power_of_two().max(MIN_SIZE);
         let io = io_error(&self.name);
+        let size = end
+            .checked_next_power_of_two()
+            .filter(|&s| usize::try_from(s).is_ok() && libc::off_t::try_from(s).is_ok())
+            .ok_or_else(|| {
+                io(std::io::Error::new(
+                    std::io::ErrorKind::InvalidInput,
+                    format!("a segment of {end} bytes"),
+                ))
+            })?
+            .max(MIN_SIZE);
         // Allocate the memory now, so that a host out of memory is an error here and
         // not a fault on first touch of the mapping.
         // SAFETY: fallocate on a descriptor we own; the result is checked.
@@ -235,9 +256,9 @@ impl ShmWriter {
         if r != 0 {
             return Err(io(std::io::Error::last_os_error()));
         }
-        self.map = None;
         // SAFETY: the file is sealed against shrinking and only this writer writes it;
-        // the mapping covers its current size.
+        // the mapping covers its current size. The old mapping is replaced only once the
+        // new one exists: a failed remap leaves the segment as it was, still usable.
         let map =
             unsafe { MmapOptions::new().len(size as usize).map_mut(&self.file) }.map_err(io)?;
         self.map = Some(map);
@@ -260,7 +281,12 @@ impl ShmWriter {
             len,
         };
         let start = at.offset + SHM_RECORD_HEADER as u64;
-        let end = start + len;
+        let end = start.checked_add(len).ok_or_else(|| {
+            io_error(&self.name)(std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                format!("a record of {len} bytes"),
+            ))
+        })?;
         self.reserve(end)?;
         let map = self.map.as_mut().expect("reserved");
         map[at.offset as usize..start as usize]
@@ -412,13 +438,17 @@ impl ShmReader {
         // SAFETY: the segment is sealed against shrinking (checked at open), so every
         // byte below `size` stays mapped and readable; see the module docs for what a
         // peer writing while this reads can and cannot do.
-        let map = unsafe {
-            MmapOptions::new()
-                .len(size as usize)
-                .populate()
-                .map(&self.file)
-        }
-        .map_err(io_error(&self.path))?;
+        // Up to what this record needs (rounded up, so that growth remaps rarely), not
+        // the whole file: a peer that grew its segment far costs nothing until a record
+        // lies there.
+        let want = end
+            .checked_next_power_of_two()
+            .unwrap_or(end)
+            .max(MIN_SIZE)
+            .min(size);
+        let want = usize::try_from(want).map_err(|_| ShmError::PastEnd { offset, len, size })?;
+        let map = unsafe { MmapOptions::new().len(want).populate().map(&self.file) }
+            .map_err(io_error(&self.path))?;
         let map = Arc::new(map);
         self.map = Some(map.clone());
         Ok(map)
@@ -449,6 +479,18 @@ impl ShmReader {
                 size: self.map.as_ref().map_or(0, |m| m.len() as u64),
             });
         };
+        // A sender writes one frame's records from the start of its segment, each at
+        // most `limit` bytes: a record reaching further is refused before anything is
+        // mapped (the segment may only grow, and mapping it costs memory).
+        let reach = limit
+            .saturating_add(SHM_RECORD_HEADER as u64 + ALIGN)
+            .saturating_mul(MAX_RECORDS);
+        if end > reach {
+            return Err(ShmError::TooFar {
+                offset: at.offset,
+                reach,
+            });
+        }
         let map = self.mapping(at.offset, at.len, end)?;
         let start = at.offset as usize + SHM_RECORD_HEADER;
         let header: [u8; SHM_RECORD_HEADER] = map[at.offset as usize..start]
@@ -570,6 +612,14 @@ mod tests {
         ));
         let e = read(&mut r, ShmRef { len: u64::MAX, ..a }, 1 << 20, 1, 0, 0).unwrap_err();
         assert!(matches!(e, ShmError::TooLarge { .. }), "{e}");
+        // Further into the segment than a frame's records can reach: refused before the
+        // segment's size is even looked at.
+        let far = ShmRef {
+            offset: 10 << 30,
+            len: 100,
+        };
+        let e = read(&mut r, far, 1 << 20, 1, 0, 0).unwrap_err();
+        assert!(matches!(e, ShmError::TooFar { .. }), "{e}");
         // A record longer than announced reads as its header says, not further.
         let long = ShmRef { len: 101, ..a };
         let e = read(&mut r, long, 1 << 20, 1, 0, 0).unwrap_err();

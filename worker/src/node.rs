@@ -712,7 +712,10 @@ struct ShmSink {
 impl PieceSink for ShmSink {
     fn start_frame(&mut self, _frame: u64) {
         // Every record of the last frame has been used (the frame completed only once
-        // every rank had blended all its pieces): the segments start over.
+        // every rank had blended all its pieces): the segments start over. After a failed
+        // attempt a slow peer may still be blending the old one and see its pixels
+        // overwritten; that attempt's result is discarded (results of earlier frames are
+        // ignored), so nothing wrong is kept. Pipelined frames would need two halves.
         for w in self.writers.iter_mut().flatten() {
             w.reset();
         }
@@ -1042,14 +1045,18 @@ impl Node {
         // The exchange itself is the sans-IO state machine; this loop only moves its
         // pieces and the time.
         let t_exchange = Instant::now();
-        self.exchange.start_frame(
-            req.frame,
-            req.order.clone(),
-            rc,
-            format,
-            frame_start,
-            self.timeout,
-        );
+        // Starting sends the first round: its pieces are encoded (into peers' segments,
+        // which may grow) here, off the async threads.
+        tokio::task::block_in_place(|| {
+            self.exchange.start_frame(
+                req.frame,
+                req.order.clone(),
+                rc,
+                format,
+                frame_start,
+                self.timeout,
+            )
+        });
         let mut sends = Vec::new();
         let result = loop {
             while let Some(out) = self.exchange.poll_send() {
