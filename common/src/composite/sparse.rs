@@ -232,18 +232,10 @@ impl PieceLayout {
         SparsePiece::HEADER_BYTES + 4 * self.runs.len() + self.active * format.bytes_per_pixel()
     }
 
-    /// Writes the wire form of the piece of `pixels` (those this layout was computed
-    /// from, covering `span`) into `out`, which must be exactly
+    /// Writes the wire form of the piece of the pixels `segments` stand for (those this
+    /// layout was computed from, covering `span`) into `out`, which must be exactly
     /// [`byte_len`](Self::byte_len) bytes: the same bytes as [`SparsePiece::write`] of
     /// [`SparsePiece::encode`], with no intermediate buffer.
-    ///
-    /// # Panics
-    /// If `out` or `pixels` has the wrong length (a caller bug).
-    pub fn write_into(&self, pixels: &[Rgba], span: Span, format: WireFormat, out: &mut [u8]) {
-        self.write_segments_into(&[Segment::Pixels(pixels)], span, format, out)
-    }
-
-    /// [`write_into`](Self::write_into) of the pixels `segments` stand for.
     ///
     /// # Panics
     /// If `out` or the segments have the wrong length (a caller bug).
@@ -1332,7 +1324,7 @@ mod tests {
                 SparsePiece::encode(&pixels, span, format).write(&mut want);
                 let layout = PieceLayout::of(&pixels);
                 let mut got = vec![0xAAu8; layout.byte_len(format)];
-                layout.write_into(&pixels, span, format, &mut got);
+                layout.write_segments_into(&[Segment::Pixels(&pixels)], span, format, &mut got);
                 prop_assert_eq!(got, want);
             }
         }
