@@ -189,8 +189,45 @@ struct SegyArgs {
     /// 1-based byte of the crossline number in the trace header (193 by the standard; 21 is common).
     #[arg(long, default_value_t = 193)]
     xline_byte: u32,
+    /// Time or depth traces; decided from the textual headers when absent (time if they say
+    /// nothing).
+    #[arg(long, value_enum)]
+    vertical: Option<VerticalArg>,
+    /// Unit of the vertical axis (ms or s for time, m or ft for depth); from the headers
+    /// when absent.
+    #[arg(long, value_enum)]
+    vertical_unit: Option<VerticalUnitArg>,
+    /// Sample step along the trace in the vertical unit, overriding the sample-interval
+    /// field (which holds the step x 1000: microseconds for ms, thousandths for m or ft).
+    #[arg(long, value_name = "STEP")]
+    z_step: Option<f64>,
+    /// Pre-stack files: ingest only the traces with this offset (trace header byte 37).
+    #[arg(
+        long,
+        value_name = "N",
+        allow_negative_numbers = true,
+        conflicts_with = "stack"
+    )]
+    offset: Option<i32>,
+    /// Pre-stack files: ingest the mean of the traces of each inline/crossline node.
+    #[arg(long)]
+    stack: bool,
     #[command(flatten)]
     store: StoreArgs,
+}
+
+#[derive(Copy, Clone, ValueEnum)]
+enum VerticalArg {
+    Time,
+    Depth,
+}
+
+#[derive(Copy, Clone, ValueEnum)]
+enum VerticalUnitArg {
+    Ms,
+    S,
+    M,
+    Ft,
 }
 
 #[derive(Args)]
@@ -232,9 +269,9 @@ struct HorizonArgs {
     /// Grid format: inline and crossline increments per row and column.
     #[arg(long, num_args = 2, value_names = ["DI", "DX"])]
     grid_step: Option<Vec<f64>>,
-    /// Unit of the heights (world z).
-    #[arg(long, default_value = "ms")]
-    z_unit: String,
+    /// Unit of the heights (world z); default: the --survey store's vertical unit, else ms.
+    #[arg(long)]
+    z_unit: Option<String>,
     #[command(flatten)]
     store: StoreArgs,
 }
@@ -409,12 +446,35 @@ fn run(cli: Cli) -> Result<()> {
                 }),
                 inline_byte: a.inline_byte,
                 xline_byte: a.xline_byte,
+                offset: a.offset,
+                stack: a.stack,
+                vertical: a.vertical.map(|v| match v {
+                    VerticalArg::Time => segy::VerticalDomain::Time,
+                    VerticalArg::Depth => segy::VerticalDomain::Depth,
+                }),
+                vertical_unit: a.vertical_unit.map(|u| match u {
+                    VerticalUnitArg::Ms => segy::VerticalUnit::Ms,
+                    VerticalUnitArg::S => segy::VerticalUnit::S,
+                    VerticalUnitArg::M => segy::VerticalUnit::M,
+                    VerticalUnitArg::Ft => segy::VerticalUnit::Ft,
+                }),
+                z_step: a.z_step,
             };
             let vol = segy::open(&a.file, &opts)?;
             let info = vol.info();
             for w in &info.warnings {
                 warn!("{}: {w}", a.file.display());
             }
+            let v = &info.vertical;
+            info!(
+                domain = v.domain.name(),
+                unit = v.unit.name(),
+                start = v.start,
+                step = v.step,
+                domain_from = %v.domain_from,
+                unit_from = %v.unit_from,
+                "vertical axis"
+            );
             let mut o = options(
                 BuildOptions::volume(&file_name(&a.file), info.sample_type),
                 &a.store,
@@ -426,8 +486,9 @@ fn run(cli: Cli) -> Result<()> {
             o.transform = Affine3::from_lateral(&info.survey.to_world, dz, z0);
             o.units = Units {
                 lateral: "m".into(),
-                vertical: "ms".into(),
+                vertical: v.unit.name().into(),
             };
+            o.vertical_domain = Some(v.domain);
             o.survey = Some(info.survey);
             let text: String = info
                 .text_header
@@ -436,12 +497,20 @@ fn run(cli: Cli) -> Result<()> {
                 .take(40)
                 .collect::<Vec<_>>()
                 .join("\n");
+            let traces = match (info.offset, info.stacked) {
+                (Some(o), _) => format!(", offset {o} only"),
+                (None, true) => format!(", stack of up to {} traces per node", info.max_fold),
+                (None, false) => String::new(),
+            };
             o.source = format!(
-                "SEG-Y {} (format {}, rev {}.{})\n{}",
+                "SEG-Y {} (format {}, rev {}.{}{traces}; {} in {}, {})\n{}",
                 a.file.display(),
                 info.format_code,
                 info.revision.0,
                 info.revision.1,
+                v.domain.name(),
+                v.unit.name(),
+                v.domain_from,
                 text
             );
             if let Some(f) = &info.fit {
@@ -454,16 +523,27 @@ fn run(cli: Cli) -> Result<()> {
             build_and_report(&vol, &a.store.output, &o, cli.quiet, "SEG-Y", t0)?;
         }
         Command::Ingest(Ingest::Horizon(a)) => {
-            let survey =
-                match &a.survey {
-                    Some(p) => {
-                        let s = inspect::open_store(p)?;
-                        Some(s.header().survey.with_context(|| {
-                            format!("{}: store has no survey grid", p.display())
-                        })?)
-                    }
-                    None => None,
-                };
+            let survey_store = match &a.survey {
+                Some(p) => Some(inspect::open_store(p)?),
+                None => None,
+            };
+            let survey = match (&a.survey, &survey_store) {
+                (Some(p), Some(s)) => Some(
+                    s.header()
+                        .survey
+                        .with_context(|| format!("{}: store has no survey grid", p.display()))?,
+                ),
+                _ => None,
+            };
+            // Heights share the survey cube's vertical axis unless told otherwise.
+            let (z_unit, z_domain) = match (&a.z_unit, &survey_store) {
+                (Some(u), _) => (u.clone(), None),
+                (None, Some(s)) => (
+                    s.header().units.vertical.clone(),
+                    s.header().vertical_domain,
+                ),
+                (None, None) => ("ms".to_string(), None),
+            };
             let mut po = horizon_text::HorizonParseOptions {
                 format: match a.format {
                     HorizonFormatArg::Auto => horizon_text::HorizonFormat::Auto,
@@ -503,8 +583,9 @@ fn run(cli: Cli) -> Result<()> {
             o.transform = Affine3::from_lateral(&s.to_world, 1.0, 0.0);
             o.units = Units {
                 lateral: "m".into(),
-                vertical: a.z_unit.clone(),
+                vertical: z_unit,
             };
+            o.vertical_domain = z_domain;
             o.survey = Some(s);
             o.source = format!("horizon text {}", a.file.display());
             let src = source::MemorySource {

@@ -227,6 +227,80 @@ fn synth_is_deterministic_and_round_trips_through_segy_and_text() {
 }
 
 #[test]
+fn depth_cubes_keep_their_domain_and_unit_through_ingest() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let out = |n: &str| d.join(n).display().to_string();
+    let f3 = real("seismic/f3_segyio/f3.sgy");
+    let inspect = |store: &str| {
+        let o = coordinator(&["inspect", store]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        String::from_utf8_lossy(&o.stdout).to_string()
+    };
+    // Said nothing: time in ms.
+    let o = coordinator(&["ingest", "segy", &f3, "-o", &out("t.strata")]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(inspect(&out("t.strata")).contains("vertical ms (time)"));
+    // Told depth in feet, 2.5 ft per sample: never labelled ms, and z steps 2.5.
+    let o = coordinator(&[
+        "ingest",
+        "segy",
+        &f3,
+        "--vertical",
+        "depth",
+        "--vertical-unit",
+        "ft",
+        "--z-step",
+        "2.5",
+        "-o",
+        &out("z.strata"),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = inspect(&out("z.strata"));
+    assert!(text.contains("vertical ft (depth)"), "{text}");
+    assert!(
+        text.contains("[0.0, 0.0, 2.5, "),
+        "z row of the transform steps 2.5: {text}"
+    );
+    // A horizon placed on that survey takes its vertical axis.
+    std::fs::write(
+        d.join("h.txt"),
+        "111 875 100\n111 876 101\n112 875 102\n112 876 103\n",
+    )
+    .unwrap();
+    let o = coordinator(&[
+        "ingest",
+        "horizon",
+        &out("h.txt"),
+        "--survey",
+        &out("z.strata"),
+        "-o",
+        &out("h.strata"),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(inspect(&out("h.strata")).contains("vertical ft (depth)"));
+    // Contradictions are one-line errors that leave nothing behind.
+    for (args, want) in [
+        (
+            vec!["--vertical", "time", "--vertical-unit", "m"],
+            "is a depth unit",
+        ),
+        (vec!["--offset", "100", "--stack"], "cannot be used with"),
+        (vec!["--offset", "7"], "no trace has offset 7"),
+    ] {
+        let mut a = vec!["ingest", "segy", f3.as_str()];
+        a.extend(args);
+        let bad = out("bad.strata");
+        a.extend(["-o", bad.as_str()]);
+        let o = coordinator(&a);
+        assert!(!o.status.success());
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(e.contains(want), "{e}");
+        assert!(!d.join("bad.strata").exists());
+    }
+}
+
+#[test]
 fn example_scene_parses() {
     let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs/example.toml");
     let s = strata_common::scene::Scene::parse(&p, &std::fs::read_to_string(&p).unwrap()).unwrap();

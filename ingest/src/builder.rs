@@ -31,7 +31,7 @@ use strata_common::sample::SampleType;
 use strata_common::stats::ValueHistogram;
 use strata_common::store::{
     decode_payload, encode_page, Compression, DataKind, IndexEntry, Preamble, StoreHeader, Units,
-    FORMAT_VERSION, PREAMBLE_LEN,
+    VerticalDomain, FORMAT_VERSION, PREAMBLE_LEN,
 };
 
 /// What to build.
@@ -57,6 +57,8 @@ pub struct BuildOptions {
     pub transform: Affine3,
     /// World units.
     pub units: Units,
+    /// Whether world z is time or depth, if known.
+    pub vertical_domain: Option<VerticalDomain>,
     /// Lateral survey grid, if known.
     pub survey: Option<SurveyGrid>,
     /// Provenance text.
@@ -84,6 +86,7 @@ impl BuildOptions {
             compression: Compression::None,
             transform: Affine3::IDENTITY,
             units: Units::default(),
+            vertical_domain: None,
             survey: None,
             source: String::new(),
             memory_budget: 256 << 20,
@@ -197,6 +200,7 @@ pub fn build_store(
         digest: 0,
         source: opts.source.clone(),
         stats: None,
+        vertical_domain: opts.vertical_domain,
     };
 
     let tmp = TempFile {

@@ -168,8 +168,13 @@ pub fn inspect(path: &Path, verify: bool, progress: &ProgressBar) -> Result<Insp
     let _ = writeln!(t, "transform (index -> world): {:?}", h.transform.rows);
     let _ = writeln!(
         t,
-        "units: lateral {}, vertical {}",
-        h.units.lateral, h.units.vertical
+        "units: lateral {}, vertical {}{}",
+        h.units.lateral,
+        h.units.vertical,
+        match h.vertical_domain {
+            Some(d) => format!(" ({})", d.name()),
+            None => String::new(),
+        }
     );
     if let Some(s) = &h.survey {
         let _ = writeln!(

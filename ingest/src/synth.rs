@@ -22,7 +22,7 @@ use strata_common::digest::fmix64;
 use strata_common::geo::{Affine2, Affine3, SurveyGrid};
 use strata_common::sample::SampleType;
 use strata_common::scene::{Camera, HorizonLayer, RenderSettings, Scene, VolumeLayer};
-use strata_common::store::Units;
+use strata_common::store::{Units, VerticalDomain};
 
 /// Sample interval of synthetic traces in milliseconds.
 pub const DT_MS: f64 = 4.0;
@@ -292,6 +292,7 @@ pub fn synth(
     let mut vo = BuildOptions::volume("synthetic seismic", SampleType::F32);
     vo.transform = model.transform();
     vo.units = units.clone();
+    vo.vertical_domain = Some(VerticalDomain::Time);
     vo.survey = Some(model.survey);
     vo.source = format!(
         "strata synth --seed {seed} --size {} {} {}",
@@ -307,6 +308,7 @@ pub fn synth(
         let mut ho = BuildOptions::horizon(&format!("synthetic horizon {}", h + 1));
         ho.transform = Affine3::from_lateral(&model.survey.to_world, 1.0, 0.0);
         ho.units = units.clone();
+        ho.vertical_domain = Some(VerticalDomain::Time);
         ho.survey = Some(model.survey);
         ho.source = format!(
             "strata synth --seed {seed}, interface {}",

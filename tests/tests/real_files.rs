@@ -16,6 +16,7 @@ fn ingest_segy(rel: &str, dir: &std::path::Path) -> PageStore {
     let out = dir.join(rel.replace('/', "_") + ".strata");
     let mut o = BuildOptions::volume("f3", vol.info().sample_type);
     o.survey = Some(vol.info().survey);
+    o.vertical_domain = Some(vol.info().vertical.domain);
     build_store(&vol, &out, &o, &ProgressBar::hidden()).unwrap();
     PageStore::open(&out).unwrap()
 }
@@ -179,7 +180,7 @@ fn ct_volumes_ingest_as_raw() {
 #[test]
 fn f3_percentile_statistics_match_a_direct_computation() {
     use std::io::{Seek, SeekFrom, Write};
-    use strata_common::store::Preamble;
+    use strata_common::store::{Preamble, StoreHeader, VerticalDomain, FORMAT_VERSION};
     let dir = tempfile::tempdir().unwrap();
     let be = ingest_segy("seismic/f3_segyio/f3.sgy", dir.path());
     let s = be.header().stats.clone().expect("statistics at ingest");
@@ -221,26 +222,41 @@ fn f3_percentile_statistics_match_a_direct_computation() {
     assert!(text.contains("percentiles of |value|: p50 "), "{text}");
     assert!(text.contains(&format!("rms: {:.6}", s.rms)), "{text}");
 
-    // The same store as format 1: its header ends before `stats`.
+    // The same store as formats 2 and 1: format 2's header ends before `vertical_domain`,
+    // format 1's also before `stats`.
     let path = be.path().to_path_buf();
     drop(be);
-    let bytes = std::fs::read(&path).unwrap();
-    let mut pre = Preamble::decode(&path, &bytes[..64]).unwrap();
+    let rewrite = |version: u32, h: &StoreHeader| {
+        let bytes = std::fs::read(&path).unwrap();
+        let mut pre = Preamble::decode(&path, &bytes[..64]).unwrap();
+        let mut hb = bincode::serde::encode_to_vec(h, bincode::config::standard()).unwrap();
+        for _ in version..FORMAT_VERSION {
+            assert_eq!(hb.pop(), Some(0), "an absent Option is bincode's 0 tag");
+        }
+        assert!(hb.len() as u64 <= pre.header_len);
+        pre.version = version;
+        pre.header_len = hb.len() as u64;
+        pre.header_crc = crc32c::crc32c(&hb);
+        let mut f = std::fs::OpenOptions::new().write(true).open(&path).unwrap();
+        f.write_all(&pre.encode()).unwrap();
+        f.seek(SeekFrom::Start(pre.header_offset)).unwrap();
+        f.write_all(&hb).unwrap();
+    };
     let mut h = PageStore::open(&path).unwrap().header().clone();
+    assert_eq!(
+        h.vertical_domain,
+        Some(VerticalDomain::Time),
+        "F3 says nothing: time"
+    );
+    h.vertical_domain = None;
+    rewrite(2, &h);
+    let v2 = PageStore::open(&path).unwrap();
+    assert_eq!(v2.header(), &h, "a format 2 header reads back whole");
     h.stats = None;
-    let mut hb = bincode::serde::encode_to_vec(&h, bincode::config::standard()).unwrap();
-    assert_eq!(hb.pop(), Some(0), "an absent Option is bincode's 0 tag");
-    assert!(hb.len() as u64 <= pre.header_len);
-    pre.version = 1;
-    pre.header_len = hb.len() as u64;
-    pre.header_crc = crc32c::crc32c(&hb);
-    let mut f = std::fs::OpenOptions::new().write(true).open(&path).unwrap();
-    f.write_all(&pre.encode()).unwrap();
-    f.seek(SeekFrom::Start(pre.header_offset)).unwrap();
-    f.write_all(&hb).unwrap();
-    drop(f);
+    rewrite(1, &h);
     let old = PageStore::open(&path).unwrap();
     assert!(old.header().stats.is_none());
+    assert!(old.header().vertical_domain.is_none());
     assert_eq!(old.header().dims, [23, 18, 75]);
     let text = inspect(&path, false, &ProgressBar::hidden()).unwrap().text;
     assert!(text.contains("statistics: none"), "{text}");

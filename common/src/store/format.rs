@@ -10,9 +10,10 @@ use std::path::Path;
 
 /// File magic.
 pub const MAGIC: [u8; 8] = *b"STRATAPS";
-/// Current format version (2: the header holds [`StoreHeader::stats`]). Readers accept
-/// [`MIN_FORMAT_VERSION`]..=this and refuse other versions with a clear error.
-pub const FORMAT_VERSION: u32 = 2;
+/// Current format version (2: the header holds [`StoreHeader::stats`]; 3: it also holds
+/// [`StoreHeader::vertical_domain`]). Readers accept [`MIN_FORMAT_VERSION`]..=this and
+/// refuse other versions with a clear error.
+pub const FORMAT_VERSION: u32 = 3;
 /// The oldest format version readers accept: version 1 lacks [`StoreHeader::stats`].
 pub const MIN_FORMAT_VERSION: u32 = 1;
 /// Length of the fixed preamble.
@@ -73,6 +74,26 @@ impl Default for Units {
     }
 }
 
+/// Whether world z is time or depth (seismic stores; `None` where the source does not say,
+/// as for raw grids and stores written before format 3).
+#[derive(Copy, Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum VerticalDomain {
+    /// Two-way travel time.
+    Time,
+    /// Depth.
+    Depth,
+}
+
+impl VerticalDomain {
+    /// Command-line name.
+    pub fn name(self) -> &'static str {
+        match self {
+            VerticalDomain::Time => "time",
+            VerticalDomain::Depth => "depth",
+        }
+    }
+}
+
 /// The versioned header of a store.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct StoreHeader {
@@ -114,6 +135,9 @@ pub struct StoreHeader {
     /// in stores of format version 1, and for a store without valid samples). Last, so a
     /// version-1 header decodes with it absent.
     pub stats: Option<crate::stats::ValueStats>,
+    /// Whether world z is time or depth, where the source said or the user chose (`None`
+    /// in stores of format versions 1 and 2). Last, so older headers decode with it absent.
+    pub vertical_domain: Option<VerticalDomain>,
 }
 
 impl StoreHeader {
@@ -464,6 +488,7 @@ mod tests {
             digest: 0,
             source: String::new(),
             stats: None,
+            vertical_domain: None,
         }
     }
 

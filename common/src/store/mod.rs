@@ -7,8 +7,8 @@
 //!          header and the index, CRC-32C of header, index and preamble
 //! 64       data section: page payloads, each checksummed (CRC-32C of the stored bytes) and
 //!          optionally LZ4-compressed after a byte shuffle; constant and empty pages store nothing
-//! ...      header: bincode 2 (serde) of `StoreHeader` (format 2; format 1, still read, ends
-//!          before the trailing value statistics)
+//! ...      header: bincode 2 (serde) of `StoreHeader` (format 3; formats 1 and 2, still
+//!          read, end before the trailing value statistics and vertical domain)
 //! ...      index: one 40-byte `IndexEntry` per page, sorted by page id, i.e. by level and then
 //!          Z-order (Morton) within the level
 //! ```
@@ -28,8 +28,8 @@ mod reader;
 pub use error::StoreError;
 pub use format::{
     decode_payload, encode_page, Compression, DataKind, IndexEntry, Preamble, StoreHeader, Units,
-    FORMAT_VERSION, MAGIC, MAX_HEADER_BYTES, MIN_FORMAT_VERSION, PAGE_COMPRESSED, PAGE_CONSTANT,
-    PAGE_EMPTY, PREAMBLE_LEN,
+    VerticalDomain, FORMAT_VERSION, MAGIC, MAX_HEADER_BYTES, MIN_FORMAT_VERSION, PAGE_COMPRESSED,
+    PAGE_CONSTANT, PAGE_EMPTY, PREAMBLE_LEN,
 };
 pub(crate) use format::{shuffle, unshuffle};
 pub use reader::{Page, PageStore};

@@ -1,6 +1,6 @@
 use super::format::{
-    decode_payload, IndexEntry, Preamble, StoreHeader, INDEX_ENTRY_LEN, MAX_HEADER_BYTES,
-    PREAMBLE_LEN,
+    decode_payload, IndexEntry, Preamble, StoreHeader, FORMAT_VERSION, INDEX_ENTRY_LEN,
+    MAX_HEADER_BYTES, PREAMBLE_LEN,
 };
 use super::StoreError;
 use crate::ids::PageId;
@@ -93,8 +93,9 @@ impl PageStore {
                 format!("crc32c {crc:08x}"),
             ));
         }
-        if pre.version == 1 {
-            // Version 1 ends before `stats`: its absence is bincode's `None` tag.
+        // Version 1 ends before `stats`, version 2 before `vertical_domain`: each absent
+        // trailing option is bincode's `None` tag.
+        for _ in pre.version..FORMAT_VERSION {
             hb.push(0);
         }
         // A length prefix inside the header is untrusted: bincode claims what a string or
