@@ -65,13 +65,14 @@ impl Drop for Scratch {
 }
 
 /// A SEG-Y file: headers, trace scan and grid fit; if it opens, its first and last traces
-/// are read.
+/// are read, and the first node's column through the grid (a stack, with `--stack`).
 pub fn segy(data: &[u8]) {
-    use strata_coordinator::segy::{open, SegyOptions};
+    use strata_coordinator::segy::{open, SegyOptions, VerticalDomain, VerticalUnit};
+    use strata_coordinator::source::GridSource;
     let p = scratch("in.sgy", data);
-    // The byte positions of inline and crossline: the standard ones, or two others the
-    // first byte picks (the option is user input too).
-    let opts = match data.first().map(|b| b % 4) {
+    // The options are user input too: the first byte picks the byte positions of inline
+    // and crossline, one offset of a pre-stack file or its stack, and the vertical axis.
+    let opts = match data.first().map(|b| b % 8) {
         Some(1) => SegyOptions {
             inline_byte: 9,
             xline_byte: 21,
@@ -80,6 +81,24 @@ pub fn segy(data: &[u8]) {
         Some(2) => SegyOptions {
             inline_byte: 5,
             xline_byte: 237,
+            ..SegyOptions::default()
+        },
+        Some(3) => SegyOptions {
+            stack: true,
+            ..SegyOptions::default()
+        },
+        Some(4) => SegyOptions {
+            offset: Some(data.get(1).copied().unwrap_or(0) as i32),
+            ..SegyOptions::default()
+        },
+        Some(5) => SegyOptions {
+            vertical: Some(VerticalDomain::Depth),
+            vertical_unit: Some(VerticalUnit::Ft),
+            ..SegyOptions::default()
+        },
+        Some(6) => SegyOptions {
+            vertical_unit: Some(VerticalUnit::S),
+            z_step: Some(0.5),
             ..SegyOptions::default()
         },
         _ => SegyOptions::default(),
@@ -92,6 +111,7 @@ pub fn segy(data: &[u8]) {
             for t in [0, traces.saturating_sub(1)] {
                 let _ = v.read_trace(t, &mut out);
             }
+            let _ = v.read_box([0, 0, 0], [1, 1, n as u64], &mut out);
         }
     }
 }
@@ -276,6 +296,52 @@ pub fn seeds() -> Vec<(&'static str, String, Vec<u8>)> {
             let name = format!("fmt{format}-{endian:?}").to_lowercase();
             out.push(("segy", name, std::fs::read(&p).expect("segy seed")));
         }
+        // A pre-stack file (three offsets per node, one missing) and a depth cube in feet.
+        let p = dir.join("seed.sgy");
+        let mut w = SegyWriter::create(&p, "C 1 CMP gathers", 6, 4000, 0, 5, Endian::Big)
+            .expect("segy writer");
+        for i in 0..3 {
+            for j in 0..4 {
+                for o in [100, 200, 300] {
+                    if (i, j, o) == (1, 2, 300) {
+                        continue;
+                    }
+                    w.set_offset(o);
+                    let s: Vec<f32> = (0..6).map(|k| (i * 7 + j * 3 + k + o) as f32).collect();
+                    w.write_trace(100 + i, 200 + j, 10.0 * i as f64, 10.0 * j as f64, &s)
+                        .expect("trace");
+                }
+            }
+        }
+        w.finish().expect("segy finish");
+        out.push((
+            "segy",
+            "prestack".into(),
+            std::fs::read(&p).expect("segy seed"),
+        ));
+        let mut w = SegyWriter::create(
+            &p,
+            "C 1 KIRCHHOFF PSDM\nC 2 DEPTH IN FEET",
+            6,
+            5000,
+            0,
+            5,
+            Endian::Big,
+        )
+        .expect("segy writer");
+        for i in 0..3 {
+            for j in 0..4 {
+                let s: Vec<f32> = (0..6).map(|k| (i + j + k) as f32).collect();
+                w.write_trace(1 + i, 1 + j, 25.0 * i as f64, 25.0 * j as f64, &s)
+                    .expect("trace");
+            }
+        }
+        w.finish().expect("segy finish");
+        out.push((
+            "segy",
+            "depth-ft".into(),
+            std::fs::read(&p).expect("segy seed"),
+        ));
     }
     // Horizon text: a grid, an inline/crossline/z list and an x/y/inline/crossline/z list.
     for (name, text) in [

@@ -126,7 +126,12 @@ fn the_seeds_are_accepted_by_their_readers() {
                 let p = dir.path().join(name);
                 std::fs::write(&p, data).unwrap();
                 if *target == "segy" {
-                    strata_coordinator::segy::open(&p, &Default::default())
+                    // A pre-stack file opens only as one offset or a stack.
+                    let opts = strata_coordinator::segy::SegyOptions {
+                        stack: name == "prestack",
+                        ..Default::default()
+                    };
+                    strata_coordinator::segy::open(&p, &opts)
                         .unwrap_or_else(|e| panic!("seed {name}: {e:#}"));
                 } else {
                     strata_common::store::PageStore::open(&p)
