@@ -28,7 +28,7 @@ use serde::{de::DeserializeOwned, Deserialize, Serialize};
 /// Frame magic.
 pub const MAGIC: [u8; 4] = *b"STRF";
 /// Protocol version; bumped on any incompatible change of the header or the messages.
-pub const PROTOCOL_VERSION: u16 = 6;
+pub const PROTOCOL_VERSION: u16 = 7;
 /// Size of the frame header.
 pub const HEADER_LEN: usize = 24;
 /// Largest meta message any endpoint accepts (control messages are small; the scene text
@@ -239,6 +239,13 @@ pub enum WorkerMsg {
     },
     /// Peer connections are up; ready for frames.
     Ready,
+    /// Sent first on taking a set-up: the `ShmSegment`, `Ready` or `Failed` that follow
+    /// answer set-up `attempt` (`Setup::attempt`), so the coordinator can tell them from
+    /// the answers to a set-up it has since replaced.
+    Meshing {
+        /// The set-up's attempt number.
+        attempt: u32,
+    },
     /// A frame's result: the final piece follows as bulk, or lies in the worker's
     /// shared-memory segment at `shm`.
     FrameDone {
@@ -339,6 +346,11 @@ pub struct Setup {
     pub shm_peers: Vec<bool>,
     /// Whether the final piece goes to the coordinator through shared memory.
     pub shm_gather: bool,
+    /// Ranks given up on during set-up: not meshed with, never in a frame. The coordinator
+    /// sends a new set-up with them here when a worker is lost before the run is ready.
+    pub absent: Vec<u32>,
+    /// 0 for the first set-up of the run, counting up with each new one.
+    pub attempt: u32,
 }
 
 /// Where a record lies in a shared-memory segment.
@@ -543,6 +555,10 @@ pub enum PeerMsg {
         /// Where the record lies.
         at: ShmRef,
     },
+    /// The accepting side's answer to a `Hello` it took (token, rank and certificate
+    /// right): the connector retries until it hears it, since a peer still on an earlier
+    /// set-up refuses the new token.
+    Welcome,
 }
 
 /// What one frame cost one worker.

@@ -227,6 +227,8 @@ struct Worker {
     host: Option<String>,
     /// Its segment for final pieces, when it shares this host.
     shm: Option<ShmReader>,
+    /// The set-up attempt its messages answer (its last `Meshing`).
+    attempt: u32,
 }
 
 impl Worker {
@@ -279,9 +281,13 @@ pub struct LostWorker {
     pub rank: u32,
     /// Why.
     pub reason: String,
-    /// Seconds from the start of the frame to the failure that gave the worker up.
+    /// When it was lost: `"set-up"` or `"frame"`.
+    pub phase: String,
+    /// Seconds from the start of the frame (or of the set-up) to the failure that gave the
+    /// worker up.
     pub detected_after_s: f64,
-    /// Seconds from that failure to the frame completing without it.
+    /// Seconds from that failure to the frame completing without it (or to the workers
+    /// left being ready).
     pub recovery_s: f64,
     /// The new assignment: each rank left and its leaf regions.
     pub assignment: Vec<Assignment>,
@@ -374,6 +380,10 @@ pub struct Cluster {
     slots: Vec<u32>,
     /// The wall frame [`Cluster::frame_wall`] is rendering.
     wall: Option<WallJob>,
+    /// Workers given up on during set-up, reported with the first frame.
+    setup_lost: Vec<LostWorker>,
+    /// The number of the next set-up attempt.
+    setup_attempt: u32,
 }
 
 /// A wall frame's layout and outputs, before drivers are chosen over the ranks left.
@@ -559,6 +569,8 @@ impl Cluster {
             new_leaves: vec![None; n],
             transport: TransportReport::default(),
             slots: (0..n as u32).collect(),
+            setup_lost: Vec::new(),
+            setup_attempt: 0,
         };
         cluster.gather_workers(&secret, &tx).await?;
         cluster.setup(scene).await?;
@@ -621,7 +633,7 @@ impl Cluster {
                     let addr = SocketAddr::new(remote.ip().to_canonical(), remote.port());
                     info!(rank, %name, pid, %addr, "worker joined");
                     spawn_reader(rank, conn.clone(), recv, Limits::for_pixels(self.opts.max_pixels), tx.clone());
-                    self.workers.push(Worker { rank, name, pid, addr, fingerprint, conn, send, host, shm: None });
+                    self.workers.push(Worker { rank, name, pid, addr, fingerprint, conn, send, host, shm: None, attempt: 0 });
                 }
                 ev = self.events.recv() => {
                     acceptor.abort();
@@ -676,17 +688,12 @@ impl Cluster {
     }
 
     /// Sends every worker its set-up and waits until all have meshed with their peers.
+    /// With `cluster.on_worker_loss = "reassign"`, a worker lost on the way (its process
+    /// exited, its connection died, or it hung: its peers could not mesh with it, or the
+    /// set-up ran out of time) is given up on, the scene is split over the workers left,
+    /// and they are set up again without it.
     async fn setup(&mut self, scene: &Scene) -> Result<()> {
-        let peers: Vec<PeerInfo> = self
-            .workers
-            .iter()
-            .map(|w| PeerInfo {
-                addr: w.addr.to_string(),
-                fingerprint: w.fingerprint,
-                name: w.name.clone(),
-            })
-            .collect();
-        let token = secret::random_bytes::<32>();
+        let t0 = Instant::now();
         let scene_toml = scene.to_toml();
         let (shm, gather) = self.plan_transport()?;
         let n = self.workers.len();
@@ -701,44 +708,199 @@ impl Cluster {
             quic_gather: n - shm_gather,
         };
         info!(transport = %self.transport.describe(), "transports chosen");
-        for w in &mut self.workers {
-            let leaves = self
-                .decomposition
-                .worker_leaves(w.rank as usize)
-                .into_iter()
-                .map(|l| self.decomposition.tree.leaves[l])
-                .collect();
+        loop {
+            let (lost, error) = match self.setup_once(&scene_toml, &shm, &gather).await? {
+                None => break,
+                Some(l) => l,
+            };
+            let reassign = self.opts.on_worker_loss == strata_common::scene::OnWorkerLoss::Reassign;
+            if !reassign || lost.len() >= self.slots.len() {
+                return Err(error);
+            }
+            let names = self.list(lost.iter().map(|&r| r as usize));
+            warn!("{error:#}; setting the run up again without {names}");
+            let detected_after_s = t0.elapsed().as_secs_f64();
+            let assignment = self.drop_workers(&lost).await;
+            for &r in &lost {
+                self.setup_lost.push(LostWorker {
+                    worker: self.workers[r as usize].describe(),
+                    rank: r,
+                    reason: format!("{error:#}"),
+                    phase: "set-up".into(),
+                    detected_after_s,
+                    recovery_s: 0.0,
+                    assignment: assignment.clone(),
+                });
+            }
+        }
+        let ready_s = t0.elapsed().as_secs_f64();
+        for l in &mut self.setup_lost {
+            l.recovery_s = ready_s - l.detected_after_s;
+        }
+        info!(workers = self.slots.len(), "all workers ready");
+        Ok(())
+    }
+
+    /// One attempt at the set-up of the ranks in the run: `None` when all are ready, or
+    /// the workers lost on the way and why. Errors that no loss explains (a worker that
+    /// cannot open the scene, a malformed message) end the run.
+    async fn setup_once(
+        &mut self,
+        scene_toml: &str,
+        shm: &[Vec<bool>],
+        gather: &[bool],
+    ) -> Result<Option<(Vec<u32>, anyhow::Error)>> {
+        let peers: Vec<PeerInfo> = self
+            .workers
+            .iter()
+            .map(|w| PeerInfo {
+                addr: w.addr.to_string(),
+                fingerprint: w.fingerprint,
+                name: w.name.clone(),
+            })
+            .collect();
+        let token = secret::random_bytes::<32>();
+        let attempt = self.setup_attempt;
+        self.setup_attempt += 1;
+        let slots = self.slots.clone();
+        let absent: Vec<u32> = (0..self.workers.len() as u32)
+            .filter(|r| !slots.contains(r))
+            .collect();
+        for (slot, &rank) in slots.iter().enumerate() {
+            // The leaves of a re-split, or of the first split (slot = rank then).
+            let leaves = self.new_leaves[rank as usize].take().unwrap_or_else(|| {
+                self.decomposition
+                    .worker_leaves(slot)
+                    .into_iter()
+                    .map(|l| self.decomposition.tree.leaves[l])
+                    .collect()
+            });
+            let w = &mut self.workers[rank as usize];
+            // A worker set up again announces a new segment.
+            w.shm = None;
             let setup = CoordMsg::Setup(Box::new(Setup {
-                rank: w.rank,
-                scene_toml: scene_toml.clone(),
+                rank,
+                scene_toml: scene_toml.to_string(),
                 leaves,
                 peers: peers.clone(),
                 run_token: token,
                 max_pixels: self.opts.max_pixels,
                 timeout_ms: self.opts.frame_timeout.as_millis() as u64,
-                shm_peers: shm[w.rank as usize].clone(),
-                shm_gather: gather[w.rank as usize],
+                shm_peers: shm[rank as usize].clone(),
+                shm_gather: gather[rank as usize],
+                absent: absent.clone(),
+                attempt,
             }));
             let what = w.describe();
-            with_timeout(
+            if let Err(e) = with_timeout(
                 self.opts.connect_timeout,
                 format!("sending the set-up to {what}"),
                 write_frame(&mut w.send, &wire::encode_meta(&setup), &[]),
             )
-            .await?;
+            .await
+            {
+                return Ok(Some((vec![rank], anyhow!("{e}"))));
+            }
         }
-        let mut ready = vec![false; self.workers.len()];
+        #[derive(PartialEq)]
+        enum State {
+            Waiting,
+            Ready,
+            Failed(String, Vec<u32>),
+        }
+        let n = self.workers.len();
+        let mut state: Vec<State> = (0..n).map(|_| State::Waiting).collect();
+        let mut lost: Vec<(u32, String)> = Vec::new();
         let deadline = Instant::now() + self.opts.connect_timeout;
-        while ready.iter().any(|r| !r) {
-            let ev = self.next_event(deadline).await.map_err(|_| {
-                anyhow!(
-                    "workers {} did not finish their set-up within {:.0} s",
-                    self.list(ready.iter().enumerate().filter(|r| !r.1).map(|r| r.0)),
-                    self.opts.connect_timeout.as_secs_f64()
-                )
-            })?;
+        loop {
+            // A loss ends the attempt at once: the workers left are set up again (a new
+            // set-up replaces a mesh in progress), not kept waiting on the lost one.
+            if !lost.is_empty() {
+                let ranks: Vec<u32> = lost.iter().map(|l| l.0).collect();
+                let why = lost
+                    .iter()
+                    .map(|(r, m)| {
+                        format!(
+                            "{} was lost during set-up: {m}",
+                            self.workers[*r as usize].describe()
+                        )
+                    })
+                    .collect::<Vec<_>>()
+                    .join("; ");
+                return Ok(Some((ranks, anyhow!("{why}"))));
+            }
+            let waiting: Vec<u32> = slots
+                .iter()
+                .copied()
+                .filter(|&r| state[r as usize] == State::Waiting)
+                .collect();
+            let failures: Vec<(u32, &String, &Vec<u32>)> = slots
+                .iter()
+                .filter_map(|&r| match &state[r as usize] {
+                    State::Failed(m, s) => Some((r, m, s)),
+                    _ => None,
+                })
+                .collect();
+            // Every worker still waiting is one a failed peer could not mesh with: it
+            // hung, and the peers said so before the deadline.
+            let blamed = |r: &u32| failures.iter().any(|f| f.2.contains(r));
+            if !waiting.is_empty() && !failures.is_empty() && waiting.iter().all(blamed) {
+                for &r in &waiting {
+                    let (by, msg, _) = failures.iter().find(|f| f.2.contains(&r)).expect("blamed");
+                    let who = self.workers[*by as usize].describe();
+                    lost.push((r, format!("{who} could not mesh with it: {msg}")));
+                }
+                continue;
+            }
+            if waiting.is_empty() {
+                if let Some((r, msg, _)) = failures.first() {
+                    bail!(
+                        "{} failed to set up: {msg}",
+                        self.workers[*r as usize].describe()
+                    );
+                }
+                return Ok(None);
+            }
+            let ev = match self.next_event(deadline).await {
+                Ok(ev) => ev,
+                Err(()) => {
+                    // Out of time: the workers still silent are given up on.
+                    let secs = self.opts.connect_timeout.as_secs_f64();
+                    for r in waiting {
+                        lost.push((
+                            r,
+                            format!("it did not finish its set-up within {secs:.0} s"),
+                        ));
+                    }
+                    continue;
+                }
+            };
             match ev {
+                Event::Msg { rank, .. } | Event::Lost { rank, .. } if !slots.contains(&rank) => {
+                    debug!(rank, "ignoring a worker given up on");
+                }
+                Event::Exited { child, .. }
+                    if !self.child_rank(child).is_some_and(|r| slots.contains(&r)) =>
+                {
+                    debug!(child, "a worker given up on has exited");
+                }
+                Event::Lost { rank, error } => lost.push((rank, format!("disconnected: {error}"))),
+                Event::Exited { child, status } => {
+                    let rank = self.child_rank(child).expect("a rank in the run");
+                    lost.push((rank, format!("exited: {status}")));
+                }
                 Event::Msg { rank, frame } => match wire::decode_meta::<WorkerMsg>(&frame.meta) {
+                    Ok(WorkerMsg::Meshing { attempt: a }) => {
+                        self.workers[rank as usize].attempt = a
+                    }
+                    // Answers to a set-up this one replaced.
+                    Ok(
+                        WorkerMsg::Ready
+                        | WorkerMsg::ShmSegment { .. }
+                        | WorkerMsg::Failed { frame: None, .. },
+                    ) if self.workers[rank as usize].attempt != attempt => {
+                        debug!(rank, "ignoring an answer to an earlier set-up");
+                    }
                     Ok(WorkerMsg::Ready) => {
                         let w = &self.workers[rank as usize];
                         anyhow::ensure!(
@@ -746,7 +908,7 @@ impl Cluster {
                             "{} is ready without announcing its shared-memory segment",
                             w.describe()
                         );
-                        ready[rank as usize] = true
+                        state[rank as usize] = State::Ready;
                     }
                     Ok(WorkerMsg::ShmSegment { name, pid, fd })
                         if gather[rank as usize] && self.workers[rank as usize].shm.is_none() =>
@@ -758,10 +920,12 @@ impl Cluster {
                         )?;
                         w.shm = Some(r);
                     }
-                    Ok(WorkerMsg::Failed { message, .. }) => bail!(
-                        "{} failed to set up: {message}",
-                        self.workers[rank as usize].describe()
-                    ),
+                    Ok(WorkerMsg::Failed {
+                        frame: None,
+                        message,
+                        suspects,
+                    }) => state[rank as usize] = State::Failed(message, suspects),
+                    // A frame's leftovers cannot come before the first frame.
                     Ok(other) => bail!(
                         "{} sent {other:?} during set-up",
                         self.workers[rank as usize].describe()
@@ -771,11 +935,8 @@ impl Cluster {
                         self.workers[rank as usize].describe()
                     ),
                 },
-                ev => return Err(self.event_error(ev)),
             }
         }
-        info!(workers = self.workers.len(), "all workers ready");
-        Ok(())
     }
 
     fn list(&self, ranks: impl Iterator<Item = usize>) -> String {
@@ -882,7 +1043,10 @@ impl Cluster {
                     for l in &mut lost_here {
                         l.recovery_s = r.wall_s - l.detected_after_s;
                     }
-                    r.lost = lost_here;
+                    // Losses during set-up are reported with the first frame.
+                    let mut lost = std::mem::take(&mut self.setup_lost);
+                    lost.extend(lost_here);
+                    r.lost = lost;
                     return Ok(r);
                 }
                 Err(f) => {
@@ -900,20 +1064,13 @@ impl Cluster {
                     let names = self.list(lost.iter().map(|&r| r as usize));
                     warn!("{:#}; re-rendering the frame without {names}", f.error);
                     let detected_after_s = t0.elapsed().as_secs_f64();
-                    self.drop_workers(&lost).await;
-                    let assignment: Vec<Assignment> = self
-                        .slots
-                        .iter()
-                        .map(|&rank| Assignment {
-                            rank,
-                            leaves: self.new_leaves[rank as usize].clone().unwrap_or_default(),
-                        })
-                        .collect();
+                    let assignment = self.drop_workers(&lost).await;
                     for &r in &lost {
                         lost_here.push(LostWorker {
                             worker: self.workers[r as usize].describe(),
                             rank: r,
                             reason: format!("{:#}", f.error),
+                            phase: "frame".into(),
                             detected_after_s,
                             recovery_s: 0.0,
                             assignment: assignment.clone(),
@@ -925,8 +1082,8 @@ impl Cluster {
     }
 
     /// Gives up on `lost` workers: kills (local) or disconnects them and splits the scene
-    /// over the ranks left.
-    async fn drop_workers(&mut self, lost: &[u32]) {
+    /// over the ranks left; returns the new assignment.
+    async fn drop_workers(&mut self, lost: &[u32]) -> Vec<Assignment> {
         for &r in lost {
             let w = &self.workers[r as usize];
             if self.child_pids.contains(&w.pid) {
@@ -969,6 +1126,13 @@ impl Cluster {
             "re-split the scene over the workers left"
         );
         self.decomposition = new;
+        self.slots
+            .iter()
+            .map(|&rank| Assignment {
+                rank,
+                leaves: self.new_leaves[rank as usize].clone().unwrap_or_default(),
+            })
+            .collect()
     }
 
     /// One attempt at a frame; a failure lists the workers it blames.

@@ -9,7 +9,7 @@ use std::process::ExitCode;
 use strata_common::filter::CoarsenFilter;
 use strata_common::geo::Affine3;
 use strata_common::sample::SampleType;
-use strata_common::store::{Compression, Units};
+use strata_common::store::{Compression, Units, VerticalDomain};
 use strata_coordinator::builder::{build_store, BuildOptions, BuildReport};
 use strata_coordinator::{horizon_text, inspect, overrides, render, segy, source, study, synth};
 use tracing::{info, warn};
@@ -189,8 +189,8 @@ struct SegyArgs {
     /// 1-based byte of the crossline number in the trace header (193 by the standard; 21 is common).
     #[arg(long, default_value_t = 193)]
     xline_byte: u32,
-    /// Time or depth traces; decided from the textual headers when absent (time if they say
-    /// nothing).
+    /// Time or depth traces; when absent, the --vertical-unit's domain, else what the
+    /// textual headers say, else time.
     #[arg(long, value_enum)]
     vertical: Option<VerticalArg>,
     /// Unit of the vertical axis (ms or s for time, m or ft for depth); from the headers
@@ -537,7 +537,15 @@ fn run(cli: Cli) -> Result<()> {
             };
             // Heights share the survey cube's vertical axis unless told otherwise.
             let (z_unit, z_domain) = match (&a.z_unit, &survey_store) {
-                (Some(u), _) => (u.clone(), None),
+                // A unit that names a domain records it.
+                (Some(u), _) => (
+                    u.clone(),
+                    match u.as_str() {
+                        "ms" | "s" => Some(VerticalDomain::Time),
+                        "m" | "ft" => Some(VerticalDomain::Depth),
+                        _ => None,
+                    },
+                ),
                 (None, Some(s)) => (
                     s.header().units.vertical.clone(),
                     s.header().vertical_domain,
@@ -650,8 +658,13 @@ fn run(cli: Cli) -> Result<()> {
                 );
             }
             for l in &s.lost_workers {
+                let what = if l.phase == "set-up" {
+                    "during set-up, and set the run up"
+                } else {
+                    "and re-rendered"
+                };
                 println!(
-                    "lost {} after {:.1} s and re-rendered without it in {:.1} s on {} workers: {}",
+                    "lost {} after {:.1} s {what} without it in {:.1} s on {} workers: {}",
                     l.worker,
                     l.detected_after_s,
                     l.recovery_s,

@@ -564,77 +564,111 @@ fn lost_workers(stats: &Path) -> (String, Vec<serde_json::Value>) {
     (text, lost)
 }
 
+/// Renders the survey on 3 workers while worker 1 SIGKILLs or SIGSTOPs itself at
+/// `phase` (`STRATA_TEST_FAULT`), and checks that the frame equals the in-process one and
+/// that the stats tell the loss: rank 1, `lost_phase`, why, how long the recovery took,
+/// who renders what now (ranks 0 and 2, each with leaves), and two workers' frame stats.
+fn check_recovery(phase: &str, signal: &str, lost_phase: &str, said: &str) {
+    let dir = tempfile::tempdir().unwrap();
+    let name = format!("{signal}-{phase}");
+    let out = dir.path().join(format!("{name}.exr"));
+    let stats = dir.path().join(format!("{name}.jsonl"));
+    let fault = format!("1:{signal}:{phase}");
+    let t = Instant::now();
+    let o = render(
+        &out,
+        &[
+            "--workers",
+            "3",
+            "--set",
+            "cluster.idle_timeout_s=2",
+            "--stats",
+            stats.to_str().unwrap(),
+        ],
+        &[("STRATA_TEST_FAULT", &fault)],
+    );
+    let took = t.elapsed();
+    assert!(
+        o.status.success(),
+        "{name}: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    // Detection by exit or the idle timeout, not by a deadline of the frame or set-up.
+    assert!(took < Duration::from_secs(30), "{name}: took {took:?}");
+    let d = max_diff(reference(), &read_exr(&out));
+    assert!(d <= 1e-5, "{name}: the recovered frame differs by {d}");
+    let (text, lost) = lost_workers(&stats);
+    assert_eq!(lost.len(), 1, "{name}: {text}");
+    assert_eq!(lost[0]["rank"], 1, "{name}: {text}");
+    assert_eq!(lost[0]["phase"], lost_phase, "{name}: {text}");
+    assert!(
+        lost[0]["recovery_s"].as_f64().unwrap() > 0.0,
+        "{name}: {text}"
+    );
+    let assignment = lost[0]["assignment"].as_array().unwrap();
+    let ranks: Vec<u64> = assignment
+        .iter()
+        .map(|a| a["rank"].as_u64().unwrap())
+        .collect();
+    assert_eq!(ranks, [0, 2], "{name}: {text}");
+    assert!(
+        assignment
+            .iter()
+            .all(|a| !a["leaves"].as_array().unwrap().is_empty()),
+        "{name}: {text}"
+    );
+    assert_eq!(
+        text.matches("\"kind\":\"worker\"").count(),
+        2,
+        "{name}: {text}"
+    );
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(stdout.contains(said), "{name}: {stdout}");
+    if signal == "kill" {
+        assert!(
+            lost[0]["reason"]
+                .as_str()
+                .unwrap()
+                .contains("killed by signal 9"),
+            "{name}: {text}"
+        );
+    }
+}
+
 #[test]
 fn a_worker_killed_or_stopped_at_any_phase_of_a_frame_costs_a_re_render() {
-    let reference = reference();
-    let dir = tempfile::tempdir().unwrap();
     for phase in ["render", "exchange", "round", "gather"] {
         for signal in ["kill", "stop"] {
-            let name = format!("{signal}-{phase}");
-            let out = dir.path().join(format!("{name}.exr"));
-            let stats = dir.path().join(format!("{name}.jsonl"));
-            let fault = format!("1:{signal}:{phase}");
-            let o = render(
-                &out,
-                &[
-                    "--workers",
-                    "3",
-                    "--set",
-                    "cluster.idle_timeout_s=2",
-                    "--stats",
-                    stats.to_str().unwrap(),
-                ],
-                &[("STRATA_TEST_FAULT", &fault)],
-            );
-            assert!(
-                o.status.success(),
-                "{name}: {}",
-                String::from_utf8_lossy(&o.stderr)
-            );
-            let d = max_diff(reference, &read_exr(&out));
-            assert!(d <= 1e-5, "{name}: the recovered frame differs by {d}");
-            let (text, lost) = lost_workers(&stats);
-            assert_eq!(lost.len(), 1, "{name}: {text}");
-            assert_eq!(lost[0]["rank"], 1, "{name}: {text}");
-            // The stats say why, how long the recovery took and who renders what now;
-            // the two workers left reported the frame.
-            assert!(
-                lost[0]["recovery_s"].as_f64().unwrap() > 0.0,
-                "{name}: {text}"
-            );
-            let assignment = lost[0]["assignment"].as_array().unwrap();
-            let ranks: Vec<u64> = assignment
-                .iter()
-                .map(|a| a["rank"].as_u64().unwrap())
-                .collect();
-            assert_eq!(ranks, [0, 2], "{name}: {text}");
-            assert!(
-                assignment
-                    .iter()
-                    .all(|a| !a["leaves"].as_array().unwrap().is_empty()),
-                "{name}: {text}"
-            );
-            assert_eq!(
-                text.matches("\"kind\":\"worker\"").count(),
-                2,
-                "{name}: {text}"
-            );
-            let stdout = String::from_utf8_lossy(&o.stdout);
-            assert!(
-                stdout.contains("re-rendered without it"),
-                "{name}: {stdout}"
-            );
-            if signal == "kill" {
-                assert!(
-                    lost[0]["reason"]
-                        .as_str()
-                        .unwrap()
-                        .contains("killed by signal 9"),
-                    "{name}: {text}"
-                );
-            }
+            check_recovery(phase, signal, "frame", "re-rendered without it");
         }
     }
+}
+
+#[test]
+fn a_worker_killed_or_stopped_during_set_up_is_left_out_and_the_frame_is_correct() {
+    // `setup`: before it dials its peers (they cannot mesh); `ready`: meshed, before it
+    // says it is ready. Either way the two workers left are set up again without it.
+    for phase in ["setup", "ready"] {
+        for signal in ["kill", "stop"] {
+            check_recovery(phase, signal, "set-up", "during set-up");
+        }
+    }
+    let dir = tempfile::tempdir().unwrap();
+    // Asked to fail, a loss during set-up ends the run with an error naming the worker.
+    let out = dir.path().join("fail.exr");
+    let o = render(
+        &out,
+        &["--workers", "3", "--set", "cluster.on_worker_loss=\"fail\""],
+        &[("STRATA_TEST_FAULT", "1:kill:setup")],
+    );
+    assert!(!o.status.success());
+    let e = strip_ansi(&String::from_utf8_lossy(&o.stderr));
+    let last = e.lines().last().unwrap_or_default();
+    assert!(
+        last.contains("worker 1") && last.contains("during set-up") && last.contains("signal 9"),
+        "{last}"
+    );
+    assert!(!out.exists());
 }
 
 #[test]
@@ -932,6 +966,14 @@ async fn accept_dialling_peer(ep: &quinn::Endpoint) -> quinn::Connection {
     let peer = incoming.await.unwrap();
     strata_net::transport::trust(&peer);
     let _hello = peer.accept_uni().await.unwrap();
+    // The dialler meshes only once welcomed.
+    strata_net::send_uni(
+        &peer,
+        &strata_common::wire::encode_meta(&strata_common::wire::PeerMsg::Welcome),
+        &[],
+    )
+    .await
+    .unwrap();
     peer
 }
 

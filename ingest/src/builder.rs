@@ -170,6 +170,12 @@ pub fn build_store(
     if opts.kind == DataKind::Horizon && opts.sample_type != SampleType::F32 {
         bail!("horizon stores hold f32 heights");
     }
+    if !opts.transform.is_finite() || opts.transform.inverse().is_none() {
+        bail!(
+            "the index→world transform {:?} is not finite and invertible (a zero or vanishing sample step?)",
+            opts.transform.rows
+        );
+    }
     if opts.kind == DataKind::Volume && ![32, 64, 128].contains(&opts.page_size) {
         bail!("brick size must be 32, 64 or 128, got {}", opts.page_size);
     }

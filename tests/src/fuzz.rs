@@ -70,9 +70,11 @@ pub fn segy(data: &[u8]) {
     use strata_coordinator::segy::{open, SegyOptions, VerticalDomain, VerticalUnit};
     use strata_coordinator::source::GridSource;
     let p = scratch("in.sgy", data);
-    // The options are user input too: the first byte picks the byte positions of inline
-    // and crossline, one offset of a pre-stack file or its stack, and the vertical axis.
-    let opts = match data.first().map(|b| b % 8) {
+    // The options are user input too: the last byte (sample data, which the textual
+    // header's fixed first byte is not) picks the byte positions of inline and crossline,
+    // one offset of a pre-stack file (100, as in the seed) or its stack, and the vertical
+    // axis.
+    let opts = match data.last().map(|b| b % 8) {
         Some(1) => SegyOptions {
             inline_byte: 9,
             xline_byte: 21,
@@ -88,7 +90,7 @@ pub fn segy(data: &[u8]) {
             ..SegyOptions::default()
         },
         Some(4) => SegyOptions {
-            offset: Some(data.get(1).copied().unwrap_or(0) as i32),
+            offset: Some(100),
             ..SegyOptions::default()
         },
         Some(5) => SegyOptions {

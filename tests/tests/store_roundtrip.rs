@@ -339,3 +339,58 @@ proptest! {
         assert_round_trip([nx, ny, nz], t, 32, border, f, Compression::Lz4, 200 << 10);
     }
 }
+
+#[test]
+fn singular_transforms_are_refused_at_build_and_at_open() {
+    use std::io::{Seek, SeekFrom, Write};
+    use strata_common::geo::Affine3;
+    use strata_common::store::Preamble;
+    let dims = [8, 8, 8];
+    let src = MemorySource {
+        dims,
+        data: vec![1.0; 512],
+    };
+    let dir = tempfile::tempdir().unwrap();
+    // A zero sample step makes the grid flat: the builder refuses it, leaving nothing.
+    let mut o = BuildOptions::volume("t", SampleType::F32);
+    o.transform = Affine3::from_lateral(&strata_common::geo::Affine2::IDENTITY, 0.0, 0.0);
+    let err = build_store(
+        &src,
+        &dir.path().join("flat.strata"),
+        &o,
+        &ProgressBar::hidden(),
+    )
+    .unwrap_err();
+    assert!(format!("{err:#}").contains("invertible"), "{err:#}");
+    assert!(std::fs::read_dir(dir.path()).unwrap().next().is_none());
+
+    // A crafted store (CRCs right) with such a transform: the worker refuses to open it
+    // rather than panicking when it inverts the transform for its rays.
+    let path = dir.path().join("v.strata");
+    build_store(
+        &src,
+        &path,
+        &BuildOptions::volume("t", SampleType::F32),
+        &ProgressBar::hidden(),
+    )
+    .unwrap();
+    let bytes = std::fs::read(&path).unwrap();
+    let mut pre = Preamble::decode(&path, &bytes[..64]).unwrap();
+    let mut h = PageStore::open(&path).unwrap().header().clone();
+    h.transform.rows[2][2] = 0.0;
+    let hb = bincode::serde::encode_to_vec(&h, bincode::config::standard()).unwrap();
+    assert_eq!(hb.len() as u64, pre.header_len);
+    pre.header_crc = crc32c::crc32c(&hb);
+    let mut f = std::fs::OpenOptions::new().write(true).open(&path).unwrap();
+    f.write_all(&pre.encode()).unwrap();
+    f.seek(SeekFrom::Start(pre.header_offset)).unwrap();
+    f.write_all(&hb).unwrap();
+    drop(f);
+    let layer: strata_common::scene::VolumeLayer =
+        toml::from_str(&format!("store = {:?}", path.display().to_string())).unwrap();
+    let err = strata_worker::dataset::Volume::open(&layer, 0)
+        .err()
+        .expect("refused");
+    let e = format!("{err:#}");
+    assert!(e.contains("v.strata") && e.contains("singular"), "{e}");
+}

@@ -100,6 +100,14 @@ fn open(path: &std::path::Path, kind: DataKind) -> Result<Arc<PageStore>> {
             path.display()
         );
     }
+    // The casters map world rays back into the grid.
+    if s.header().transform.inverse().is_none() {
+        bail!(
+            "{}: the index→world transform {:?} is singular (expected one that maps the grid onto a volume)",
+            path.display(),
+            s.header().transform.rows
+        );
+    }
     Ok(Arc::new(s))
 }
 

@@ -139,70 +139,13 @@ async fn node(opts: NodeOptions) -> Result<()> {
         host: strata_net::shm::host_id(),
     };
     write_frame(&mut csend, &wire::encode_meta(&hello), &[]).await?;
-    let f = with_timeout(
-        opts.connect_timeout,
-        "waiting for the coordinator's set-up",
-        read_frame(
-            &mut crecv,
-            &Limits {
-                max_meta: wire::MAX_META,
-                max_bulk: 0,
-            },
-        ),
-    )
-    .await?;
-    let setup = match wire::decode_meta::<CoordMsg>(&f.meta)? {
-        CoordMsg::Setup(s) => *s,
-        CoordMsg::Refused { reason } => bail!("the coordinator refused this worker: {reason}"),
-        other => bail!("expected the set-up from the coordinator, got {other:?}"),
-    };
-    let rank = setup.rank;
-    info!(rank, name = %opts.name, peers = setup.peers.len(), "set up");
-    let mesh = tokio::select! {
-        r = mesh(&ep, &id, setup, &net, opts.connect_timeout) => r,
-        e = conn.closed() => Err(anyhow!("lost the coordinator during set-up: {e}")),
-    };
-    let (mut node, mut ev_rx) = match mesh {
-        Ok(m) => m,
-        Err(e) => {
-            // Tell the coordinator why, so its error names the cause, not just an exit.
-            let msg = WorkerMsg::Failed {
-                frame: None,
-                message: format!("{e:#}"),
-                suspects: Vec::new(),
-            };
-            let _ = tokio::time::timeout(
-                Duration::from_secs(2),
-                write_frame(&mut csend, &wire::encode_meta(&msg), &[]),
-            )
-            .await;
-            let _ = csend.finish();
-            tokio::time::sleep(Duration::from_millis(100)).await;
-            return Err(e);
-        }
-    };
-    if node.setup.shm_gather {
-        // The final pieces go to the coordinator through shared memory.
-        let w = ShmWriter::create()
-            .context("creating the shared-memory segment for the coordinator")?;
-        let id = w.id();
-        let msg = WorkerMsg::ShmSegment {
-            name: id.name,
-            pid: id.pid,
-            fd: id.fd,
-        };
-        write_frame(&mut csend, &wire::encode_meta(&msg), &[]).await?;
-        node.gather_shm = Some(w);
-    }
-    write_frame(&mut csend, &wire::encode_meta(&WorkerMsg::Ready), &[]).await?;
-    info!(rank, "ready");
-
     let control = Limits {
         max_meta: wire::MAX_META,
         max_bulk: 0,
     };
     // Control messages are read by their own task, so a frame in progress hears at once
-    // that the coordinator gave up on a peer (and a read is never cancelled midway).
+    // that the coordinator gave up on a peer, and a mesh in progress that a new set-up
+    // replaces it (and a read is never cancelled midway).
     let (ctl_tx, mut ctl_rx) = mpsc::channel::<Result<CoordMsg, String>>(16);
     tokio::spawn(async move {
         loop {
@@ -218,118 +161,246 @@ async fn node(opts: NodeOptions) -> Result<()> {
             }
         }
     });
-    loop {
-        let msg = match node.deferred.pop_front() {
-            Some(m) => m,
-            None => match ctl_rx.recv().await {
-                Some(Ok(m)) => m,
-                Some(Err(e)) => bail!("{e}"),
-                None => bail!("lost the coordinator"),
-            },
+    let mut setup = match tokio::time::timeout(opts.connect_timeout, ctl_rx.recv()).await {
+        Ok(Some(Ok(CoordMsg::Setup(s)))) => *s,
+        Ok(Some(Ok(CoordMsg::Refused { reason }))) => {
+            bail!("the coordinator refused this worker: {reason}")
+        }
+        Ok(Some(Ok(other))) => bail!("expected the set-up from the coordinator, got {other:?}"),
+        Ok(Some(Err(e))) => bail!("waiting for the coordinator's set-up: {e}"),
+        Ok(None) => bail!("waiting for the coordinator's set-up: lost the coordinator"),
+        Err(_) => bail!(
+            "waiting for the coordinator's set-up: nothing within {:.1} s",
+            opts.connect_timeout.as_secs_f64()
+        ),
+    };
+    let server_config = strata_net::tls::server_config(&id, net.transport()?, net.client_auth)?;
+    // A set-up, then frames until shutdown; a new set-up (the coordinator lost a worker
+    // before the run was ready) replaces the mesh, whatever state it is in.
+    'setup: loop {
+        let rank = setup.rank;
+        info!(rank, name = %opts.name, peers = setup.peers.len(), absent = ?setup.absent, "set up");
+        ep.set_server_config(Some(server_config.clone()));
+        let meshing = WorkerMsg::Meshing {
+            attempt: setup.attempt,
         };
-        match msg {
-            CoordMsg::PeerLost { rank: lost } => node
-                .exchange
-                .handle_lost(lost, "the coordinator gave it up".into()),
-            CoordMsg::Frame(req) => {
-                let frame = req.frame;
-                let result = tokio::select! {
-                    r = node.frame(&req, &mut ev_rx, &mut ctl_rx, &mut csend) => r,
-                    e = conn.closed() => bail!("lost the coordinator during frame {frame}: {e}"),
+        write_frame(&mut csend, &wire::encode_meta(&meshing), &[]).await?;
+        let mut suspects = Vec::new();
+        let meshed = tokio::select! {
+            r = mesh(&ep, &id, setup.clone(), &net, opts.connect_timeout, &mut suspects) => r,
+            s = next_setup(&mut ctl_rx) => {
+                setup = s?;
+                info!(rank, "a new set-up replaces this one");
+                continue 'setup;
+            }
+            e = conn.closed() => Err(anyhow!("lost the coordinator during set-up: {e}")),
+        };
+        let (mut node, mut ev_rx) = match meshed {
+            Ok(m) => m,
+            Err(e) => {
+                // Tell the coordinator why, and whom it blames, so it can give up on a
+                // lost peer and set the run up again without it.
+                warn!(rank, "set-up failed: {e:#}");
+                let msg = WorkerMsg::Failed {
+                    frame: None,
+                    message: format!("{e:#}"),
+                    suspects,
                 };
-                match result {
-                    Ok((mut stats, piece, composite_start)) => {
-                        test_fault(rank, frame, "gather");
-                        // Through shared memory when the coordinator shares this host
-                        // (encoded straight into the segment); QUIC when not, or when the
-                        // segment cannot take it (a host out of memory).
-                        let t = Instant::now();
-                        let layout = PieceLayout::of(&piece.pixels);
-                        let shm = node.gather_shm.as_mut().and_then(|w| {
-                            w.reset();
-                            tokio::task::block_in_place(|| {
-                                w.write_piece(
-                                    frame,
-                                    wire::GATHER_ROUND,
-                                    rank,
-                                    &[Segment::Pixels(&piece.pixels)],
-                                    &layout,
-                                    piece.span,
-                                    piece.format,
-                                )
-                            })
-                            .map_err(|e| warn!(frame, "final piece over QUIC instead: {e}"))
-                            .ok()
-                        });
-                        let mut bulk = Vec::new();
-                        let lz4 = shm.is_none() && node.lz4;
-                        if shm.is_none() {
-                            let encoded = SparsePiece::encode_with(
-                                &piece.pixels,
-                                layout.clone(),
-                                piece.span,
-                                piece.format,
-                            );
-                            bulk = if lz4 {
-                                vec![tokio::task::block_in_place(|| encoded.write_lz4()).into()]
-                            } else {
-                                encoded.wire_chunks().to_vec()
-                            };
-                        }
-                        stats.gather_s += t.elapsed().as_secs_f64();
-                        stats.gather_bytes = if shm.is_none() {
-                            bulk.iter().map(|b| b.len()).sum()
-                        } else {
-                            layout.byte_len(piece.format)
-                        } as u64;
-                        stats.composite_s = composite_start.elapsed().as_secs_f64();
-                        let msg = WorkerMsg::FrameDone {
-                            frame,
-                            stats,
-                            shm,
-                            lz4,
-                        };
-                        write_frame_chunks(&mut csend, &wire::encode_meta(&msg), bulk).await?;
+                let _ = tokio::time::timeout(
+                    Duration::from_secs(2),
+                    write_frame(&mut csend, &wire::encode_meta(&msg), &[]),
+                )
+                .await;
+                match tokio::time::timeout(opts.connect_timeout, next_setup(&mut ctl_rx)).await {
+                    Ok(Ok(s)) => {
+                        setup = s;
+                        continue 'setup;
                     }
-                    Err(e) => {
-                        warn!(frame, "frame failed: {e:#}");
-                        let msg = WorkerMsg::Failed {
-                            frame: Some(frame),
-                            message: format!("{e:#}"),
-                            suspects: std::mem::take(&mut node.suspects),
-                        };
-                        write_frame(&mut csend, &wire::encode_meta(&msg), &[]).await?;
+                    _ => {
+                        let _ = csend.finish();
+                        tokio::time::sleep(Duration::from_millis(100)).await;
+                        return Err(e);
                     }
                 }
             }
-            CoordMsg::Shutdown => break,
-            // The map of a frame this worker already gave up waiting for (its deadline
-            // passed as the coordinator sent it).
-            CoordMsg::Occlusion { frame, .. } => {
-                debug!(frame, "ignoring an occlusion map that came after its frame")
+        };
+        test_fault(rank, 0, "ready");
+        if node.setup.shm_gather {
+            // The final pieces go to the coordinator through shared memory.
+            let w = ShmWriter::create()
+                .context("creating the shared-memory segment for the coordinator")?;
+            let id = w.id();
+            let msg = WorkerMsg::ShmSegment {
+                name: id.name,
+                pid: id.pid,
+                fd: id.fd,
+            };
+            write_frame(&mut csend, &wire::encode_meta(&msg), &[]).await?;
+            node.gather_shm = Some(w);
+        }
+        write_frame(&mut csend, &wire::encode_meta(&WorkerMsg::Ready), &[]).await?;
+        info!(rank, "ready");
+
+        loop {
+            let msg = match node.deferred.pop_front() {
+                Some(m) => m,
+                None => match ctl_rx.recv().await {
+                    Some(Ok(m)) => m,
+                    Some(Err(e)) => bail!("{e}"),
+                    None => bail!("lost the coordinator"),
+                },
+            };
+            match msg {
+                CoordMsg::PeerLost { rank: lost } => node
+                    .exchange
+                    .handle_lost(lost, "the coordinator gave it up".into()),
+                CoordMsg::Frame(req) => {
+                    let frame = req.frame;
+                    let result = tokio::select! {
+                        r = node.frame(&req, &mut ev_rx, &mut ctl_rx, &mut csend) => r,
+                        e = conn.closed() => bail!("lost the coordinator during frame {frame}: {e}"),
+                    };
+                    match result {
+                        Ok((mut stats, piece, composite_start)) => {
+                            test_fault(rank, frame, "gather");
+                            // Through shared memory when the coordinator shares this host
+                            // (encoded straight into the segment); QUIC when not, or when the
+                            // segment cannot take it (a host out of memory).
+                            let t = Instant::now();
+                            let layout = PieceLayout::of(&piece.pixels);
+                            let shm = node.gather_shm.as_mut().and_then(|w| {
+                                w.reset();
+                                tokio::task::block_in_place(|| {
+                                    w.write_piece(
+                                        frame,
+                                        wire::GATHER_ROUND,
+                                        rank,
+                                        &[Segment::Pixels(&piece.pixels)],
+                                        &layout,
+                                        piece.span,
+                                        piece.format,
+                                    )
+                                })
+                                .map_err(|e| warn!(frame, "final piece over QUIC instead: {e}"))
+                                .ok()
+                            });
+                            let mut bulk = Vec::new();
+                            let lz4 = shm.is_none() && node.lz4;
+                            if shm.is_none() {
+                                let encoded = SparsePiece::encode_with(
+                                    &piece.pixels,
+                                    layout.clone(),
+                                    piece.span,
+                                    piece.format,
+                                );
+                                bulk = if lz4 {
+                                    vec![tokio::task::block_in_place(|| encoded.write_lz4()).into()]
+                                } else {
+                                    encoded.wire_chunks().to_vec()
+                                };
+                            }
+                            stats.gather_s += t.elapsed().as_secs_f64();
+                            stats.gather_bytes = if shm.is_none() {
+                                bulk.iter().map(|b| b.len()).sum()
+                            } else {
+                                layout.byte_len(piece.format)
+                            } as u64;
+                            stats.composite_s = composite_start.elapsed().as_secs_f64();
+                            let msg = WorkerMsg::FrameDone {
+                                frame,
+                                stats,
+                                shm,
+                                lz4,
+                            };
+                            write_frame_chunks(&mut csend, &wire::encode_meta(&msg), bulk).await?;
+                        }
+                        Err(e) => {
+                            warn!(frame, "frame failed: {e:#}");
+                            let msg = WorkerMsg::Failed {
+                                frame: Some(frame),
+                                message: format!("{e:#}"),
+                                suspects: std::mem::take(&mut node.suspects),
+                            };
+                            write_frame(&mut csend, &wire::encode_meta(&msg), &[]).await?;
+                        }
+                    }
+                }
+                CoordMsg::Shutdown => break 'setup,
+                // The coordinator lost a worker before the run was ready: mesh again.
+                CoordMsg::Setup(s) => {
+                    for c in node.peers.iter().flatten() {
+                        c.close(8u32.into(), b"new set-up");
+                    }
+                    setup = *s;
+                    continue 'setup;
+                }
+                // The map of a frame this worker already gave up waiting for (its deadline
+                // passed as the coordinator sent it).
+                CoordMsg::Occlusion { frame, .. } => {
+                    debug!(frame, "ignoring an occlusion map that came after its frame")
+                }
+                other => bail!("unexpected message from the coordinator: {other:?}"),
             }
-            other => bail!("unexpected message from the coordinator: {other:?}"),
         }
     }
-    info!(rank, "shutting down");
+    info!(rank = setup.rank, "shutting down");
     let _ = csend.finish();
     conn.close(0u32.into(), b"done");
     let _ = tokio::time::timeout(Duration::from_secs(2), ep.wait_idle()).await;
     Ok(())
 }
 
-/// Checks the set-up, meshes with the peers and opens the scene.
+/// The coordinator's next set-up; other control messages before it (a `PeerLost` for the
+/// set-up it replaces) are dropped.
+async fn next_setup(ctl_rx: &mut mpsc::Receiver<Result<CoordMsg, String>>) -> Result<Setup> {
+    loop {
+        match ctl_rx.recv().await {
+            Some(Ok(CoordMsg::Setup(s))) => return Ok(*s),
+            Some(Ok(CoordMsg::PeerLost { rank })) => {
+                debug!(peer = rank, "peer given up on during set-up")
+            }
+            Some(Ok(CoordMsg::Shutdown)) => bail!("the coordinator ended the run during set-up"),
+            Some(Ok(other)) => bail!("expected a set-up from the coordinator, got {other:?}"),
+            Some(Err(e)) => bail!("{e}"),
+            None => bail!("lost the coordinator"),
+        }
+    }
+}
+
+/// Aborts a task when dropped (a mesh replaced by a new set-up stops its dials and its
+/// listener).
+struct AbortOnDrop(tokio::task::JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
+/// Checks the set-up, meshes with the peers (all but the absent ones) and opens the
+/// scene. On failure, `suspects` holds the peers it could not mesh with.
 async fn mesh(
     ep: &quinn::Endpoint,
     id: &Arc<Identity>,
     setup: Setup,
     net: &NetConfig,
     connect_timeout: Duration,
+    suspects: &mut Vec<u32>,
 ) -> Result<(Node, mpsc::Receiver<PeerEvent>)> {
     let rank = setup.rank;
+    test_fault(rank, 0, "setup");
     anyhow::ensure!(
         (rank as usize) < setup.peers.len(),
         "rank {rank} is not below the number of workers {}",
+        setup.peers.len()
+    );
+    anyhow::ensure!(
+        setup
+            .absent
+            .iter()
+            .all(|&r| r != rank && (r as usize) < setup.peers.len()),
+        "the set-up's absent ranks {:?} must be other ranks below {}",
+        setup.absent,
         setup.peers.len()
     );
     anyhow::ensure!(
@@ -349,11 +420,17 @@ async fn mesh(
     let (peer_tx, mut peer_rx) = mpsc::unbounded_channel::<(u32, quinn::Connection)>();
     let n = setup.peers.len() as u32;
     let fingerprints: Vec<wire::Fingerprint> = setup.peers.iter().map(|p| p.fingerprint).collect();
-    tokio::spawn(accept_peers(ep.clone(), token_rx, peer_tx, fingerprints));
+    let acceptor = AbortOnDrop(tokio::spawn(accept_peers(
+        ep.clone(),
+        token_rx,
+        peer_tx,
+        fingerprints,
+    )));
+    let present = |r: &u32| !setup.absent.contains(r);
     let mut peers: Vec<Option<quinn::Connection>> = vec![None; n as usize];
     // Dial the higher ranks all at once.
     let mut dials = Vec::new();
-    for r in rank + 1..n {
+    for r in (rank + 1..n).filter(present) {
         let p = setup.peers[r as usize].clone();
         let (ep, net, token, id) = (ep.clone(), net.clone(), setup.run_token, id.clone());
         dials.push(tokio::spawn(async move {
@@ -361,26 +438,75 @@ async fn mesh(
                 .addr
                 .parse()
                 .with_context(|| format!("peer {r} address {:?}", p.addr))?;
-            let c = transport::connect_as(&ep, addr, p.fingerprint, Some(&id), &net, mesh_timeout)
-                .await
-                .with_context(|| format!("connecting to worker {r} ({} at {})", p.name, p.addr))?;
-            transport::trust(&c);
-            let hello = PeerMsg::Hello { token, rank };
-            send_uni(&c, &wire::encode_meta(&hello), &[])
-                .await
-                .with_context(|| format!("greeting worker {r} ({})", p.name))?;
-            anyhow::Ok((r, c))
+            // Until the peer welcomes this set-up's token: one still meshing for an
+            // earlier set-up refuses it, and takes the new one a moment later.
+            let deadline = Instant::now() + mesh_timeout;
+            loop {
+                let left = deadline.saturating_duration_since(Instant::now());
+                let attempt = async {
+                    let c = transport::connect_as(&ep, addr, p.fingerprint, Some(&id), &net, left)
+                        .await
+                        .with_context(|| {
+                            format!("connecting to worker {r} ({} at {})", p.name, p.addr)
+                        })?;
+                    transport::trust(&c);
+                    let hello = PeerMsg::Hello { token, rank };
+                    send_uni(&c, &wire::encode_meta(&hello), &[])
+                        .await
+                        .with_context(|| format!("greeting worker {r} ({})", p.name))?;
+                    let welcome = async {
+                        let mut s = c.accept_uni().await?;
+                        let f = read_frame(&mut s, &Limits::HANDSHAKE).await?;
+                        Ok::<_, NetError>(wire::decode_meta::<PeerMsg>(&f.meta)?)
+                    };
+                    match with_timeout(left, "peer welcome", welcome).await {
+                        Ok(PeerMsg::Welcome) => anyhow::Ok(c),
+                        Ok(other) => {
+                            bail!("worker {r} ({}) answered {other:?}, not a welcome", p.name)
+                        }
+                        Err(e) => bail!("worker {r} ({}) did not welcome this worker: {e}", p.name),
+                    }
+                };
+                match attempt.await {
+                    Ok(c) => return anyhow::Ok((r, c)),
+                    Err(e) if Instant::now() + Duration::from_millis(50) >= deadline => {
+                        return Err(e)
+                    }
+                    Err(e) => {
+                        debug!(peer = r, "retrying the mesh: {e:#}");
+                        tokio::time::sleep(Duration::from_millis(50)).await;
+                    }
+                }
+            }
         }));
     }
-    for d in dials {
-        let (r, c) = d.await.map_err(|e| anyhow!("dial task: {e}"))??;
-        peers[r as usize] = Some(c);
+    let mut dial_errors = Vec::new();
+    for (r, d) in (rank + 1..n).filter(present).zip(dials) {
+        match d
+            .await
+            .map_err(|e| anyhow!("dial task: {e}"))
+            .and_then(|r| r)
+        {
+            Ok((r, c)) => peers[r as usize] = Some(c),
+            Err(e) => {
+                suspects.push(r);
+                dial_errors.push(format!("{e:#}"));
+            }
+        }
+    }
+    if !dial_errors.is_empty() {
+        bail!("{}", dial_errors.join("; "));
     }
     let deadline = Instant::now() + mesh_timeout;
-    while peers[..rank as usize].iter().any(Option::is_none) {
+    let awaited = |peers: &[Option<quinn::Connection>]| -> Vec<u32> {
+        (0..rank)
+            .filter(|r| present(r) && peers[*r as usize].is_none())
+            .collect()
+    };
+    while !awaited(&peers).is_empty() {
         let left = deadline.saturating_duration_since(Instant::now());
         match tokio::time::timeout(left, peer_rx.recv()).await {
-            Ok(Some((r, c))) if r < rank && peers[r as usize].is_none() => {
+            Ok(Some((r, c))) if r < rank && present(&r) && peers[r as usize].is_none() => {
                 peers[r as usize] = Some(c)
             }
             Ok(Some((r, c))) => {
@@ -389,9 +515,10 @@ async fn mesh(
             }
             Ok(None) => bail!("the peer listener stopped"),
             Err(_) => {
-                let missing: Vec<String> = (0..rank)
-                    .filter(|&r| peers[r as usize].is_none())
-                    .map(|r| describe(&setup.peers, r))
+                *suspects = awaited(&peers);
+                let missing: Vec<String> = suspects
+                    .iter()
+                    .map(|&r| describe(&setup.peers, r))
                     .collect();
                 bail!(
                     "peers {} did not connect within {:.1} s",
@@ -402,7 +529,7 @@ async fn mesh(
         }
     }
     // The mesh is complete: later connections are refused.
-    drop(token_tx);
+    let _ = token_tx.send(None);
     ep.set_server_config(None);
     // A shared-memory segment to each peer on this host, announced over the (pinned,
     // token-checked) connection before any piece.
@@ -422,18 +549,19 @@ async fn mesh(
                     pid: id.pid,
                     fd: id.fd,
                 };
-                with_timeout(
+                if let Err(e) = with_timeout(
                     mesh_timeout,
                     "announcing a segment",
                     send_uni(c, &wire::encode_meta(&msg), &[]),
                 )
                 .await
-                .with_context(|| {
-                    format!(
-                        "announcing the segment to {}",
+                {
+                    suspects.push(r as u32);
+                    bail!(
+                        "announcing the segment to {}: {e}",
                         describe(&setup.peers, r as u32)
-                    )
-                })?;
+                    );
+                }
                 shm_out.push(Some(w));
             }
             _ => shm_out.push(None),
@@ -471,6 +599,9 @@ async fn mesh(
         n as usize,
         ExchangeLimits::for_ranks(n as usize, limits.max_bulk),
     );
+    for &r in &setup.absent {
+        exchange.handle_lost(r, "given up on during set-up".into());
+    }
     if shm_count > 0 {
         // Pieces for peers on this host are encoded straight into their segments.
         exchange.set_sink(Box::new(ShmSink { writers: shm_out }));
@@ -488,6 +619,7 @@ async fn mesh(
         deferred: Default::default(),
         front_last: None,
         lz4: false,
+        _acceptor: acceptor,
     };
     Ok((node, ev_rx))
 }
@@ -543,7 +675,19 @@ async fn accept_peers(
                     if presented.is_some_and(|p| strata_net::secret::ct_eq(&p, expected)) {
                         debug!(peer = rank, %remote, "peer connected");
                         transport::trust(&conn);
-                        let _ = out.send((rank, conn));
+                        let welcome = wire::encode_meta(&PeerMsg::Welcome);
+                        match with_timeout(
+                            Duration::from_secs(10),
+                            "peer welcome",
+                            send_uni(&conn, &welcome, &[]),
+                        )
+                        .await
+                        {
+                            Ok(_) => {
+                                let _ = out.send((rank, conn));
+                            }
+                            Err(e) => warn!(peer = rank, %remote, "welcoming a peer failed: {e}"),
+                        }
                     } else {
                         warn!(
                             %remote,
@@ -759,6 +903,8 @@ struct Node {
     /// Cross-worker occlusion: the last frame's transmittance of what lies in front of this
     /// worker, the prediction for the next frame.
     front_last: Option<FrontLast>,
+    /// The peer listener of this mesh (idle once it is complete; stopped with the node).
+    _acceptor: AbortOnDrop,
 }
 
 /// The front transmittance of the last frame and what it depended on (the image size and

@@ -184,14 +184,17 @@ pub(crate) fn fit_grid(
                 offsets[0]
             );
         }
-        let at_offset = opts
-            .offset
-            .map(|o| format!(" with offset {o}"))
-            .unwrap_or_default();
+        let (at_offset, or_stack) = match opts.offset {
+            Some(o) => (format!(" with offset {o}"), ""),
+            None => (
+                String::new(),
+                "; to average the traces of each node, pass --stack",
+            ),
+        };
         bail!(
             "{p}: duplicate trace{at_offset} for {pair}; up to {max_fold} traces share a node. If the inline and \
              crossline numbers are not at trace bytes {}/{}, pass --inline-byte and --xline-byte (common choices: \
-             189/193 or 9/21); to average the traces of each node, pass --stack",
+             189/193 or 9/21){or_stack}",
             opts.inline_byte,
             opts.xline_byte
         );

@@ -204,7 +204,6 @@ pub struct SegyVolume {
 }
 
 /// Opens a SEG-Y file: reads its headers and scans its trace headers (not its samples).
-/// Opens a SEG-Y file: reads its headers and scans its trace headers (not its samples).
 pub fn open(path: &Path, opts: &SegyOptions) -> Result<SegyVolume> {
     let p = path.display();
     for (what, b) in [("inline", opts.inline_byte), ("crossline", opts.xline_byte)] {
@@ -237,12 +236,17 @@ pub fn open(path: &Path, opts: &SegyOptions) -> Result<SegyVolume> {
     // The delay of the first trace used; rev 1 and 2 scale it by bytes 215-216.
     let first = grid.first_used;
     let delay0 = hdrs[first as usize].delay;
-    let other_delay = hdrs.iter().filter(|h| h.delay != delay0).count();
+    let used = |h: &&scan::TraceHdr| opts.offset.is_none_or(|o| h.offset == o);
+    let other_delay = hdrs
+        .iter()
+        .filter(used)
+        .filter(|h| h.delay != delay0)
+        .count();
     if other_delay > 0 {
         warnings.push(format!(
             "{other_delay} of {} traces have a delay recording time (byte 109) other than trace {}'s {delay0}; all \
              are read as starting where it does",
-            layout.trace_count,
+            grid.traces_used,
             first + 1
         ));
     }

@@ -935,8 +935,18 @@ fn time_is_assumed_only_when_nothing_says_otherwise() {
     let v = open_with(&t, |o| {
         o.vertical = None;
         o.vertical_unit = Some(VerticalUnit::M)
-    });
-    assert_eq!(v.unwrap().info().vertical.domain, VerticalDomain::Depth);
+    })
+    .unwrap();
+    assert_eq!(v.info().vertical.domain, VerticalDomain::Depth);
+    // ... against what the headers say, which is worth a warning.
+    assert!(
+        v.info()
+            .warnings
+            .iter()
+            .any(|w| w.contains("--vertical-unit m makes the traces depth")),
+        "{:?}",
+        v.info().warnings
+    );
     // --z-step overrides the field.
     let v = open_with(&t, |o| o.z_step = Some(0.5)).unwrap();
     assert_eq!(v.z_axis().1, 0.5);
@@ -953,7 +963,7 @@ fn time_is_assumed_only_when_nothing_says_otherwise() {
 
 #[test]
 fn vertical_contradictions_are_clear_errors() {
-    let t = small("both.sgy", "C 1 PSDM\nC 2 Z: TWT", 4000, 0, |_| {});
+    let t = small("both.sgy", "C 1 PSDM\nC 2 TIME MIGRATED", 4000, 0, |_| {});
     let e = err_of(open(&t.0, &SegyOptions::default()));
     assert!(
         e.contains("both.sgy")
@@ -971,7 +981,22 @@ fn vertical_contradictions_are_clear_errors() {
         o.vertical_unit = Some(VerticalUnit::Ft)
     }));
     assert!(e.contains("--vertical-unit ft is a depth unit"), "{e}");
-    for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+    // Bare time words are weak: a PSDM header that gives its interval in msec is depth.
+    let t = small(
+        "weak.sgy",
+        "C 1 PSDM\nC 2 SAMPLE INTERVAL 4 MSEC",
+        4000,
+        0,
+        |_| {},
+    );
+    let v = open(&t.0, &SegyOptions::default()).unwrap();
+    assert_eq!(v.info().vertical.domain, VerticalDomain::Depth);
+    assert!(
+        v.info().warnings.iter().any(|w| w.contains("mention time")),
+        "{:?}",
+        v.info().warnings
+    );
+    for bad in [0.0, -1.0, 1e-320, 1e12, f64::NAN, f64::INFINITY] {
         let e = err_of(open_with(&t, |o| {
             o.vertical = Some(VerticalDomain::Depth);
             o.z_step = Some(bad)

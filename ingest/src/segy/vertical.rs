@@ -3,11 +3,18 @@
 //! SEG-Y has no binary field that says whether traces are sampled in time or in depth:
 //! depth cubes store their depth step in the sample-interval field that time cubes fill
 //! with microseconds. What a file says about its domain it says in words, in the textual
-//! headers ("PSDM", "DEPTH MIGRATED", "TWT", …). The domain is decided, in this order, by
-//! the `--vertical` option, by the words of the textual and extended textual headers, by
-//! the `--vertical-unit` option (a depth unit means depth), and otherwise assumed to be
-//! time, with a warning that says how to override it. A depth cube is never labelled
-//! milliseconds.
+//! headers ("PSDM", "DEPTH MIGRATED", "TWO-WAY TIME", …). The domain is decided, in this
+//! order, by the `--vertical` option, by the domain of the `--vertical-unit` option (ms and
+//! s are time, m and ft depth), by the words of the textual and extended textual headers,
+//! and otherwise assumed to be time (recorded as assumed, with how to override it). An
+//! option that contradicts the headers wins, with a warning. A depth cube is never
+//! labelled milliseconds.
+//!
+//! Words are weighed: specific phrases ("PSDM", "DEPTH MIGRATED", "TIME MIGRATED",
+//! "TWO-WAY TIME", …) are strong evidence; the bare time words "TWT", "MSEC" and
+//! "MILLISECOND(S)" are weak, since depth cubes' headers mention them too. Strong evidence
+//! for both domains is an error that asks for `--vertical`; strong evidence for one beats
+//! weak evidence for the other, with a warning.
 //!
 //! The sample-interval field holds the step × 1000 in the vertical unit: microseconds for
 //! millisecond time, and by the same convention millimetres (or thousandths of a foot) for
@@ -94,6 +101,11 @@ pub const ASSUMED_TIME: &str =
     "assumed: the textual headers do not say time or depth (pass --vertical depth, or --vertical-unit m or ft, \
      for a depth cube)";
 
+/// Smallest and largest sample step accepted (in the vertical unit): a step that vanishes
+/// against the lateral bins would make the grid-to-world transform singular.
+const MIN_STEP: f64 = 1e-6;
+const MAX_STEP: f64 = 1e9;
+
 /// Phrases (upper case, words separated by single blanks) that say a file is in depth.
 const DEPTH_PHRASES: &[&str] = &[
     "DEPTH DOMAIN",
@@ -118,7 +130,6 @@ const TIME_PHRASES: &[&str] = &[
     "DOMAIN TIME",
     "TWO WAY TIME",
     "TWO WAY TRAVEL TIME",
-    "TWT",
     "TIME MIGRATED",
     "TIME MIGRATION",
     "PSTM",
@@ -129,14 +140,14 @@ const TIME_PHRASES: &[&str] = &[
     "TIME DATA",
     "TIME SECTION",
     "Z TIME",
-    "MSEC",
-    "MILLISECOND",
-    "MILLISECONDS",
 ];
+
+/// Words that suggest time, but also turn up in depth files' headers.
+const WEAK_TIME_WORDS: &[&str] = &["TWT", "MSEC", "MILLISECOND", "MILLISECONDS"];
 
 /// Words that name a depth unit.
 const FEET_WORDS: &[&str] = &["FT", "FEET", "FOOT"];
-const METRE_WORDS: &[&str] = &["M", "METER", "METERS", "METRE", "METRES"];
+const METRE_WORDS: &[&str] = &["METER", "METERS", "METRE", "METRES"];
 
 /// One phrase found in a textual header.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -207,6 +218,7 @@ pub(crate) fn decide(
     text.push_str(&layout.extended_text);
     let depth = find(&text, DEPTH_PHRASES);
     let time = find(&text, TIME_PHRASES);
+    let weak_time = find(&text, WEAK_TIME_WORDS);
 
     if let (Some(d), Some(u)) = (vertical, vertical_unit) {
         if u.domain() != d {
@@ -218,21 +230,59 @@ pub(crate) fn decide(
             );
         }
     }
-    let (domain, domain_from) = match (vertical, vertical_unit) {
-        (Some(d), _) => (d, "--vertical".to_string()),
-        (None, Some(u)) => (u.domain(), format!("--vertical-unit {}", u.name())),
-        (None, None) => match (depth.first(), time.first()) {
-            (Some(d), None) => (VerticalDomain::Depth, d.describe()),
-            (None, Some(t)) => (VerticalDomain::Time, t.describe()),
-            (Some(d), Some(t)) => bail!(
-                "{p}: the textual headers say both depth ({}) and time ({}); pass --vertical time or \
-                 --vertical depth",
-                d.describe(),
-                t.describe()
-            ),
-            // Most files say nothing and are time; not a warning, but `domain_from` says so.
-            (None, None) => (VerticalDomain::Time, ASSUMED_TIME.to_string()),
-        },
+    let option = match (vertical, vertical_unit) {
+        (Some(d), _) => Some((d, "--vertical".to_string())),
+        (None, Some(u)) => Some((u.domain(), format!("--vertical-unit {}", u.name()))),
+        (None, None) => None,
+    };
+    // What the headers say, if anything.
+    let said: Option<(VerticalDomain, String)> = match (
+        depth.first(),
+        time.first(),
+        weak_time.first(),
+    ) {
+        (Some(d), Some(t), _) => {
+            if option.is_none() {
+                bail!(
+                    "{p}: the textual headers say both depth ({}) and time ({}); pass --vertical time or \
+                     --vertical depth",
+                    d.describe(),
+                    t.describe()
+                );
+            }
+            None
+        }
+        (Some(d), None, Some(w)) => {
+            if option.is_none() {
+                warnings.push(format!(
+                    "the textual headers say depth ({}) and mention time ({}); read as depth (pass --vertical \
+                     time if it is time)",
+                    d.describe(),
+                    w.describe()
+                ));
+            }
+            Some((VerticalDomain::Depth, d.describe()))
+        }
+        (Some(d), None, None) => Some((VerticalDomain::Depth, d.describe())),
+        (None, Some(t), _) => Some((VerticalDomain::Time, t.describe())),
+        (None, None, Some(w)) => Some((VerticalDomain::Time, w.describe())),
+        (None, None, None) => None,
+    };
+    let (domain, domain_from) = match (option, said) {
+        (Some((d, from)), Some((h, why))) => {
+            if d != h {
+                warnings.push(format!(
+                    "{from} makes the traces {}, though the textual headers say {} ({why})",
+                    d.name(),
+                    h.name()
+                ));
+            }
+            (d, from)
+        }
+        (Some(o), None) => o,
+        (None, Some(h)) => h,
+        // Most files say nothing and are time; not a warning, but `domain_from` says so.
+        (None, None) => (VerticalDomain::Time, ASSUMED_TIME.to_string()),
     };
 
     let (unit, unit_from) = match (vertical_unit, domain) {
@@ -281,23 +331,34 @@ pub(crate) fn decide(
 
     let step = match z_step {
         Some(s) => {
-            if !(s.is_finite() && s > 0.0) {
+            if !(MIN_STEP..=MAX_STEP).contains(&s) {
                 bail!(
-                    "{p}: --z-step {s}: expected a positive sample step in {}",
+                    "{p}: --z-step {s}: expected a sample step in {} from {MIN_STEP:e} to {MAX_STEP:e}",
                     unit.name()
                 );
             }
             s
         }
         None => match layout.extended_interval {
-            Some(x) => x * unit.per_field_step(),
-            None if layout.sample_interval_raw == 0 => {
+            // The 16-bit field's range (1..=65535 thousandths) and then some; anything
+            // else is garbage, not a finer step.
+            Some(x) if (1e-3..=1e9).contains(&x) => x * unit.per_field_step(),
+            _ if layout.sample_interval_raw == 0 => {
                 warnings.push(format!(
                     "sample interval is 0 in the binary header (byte 3217) and trace 1's header (byte 117); assuming \
-                     1 {} per sample (pass --z-step to set it)",
+                     1000, i.e. {} {} per sample (pass --z-step to set it)",
+                    1000.0 * unit.per_field_step(),
                     unit.name()
                 ));
-                1.0
+                1000.0 * unit.per_field_step()
+            }
+            Some(x) => {
+                warnings.push(format!(
+                    "binary header bytes 3273-3280 (rev 2 extended sample interval) hold {x:e}, which is no sample \
+                     interval; using bytes 3217-3218 ({})",
+                    layout.sample_interval_raw
+                ));
+                layout.sample_interval_raw as f64 * unit.per_field_step()
             }
             None => layout.sample_interval_raw as f64 * unit.per_field_step(),
         },
@@ -354,8 +415,17 @@ mod tests {
         // "WATER DEPTH" is not a domain; "TWT" must not match inside "TWTX".
         assert!(find("C 1 WATER DEPTH 95 M\nC 2 TWTX", TIME_PHRASES).is_empty());
         assert!(find("C 1 WATER DEPTH 95 M", DEPTH_PHRASES).is_empty());
-        assert_eq!(find("c 4 z: twt (ms)", TIME_PHRASES)[0].phrase, "TWT");
-        assert_eq!(find("C 9 Sample interval 4 msec", TIME_PHRASES)[0].line, 1);
+        assert_eq!(find("c 4 z: twt (ms)", WEAK_TIME_WORDS)[0].phrase, "TWT");
+        assert_eq!(
+            find("C 9 Sample interval 4 msec", WEAK_TIME_WORDS)[0].line,
+            1
+        );
+        assert_eq!(
+            find("C 2 two-way time", TIME_PHRASES)[0].phrase,
+            "TWO WAY TIME"
+        );
+        // A lone "M" is no unit word.
+        assert!(find("C 3 WATER DEPTH 120 M", METRE_WORDS).is_empty());
         assert_eq!(find("C 5 DEPTH IN FEET", FEET_WORDS)[0].phrase, "FEET");
     }
 }
