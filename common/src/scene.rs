@@ -218,6 +218,13 @@ pub struct ClusterSettings {
     /// survivors and the frame is rendered again) or `fail` (the frame fails, naming it).
     #[serde(default)]
     pub on_worker_loss: OnWorkerLoss,
+    /// Cluster mode (`spawn = false`): a worker that connects during a sequence (started
+    /// by hand or by a launcher with the run's fingerprint and secret) replaces one that
+    /// was lost, and takes load at the next frame. After a loss, the next frame waits up to
+    /// this many seconds for such a replacement before rendering with the workers left
+    /// (0: no wait; a replacement that comes later joins at the frame after it connects).
+    #[serde(default)]
+    pub replacement_wait_s: f64,
     /// Cross-worker occlusion: workers leave uncast the screen blocks that content in
     /// front of their region (owned by other workers) already makes opaque to
     /// `render.early_termination`, predicted from the previous frame of a sequence and
@@ -288,6 +295,7 @@ impl Default for ClusterSettings {
             rebalance_damping: default_rebalance_damping(),
             transport: Transport::Auto,
             on_worker_loss: OnWorkerLoss::Reassign,
+            replacement_wait_s: 0.0,
             occlusion: true,
             occlusion_block: default_occlusion_block(),
             occlusion_prepass: true,

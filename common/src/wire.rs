@@ -351,6 +351,9 @@ pub struct Setup {
     pub absent: Vec<u32>,
     /// 0 for the first set-up of the run, counting up with each new one.
     pub attempt: u32,
+    /// The number of the next frame the coordinator will request (a set-up during a
+    /// sequence starts past 0).
+    pub next_frame: u64,
 }
 
 /// Where a record lies in a shared-memory segment.

@@ -516,6 +516,36 @@ fn early_pieces_are_checked_when_their_frame_starts_and_bounded() {
 }
 
 #[test]
+fn an_exchange_set_up_mid_sequence_takes_pieces_of_its_first_frame_and_drops_older_ones() {
+    // A worker set up again before frame 10: a peer already in frame 10 sends early, and
+    // a piece of frame 9 (over before this worker joined) is stale, not a failure.
+    let t = Instant::now();
+    let mut ex = Exchange::new(0, 2, ExchangeLimits::for_ranks(2, 1 << 20));
+    ex.skip_to(10);
+    ex.handle_piece(1, 10, 0, 1, piece(0, 2), 100);
+    ex.handle_piece(1, 9, 0, 1, piece(0, 2), 100);
+    assert_eq!(ex.pending(), 1);
+    assert_eq!(ex.stats().stale, 1);
+    assert!(ex.poll_event().is_none());
+    one_rank_frame(&mut ex, 10, vec![0, 1], t);
+    match ex.poll_event() {
+        Some(ExchangeEvent::Done { frame: 10, .. }) => {}
+        other => panic!("{other:?}"),
+    }
+    // Without it, the same early piece is too far ahead of frame 0.
+    let mut ex = Exchange::new(0, 2, ExchangeLimits::for_ranks(2, 1 << 20));
+    ex.handle_piece(1, 10, 0, 1, piece(0, 2), 100);
+    one_rank_frame(&mut ex, 10, vec![0, 1], t);
+    assert!(matches!(
+        ex.poll_event(),
+        Some(ExchangeEvent::Failed {
+            error: ExchangeError::TooFarAhead { .. },
+            ..
+        })
+    ));
+}
+
+#[test]
 fn a_lost_peer_fails_the_frames_that_include_it_and_only_those() {
     let t = Instant::now();
     let limits = ExchangeLimits::for_ranks(3, 1 << 16);

@@ -74,6 +74,8 @@ pub struct ClusterOptions {
     pub transport: Transport,
     /// `cluster.on_worker_loss`: re-render a frame without a worker that was lost, or fail.
     pub on_worker_loss: strata_common::scene::OnWorkerLoss,
+    /// `cluster.replacement_wait_s`: how long a frame after a loss waits for a replacement.
+    pub replacement_wait: Duration,
     /// `cluster.occlusion`: cross-worker occlusion with every rendered frame.
     pub occlusion: bool,
     /// `cluster.occlusion_block`: side of its screen blocks in pixels.
@@ -166,6 +168,11 @@ impl ClusterOptions {
             );
         }
         anyhow::ensure!(
+            (0.0..=1e6).contains(&c.replacement_wait_s),
+            "cluster.replacement_wait_s must be 0 or a positive number of seconds, got {}",
+            c.replacement_wait_s
+        );
+        anyhow::ensure!(
             (1200..=65527).contains(&c.quic_mtu),
             "cluster.quic_mtu must lie in 1200..=65527 bytes, got {}",
             c.quic_mtu
@@ -206,6 +213,7 @@ impl ClusterOptions {
             rebalance_damping: c.rebalance_damping,
             transport: c.transport,
             on_worker_loss: c.on_worker_loss,
+            replacement_wait: Duration::from_secs_f64(c.replacement_wait_s),
             occlusion: c.occlusion,
             occlusion_block: c.occlusion_block,
             occlusion_prepass: c.occlusion_prepass,
@@ -268,6 +276,8 @@ pub struct FrameResult {
     pub assemble_s: f64,
     /// Workers given up on during this frame (the frame was re-rendered without them).
     pub lost: Vec<LostWorker>,
+    /// Workers that joined the running sequence before this frame.
+    pub joined: Vec<JoinedWorker>,
     /// Seconds this coordinator spent checking occlusion coverage and sending the maps.
     pub occlusion_s: f64,
 }
@@ -290,6 +300,22 @@ pub struct LostWorker {
     /// left being ready).
     pub recovery_s: f64,
     /// The new assignment: each rank left and its leaf regions.
+    pub assignment: Vec<Assignment>,
+}
+
+/// A worker that joined a running sequence (cluster mode) and took load.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct JoinedWorker {
+    /// Its description (rank, name, pid, address).
+    pub worker: String,
+    /// Its rank.
+    pub rank: u32,
+    /// The first frame of the sequence it rendered (the caller, which numbers the
+    /// sequence, fills it in).
+    pub frame: u64,
+    /// Seconds to set the run up again with it.
+    pub setup_s: f64,
+    /// The new assignment: each rank in the run and its leaf regions.
     pub assignment: Vec<Assignment>,
 }
 
@@ -384,6 +410,23 @@ pub struct Cluster {
     setup_lost: Vec<LostWorker>,
     /// The number of the next set-up attempt.
     setup_attempt: u32,
+    /// The scene every set-up carries.
+    scene_toml: String,
+    /// Cluster mode: workers that authenticated after the run filled up, admitted as
+    /// replacements at the start of a frame (or refused when the run is full), and the
+    /// task accepting them.
+    joiners: Option<mpsc::UnboundedReceiver<Authenticated>>,
+    acceptor: Option<tokio::task::JoinHandle<()>>,
+    /// Where the connection readers of newly admitted workers report.
+    events_tx: mpsc::UnboundedSender<Event>,
+}
+
+impl Drop for Cluster {
+    fn drop(&mut self) {
+        if let Some(a) = &self.acceptor {
+            a.abort();
+        }
+    }
 }
 
 /// A wall frame's layout and outputs, before drivers are chosen over the ranks left.
@@ -571,9 +614,13 @@ impl Cluster {
             slots: (0..n as u32).collect(),
             setup_lost: Vec::new(),
             setup_attempt: 0,
+            scene_toml: scene.to_toml(),
+            joiners: None,
+            acceptor: None,
+            events_tx: tx.clone(),
         };
         cluster.gather_workers(&secret, &tx).await?;
-        cluster.setup(scene).await?;
+        cluster.setup(&[]).await?;
         Ok(cluster)
     }
 
@@ -671,20 +718,103 @@ impl Cluster {
                 }
             }
         }
-        acceptor.abort();
-        // The run is full: no new connections; authenticated extras are told why.
-        self.ep.set_server_config(None);
-        while let Ok((name, pid, _, _, conn, mut send, _)) = auth_rx.try_recv() {
-            warn!(%name, pid, "refused a worker: the run already has {n}");
-            let msg = wire::encode_meta(&CoordMsg::Refused {
-                reason: format!("the run already has its {n} workers"),
-            });
-            let _ = tokio::time::timeout(Duration::from_secs(1), write_frame(&mut send, &msg, &[]))
-                .await;
-            let _ = send.finish();
-            conn.close(6u32.into(), b"run is full");
+        if self.opts.spawn {
+            acceptor.abort();
+            // The run is full: no new connections; authenticated extras are told why.
+            self.ep.set_server_config(None);
+            while let Ok(j) = auth_rx.try_recv() {
+                refuse_full(j, n).await;
+            }
+        } else {
+            // Cluster mode: later workers may replace lost ones (or are refused while the
+            // run is full), at the start of a frame.
+            self.joiners = Some(auth_rx);
+            self.acceptor = Some(acceptor);
         }
         Ok(())
+    }
+
+    /// Cluster mode, at the start of a frame: admits the workers that connected since as
+    /// replacements while the run has fewer than `cluster.workers` (after a loss, waiting
+    /// up to `cluster.replacement_wait_s` for one), refuses the others, and sets the run up
+    /// again with the newcomers. Returns who joined.
+    async fn admit_joiners(&mut self) -> Result<Vec<JoinedWorker>> {
+        let Some(mut rx) = self.joiners.take() else {
+            return Ok(Vec::new());
+        };
+        let want = self.opts.workers;
+        let deadline = Instant::now()
+            + if self.slots.len() < want {
+                self.opts.replacement_wait
+            } else {
+                Duration::ZERO
+            };
+        let mut fresh = Vec::new();
+        loop {
+            let j = match rx.try_recv() {
+                Ok(j) => j,
+                Err(_) if self.slots.len() < want && Instant::now() < deadline => {
+                    let left = deadline.saturating_duration_since(Instant::now());
+                    match tokio::time::timeout(left, rx.recv()).await {
+                        Ok(Some(j)) => j,
+                        _ => break,
+                    }
+                }
+                Err(_) => break,
+            };
+            if self.slots.len() >= want {
+                refuse_full(j, want).await;
+                continue;
+            }
+            let (name, pid, fingerprint, host, conn, send, recv) = j;
+            let rank = self.workers.len() as u32;
+            transport::trust(&conn);
+            let remote = conn.remote_address();
+            let addr = SocketAddr::new(remote.ip().to_canonical(), remote.port());
+            info!(rank, %name, pid, %addr, "worker joined the running sequence");
+            spawn_reader(
+                rank,
+                conn.clone(),
+                recv,
+                Limits::for_pixels(self.opts.max_pixels),
+                self.events_tx.clone(),
+            );
+            self.workers.push(Worker {
+                rank,
+                name,
+                pid,
+                addr,
+                fingerprint,
+                conn,
+                send,
+                host,
+                shm: None,
+                attempt: 0,
+            });
+            self.slots.push(rank);
+            self.new_leaves.push(None);
+            fresh.push(rank);
+        }
+        self.joiners = Some(rx);
+        if fresh.is_empty() {
+            return Ok(Vec::new());
+        }
+        let t0 = Instant::now();
+        let assignment = self.resplit();
+        self.setup(&fresh).await?;
+        let setup_s = t0.elapsed().as_secs_f64();
+        // Newcomers that failed their set-up were given up on again.
+        Ok(fresh
+            .into_iter()
+            .filter(|r| self.slots.contains(r))
+            .map(|r| JoinedWorker {
+                worker: self.workers[r as usize].describe(),
+                rank: r,
+                frame: 0,
+                setup_s,
+                assignment: assignment.clone(),
+            })
+            .collect())
     }
 
     /// Sends every worker its set-up and waits until all have meshed with their peers.
@@ -692,9 +822,12 @@ impl Cluster {
     /// exited, its connection died, or it hung: its peers could not mesh with it, or the
     /// set-up ran out of time) is given up on, the scene is split over the workers left,
     /// and they are set up again without it.
-    async fn setup(&mut self, scene: &Scene) -> Result<()> {
+    ///
+    /// `fresh` are workers that joined a running sequence: one that fails its set-up is
+    /// given up on whatever `cluster.on_worker_loss` says, never the run.
+    async fn setup(&mut self, fresh: &[u32]) -> Result<()> {
         let t0 = Instant::now();
-        let scene_toml = scene.to_toml();
+        let scene_toml = self.scene_toml.clone();
         let (shm, gather) = self.plan_transport()?;
         let n = self.workers.len();
         let shm_pairs = (0..n)
@@ -709,12 +842,13 @@ impl Cluster {
         };
         info!(transport = %self.transport.describe(), "transports chosen");
         loop {
-            let (lost, error) = match self.setup_once(&scene_toml, &shm, &gather).await? {
+            let (lost, error) = match self.setup_once(&scene_toml, &shm, &gather, fresh).await? {
                 None => break,
                 Some(l) => l,
             };
             let reassign = self.opts.on_worker_loss == strata_common::scene::OnWorkerLoss::Reassign;
-            if !reassign || lost.len() >= self.slots.len() {
+            let only_fresh = lost.iter().all(|r| fresh.contains(r));
+            if (!reassign && !only_fresh) || lost.len() >= self.slots.len() {
                 return Err(error);
             }
             let names = self.list(lost.iter().map(|&r| r as usize));
@@ -749,6 +883,7 @@ impl Cluster {
         scene_toml: &str,
         shm: &[Vec<bool>],
         gather: &[bool],
+        fresh: &[u32],
     ) -> Result<Option<(Vec<u32>, anyhow::Error)>> {
         let peers: Vec<PeerInfo> = self
             .workers
@@ -790,6 +925,7 @@ impl Cluster {
                 shm_gather: gather[rank as usize],
                 absent: absent.clone(),
                 attempt,
+                next_frame: self.frame_no,
             }));
             let what = w.describe();
             if let Err(e) = with_timeout(
@@ -920,6 +1056,14 @@ impl Cluster {
                         )?;
                         w.shm = Some(r);
                     }
+                    // A newcomer that cannot set up is given up on, not the run.
+                    Ok(WorkerMsg::Failed {
+                        frame: None,
+                        message,
+                        ..
+                    }) if fresh.contains(&rank) => {
+                        lost.push((rank, format!("failed to set up: {message}")))
+                    }
                     Ok(WorkerMsg::Failed {
                         frame: None,
                         message,
@@ -1031,6 +1175,7 @@ impl Cluster {
         composite: &CompositeChoice,
         source: FrameSource,
     ) -> Result<FrameResult> {
+        let joined = self.admit_joiners().await?;
         let t0 = Instant::now();
         let mut lost_here: Vec<LostWorker> = Vec::new();
         loop {
@@ -1047,6 +1192,7 @@ impl Cluster {
                     let mut lost = std::mem::take(&mut self.setup_lost);
                     lost.extend(lost_here);
                     r.lost = lost;
+                    r.joined = joined;
                     return Ok(r);
                 }
                 Err(f) => {
@@ -1107,6 +1253,12 @@ impl Cluster {
                 .await;
             }
         }
+        self.resplit()
+    }
+
+    /// Splits the scene over the ranks in the run (after a loss or a join): each gets its
+    /// new leaves with its next set-up or frame request. Returns the new assignment.
+    fn resplit(&mut self) -> Vec<Assignment> {
         let m = self.slots.len();
         let new = Decomposition::balanced(
             self.costs.root,
@@ -1123,7 +1275,7 @@ impl Cluster {
         info!(
             workers = m,
             imbalance = format!("{:.3}", new.imbalance()),
-            "re-split the scene over the workers left"
+            "re-split the scene over the workers in the run"
         );
         self.decomposition = new;
         self.slots
@@ -1483,6 +1635,7 @@ impl Cluster {
             collect_s,
             assemble_s,
             lost: Vec::new(),
+            joined: Vec::new(),
             occlusion_s,
         })
     }
@@ -1622,6 +1775,18 @@ impl Cluster {
         }
         let _ = tokio::time::timeout(Duration::from_secs(1), self.ep.wait_idle()).await;
     }
+}
+
+/// Tells an authenticated worker that the run is full and closes its connection.
+async fn refuse_full(j: Authenticated, n: usize) {
+    let (name, pid, _, _, conn, mut send, _) = j;
+    warn!(%name, pid, "refused a worker: the run already has {n}");
+    let msg = wire::encode_meta(&CoordMsg::Refused {
+        reason: format!("the run already has its {n} workers"),
+    });
+    let _ = tokio::time::timeout(Duration::from_secs(1), write_frame(&mut send, &msg, &[])).await;
+    let _ = send.finish();
+    conn.close(6u32.into(), b"run is full");
 }
 
 type Authenticated = (

@@ -657,6 +657,15 @@ fn run(cli: Cli) -> Result<()> {
                     s.transport.as_ref().map_or("?".into(), |t| t.describe())
                 );
             }
+            for j in &s.joined_workers {
+                println!(
+                    "{} joined the running sequence at frame {} and took load after a set-up of {:.1} s on {} workers",
+                    j.worker,
+                    j.frame,
+                    j.setup_s,
+                    j.assignment.len()
+                );
+            }
             for l in &s.lost_workers {
                 let what = if l.phase == "set-up" {
                     "during set-up, and set the run up"

@@ -353,6 +353,8 @@ pub struct RenderSummary {
     pub transport: Option<crate::cluster::TransportReport>,
     /// Workers given up on during the run (their frames were re-rendered without them).
     pub lost_workers: Vec<crate::cluster::LostWorker>,
+    /// Workers that joined the running sequence (cluster mode) and took load.
+    pub joined_workers: Vec<crate::cluster::JoinedWorker>,
     /// Per-worker stats of each frame (distributed runs).
     #[serde(skip)]
     pub frames: Vec<Vec<WorkerFrameStats>>,
@@ -553,7 +555,7 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
                 let i = f.index;
                 let t = Instant::now();
                 let bg = scene.render.background.map(|c| c as f32);
-                let fr = match &scene.wall {
+                let mut fr = match &scene.wall {
                     // The drivers write the tiles; the preview is assembled from them.
                     Some(wall) => {
                         let g = wall.geometry();
@@ -578,6 +580,9 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
                         fr
                     }
                 };
+                for j in &mut fr.joined {
+                    j.frame = i as u64;
+                }
                 sequence.push(FrameSummary {
                     frame: i,
                     output: display(&f.png),
@@ -613,6 +618,8 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
     let (mut done, sequence, rebalances, transport) = result?;
     let lost_workers: Vec<crate::cluster::LostWorker> =
         done.iter().flat_map(|f| f.lost.iter().cloned()).collect();
+    let joined_workers: Vec<crate::cluster::JoinedWorker> =
+        done.iter().flat_map(|f| f.joined.iter().cloned()).collect();
     let fr = done.pop().context("no frame rendered")?;
     for s in &fr.stats {
         info!(
@@ -672,6 +679,7 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
         gather_bytes: fr.gather_bytes,
         exchange_shm_bytes: fr.stats.iter().map(|s| s.shm_bytes_sent).sum(),
         lost_workers: lost_workers.clone(),
+        joined_workers,
         transport: Some(transport),
         frames,
         frame_count: sequence.len(),

@@ -337,6 +337,14 @@ fn shared_memory_and_forced_quic_give_identical_images_and_report_their_transpor
         err.contains("cluster.quic_mtu must lie in 1200..=65527"),
         "{err}"
     );
+    let o = render(
+        &dir.path().join("bad-wait.exr"),
+        &["--workers", "2", "--set", "cluster.replacement_wait_s=-1"],
+        &[],
+    );
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("cluster.replacement_wait_s must be 0 or"), "{err}");
     if shm_host {
         // `shm` forced on one host works as `auto` does.
         let (forced, s) = go("shm-forced", "shm", "radix-k");
@@ -354,6 +362,11 @@ struct Waiting {
 }
 
 fn start_waiting_coordinator(workers: usize, extra: &[&str]) -> Waiting {
+    start_waiting_coordinator_to(workers, "out.png", extra)
+}
+
+/// [`start_waiting_coordinator`], writing its image(s) to `out` in its folder.
+fn start_waiting_coordinator_to(workers: usize, out: &str, extra: &[&str]) -> Waiting {
     let dir = tempfile::tempdir().unwrap();
     let secret = dir.path().join("secret");
     std::fs::write(&secret, "correct-horse-battery-staple-42\n").unwrap();
@@ -369,7 +382,7 @@ fn start_waiting_coordinator(workers: usize, extra: &[&str]) -> Waiting {
     ];
     let mut c = Command::new(BIN);
     c.args(["render", scene.to_str().unwrap(), "-o"])
-        .arg(dir.path().join("out.png"))
+        .arg(dir.path().join(out))
         .args(["--size", SIZE, "--workers", &workers.to_string()]);
     for s in &sets {
         c.args(["--set", s]);
@@ -708,6 +721,104 @@ fn a_hung_worker_is_given_up_on_and_the_sequence_goes_on_without_it() {
     assert_eq!(lost[0]["rank"], 2, "{text}");
     // Frame 0 by two workers after the loss, and so are frames 1 and 2.
     assert_eq!(text.matches("\"kind\":\"worker\"").count(), 6, "{text}");
+}
+
+#[test]
+fn a_replacement_worker_joins_a_running_sequence_and_takes_load() {
+    let scene = survey().join("scene.toml");
+    let refs = tempfile::tempdir().unwrap();
+    let (_, _) = orbit_run(&scene, refs.path(), "in", 4, &["--in-process"]);
+    // Cluster mode, 2 workers: worker 1 kills itself in frame 0's exchange, frame 0 is
+    // re-rendered by worker 0 alone, and frame 1 waits for a replacement.
+    let outd = tempfile::tempdir().unwrap();
+    let at = |n: &str| outd.path().join(n).display().to_string();
+    let w = start_waiting_coordinator_to(
+        2,
+        &at("rep_%03d.png"),
+        &[
+            "--orbit",
+            "4",
+            "--exr",
+            &at("rep_%03d.exr"),
+            "--stats",
+            &at("rep.jsonl"),
+            "--set",
+            "render.early_termination=1.0",
+            "--set",
+            "cluster.idle_timeout_s=2",
+            "--set",
+            "cluster.replacement_wait_s=30",
+        ],
+    );
+    let log = w.dir.path().join("coordinator.log");
+    let start = |fault: Option<&str>| {
+        let mut c = Command::new(BIN);
+        c.args(["worker", "--connect"])
+            .arg(format!("127.0.0.1:{}", w.port))
+            .args(["--fingerprint", &w.fingerprint, "--connect-timeout-s", "20"])
+            .env("STRATA_SECRET", "correct-horse-battery-staple-42")
+            .stdout(Stdio::null())
+            .stderr(Stdio::null());
+        if let Some(f) = fault {
+            c.env("STRATA_TEST_FAULT", f);
+        }
+        c.spawn().unwrap()
+    };
+    let mut a = start(Some("1:kill:exchange"));
+    wait_for_log(&log, "worker joined rank=0");
+    let mut b = start(Some("1:kill:exchange"));
+    wait_for_log(&log, "re-rendering the frame without worker 1");
+    let mut c = start(None);
+    let mut w = w;
+    let status = w.child.wait().unwrap();
+    let text = std::fs::read_to_string(&log).unwrap();
+    assert!(status.success(), "{text}");
+    for p in [&mut a, &mut b, &mut c] {
+        let _ = p.wait();
+    }
+    let stats = std::fs::read_to_string(at("rep.jsonl")).unwrap();
+    for i in 0..4 {
+        let d = max_diff(
+            &read_exr(&refs.path().join(format!("in_{i:03}.exr"))),
+            &read_exr(Path::new(&at(&format!("rep_{i:03}.exr")))),
+        );
+        assert!(d <= 1e-5, "frame {i} differs by {d}");
+    }
+    let summary: serde_json::Value = serde_json::from_str(stats.lines().last().unwrap()).unwrap();
+    let joined = summary["joined_workers"].as_array().unwrap();
+    assert_eq!(joined.len(), 1, "{stats}");
+    assert_eq!(joined[0]["rank"], 2, "{stats}");
+    assert_eq!(joined[0]["frame"], 1, "{stats}");
+    let ranks: Vec<u64> = joined[0]["assignment"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|a| a["rank"].as_u64().unwrap())
+        .collect();
+    assert_eq!(ranks, [0, 2], "{stats}");
+    assert_eq!(
+        summary["lost_workers"].as_array().unwrap().len(),
+        1,
+        "{stats}"
+    );
+    // Frame 0 by worker 0 alone; frames 1..3 by workers 0 and 2.
+    let per_frame = |f: u64| {
+        stats
+            .lines()
+            .filter(|l| l.contains("\"kind\":\"worker\""))
+            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+            .filter(|v| v["frame"] == f)
+            .map(|v| v["rank"].as_u64().unwrap())
+            .collect::<Vec<u64>>()
+    };
+    assert_eq!(per_frame(0), [0], "{stats}");
+    for f in 1..4 {
+        assert_eq!(per_frame(f), [0, 2], "frame {f}: {stats}");
+    }
+    assert!(
+        text.contains("worker joined the running sequence"),
+        "{text}"
+    );
 }
 
 #[test]

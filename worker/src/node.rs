@@ -602,6 +602,7 @@ async fn mesh(
     for &r in &setup.absent {
         exchange.handle_lost(r, "given up on during set-up".into());
     }
+    exchange.skip_to(setup.next_frame);
     if shm_count > 0 {
         // Pieces for peers on this host are encoded straight into their segments.
         exchange.set_sink(Box::new(ShmSink { writers: shm_out }));

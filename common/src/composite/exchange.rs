@@ -436,6 +436,14 @@ impl Exchange {
         self.advance();
     }
 
+    /// Starts this exchange at frame `next` (a worker set up during a sequence): earlier
+    /// frames count as over, and pieces may run `frames_ahead` frames past `next - 1`.
+    pub fn skip_to(&mut self, next: u64) {
+        if next > 0 && self.active.is_none() {
+            self.last = Some(self.last.map_or(next - 1, |l| l.max(next - 1)));
+        }
+    }
+
     /// A parsed piece that came on the connection of rank `sender`, claiming frame,
     /// round and sender position `from`; `len` is what it took on the wire.
     pub fn handle_piece(
