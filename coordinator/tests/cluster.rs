@@ -344,7 +344,10 @@ fn shared_memory_and_forced_quic_give_identical_images_and_report_their_transpor
     );
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
-    assert!(err.contains("cluster.replacement_wait_s must be 0 or"), "{err}");
+    assert!(
+        err.contains("cluster.replacement_wait_s must be 0 or"),
+        "{err}"
+    );
     if shm_host {
         // `shm` forced on one host works as `auto` does.
         let (forced, s) = go("shm-forced", "shm", "radix-k");
@@ -577,29 +580,36 @@ fn lost_workers(stats: &Path) -> (String, Vec<serde_json::Value>) {
     (text, lost)
 }
 
-/// Renders the survey on 3 workers while worker 1 SIGKILLs or SIGSTOPs itself at
-/// `phase` (`STRATA_TEST_FAULT`), and checks that the frame equals the in-process one and
-/// that the stats tell the loss: rank 1, `lost_phase`, why, how long the recovery took,
-/// who renders what now (ranks 0 and 2, each with leaves), and two workers' frame stats.
-fn check_recovery(phase: &str, signal: &str, lost_phase: &str, said: &str) {
+/// Renders the survey on `workers` workers (3 unless `extra` says otherwise) while worker 1
+/// SIGKILLs or SIGSTOPs itself at `phase` (`STRATA_TEST_FAULT`), and checks that the frame
+/// equals the in-process one and that the stats tell the loss: rank 1, `lost_phase`, why,
+/// how long the recovery took, who renders what now (every other rank, each with leaves),
+/// and the frame stats of the workers left.
+fn check_recovery(
+    phase: &str,
+    signal: &str,
+    lost_phase: &str,
+    said: &str,
+    workers: u32,
+    extra: &[&str],
+) {
     let dir = tempfile::tempdir().unwrap();
     let name = format!("{signal}-{phase}");
     let out = dir.path().join(format!("{name}.exr"));
     let stats = dir.path().join(format!("{name}.jsonl"));
     let fault = format!("1:{signal}:{phase}");
     let t = Instant::now();
-    let o = render(
-        &out,
-        &[
-            "--workers",
-            "3",
-            "--set",
-            "cluster.idle_timeout_s=2",
-            "--stats",
-            stats.to_str().unwrap(),
-        ],
-        &[("STRATA_TEST_FAULT", &fault)],
-    );
+    let n = workers.to_string();
+    let mut args = vec![
+        "--workers",
+        &n,
+        "--set",
+        "cluster.idle_timeout_s=2",
+        "--stats",
+        stats.to_str().unwrap(),
+    ];
+    args.extend_from_slice(extra);
+    let o = render(&out, &args, &[("STRATA_TEST_FAULT", &fault)]);
     let took = t.elapsed();
     assert!(
         o.status.success(),
@@ -623,7 +633,8 @@ fn check_recovery(phase: &str, signal: &str, lost_phase: &str, said: &str) {
         .iter()
         .map(|a| a["rank"].as_u64().unwrap())
         .collect();
-    assert_eq!(ranks, [0, 2], "{name}: {text}");
+    let left: Vec<u64> = (0..workers as u64).filter(|&r| r != 1).collect();
+    assert_eq!(ranks, left, "{name}: {text}");
     assert!(
         assignment
             .iter()
@@ -632,7 +643,7 @@ fn check_recovery(phase: &str, signal: &str, lost_phase: &str, said: &str) {
     );
     assert_eq!(
         text.matches("\"kind\":\"worker\"").count(),
-        2,
+        left.len(),
         "{name}: {text}"
     );
     let stdout = String::from_utf8_lossy(&o.stdout);
@@ -652,8 +663,20 @@ fn check_recovery(phase: &str, signal: &str, lost_phase: &str, said: &str) {
 fn a_worker_killed_or_stopped_at_any_phase_of_a_frame_costs_a_re_render() {
     for phase in ["render", "exchange", "round", "gather"] {
         for signal in ["kill", "stop"] {
-            check_recovery(phase, signal, "frame", "re-rendered without it");
+            check_recovery(phase, signal, "frame", "re-rendered without it", 3, &[]);
         }
+    }
+    // A later exchange round: binary swap over 4 workers has two; worker 1 goes with its
+    // second round's pieces sent.
+    for signal in ["kill", "stop"] {
+        check_recovery(
+            "round1",
+            signal,
+            "frame",
+            "re-rendered without it",
+            4,
+            &["--set", "composite.algorithm=binary-swap"],
+        );
     }
 }
 
@@ -663,7 +686,7 @@ fn a_worker_killed_or_stopped_during_set_up_is_left_out_and_the_frame_is_correct
     // says it is ready. Either way the two workers left are set up again without it.
     for phase in ["setup", "ready"] {
         for signal in ["kill", "stop"] {
-            check_recovery(phase, signal, "set-up", "during set-up");
+            check_recovery(phase, signal, "set-up", "during set-up", 3, &[]);
         }
     }
     let dir = tempfile::tempdir().unwrap();

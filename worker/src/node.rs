@@ -919,10 +919,12 @@ struct FrontLast {
 }
 
 /// Test hook (debug builds only, what the tests run; release binaries ignore it):
-/// `STRATA_TEST_FAULT=RANK:kill|stop:PHASE` makes worker RANK SIGKILL or SIGSTOP itself in
-/// frame 0 at PHASE: `render` (before rendering), `exchange` (after rendering, before
-/// sending anything), `round` (with its first round's pieces sent) or `gather` (before
-/// its final piece goes to the coordinator). Tests check that a vanished or hung worker
+/// `STRATA_TEST_FAULT=RANK:kill|stop:PHASE` makes worker RANK SIGKILL or SIGSTOP itself at
+/// PHASE: `setup` (on its first set-up, before it dials its peers), `ready` (meshed, before
+/// it says so) or, in frame 0, `render` (before rendering), `exchange` (after rendering,
+/// before sending anything), `round` or `round0` (with its first round's pieces sent),
+/// `roundN` (with round N's pieces sent) or `gather` (before its final piece goes to
+/// the coordinator). Tests check that a vanished or hung worker
 /// at any of these moments costs a re-render, or fails the frame naming it.
 fn test_fault(rank: u32, frame: u64, phase: &str) {
     if !cfg!(debug_assertions) || frame != 0 {
@@ -1205,13 +1207,19 @@ impl Node {
             )
         });
         let mut sends = Vec::new();
+        let mut round_sent: Option<u32> = None;
         let result = loop {
+            let before = round_sent;
             while let Some(out) = self.exchange.poll_send() {
+                round_sent = Some(out.round);
                 sends.push(self.send_piece(out, &mut stats)?);
             }
-            if !sends.is_empty() {
-                // Its first round's pieces are on their way.
-                test_fault(self.rank, req.frame, "round");
+            if let Some(round) = round_sent.filter(|_| round_sent != before) {
+                // This round's pieces are on their way.
+                if round == 0 {
+                    test_fault(self.rank, req.frame, "round");
+                }
+                test_fault(self.rank, req.frame, &format!("round{round}"));
             }
             match self.exchange.poll_event() {
                 Some(ExchangeEvent::Done { result, .. }) => break result,
