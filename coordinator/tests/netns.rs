@@ -1,0 +1,350 @@
+//! A cluster on a real (virtual) network: the coordinator and each worker in a network
+//! namespace of its own, wired by veth pairs to a bridge in a switch namespace that the
+//! test makes, every link rate-limited to 1 Gbit/s (`tbf`) both ways, pieces over QUIC.
+//! The sequence must equal the in-process one frame by frame, also when one worker's link
+//! is cut during the sequence (its leaves go to the others).
+//!
+//! Needs root (CAP_NET_ADMIN) and network namespaces; where either is missing the test
+//! says so on stderr and ends. Latency and loss (`tc netem`) are not emulated: the kernel
+//! of the machines this runs on has no `sch_netem` ("Specified qdisc kind is unknown").
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+const BIN: &str = env!("CARGO_BIN_EXE_coordinator");
+const SIZE: &str = "96x64";
+const FRAMES: u32 = 8;
+const SECRET: &str = "correct-horse-battery-staple-42";
+
+/// A small synthetic survey, generated once per test run.
+fn survey() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("netns-survey");
+        let out = Command::new(BIN)
+            .args(["-q", "synth", "-o"])
+            .arg(&dir)
+            .args(["--size", "40", "32", "24", "--seed", "5"])
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        dir
+    })
+}
+
+/// Runs `ip`/`tc` with `args`; the error text if it fails.
+fn run(cmd: &str, args: &[&str]) -> Result<(), String> {
+    let o = Command::new(cmd)
+        .args(args)
+        .output()
+        .map_err(|e| format!("{cmd}: {e}"))?;
+    if o.status.success() {
+        Ok(())
+    } else {
+        Err(format!(
+            "{cmd} {}: {}",
+            args.join(" "),
+            String::from_utf8_lossy(&o.stderr).trim()
+        ))
+    }
+}
+
+/// The namespaces of one test: a switch and `nodes` hosts at 10.88.0.1, .2, … Removed
+/// (with their links) on drop.
+struct Net {
+    switch: String,
+    nodes: Vec<String>,
+    /// Each node's port on the switch.
+    ports: Vec<String>,
+}
+
+impl Drop for Net {
+    fn drop(&mut self) {
+        for ns in self.nodes.iter().chain([&self.switch]) {
+            let _ = run("ip", &["netns", "del", ns]);
+        }
+    }
+}
+
+impl Net {
+    fn new(nodes: usize) -> Result<Net, String> {
+        let tag = std::process::id();
+        let mut net = Net {
+            switch: format!("strata{tag}sw"),
+            nodes: Vec::new(),
+            ports: Vec::new(),
+        };
+        let sw = net.switch.clone();
+        run("ip", &["netns", "add", &sw])?;
+        run("ip", &["-n", &sw, "link", "add", "br0", "type", "bridge"])?;
+        run("ip", &["-n", &sw, "link", "set", "br0", "up"])?;
+        let tbf = ["tbf", "rate", "1gbit", "burst", "256kb", "latency", "50ms"];
+        for k in 0..nodes {
+            let ns = format!("strata{tag}n{k}");
+            run("ip", &["netns", "add", &ns])?;
+            net.nodes.push(ns.clone());
+            // Interface names: at most 15 bytes, unique in the root namespace while made.
+            let (v, p) = (format!("s{tag}v{k}"), format!("s{tag}p{k}"));
+            run(
+                "ip",
+                &["link", "add", &v, "type", "veth", "peer", "name", &p],
+            )?;
+            run("ip", &["link", "set", &v, "netns", &ns])?;
+            run("ip", &["link", "set", &p, "netns", &sw])?;
+            let addr = format!("10.88.0.{}/24", k + 1);
+            run("ip", &["-n", &ns, "addr", "add", &addr, "dev", &v])?;
+            run("ip", &["-n", &ns, "link", "set", &v, "up"])?;
+            run("ip", &["-n", &ns, "link", "set", "lo", "up"])?;
+            run("ip", &["-n", &sw, "link", "set", &p, "master", "br0"])?;
+            run("ip", &["-n", &sw, "link", "set", &p, "up"])?;
+            // 1 Gbit/s each way: into the node (the switch port's egress) and out of it.
+            let mut a = vec!["-n", &sw, "qdisc", "add", "dev", &p, "root"];
+            a.extend(tbf);
+            run("tc", &a)?;
+            let mut a = vec!["-n", &ns, "qdisc", "add", "dev", &v, "root"];
+            a.extend(tbf);
+            run("tc", &a)?;
+            net.ports.push(p);
+        }
+        Ok(net)
+    }
+
+    /// A command run inside node `k`'s namespace.
+    fn exec(&self, k: usize) -> Command {
+        let mut c = Command::new("ip");
+        c.args(["netns", "exec", &self.nodes[k], BIN]);
+        c
+    }
+
+    /// Cuts node `k`'s link at the switch.
+    fn cut(&self, k: usize) {
+        run(
+            "ip",
+            &["-n", &self.switch, "link", "set", &self.ports[k], "down"],
+        )
+        .unwrap();
+    }
+}
+
+/// The network, or `None` (said on stderr) where this machine cannot make one.
+fn network(nodes: usize) -> Option<Net> {
+    match Net::new(nodes) {
+        Ok(n) => Some(n),
+        Err(e) if e.contains("Operation not permitted") || e.contains("No such file") => {
+            eprintln!("SKIPPED: this machine cannot make network namespaces: {e}");
+            None
+        }
+        Err(e) => panic!("making the test network: {e}"),
+    }
+}
+
+fn strip_ansi(s: &str) -> String {
+    let mut out = String::new();
+    let mut esc = false;
+    for c in s.chars() {
+        match (esc, c) {
+            (false, '\u{1b}') => esc = true,
+            (true, 'm') => esc = false,
+            (true, _) => {}
+            (false, c) => out.push(c),
+        }
+    }
+    out
+}
+
+fn read_exr(p: &Path) -> Vec<[f32; 4]> {
+    let img = exr::prelude::read_first_rgba_layer_from_file(
+        p,
+        |res, _| vec![[0f32; 4]; res.width() * res.height()],
+        |px: &mut Vec<[f32; 4]>, pos, (r, g, b, a): (f32, f32, f32, f32)| {
+            px[pos.y() * 96 + pos.x()] = [r, g, b, a];
+        },
+    )
+    .unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+    img.layer_data.channel_data.pixels
+}
+
+fn max_diff(a: &[[f32; 4]], b: &[[f32; 4]]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .flat_map(|(p, q)| (0..4).map(move |c| (p[c] - q[c]).abs()))
+        .fold(0.0, f32::max)
+}
+
+/// The in-process orbit, frame by frame, in `dir`.
+fn reference(dir: &Path) -> Vec<PathBuf> {
+    let scene = survey().join("scene.toml");
+    let o = Command::new(BIN)
+        .args(["-q", "render", scene.to_str().unwrap(), "-o"])
+        .arg(dir.join("in_%03d.png"))
+        .arg("--exr")
+        .arg(dir.join("in_%03d.exr"))
+        .args([
+            "--size",
+            SIZE,
+            "--orbit",
+            &FRAMES.to_string(),
+            "--in-process",
+        ])
+        .args(["--set", "render.early_termination=1.0"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    (0..FRAMES)
+        .map(|i| dir.join(format!("in_{i:03}.exr")))
+        .collect()
+}
+
+/// Streams a child's stderr, ANSI colours removed, line by line.
+fn lines_of(child: &mut Child) -> std::sync::mpsc::Receiver<String> {
+    let (tx, rx) = std::sync::mpsc::channel();
+    let err = child.stderr.take().unwrap();
+    std::thread::spawn(move || {
+        for l in BufReader::new(err).lines() {
+            let Ok(l) = l else { break };
+            let _ = tx.send(strip_ansi(&l));
+        }
+    });
+    rx
+}
+
+/// Renders the orbit with the coordinator in namespace 0 and `workers` workers in
+/// namespaces 1.. over QUIC; `during(net, coordinator_log)` runs while it renders.
+/// Returns the `--stats` text.
+fn distributed(
+    net: &Net,
+    dir: &Path,
+    workers: usize,
+    during: impl FnOnce(&Net, &std::sync::mpsc::Receiver<String>),
+) -> String {
+    let scene = survey().join("scene.toml");
+    std::fs::create_dir_all(dir).unwrap();
+    let secret = dir.join("secret");
+    std::fs::write(&secret, format!("{SECRET}\n")).unwrap();
+    let fp = dir.join("fingerprint");
+    let stats = dir.join("d.jsonl");
+    let sets = [
+        "cluster.spawn=false".to_string(),
+        "cluster.listen=\"10.88.0.1:7000\"".to_string(),
+        format!("cluster.secret_file={:?}", secret.display().to_string()),
+        format!("cluster.fingerprint_file={:?}", fp.display().to_string()),
+        "cluster.connect_timeout_s=30".to_string(),
+        "cluster.idle_timeout_s=2".to_string(),
+        // The processes share a host: force the network between them.
+        "cluster.transport=\"quic\"".to_string(),
+        "render.early_termination=1.0".to_string(),
+    ];
+    let mut c = net.exec(0);
+    c.args(["-q", "render", scene.to_str().unwrap(), "-o"])
+        .arg(dir.join("d_%03d.png"))
+        .arg("--exr")
+        .arg(dir.join("d_%03d.exr"))
+        .arg("--stats")
+        .arg(&stats)
+        .args(["--size", SIZE, "--orbit", &FRAMES.to_string()])
+        .args(["--workers", &workers.to_string()]);
+    for s in &sets {
+        c.args(["--set", s]);
+    }
+    let mut coordinator = c
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let log = lines_of(&mut coordinator);
+    let t = Instant::now();
+    while !fp.exists() {
+        assert!(t.elapsed() < Duration::from_secs(30), "no fingerprint file");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let mut procs: Vec<Child> = Vec::new();
+    for k in 1..=workers {
+        let mut w = net.exec(k);
+        w.args([
+            "worker",
+            "--connect",
+            "10.88.0.1:7000",
+            "--fingerprint-file",
+        ])
+        .arg(&fp)
+        .args(["--bind", &format!("10.88.0.{}:0", k + 1)])
+        .env("STRATA_SECRET", SECRET)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null());
+        procs.push(w.spawn().unwrap());
+    }
+    during(net, &log);
+    let status = coordinator.wait().unwrap();
+    for mut p in procs {
+        let _ = p.kill();
+        let _ = p.wait();
+    }
+    std::thread::sleep(Duration::from_millis(100));
+    let err: Vec<String> = log.try_iter().collect();
+    assert!(status.success(), "{}", err.join("\n"));
+    std::fs::read_to_string(&stats).unwrap()
+}
+
+#[test]
+fn a_rate_limited_namespace_network_renders_like_in_process_and_survives_a_cut_link() {
+    let Some(net) = network(4) else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let refs = reference(dir.path());
+    let check = |run: &Path, stats: &str| {
+        for (i, r) in refs.iter().enumerate() {
+            let ours = run.join(format!("d_{i:03}.exr"));
+            let d = max_diff(&read_exr(r), &read_exr(&ours));
+            assert!(d <= 1e-5, "frame {i} differs by {d}: {stats}");
+        }
+    };
+
+    // 1. Three workers over the 1 Gbit/s links: every frame as in process, all pieces
+    //    over QUIC.
+    let run = dir.path().join("plain");
+    let stats = distributed(&net, &run, 3, |_, _| {});
+    check(&run, &stats);
+    let summary: serde_json::Value = serde_json::from_str(stats.lines().last().unwrap()).unwrap();
+    assert_eq!(summary["transport"]["quic_pairs"], 3, "{stats}");
+    assert_eq!(summary["exchange_shm_bytes"], 0, "{stats}");
+    assert!(
+        summary["lost_workers"].as_array().unwrap().is_empty(),
+        "{stats}"
+    );
+
+    // 2. The third worker's link is cut as the sequence starts (once the coordinator has
+    //    all workers ready, so within frame 0 or just before it): the worker is given up on
+    //    (its connections go silent), its leaves go to the two left, and every frame is
+    //    still as in process.
+    let run = dir.path().join("cut");
+    let stats = distributed(&net, &run, 3, |net, log| {
+        let mut seen = Vec::new();
+        loop {
+            let l = log
+                .recv_timeout(Duration::from_secs(30))
+                .unwrap_or_else(|e| panic!("no \"all workers ready\" ({e}): {seen:#?}"));
+            if l.contains("all workers ready") {
+                break;
+            }
+            seen.push(l);
+        }
+        net.cut(3);
+    });
+    check(&run, &stats);
+    let summary: serde_json::Value = serde_json::from_str(stats.lines().last().unwrap()).unwrap();
+    let lost = summary["lost_workers"].as_array().unwrap();
+    assert_eq!(lost.len(), 1, "{stats}");
+    assert!(
+        lost[0]["worker"].as_str().unwrap().contains("10.88.0.4"),
+        "{stats}"
+    );
+    assert_eq!(lost[0]["phase"], "frame", "{stats}");
+}
