@@ -2,8 +2,10 @@
 # Render a scene on a Slurm allocation: the coordinator runs on the first node of the job,
 # one worker per task on all nodes; workers exchange image pieces directly over QUIC.
 #
-#   sbatch --nodes=4 --ntasks-per-node=2 configs/slurm-render.sh configs/demo.toml out.png
+#   sbatch --nodes=4 --ntasks-per-node=2 configs/slurm-render.sh configs/demo.toml out.png [RENDER ARGS...]
 #
+# Arguments after OUT go to `coordinator render` as they are (e.g. --exr out.exr, --size
+# 1920x1080, --orbit 100, --set KEY=VALUE).
 # Needs: the `coordinator` and `worker` binaries on PATH (cargo build --release) on every
 # node, and the scene's stores on a file system all nodes see (workers open the same paths).
 # STRATA_QUIC_MTU=N starts QUIC datagrams at N bytes on coordinator and workers alike
@@ -14,7 +16,8 @@
 set -euo pipefail
 
 SCENE=${1:?usage: slurm-render.sh SCENE.toml OUT.png}
-OUT=${2:?usage: slurm-render.sh SCENE.toml OUT.png}
+OUT=${2:?usage: slurm-render.sh SCENE.toml OUT.png [RENDER ARGS...]}
+shift 2
 PORT=${STRATA_PORT:-7000}
 WORKERS=${SLURM_NTASKS:?run under sbatch/salloc}
 MTU=${STRATA_QUIC_MTU:-1200}
@@ -35,7 +38,7 @@ coordinator render "$SCENE" -o "$OUT" --workers "$WORKERS" \
     --set "cluster.secret_file=\"$RUN/secret\"" \
     --set "cluster.fingerprint_file=\"$RUN/fingerprint\"" \
     --set cluster.connect_timeout_s=300 \
-    --set "cluster.quic_mtu=$MTU" &
+    --set "cluster.quic_mtu=$MTU" "$@" &
 COORD=$!
 
 # Workers need the fingerprint, which exists once the coordinator listens.

@@ -9,27 +9,12 @@ use std::process::{Child, Command, Output, Stdio};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
-const BIN: &str = env!("CARGO_BIN_EXE_coordinator");
-const SIZE: &str = "96x64";
+mod common;
+use common::{max_diff, read_exr, read_exr_sized, strip_ansi, survey_in, BIN, SIZE};
 
 /// A small synthetic survey (cube + 3 horizons + scene.toml), generated once per test run.
 fn survey() -> &'static Path {
-    static DIR: OnceLock<PathBuf> = OnceLock::new();
-    DIR.get_or_init(|| {
-        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("cluster-survey");
-        let out = Command::new(BIN)
-            .args(["-q", "synth", "-o"])
-            .arg(&dir)
-            .args(["--size", "40", "32", "24", "--seed", "5"])
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        dir
-    })
+    survey_in("cluster-survey")
 }
 
 fn run(args: &[&str], env: &[(&str, &str)]) -> Output {
@@ -39,10 +24,6 @@ fn run(args: &[&str], env: &[(&str, &str)]) -> Output {
         c.env(k, v);
     }
     c.output().unwrap()
-}
-
-fn read_exr(p: &Path) -> Vec<[f32; 4]> {
-    read_exr_sized(p, 96)
 }
 
 /// Renders the survey. Early ray termination is off: a region cannot know the opacity in
@@ -85,14 +66,6 @@ fn synth_survey(dir: &Path, size: [&str; 3], seed: &str) -> PathBuf {
     let o = run(&args, &[]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     dir.join("scene.toml")
-}
-
-fn max_diff(a: &[[f32; 4]], b: &[[f32; 4]]) -> f32 {
-    assert_eq!(a.len(), b.len());
-    a.iter()
-        .zip(b)
-        .flat_map(|(p, q)| (0..4).map(move |c| (p[c] - q[c]).abs()))
-        .fold(0.0, f32::max)
 }
 
 fn reference() -> &'static Vec<[f32; 4]> {
@@ -438,20 +411,6 @@ fn start_waiting_coordinator_to(workers: usize, out: &str, extra: &[&str]) -> Wa
         port,
         fingerprint,
     }
-}
-
-fn strip_ansi(s: &str) -> String {
-    let mut out = String::new();
-    let mut esc = false;
-    for c in s.chars() {
-        match (esc, c) {
-            (false, '\u{1b}') => esc = true,
-            (true, 'm') => esc = false,
-            (true, _) => {}
-            (false, c) => out.push(c),
-        }
-    }
-    out
 }
 
 fn worker(w: &Waiting, fingerprint: &str, secret: &str) -> Output {
@@ -1685,19 +1644,6 @@ fn cross_worker_occlusion_casts_less_and_stays_within_the_termination_bound() {
             "frame {i}: {gpu_n:?} against {gpu_off_n:?}"
         );
     }
-}
-
-fn read_exr_sized(p: &Path, w: usize) -> Vec<[f32; 4]> {
-    use exr::prelude::*;
-    let img = read_first_rgba_layer_from_file(
-        p,
-        |res, _| vec![[0f32; 4]; res.width() * res.height()],
-        move |px: &mut Vec<[f32; 4]>, pos, (r, g, b, a): (f32, f32, f32, f32)| {
-            px[pos.y() * w + pos.x()] = [r, g, b, a];
-        },
-    )
-    .unwrap();
-    img.layer_data.channel_data.pixels
 }
 
 /// A 3×2 wall of 24×20 tiles with 6×4-pixel mullions: every tile equals the crop of one

@@ -11,33 +11,13 @@
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
-use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
-const BIN: &str = env!("CARGO_BIN_EXE_coordinator");
-const SIZE: &str = "96x64";
+mod common;
+use common::{max_diff, read_exr, strip_ansi, survey_in, BIN, SIZE};
+
 const FRAMES: u32 = 8;
 const SECRET: &str = "correct-horse-battery-staple-42";
-
-/// A small synthetic survey, generated once per test run.
-fn survey() -> &'static Path {
-    static DIR: OnceLock<PathBuf> = OnceLock::new();
-    DIR.get_or_init(|| {
-        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("netns-survey");
-        let out = Command::new(BIN)
-            .args(["-q", "synth", "-o"])
-            .arg(&dir)
-            .args(["--size", "40", "32", "24", "--seed", "5"])
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        dir
-    })
-}
 
 /// Runs `ip`/`tc` with `args`; the error text if it fails.
 fn run(cmd: &str, args: &[&str]) -> Result<(), String> {
@@ -145,43 +125,9 @@ fn network(nodes: usize) -> Option<Net> {
     }
 }
 
-fn strip_ansi(s: &str) -> String {
-    let mut out = String::new();
-    let mut esc = false;
-    for c in s.chars() {
-        match (esc, c) {
-            (false, '\u{1b}') => esc = true,
-            (true, 'm') => esc = false,
-            (true, _) => {}
-            (false, c) => out.push(c),
-        }
-    }
-    out
-}
-
-fn read_exr(p: &Path) -> Vec<[f32; 4]> {
-    let img = exr::prelude::read_first_rgba_layer_from_file(
-        p,
-        |res, _| vec![[0f32; 4]; res.width() * res.height()],
-        |px: &mut Vec<[f32; 4]>, pos, (r, g, b, a): (f32, f32, f32, f32)| {
-            px[pos.y() * 96 + pos.x()] = [r, g, b, a];
-        },
-    )
-    .unwrap_or_else(|e| panic!("{}: {e}", p.display()));
-    img.layer_data.channel_data.pixels
-}
-
-fn max_diff(a: &[[f32; 4]], b: &[[f32; 4]]) -> f32 {
-    assert_eq!(a.len(), b.len());
-    a.iter()
-        .zip(b)
-        .flat_map(|(p, q)| (0..4).map(move |c| (p[c] - q[c]).abs()))
-        .fold(0.0, f32::max)
-}
-
 /// The in-process orbit, frame by frame, in `dir`.
 fn reference(dir: &Path) -> Vec<PathBuf> {
-    let scene = survey().join("scene.toml");
+    let scene = survey_in("netns-survey").join("scene.toml");
     let o = Command::new(BIN)
         .args(["-q", "render", scene.to_str().unwrap(), "-o"])
         .arg(dir.join("in_%03d.png"))
@@ -225,7 +171,7 @@ fn distributed(
     workers: usize,
     during: impl FnOnce(&Net, &std::sync::mpsc::Receiver<String>),
 ) -> String {
-    let scene = survey().join("scene.toml");
+    let scene = survey_in("netns-survey").join("scene.toml");
     std::fs::create_dir_all(dir).unwrap();
     let secret = dir.join("secret");
     std::fs::write(&secret, format!("{SECRET}\n")).unwrap();
