@@ -370,7 +370,22 @@ impl TransferFunction {
     pub fn preintegrated_table(&self, exponent: f32) -> PreintTable {
         let n = PREINT_SIZE;
         let m = (self.table.len() - 1) as f64;
-        let e = exponent as f64;
+        // Positions in table units of the pre-integrated axes.
+        let (scale, offset) = self.position_map();
+        let r = (n - 1) as f64 / m;
+        PreintTable {
+            entries: self.segments(exponent as f64),
+            half_entries: self.segments(exponent as f64 * 0.5),
+            scale: (scale as f64 * r) as f32,
+            offset: (offset as f64 * r) as f32,
+            last: (n - 1) as f32,
+        }
+    }
+
+    /// The `PREINT_SIZE`² segment entries for a segment of `e` reference steps.
+    fn segments(&self, e: f64) -> Vec<[f32; 4]> {
+        let n = PREINT_SIZE;
+        let m = (self.table.len() - 1) as f64;
         let mut entries = vec![[0f32; 4]; n * n];
         let straight = |x: f64| -> [f64; 4] {
             let p = (x * m).clamp(0.0, m);
@@ -400,15 +415,7 @@ impl TransferFunction {
                 *out = [c[0] as f32, c[1] as f32, c[2] as f32, (1.0 - t) as f32];
             }
         }
-        // Positions in table units of the pre-integrated axes.
-        let (scale, offset) = self.position_map();
-        let r = (n - 1) as f64 / m;
-        PreintTable {
-            entries,
-            scale: (scale as f64 * r) as f32,
-            offset: (offset as f64 * r) as f32,
-            last: (n - 1) as f32,
-        }
+        entries
     }
 }
 
@@ -424,6 +431,9 @@ pub struct PreintTable {
     pub offset: f32,
     /// Last position (`PREINT_SIZE − 1`).
     pub last: f32,
+    /// The same for segments half as long: a span of samples covers half a step before
+    /// its first sample and half a step after its last, as point samples would.
+    pub half_entries: Vec<[f32; 4]>,
 }
 
 impl PreintTable {
@@ -431,13 +441,23 @@ impl PreintTable {
     /// between entries).
     #[inline]
     pub fn lookup(&self, front: f32, back: f32) -> [f32; 4] {
+        self.lookup_in(&self.entries, front, back)
+    }
+
+    /// [`lookup`](Self::lookup) for a segment half a step long.
+    #[inline]
+    pub fn lookup_half(&self, front: f32, back: f32) -> [f32; 4] {
+        self.lookup_in(&self.half_entries, front, back)
+    }
+
+    #[inline(always)]
+    fn lookup_in(&self, e: &[[f32; 4]], front: f32, back: f32) -> [f32; 4] {
         let n = PREINT_SIZE;
         let pf = (front * self.scale + self.offset).clamp(0.0, self.last);
         let pb = (back * self.scale + self.offset).clamp(0.0, self.last);
         let i = (pf as usize).min(n - 2);
         let j = (pb as usize).min(n - 2);
         let (u, v) = (pf - i as f32, pb - j as f32);
-        let e = &self.entries;
         let (a, b, c, d) = (
             e[i * n + j],
             e[i * n + j + 1],

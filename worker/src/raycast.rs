@@ -16,11 +16,12 @@
 
 use crate::atlas::{Samples, Voxel};
 use crate::horizon::{Hit, HorFrame};
-use crate::volume::{first_k, first_k_near, trilinear_at, Cursor, VolFrame};
+use crate::volume::{first_k, first_k_near, trilinear_at, Cursor, VolFrame, NO_LIGHT};
 use rayon::prelude::*;
 use strata_common::effects::{EffectSet, Variant};
 use strata_common::image::{PartialImage, Rect, Rgba};
 use strata_common::occlusion::RayLimits;
+use strata_common::tf::PreintTable;
 
 /// Tile edge in pixels (rayon's unit of work; one feedback list per tile).
 pub const TILE: u32 = 16;
@@ -291,7 +292,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                     let nk = first_k_near(cur.t_exit.min(seg_end), dt, inv_dt).max(k + 1);
                     skipped += (nk - k) as u64;
                     k = nk;
-                    cur.prev = f32::NAN;
+                    end_span(pre, cur, &mut acc);
                     continue;
                 }
                 let q = [v.c[0] + t * md[0], v.c[1] + t * md[1], v.c[2] + t * md[2]];
@@ -303,7 +304,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                             first_k_near(exit.min(cur.t_exit).min(seg_end), dt, inv_dt).max(k + 1);
                         skipped += (nk - k) as u64;
                         k = nk;
-                        cur.prev = f32::NAN;
+                        end_span(pre, cur, &mut acc);
                         continue;
                     }
                     cell_exit = exit;
@@ -314,23 +315,49 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                 samples += 1;
                 k += 1;
                 if s.is_nan() {
-                    cur.prev = f32::NAN;
+                    end_span(pre, cur, &mut acc);
                     continue; // no data: transparent
                 }
-                let mut rgba = match pre {
-                    // The segment from the previous sample; the first sample of a span has
-                    // none and is classified alone.
-                    Some(pre) if has(S, PRE) && !cur.prev.is_nan() => pre.lookup(cur.prev, s),
-                    _ => table.lookup(s),
-                };
-                if has(S, PRE) {
+                if let (true, Some(pre)) = (has(S, PRE), pre) {
+                    let light = if shading {
+                        light(v, cur, q, self.d)
+                    } else {
+                        NO_LIGHT
+                    };
+                    if cur.prev.is_nan() {
+                        // A span's first sample: the half step before it waits for the
+                        // next sample, which gives the slope to extrapolate it with.
+                        cur.lead = true;
+                    } else {
+                        if cur.lead {
+                            // The half step before the span's first sample, the value
+                            // extrapolated linearly to its front.
+                            let front = 1.5 * cur.prev - 0.5 * s;
+                            let mut rgba = pre.lookup_half(front, cur.prev);
+                            apply_light(&mut rgba, cur.prev_light);
+                            blend(&mut acc, rgba);
+                            cur.lead = false;
+                        }
+                        // The segment from the previous sample.
+                        let mut rgba = pre.lookup(cur.prev, s);
+                        apply_light(&mut rgba, light);
+                        blend(&mut acc, rgba);
+                    }
+                    cur.before = cur.prev;
                     cur.prev = s;
+                    cur.prev_light = light;
+                    if acc[3] >= ert {
+                        terminated = true;
+                        break;
+                    }
+                    continue;
                 }
+                let mut rgba = table.lookup(s);
                 if shading {
                     if rgba[3] <= 0.0 {
                         continue; // no gradient for what does not show
                     }
-                    shade(v, cur, q, self.d, &mut rgba);
+                    apply_light(&mut rgba, light(v, cur, q, self.d));
                 }
                 // Unconditionally: a zero-opacity entry is all zeros (premultiplied), so the
                 // blend leaves `acc` exactly as it is, and a data-dependent branch costs more
@@ -340,6 +367,10 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                     terminated = true;
                     break;
                 }
+            }
+            // The ray leaves the volume: its span ends half a step after its last sample.
+            if has(S, PRE) && !terminated && seg_end >= cur.span_end {
+                end_span(pre, cur, &mut acc);
             }
             self.acc = acc;
             self.stats.samples += samples;
@@ -435,7 +466,39 @@ impl<'s, 'a> RayCtx<'s, 'a> {
     }
 }
 
+/// Ends a span of samples (empty space, no data, or the volume's end follows). With
+/// pre-integration the half step after its last sample joins the ray, the value
+/// extrapolated linearly to its back from the sample before (a one-sample span: the
+/// sample's whole step, classified alone), lit as that sample was: a span covers half a
+/// step before its first sample and after its last, as point samples would, and a value
+/// linear along the ray is integrated exactly. The cursor then has no sample before the
+/// next.
+#[inline(always)]
+fn end_span(pre: Option<&PreintTable>, cur: &mut Cursor, acc: &mut Rgba) {
+    if let Some(pre) = pre {
+        let p = cur.prev;
+        if !p.is_nan() {
+            let mut rgba = if cur.lead {
+                pre.lookup(p, p)
+            } else {
+                pre.lookup_half(p, 1.5 * p - 0.5 * cur.before)
+            };
+            apply_light(&mut rgba, cur.prev_light);
+            blend(acc, rgba);
+        }
+    }
+    cur.prev = f32::NAN;
+    cur.before = f32::NAN;
+    cur.lead = false;
+}
+
 fn shade(v: &VolFrame<'_>, cur: &Cursor, q: [f32; 3], d: [f32; 3], rgba: &mut Rgba) {
+    apply_light(rgba, light(v, cur, q, d));
+}
+
+/// Headlight Blinn-Phong factors at `q`: `[ambient + diffuse, specular per unit of
+/// opacity]`, or [`NO_LIGHT`] where the gradient vanishes.
+fn light(v: &VolFrame<'_>, cur: &Cursor, q: [f32; 3], d: [f32; 3]) -> [f32; 2] {
     let g = v.gradient(cur, q);
     // Index-space gradient to camera space: ∇_world = Mᵀ ∇_index.
     let m = &v.m;
@@ -446,14 +509,19 @@ fn shade(v: &VolFrame<'_>, cur: &Cursor, q: [f32; 3], d: [f32; 3], rgba: &mut Rg
     ];
     let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
     if !(len > 1e-12) || !len.is_finite() {
-        return;
+        return NO_LIGHT;
     }
     let cosv = ((n[0] * d[0] + n[1] * d[1] + n[2] * d[2]) / len).abs();
-    // Headlight Blinn-Phong: ambient + diffuse + a little specular.
-    let k = 0.3 + 0.6 * cosv;
-    let spec = 0.25 * cosv.powi(24) * rgba[3];
+    // Ambient + diffuse + a little specular.
+    [0.3 + 0.6 * cosv, 0.25 * cosv.powi(24)]
+}
+
+/// Lights a premultiplied colour with [`light`]'s factors.
+#[inline(always)]
+fn apply_light(rgba: &mut Rgba, l: [f32; 2]) {
+    let spec = l[1] * rgba[3];
     for c in rgba.iter_mut().take(3) {
-        *c = *c * k + spec;
+        *c = *c * l[0] + spec;
     }
 }
 
@@ -714,6 +782,7 @@ impl<'a> FrameSetup<'a> {
             } else {
                 (a.max(t0), b.min(t1))
             };
+            st.single.span_end = st.span0.1;
         } else if has(R, VOLUMES) && nv > 1 {
             for v in &self.vols {
                 let md = v.index_dir(d);
@@ -726,6 +795,9 @@ impl<'a> FrameSetup<'a> {
                 });
             }
             st.curs.resize_with(nv, Cursor::default);
+            for (c, s) in st.curs.iter_mut().zip(&st.spans) {
+                c.span_end = s.1;
+            }
         }
         st
     }

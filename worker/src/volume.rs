@@ -56,6 +56,9 @@ pub struct VolFrame<'a> {
     pub tf: &'a strata_common::tf::TransferFunction,
 }
 
+/// The light of an unshaded sample: colour times 1, no specular.
+pub const NO_LIGHT: [f32; 2] = [1.0, 0.0];
+
 /// A ray's position in one volume's brick structure.
 #[derive(Clone)]
 pub struct Cursor {
@@ -77,6 +80,15 @@ pub struct Cursor {
     /// The ray's previous sample of this volume (pre-integration's segment front); NaN
     /// when there is none (the start of a span, or after skipped empty space).
     pub prev: f32,
+    /// With shading, the light of that sample (`[diffuse factor, specular factor]`), for
+    /// the half step after it that ends its span.
+    pub prev_light: [f32; 2],
+    /// The sample before `prev` (NaN: `prev` began its span).
+    pub before: f32,
+    /// `prev` began its span and the half step before it is still to be composited.
+    pub lead: bool,
+    /// Where the ray leaves this volume (within its region): the end of its last span.
+    pub span_end: f32,
 }
 
 impl Default for Cursor {
@@ -91,6 +103,10 @@ impl Default for Cursor {
             rs: 1.0,
             o: [0.0; 3],
             prev: f32::NAN,
+            prev_light: NO_LIGHT,
+            before: f32::NAN,
+            lead: false,
+            span_end: f32::INFINITY,
         }
     }
 }
