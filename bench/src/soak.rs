@@ -1,7 +1,8 @@
 //! `bench-soak`: worker loss under load. Renders a camera orbit twice with the release
 //! `coordinator`: once in-process (the reference), once on a cluster of `--workers` local
 //! workers while a fault thread SIGKILLs or SIGSTOPs a random live worker at random moments
-//! (`--faults` of them, at most `workers − 1`). Every frame of the faulty run must equal the
+//! (`--faults` of them, at most `workers − 1`), and with `--setup-fault kill|stop` one more
+//! during the set-up (as the coordinator sends it). Every frame of the faulty run must equal the
 //! reference (max channel difference ≤ 1e-5, early termination off), and the stats must
 //! list every worker given up on, with the time from the failure to the frame completing.
 //!
@@ -50,13 +51,18 @@ struct Cli {
     /// Idle timeout (s): how fast a hung worker is noticed.
     #[arg(long, default_value_t = 2.0)]
     idle_timeout: f64,
+    /// Also SIGKILL (`kill`) or SIGSTOP (`stop`) the last worker to join while the run is
+    /// being set up (counts against `--faults`' limit of workers − 1).
+    #[arg(long, value_parser = ["kill", "stop"])]
+    setup_fault: Option<String>,
 }
 
 fn main() -> Result<()> {
     let cli = Cli::parse();
+    let setup_faults = cli.setup_fault.is_some() as u32;
     anyhow::ensure!(
-        cli.faults < cli.workers,
-        "--faults must leave at least one worker"
+        cli.faults + setup_faults < cli.workers,
+        "--faults (and --setup-fault) must leave at least one worker"
     );
     std::fs::create_dir_all(&cli.dir)?;
     let common = |name: &str| -> Vec<String> {
@@ -117,8 +123,10 @@ fn main() -> Result<()> {
         .spawn()?;
     let pids: Arc<Mutex<Vec<i32>>> = Arc::default();
     let ready = Arc::new(Mutex::new(false));
+    let setup_fault: Arc<Mutex<Option<String>>> = Arc::default();
     let reader = {
-        let (pids, ready) = (pids.clone(), ready.clone());
+        let (pids, ready, done) = (pids.clone(), ready.clone(), setup_fault.clone());
+        let mut pending = cli.setup_fault.clone();
         let stderr = child.stderr.take().unwrap();
         std::thread::spawn(move || {
             for l in BufReader::new(stderr).lines().map_while(Result::ok) {
@@ -131,6 +139,24 @@ fn main() -> Result<()> {
                         .and_then(|p| p.parse().ok())
                     {
                         pids.lock().unwrap().push(pid);
+                    }
+                }
+                // The coordinator chose the transports: the set-ups are going out.
+                if plain.contains("transports chosen") {
+                    if let Some(how) = pending.take() {
+                        if let Some(victim) = pids.lock().unwrap().pop() {
+                            let sig = if how == "kill" {
+                                libc::SIGKILL
+                            } else {
+                                libc::SIGSTOP
+                            };
+                            // SAFETY: a plain syscall on a worker process this run started.
+                            unsafe { libc::kill(victim, sig) };
+                            *done.lock().unwrap() = Some(format!(
+                                "SIG{} pid {victim} during set-up",
+                                how.to_uppercase()
+                            ));
+                        }
                     }
                 }
                 if plain.contains("all workers ready") {
@@ -157,6 +183,10 @@ fn main() -> Result<()> {
     let start = Instant::now();
     let share = 2.0 * reference_s / (cli.faults + 1) as f64;
     let mut faults = Vec::new();
+    if let Some(f) = setup_fault.lock().unwrap().clone() {
+        println!("fault: {f}");
+        faults.push(f);
+    }
     for k in 0..cli.faults {
         let at = share * (k as f64 + 0.5 + (next() % 1000) as f64 / 1000.0);
         let at = start + Duration::from_secs_f64(at);
@@ -235,6 +265,13 @@ fn main() -> Result<()> {
     for l in &lost {
         let rec = l["recovery_s"].as_f64().unwrap_or(f64::NAN);
         let det = l["detected_after_s"].as_f64().unwrap_or(f64::NAN);
+        if l["phase"] == "set-up" {
+            println!(
+                "lost {} during set-up: given up {det:.2} s into the set-up, the workers left ready {rec:.2} s later",
+                l["worker"].as_str().unwrap_or("?"),
+            );
+            continue;
+        }
         // The frame that lost the worker, start to finish, against the bound.
         let total = det + rec;
         let bound = 2.0 * median + cli.idle_timeout;
