@@ -419,6 +419,9 @@ pub struct Cluster {
     acceptor: Option<tokio::task::JoinHandle<()>>,
     /// Where the connection readers of newly admitted workers report.
     events_tx: mpsc::UnboundedSender<Event>,
+    /// A worker was lost since the last frame began: that frame waits up to
+    /// `cluster.replacement_wait_s` for a replacement (once).
+    awaiting_replacement: bool,
 }
 
 impl Drop for Cluster {
@@ -618,6 +621,7 @@ impl Cluster {
             joiners: None,
             acceptor: None,
             events_tx: tx.clone(),
+            awaiting_replacement: false,
         };
         cluster.gather_workers(&secret, &tx).await?;
         cluster.setup(&[]).await?;
@@ -743,12 +747,14 @@ impl Cluster {
             return Ok(Vec::new());
         };
         let want = self.opts.workers;
+        // Only the frame after a loss waits; later ones take a replacement when it comes.
         let deadline = Instant::now()
-            + if self.slots.len() < want {
+            + if self.slots.len() < want && self.awaiting_replacement {
                 self.opts.replacement_wait
             } else {
                 Duration::ZERO
             };
+        self.awaiting_replacement = false;
         let mut fresh = Vec::new();
         loop {
             let j = match rx.try_recv() {
@@ -764,6 +770,27 @@ impl Cluster {
             };
             if self.slots.len() >= want {
                 refuse_full(j, want).await;
+                continue;
+            }
+            // One that gave up waiting to be admitted is gone already.
+            if let Some(why) = j.4.close_reason() {
+                info!(name = %j.0, pid = j.1, "a worker that connected left before it was admitted: {why}");
+                continue;
+            }
+            // `cluster.transport = "shm"` runs on one host only.
+            if self.opts.transport == Transport::Shm && j.3 != strata_net::shm::host_id() {
+                let (name, pid, _, _, conn, mut send, _) = j;
+                warn!(%name, pid, "refused a worker: cluster.transport = \"shm\" and it is on another host");
+                let msg = wire::encode_meta(&CoordMsg::Refused {
+                    reason:
+                        "cluster.transport = \"shm\" needs every process on the coordinator's host"
+                            .into(),
+                });
+                let _ =
+                    tokio::time::timeout(Duration::from_secs(1), write_frame(&mut send, &msg, &[]))
+                        .await;
+                let _ = send.finish();
+                conn.close(6u32.into(), b"wrong host");
                 continue;
             }
             let (name, pid, fingerprint, host, conn, send, recv) = j;
@@ -800,9 +827,24 @@ impl Cluster {
             return Ok(Vec::new());
         }
         let t0 = Instant::now();
-        let assignment = self.resplit();
+        self.resplit();
         self.setup(&fresh).await?;
         let setup_s = t0.elapsed().as_secs_f64();
+        // Who renders what now (after any loss during that set-up).
+        let assignment: Vec<Assignment> = self
+            .slots
+            .iter()
+            .enumerate()
+            .map(|(slot, &rank)| Assignment {
+                rank,
+                leaves: self
+                    .decomposition
+                    .worker_leaves(slot)
+                    .into_iter()
+                    .map(|l| self.decomposition.tree.leaves[l])
+                    .collect(),
+            })
+            .collect();
         // Newcomers that failed their set-up were given up on again.
         Ok(fresh
             .into_iter()
@@ -947,7 +989,10 @@ impl Cluster {
         let n = self.workers.len();
         let mut state: Vec<State> = (0..n).map(|_| State::Waiting).collect();
         let mut lost: Vec<(u32, String)> = Vec::new();
-        let deadline = Instant::now() + self.opts.connect_timeout;
+        // A worker's mesh gives up within its connect timeout of receiving the set-up (a
+        // scene to parse comes first): the coordinator waits out two, so that the workers'
+        // failures, which name whom they could not reach, come before its own deadline.
+        let deadline = Instant::now() + 2 * self.opts.connect_timeout + Duration::from_secs(5);
         loop {
             // A loss ends the attempt at once: the workers left are set up again (a new
             // set-up replaces a mesh in progress), not kept waiting on the lost one.
@@ -989,6 +1034,32 @@ impl Cluster {
                 continue;
             }
             if waiting.is_empty() {
+                // Everyone answered, some failed. If every failure names peers it could not
+                // mesh with, the one named most (a newcomer first) is the one lost: an
+                // unreachable worker blames its peers too, but they all blame it.
+                if !failures.is_empty() && failures.iter().all(|f| !f.2.is_empty()) {
+                    let blames = |r: u32| failures.iter().filter(|f| f.2.contains(&r)).count();
+                    let worst = slots
+                        .iter()
+                        .copied()
+                        .max_by_key(|&r| (blames(r), fresh.contains(&r), r))
+                        .expect("ranks in the run");
+                    if blames(worst) >= 2 || fresh.contains(&worst) {
+                        let (by, msg, _) = failures
+                            .iter()
+                            .find(|f| f.2.contains(&worst))
+                            .expect("blamed");
+                        let who = self.workers[*by as usize].describe();
+                        lost.push((
+                            worst,
+                            format!(
+                                "{} of its peers could not mesh with it ({who}: {msg})",
+                                blames(worst)
+                            ),
+                        ));
+                        continue;
+                    }
+                }
                 if let Some((r, msg, _)) = failures.first() {
                     bail!(
                         "{} failed to set up: {msg}",
@@ -1039,22 +1110,31 @@ impl Cluster {
                     }
                     Ok(WorkerMsg::Ready) => {
                         let w = &self.workers[rank as usize];
-                        anyhow::ensure!(
-                            !gather[rank as usize] || w.shm.is_some(),
-                            "{} is ready without announcing its shared-memory segment",
-                            w.describe()
-                        );
-                        state[rank as usize] = State::Ready;
+                        if gather[rank as usize] && w.shm.is_none() {
+                            let e = anyhow!(
+                                "{} is ready without announcing its shared-memory segment",
+                                w.describe()
+                            );
+                            give_up_fresh(fresh, rank, e, &mut lost)?;
+                        } else {
+                            state[rank as usize] = State::Ready;
+                        }
                     }
                     Ok(WorkerMsg::ShmSegment { name, pid, fd })
                         if gather[rank as usize] && self.workers[rank as usize].shm.is_none() =>
                     {
                         let w = &mut self.workers[rank as usize];
                         let id = SegmentId { name, pid, fd };
-                        let r = tokio::task::block_in_place(|| ShmReader::open(&id)).with_context(
-                            || format!("the shared-memory segment of {}", w.describe()),
-                        )?;
-                        w.shm = Some(r);
+                        match tokio::task::block_in_place(|| ShmReader::open(&id)) {
+                            Ok(r) => w.shm = Some(r),
+                            Err(e) => {
+                                let e = anyhow!(e).context(format!(
+                                    "the shared-memory segment of {}",
+                                    w.describe()
+                                ));
+                                give_up_fresh(fresh, rank, e, &mut lost)?;
+                            }
+                        }
                     }
                     // A newcomer that cannot set up is given up on, not the run.
                     Ok(WorkerMsg::Failed {
@@ -1070,14 +1150,20 @@ impl Cluster {
                         suspects,
                     }) => state[rank as usize] = State::Failed(message, suspects),
                     // A frame's leftovers cannot come before the first frame.
-                    Ok(other) => bail!(
-                        "{} sent {other:?} during set-up",
-                        self.workers[rank as usize].describe()
-                    ),
-                    Err(e) => bail!(
-                        "{} sent a malformed message: {e}",
-                        self.workers[rank as usize].describe()
-                    ),
+                    Ok(other) => {
+                        let e = anyhow!(
+                            "{} sent {other:?} during set-up",
+                            self.workers[rank as usize].describe()
+                        );
+                        give_up_fresh(fresh, rank, e, &mut lost)?;
+                    }
+                    Err(e) => {
+                        let e = anyhow!(
+                            "{} sent a malformed message: {e}",
+                            self.workers[rank as usize].describe()
+                        );
+                        give_up_fresh(fresh, rank, e, &mut lost)?;
+                    }
                 },
             }
         }
@@ -1241,6 +1327,7 @@ impl Cluster {
             w.conn.close(7u32.into(), b"lost");
         }
         self.slots.retain(|r| !lost.contains(r));
+        self.awaiting_replacement = true;
         // Survivors still waiting on a lost peer in the failed attempt stop at once.
         for &rank in &self.slots.clone() {
             let w = &mut self.workers[rank as usize];
@@ -1774,6 +1861,22 @@ impl Cluster {
             w.conn.close(0u32.into(), b"done");
         }
         let _ = tokio::time::timeout(Duration::from_secs(1), self.ep.wait_idle()).await;
+    }
+}
+
+/// An error in the set-up of `rank`: a newcomer (`fresh`) is given up on (pushed to `lost`),
+/// anyone else's ends the run.
+fn give_up_fresh(
+    fresh: &[u32],
+    rank: u32,
+    e: anyhow::Error,
+    lost: &mut Vec<(u32, String)>,
+) -> Result<()> {
+    if fresh.contains(&rank) {
+        lost.push((rank, format!("{e:#}")));
+        Ok(())
+    } else {
+        Err(e)
     }
 }
 

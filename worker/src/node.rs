@@ -369,9 +369,9 @@ async fn next_setup(ctl_rx: &mut mpsc::Receiver<Result<CoordMsg, String>>) -> Re
 
 /// Aborts a task when dropped (a mesh replaced by a new set-up stops its dials and its
 /// listener).
-struct AbortOnDrop(tokio::task::JoinHandle<()>);
+struct AbortOnDrop<T = ()>(tokio::task::JoinHandle<T>);
 
-impl Drop for AbortOnDrop {
+impl<T> Drop for AbortOnDrop<T> {
     fn drop(&mut self) {
         self.0.abort();
     }
@@ -429,18 +429,20 @@ async fn mesh(
     let present = |r: &u32| !setup.absent.contains(r);
     let mut peers: Vec<Option<quinn::Connection>> = vec![None; n as usize];
     // Dial the higher ranks all at once.
+    // One deadline for the whole mesh: dials and the wait for the lower ranks share it.
+    let deadline = Instant::now() + mesh_timeout;
     let mut dials = Vec::new();
     for r in (rank + 1..n).filter(present) {
         let p = setup.peers[r as usize].clone();
         let (ep, net, token, id) = (ep.clone(), net.clone(), setup.run_token, id.clone());
-        dials.push(tokio::spawn(async move {
+        dials.push(AbortOnDrop(tokio::spawn(async move {
             let addr: SocketAddr = p
                 .addr
                 .parse()
                 .with_context(|| format!("peer {r} address {:?}", p.addr))?;
-            // Until the peer welcomes this set-up's token: one still meshing for an
-            // earlier set-up refuses it, and takes the new one a moment later.
-            let deadline = Instant::now() + mesh_timeout;
+            // Until the peer welcomes this set-up's token (or the mesh's deadline): one
+            // still meshing for an earlier set-up refuses it, and takes the new one a
+            // moment later.
             loop {
                 let left = deadline.saturating_duration_since(Instant::now());
                 let attempt = async {
@@ -478,11 +480,11 @@ async fn mesh(
                     }
                 }
             }
-        }));
+        })));
     }
     let mut dial_errors = Vec::new();
-    for (r, d) in (rank + 1..n).filter(present).zip(dials) {
-        match d
+    for (r, mut d) in (rank + 1..n).filter(present).zip(dials) {
+        match (&mut d.0)
             .await
             .map_err(|e| anyhow!("dial task: {e}"))
             .and_then(|r| r)
@@ -497,7 +499,7 @@ async fn mesh(
     if !dial_errors.is_empty() {
         bail!("{}", dial_errors.join("; "));
     }
-    let deadline = Instant::now() + mesh_timeout;
+
     let awaited = |peers: &[Option<quinn::Connection>]| -> Vec<u32> {
         (0..rank)
             .filter(|r| present(r) && peers[*r as usize].is_none())

@@ -190,6 +190,22 @@ struct RayCtx<'s, 'a> {
 }
 
 impl<'s, 'a> RayCtx<'s, 'a> {
+    /// Ends volume `v`'s pre-integrated span at `t` (a surface, or where the volume begins
+    /// to overlap another, whose mix is post-classified): the half step after its last
+    /// sample joins the ray, and the next sample starts a new span.
+    fn end_pre_span(&mut self, v: &VolFrame<'a>, cur: &mut Cursor, t: f32) {
+        let Some(pre) = v.pre.as_ref() else { return };
+        if cur.prev.is_nan() || self.done {
+            return;
+        }
+        let bands = &self.f.bands;
+        let mut band = 0;
+        while band + 1 < bands.start.len() && t >= bands.start[band + 1] {
+            band += 1;
+        }
+        end_span(Some(&*pre[band]), cur, &mut self.acc);
+    }
+
     /// Marches one volume over `[ta, tb)` on the lattice.
     fn march_one(
         &mut self,
@@ -658,6 +674,18 @@ impl<'s, 'a> RayState<'s, 'a> {
             }
             // The next surface is reached (it lies before `until` and inside the region).
             if surfaces && next_hit < self.t1 && next_hit <= until && seg_end >= next_hit {
+                // Pre-integrated spans end at the surface (an opaque one ends the ray).
+                match nv {
+                    1 => self
+                        .ctx
+                        .end_pre_span(&f.vols[0], &mut self.single, next_hit),
+                    n if n > 1 => {
+                        for (v, c) in f.vols.iter().zip(self.curs.iter_mut()) {
+                            self.ctx.end_pre_span(v, c, next_hit);
+                        }
+                    }
+                    _ => {}
+                }
                 let h = self.hits[self.hi];
                 blend(&mut self.ctx.acc, h.rgba);
                 self.ctx.stats.hits += 1;
@@ -852,11 +880,20 @@ impl<'a> FrameSetup<'a> {
                     let i = active[0];
                     ctx.march_one(&self.vols[i], &mut curs[i], mds[i], fa, fbnd, fb);
                 }
-                // Shading is the only sample effect of the mix (it stays post-classified).
+                // Shading is the only sample effect of the mix (it stays post-classified):
+                // pre-integrated spans end where it begins.
                 _ if has(self.variant.compiled.bits(), SHADING) => {
+                    for &i in &active {
+                        ctx.end_pre_span(&self.vols[i], &mut curs[i], fa);
+                    }
                     ctx.march_mixed::<SHADING>(&active, curs, mds, fa, fbnd, fb)
                 }
-                _ => ctx.march_mixed::<0>(&active, curs, mds, fa, fbnd, fb),
+                _ => {
+                    for &i in &active {
+                        ctx.end_pre_span(&self.vols[i], &mut curs[i], fa);
+                    }
+                    ctx.march_mixed::<0>(&active, curs, mds, fa, fbnd, fb)
+                }
             }
         }
     }
