@@ -6,7 +6,8 @@
 //!
 //! Needs root (CAP_NET_ADMIN) and network namespaces; where either is missing the test
 //! says so on stderr and ends. Latency and loss (`tc netem`) are not emulated: the kernel
-//! of the machines this runs on has no `sch_netem` ("Specified qdisc kind is unknown").
+//! of the machines this runs on has no `sch_netem` ("Specified qdisc kind is unknown";
+//! `tests/netns/netem-probe.sh` shows it).
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
