@@ -831,20 +831,7 @@ impl Cluster {
         self.setup(&fresh).await?;
         let setup_s = t0.elapsed().as_secs_f64();
         // Who renders what now (after any loss during that set-up).
-        let assignment: Vec<Assignment> = self
-            .slots
-            .iter()
-            .enumerate()
-            .map(|(slot, &rank)| Assignment {
-                rank,
-                leaves: self
-                    .decomposition
-                    .worker_leaves(slot)
-                    .into_iter()
-                    .map(|l| self.decomposition.tree.leaves[l])
-                    .collect(),
-            })
-            .collect();
+        let assignment = self.assignment();
         // Newcomers that failed their set-up were given up on again.
         Ok(fresh
             .into_iter()
@@ -944,14 +931,9 @@ impl Cluster {
             .filter(|r| !slots.contains(r))
             .collect();
         for (slot, &rank) in slots.iter().enumerate() {
-            // The leaves of a re-split, or of the first split (slot = rank then).
-            let leaves = self.new_leaves[rank as usize].take().unwrap_or_else(|| {
-                self.decomposition
-                    .worker_leaves(slot)
-                    .into_iter()
-                    .map(|l| self.decomposition.tree.leaves[l])
-                    .collect()
-            });
+            // The set-up carries the current split: no new leaves with the next frame.
+            self.new_leaves[rank as usize] = None;
+            let leaves = self.slot_leaves(slot);
             let w = &mut self.workers[rank as usize];
             // A worker set up again announces a new segment.
             w.shm = None;
@@ -1354,22 +1336,35 @@ impl Cluster {
             self.opts.leaves_per_worker,
             &self.costs.planes,
         );
-        for (slot, &rank) in self.slots.iter().enumerate() {
-            let leaves = new.worker_leaves(slot);
-            self.new_leaves[rank as usize] =
-                Some(leaves.iter().map(|&l| new.tree.leaves[l]).collect());
-        }
         info!(
             workers = m,
             imbalance = format!("{:.3}", new.imbalance()),
             "re-split the scene over the workers in the run"
         );
         self.decomposition = new;
+        for (slot, &rank) in self.slots.clone().iter().enumerate() {
+            self.new_leaves[rank as usize] = Some(self.slot_leaves(slot));
+        }
+        self.assignment()
+    }
+
+    /// The leaf regions of the decomposition's worker `slot`.
+    fn slot_leaves(&self, slot: usize) -> Vec<strata_common::kd::Region> {
+        let d = &self.decomposition;
+        d.worker_leaves(slot)
+            .into_iter()
+            .map(|l| d.tree.leaves[l])
+            .collect()
+    }
+
+    /// Each rank in the run and the leaf regions it renders.
+    fn assignment(&self) -> Vec<Assignment> {
         self.slots
             .iter()
-            .map(|&rank| Assignment {
+            .enumerate()
+            .map(|(slot, &rank)| Assignment {
                 rank,
-                leaves: self.new_leaves[rank as usize].clone().unwrap_or_default(),
+                leaves: self.slot_leaves(slot),
             })
             .collect()
     }

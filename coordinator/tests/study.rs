@@ -5,7 +5,8 @@
 use std::path::Path;
 use std::process::Command;
 
-const BIN: &str = env!("CARGO_BIN_EXE_coordinator");
+mod common;
+use common::BIN;
 
 struct Row {
     knob: String,
@@ -40,18 +41,7 @@ fn rows(csv_path: &Path) -> Vec<Row> {
 #[test]
 fn accuracy_study_of_a_small_survey() {
     let tmp = tempfile::tempdir().unwrap();
-    let survey = tmp.path().join("survey");
-    let out = Command::new(BIN)
-        .args(["-q", "synth", "-o"])
-        .arg(&survey)
-        .args(["--size", "40", "32", "24", "--seed", "5"])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let survey = common::survey_in("study-survey");
     let dir = tmp.path().join("study");
     let out = Command::new(BIN)
         .args(["-q", "study", "accuracy"])
