@@ -28,7 +28,7 @@ use serde::{de::DeserializeOwned, Deserialize, Serialize};
 /// Frame magic.
 pub const MAGIC: [u8; 4] = *b"STRF";
 /// Protocol version; bumped on any incompatible change of the header or the messages.
-pub const PROTOCOL_VERSION: u16 = 7;
+pub const PROTOCOL_VERSION: u16 = 8;
 /// Size of the frame header.
 pub const HEADER_LEN: usize = 24;
 /// Largest meta message any endpoint accepts (control messages are small; the scene text
@@ -257,6 +257,10 @@ pub enum WorkerMsg {
         shm: Option<ShmRef>,
         /// The bulk piece is LZ4-compressed ([`crate::composite::SparsePiece::write_lz4`]).
         lz4: bool,
+        /// The final piece was written in place into the frame's canvas
+        /// (`FrameRequest::canvas`), covering this span; no piece follows and `shm` is
+        /// `None`.
+        canvas: Option<crate::composite::Span>,
     },
     /// Cross-worker occlusion (`FrameRequest::occlusion`): this worker's partial image of
     /// the frame reduced to per-block transmittance over `rect`
@@ -451,6 +455,22 @@ pub struct FrameRequest {
     /// tiles, compositing delivers each tile to its driver, which writes the tile's files;
     /// the final pieces sent to the coordinator are empty.
     pub wall: Option<WallFrame>,
+    /// The coordinator's frame-sized image in shared memory (`strata_net::canvas`), given
+    /// to workers on its host: write the final span there, in place, and report it in
+    /// `WorkerMsg::FrameDone::canvas`. `None`: send the final piece.
+    pub canvas: Option<CanvasRef>,
+}
+
+/// A shared-memory canvas, as announced over the authenticated connection (what
+/// `strata_net::shm::SegmentId` holds).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CanvasRef {
+    /// `strata-shm-` and 32 hex digits.
+    pub name: String,
+    /// The coordinator's process id.
+    pub pid: u32,
+    /// The canvas's descriptor in the coordinator.
+    pub fd: i32,
 }
 
 /// A powerwall frame ([`crate::wall`]).
@@ -714,8 +734,17 @@ mod tests {
                 len: 1000,
             }),
             lz4: false,
+            canvas: None,
         };
         assert_eq!(decode_meta::<WorkerMsg>(&encode_meta(&w)).unwrap(), w);
+        let c = WorkerMsg::FrameDone {
+            frame: 2,
+            stats: WorkerFrameStats::default(),
+            shm: None,
+            lz4: false,
+            canvas: Some(crate::composite::Span { start: 10, end: 99 }),
+        };
+        assert_eq!(decode_meta::<WorkerMsg>(&encode_meta(&c)).unwrap(), c);
         let mut bytes = encode_meta(&m);
         bytes.push(0);
         assert!(decode_meta::<PeerMsg>(&bytes).is_err());

@@ -19,8 +19,10 @@ use std::net::SocketAddr;
 use std::os::unix::ffi::OsStringExt;
 use std::path::PathBuf;
 use std::process::Stdio;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
-use strata_common::composite::{assemble, Interlace, SparsePiece};
+use strata_common::composite::canvas as composite_canvas;
+use strata_common::composite::{assemble, Interlace, Span, SparsePiece};
 use strata_common::image::Rgba;
 use strata_common::kd::Decomposition;
 use strata_common::occlusion::{self, BlockGrid, Transmittance};
@@ -31,6 +33,8 @@ use strata_common::wire::{
     self, CompositeChoice, CoordMsg, FrameRequest, FrameSource, Limits, PeerInfo, Setup, WallFrame,
     WorkerFrameStats, WorkerMsg,
 };
+use strata_net::canvas::Canvas;
+use strata_net::canvas::PIXEL_BYTES;
 use strata_net::frame::{read_frame, with_timeout, write_frame, NetError};
 use strata_net::shm::{SegmentId, ShmReader};
 use strata_net::{secret, tls, transport, Identity, NetConfig};
@@ -257,7 +261,7 @@ enum Event {
 /// One frame's result.
 pub struct FrameResult {
     /// The composited image, premultiplied, row-major.
-    pub image: Vec<Rgba>,
+    pub image: FrameImage,
     /// Per-worker stats, by rank.
     pub stats: Vec<WorkerFrameStats>,
     /// Coordinator's wall time for the frame.
@@ -267,12 +271,16 @@ pub struct FrameResult {
     /// worker's render time. Both are durations, each on one clock; no timestamp of one
     /// host is subtracted from another's. It includes one request's latency.
     pub composite_s: f64,
-    /// Bytes of final pieces received.
+    /// Bytes of final pieces received (those written into the canvas counted as the f32
+    /// pixels written).
     pub gather_bytes: u64,
+    /// Workers whose final piece was written in place into the canvas.
+    pub canvas_gather: usize,
     /// Seconds this coordinator spent reading and checking final pieces (shared-memory
     /// reads and parsing; part of `composite_s`).
     pub collect_s: f64,
-    /// Seconds assembling the final image from the pieces (after `composite_s`).
+    /// Seconds assembling the final image from the pieces (after `composite_s`): checking
+    /// the spans written into the canvas and placing pieces that came over the network.
     pub assemble_s: f64,
     /// Workers given up on during this frame (the frame was re-rendered without them).
     pub lost: Vec<LostWorker>,
@@ -280,6 +288,66 @@ pub struct FrameResult {
     pub joined: Vec<JoinedWorker>,
     /// Seconds this coordinator spent checking occlusion coverage and sending the maps.
     pub occlusion_s: f64,
+}
+
+/// A composited frame: the run's shared canvas, which workers on this host wrote in place,
+/// or an image assembled in memory. Either reads as the row-major pixels.
+#[derive(Clone, Debug)]
+pub enum FrameImage {
+    /// Assembled in memory (no worker shares this host, or a wall frame's empty image).
+    Owned(Vec<Rgba>),
+    /// The canvas itself; it is not written again while this is held.
+    Canvas(Arc<Canvas>),
+}
+
+impl std::ops::Deref for FrameImage {
+    type Target = [Rgba];
+    fn deref(&self) -> &[Rgba] {
+        match self {
+            FrameImage::Owned(v) => v,
+            FrameImage::Canvas(c) => c.pixels(),
+        }
+    }
+}
+
+impl FrameImage {
+    /// The pixels as an owned vector (a copy if they are in the canvas).
+    pub fn into_vec(self) -> Vec<Rgba> {
+        match self {
+            FrameImage::Owned(v) => v,
+            FrameImage::Canvas(c) => c.pixels().to_vec(),
+        }
+    }
+}
+
+/// How a worker's final piece arrived.
+enum Final {
+    /// Over the network or through its gather segment.
+    Piece(SparsePiece),
+    /// Written in place into the frame's canvas, covering this span.
+    InCanvas(Span),
+}
+
+/// Completes a frame in `canvas`: pieces that came over the network or through gather
+/// segments are placed; the spans written in place are checked (disjoint, inside the
+/// frame) and what none covers is cleared.
+fn finish_canvas(
+    canvas: &mut Canvas,
+    interlace: &Interlace,
+    pieces: &[Final],
+) -> Result<(), strata_common::composite::CompositeError> {
+    let frame = canvas.pixels_mut();
+    let mut spans = Vec::with_capacity(pieces.len());
+    for p in pieces {
+        match p {
+            Final::Piece(p) => {
+                composite_canvas::write_piece(frame, interlace, p)?;
+                spans.push(p.span);
+            }
+            Final::InCanvas(s) => spans.push(*s),
+        }
+    }
+    composite_canvas::finish(frame, interlace, &spans)
 }
 
 /// A worker given up on.
@@ -394,6 +462,9 @@ pub struct Cluster {
     /// The image size and visibility order of the last frame whose occlusion maps went
     /// out: the workers' predictions hold while both (the workers in front of each) stay.
     occlusion_last: Option<(u32, u32, Vec<u32>)>,
+    /// Frame canvases in shared memory (`strata_net::canvas`) that workers on this host
+    /// write their final spans into; one whose image a caller still holds is not reused.
+    canvases: Vec<Arc<Canvas>>,
     child_pids: Vec<u32>,
     /// The cost boxes the decomposition balances (re-weighted by each re-split).
     costs: decompose::SceneCosts,
@@ -609,6 +680,7 @@ impl Cluster {
             opts,
             frame_no: 0,
             occlusion_last: None,
+            canvases: Vec::new(),
             wall: None,
             child_pids,
             costs,
@@ -1369,6 +1441,34 @@ impl Cluster {
             .collect()
     }
 
+    /// A canvas of `width × height` no caller holds, from the pool or new (`None`, with a
+    /// warning, if shared memory fails: the pieces are then assembled). Taken out of the
+    /// pool for the frame: a failed attempt drops it, so a worker given up on that still
+    /// has it mapped writes into nothing anyone reads.
+    fn take_canvas(&mut self, width: u32, height: u32) -> Option<Canvas> {
+        /// Unheld canvases kept for reuse (a caller writing outputs while the next frame
+        /// renders holds one more).
+        const KEEP: usize = 2;
+        let free = |c: &Arc<Canvas>| Arc::strong_count(c) == 1;
+        if let Some(i) = self
+            .canvases
+            .iter()
+            .position(|c| free(c) && c.size() == (width, height))
+        {
+            return Arc::try_unwrap(self.canvases.swap_remove(i)).ok();
+        }
+        // Forget unheld canvases of other sizes, and keep only a few of this one.
+        self.canvases
+            .retain(|c| !free(c) || c.size() == (width, height));
+        while self.canvases.iter().filter(|c| free(c)).count() >= KEEP {
+            let i = self.canvases.iter().position(free).expect("counted");
+            self.canvases.swap_remove(i);
+        }
+        Canvas::create(width, height)
+            .map_err(|e| warn!("no canvas for the frame, assembling pieces instead: {e}"))
+            .ok()
+    }
+
     /// One attempt at a frame; a failure lists the workers it blames.
     async fn frame_once(
         &mut self,
@@ -1433,6 +1533,24 @@ impl Cluster {
         let mut coverage: Vec<Option<Transmittance>> = vec![None; self.workers.len()];
         let mut maps_sent = !occlusion;
         let mut occlusion_s = 0.0;
+        // Workers on this host write their final spans into a canvas, in place.
+        let mut canvas = if wall.is_none()
+            && slots
+                .iter()
+                .any(|&r| self.workers[r as usize].shm.is_some())
+        {
+            self.take_canvas(width, height)
+        } else {
+            None
+        };
+        let canvas_ref = canvas.as_ref().map(|c| {
+            let id = c.id();
+            wire::CanvasRef {
+                name: id.name,
+                pid: id.pid,
+                fd: id.fd,
+            }
+        });
         for (slot, &rank) in slots.iter().enumerate() {
             let mine = self.decomposition.worker_leaves(slot);
             let leaf_order = self
@@ -1454,6 +1572,9 @@ impl Cluster {
                 occlusion_block: if occlusion { block } else { 0 },
                 occlusion_prepass: if prepass { PREPASS_SCALE } else { 0 },
                 wall: wall.clone(),
+                canvas: canvas_ref
+                    .clone()
+                    .filter(|_| self.workers[rank as usize].shm.is_some()),
             });
             let w = &mut self.workers[rank as usize];
             let what = w.describe();
@@ -1467,7 +1588,7 @@ impl Cluster {
         }
         let n = self.workers.len();
         let mut stats: Vec<Option<WorkerFrameStats>> = vec![None; n];
-        let mut pieces: Vec<Option<SparsePiece>> = vec![None; n];
+        let mut pieces: Vec<Option<Final>> = (0..n).map(|_| None).collect();
         let mut last_arrival = t0;
         let mut gather_bytes = 0u64;
         let mut collect_s = 0.0;
@@ -1534,8 +1655,36 @@ impl Cluster {
                         Ok(WorkerMsg::FrameDone {
                             frame: fno,
                             stats: s,
+                            canvas: Some(span),
                             shm,
                             lz4,
+                        }) if fno == frame => {
+                            if canvas.is_none() || self.workers[rank as usize].shm.is_none() {
+                                return Err(blame(anyhow!(
+                                    "{who} wrote its final piece into a canvas it was not given"
+                                )));
+                            }
+                            if shm.is_some() || lz4 || !f.bulk.is_empty() {
+                                return Err(blame(anyhow!(
+                                    "{who} sent a final piece besides the one it wrote into the canvas"
+                                )));
+                            }
+                            if span.start > span.end || span.end as u64 > pixels {
+                                return Err(blame(anyhow!(
+                                    "{who} reports writing pixels {span} into the canvas of a {width}x{height} frame"
+                                )));
+                            }
+                            gather_bytes += f.wire_len() + span.len() as u64 * PIXEL_BYTES;
+                            last_arrival = Instant::now();
+                            pieces[rank as usize] = Some(Final::InCanvas(span));
+                            stats[rank as usize] = Some(s);
+                        }
+                        Ok(WorkerMsg::FrameDone {
+                            frame: fno,
+                            stats: s,
+                            shm,
+                            lz4,
+                            canvas: None,
                         }) if fno == frame => {
                             let t = Instant::now();
                             gather_bytes += f.wire_len();
@@ -1585,7 +1734,7 @@ impl Cluster {
                                 }
                             };
                             last_arrival = Instant::now();
-                            pieces[rank as usize] = Some(piece);
+                            pieces[rank as usize] = Some(Final::Piece(piece));
                             stats[rank as usize] = Some(s);
                             collect_s += t.elapsed().as_secs_f64();
                         }
@@ -1669,10 +1818,14 @@ impl Cluster {
             .iter()
             .map(|&r| stats[r as usize].take().unwrap())
             .collect();
-        let pieces: Vec<SparsePiece> = slots
+        let pieces: Vec<Final> = slots
             .iter()
             .map(|&r| pieces[r as usize].take().unwrap())
             .collect();
+        let pieces_in_canvas = pieces
+            .iter()
+            .filter(|p| matches!(p, Final::InCanvas(_)))
+            .count();
         let t = Instant::now();
         let image = match &wall {
             // Tiles were written by their drivers: check each wrote all of its own.
@@ -1687,19 +1840,48 @@ impl Cluster {
                         )));
                     }
                 }
-                if let Some(p) = pieces.iter().find(|p| !p.span.is_empty()) {
-                    return Err(Failure::of(anyhow!(
-                        "frame {frame}: a wall frame's final piece holds pixels {}",
-                        p.span
-                    )));
+                for p in &pieces {
+                    let span = match p {
+                        Final::Piece(p) => p.span,
+                        Final::InCanvas(s) => *s,
+                    };
+                    if !span.is_empty() {
+                        return Err(Failure::of(anyhow!(
+                            "frame {frame}: a wall frame's final piece holds pixels {span}"
+                        )));
+                    }
                 }
-                Vec::new()
+                FrameImage::Owned(Vec::new())
             }
             None => {
                 let interlace =
                     Interlace::new(width, height, slots.len() as u32, composite.interlace);
-                tokio::task::block_in_place(|| assemble(width, height, &interlace, &pieces))
-                    .map_err(|e| Failure::of(e.into()))?
+                match canvas.take() {
+                    Some(mut c) => {
+                        tokio::task::block_in_place(|| finish_canvas(&mut c, &interlace, &pieces))
+                            .map_err(|e| Failure::of(e.into()))?;
+                        let c = Arc::new(c);
+                        self.canvases.push(c.clone());
+                        FrameImage::Canvas(c)
+                    }
+                    None => {
+                        let pieces: Vec<SparsePiece> = pieces
+                            .into_iter()
+                            .map(|p| match p {
+                                Final::Piece(p) => Ok(p),
+                                Final::InCanvas(_) => {
+                                    Err(Failure::of(anyhow!("a canvas piece without a canvas")))
+                                }
+                            })
+                            .collect::<Result<_, _>>()?;
+                        FrameImage::Owned(
+                            tokio::task::block_in_place(|| {
+                                assemble(width, height, &interlace, &pieces)
+                            })
+                            .map_err(|e| Failure::of(e.into()))?,
+                        )
+                    }
+                }
             }
         };
         let assemble_s = t.elapsed().as_secs_f64();
@@ -1714,6 +1896,7 @@ impl Cluster {
             stats,
             wall_s: t0.elapsed().as_secs_f64(),
             gather_bytes,
+            canvas_gather: pieces_in_canvas,
             collect_s,
             assemble_s,
             lost: Vec::new(),

@@ -348,6 +348,9 @@ pub struct RenderSummary {
     pub gather_bytes: u64,
     /// Of the exchanged bytes, those that went through shared memory.
     pub exchange_shm_bytes: u64,
+    /// Workers whose final piece of the last frame was written in place into the
+    /// coordinator's shared canvas (workers on its host), not sent.
+    pub canvas_gather: usize,
     /// How pieces travelled (distributed runs): pairs and gathers over shared memory and
     /// over QUIC (`cluster.transport`).
     pub transport: Option<crate::cluster::TransportReport>,
@@ -678,6 +681,7 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
         exchange_bytes: fr.stats.iter().map(|s| s.bytes_sent).sum(),
         gather_bytes: fr.gather_bytes,
         exchange_shm_bytes: fr.stats.iter().map(|s| s.shm_bytes_sent).sum(),
+        canvas_gather: fr.canvas_gather,
         lost_workers: lost_workers.clone(),
         joined_workers,
         transport: Some(transport),

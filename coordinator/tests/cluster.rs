@@ -279,6 +279,7 @@ fn shared_memory_and_forced_quic_give_identical_images_and_report_their_transpor
         assert_eq!(qs["transport"]["quic_pairs"], 6, "{qs}");
         assert_eq!(qs["transport"]["quic_gather"], 4, "{qs}");
         assert_eq!(qs["exchange_shm_bytes"], 0, "{qs}");
+        assert_eq!(qs["canvas_gather"], 0, "{qs}");
         let (auto, s) = go(&format!("auto-{algorithm}"), "auto", algorithm);
         assert!(quic == auto, "{algorithm}: the transport changed pixels");
         // QUIC datagrams starting at 4000 bytes (`cluster.quic_mtu`, as on loopback or
@@ -291,6 +292,8 @@ fn shared_memory_and_forced_quic_give_identical_images_and_report_their_transpor
             // and the same bytes moved as over QUIC (payload and record headers).
             assert_eq!(s["transport"]["shm_pairs"], 6, "{s}");
             assert_eq!(s["transport"]["shm_gather"], 4, "{s}");
+            // Every final piece written in place into the coordinator's canvas.
+            assert_eq!(s["canvas_gather"], 4, "{s}");
             let shm = s["exchange_shm_bytes"].as_u64().unwrap();
             assert!(
                 shm > 0 && shm <= s["exchange_bytes"].as_u64().unwrap(),
@@ -1103,9 +1106,46 @@ fn finish(mut w: Waiting) -> (std::process::ExitStatus, String) {
     (status, log)
 }
 
+/// A fake worker's side after its set-up: announces a real gather segment, says it is
+/// ready and reads its first frame request.
+async fn segment_ready_and_frame(
+    send: &mut quinn::SendStream,
+    recv: &mut quinn::RecvStream,
+) -> (
+    strata_net::shm::ShmWriter,
+    strata_common::wire::FrameRequest,
+) {
+    use strata_common::wire::{self, CoordMsg, Limits};
+    let seg = fake_ready(send, true).await.unwrap();
+    let limits = Limits {
+        max_meta: wire::MAX_META,
+        max_bulk: 0,
+    };
+    let f = strata_net::read_frame(recv, &limits).await.unwrap();
+    let CoordMsg::Frame(req) = wire::decode_meta::<CoordMsg>(&f.meta).unwrap() else {
+        panic!("expected a frame")
+    };
+    (seg, req)
+}
+
+/// The fake worker sends `msg` and stays connected while the coordinator reacts.
+async fn say_then_linger(send: &mut quinn::SendStream, msg: &strata_common::wire::WorkerMsg) {
+    strata_net::write_frame(send, &strata_common::wire::encode_meta(msg), &[])
+        .await
+        .unwrap();
+    tokio::time::sleep(Duration::from_secs(2)).await;
+}
+
+/// The coordinator failed: its last log line (the error) and its whole log.
+fn failed(w: Waiting) -> (String, String) {
+    let (status, log) = finish(w);
+    assert!(!status.success(), "{log}");
+    (log.lines().last().unwrap_or_default().to_string(), log)
+}
+
 #[test]
 fn a_bad_shared_memory_segment_of_a_worker_is_refused_naming_it() {
-    use strata_common::wire::{self, CoordMsg, Limits, ShmRef, WorkerMsg};
+    use strata_common::wire::{ShmRef, WorkerMsg};
     if strata_net::shm::host_id().is_none() {
         eprintln!("skipped: this host has no /dev/shm");
         return;
@@ -1125,14 +1165,9 @@ fn a_bad_shared_memory_segment_of_a_worker_is_refused_naming_it() {
             pid: std::process::id(),
             fd: 1 << 20,
         };
-        strata_net::write_frame(&mut send, &wire::encode_meta(&msg), &[])
-            .await
-            .unwrap();
-        tokio::time::sleep(Duration::from_secs(2)).await;
+        say_then_linger(&mut send, &msg).await;
     });
-    let (status, log) = finish(w);
-    assert!(!status.success());
-    let last = log.lines().last().unwrap_or_default();
+    let (last, log) = failed(w);
     assert!(
         last.contains("the shared-memory segment of worker 0 (fake"),
         "{log}"
@@ -1142,27 +1177,7 @@ fn a_bad_shared_memory_segment_of_a_worker_is_refused_naming_it() {
     let w = start_waiting_coordinator(1, &[]);
     rt.block_on(async {
         let (_ep, _conn, mut send, mut recv, _setup) = fake_worker(&w).await;
-        let mut seg = strata_net::shm::ShmWriter::create().unwrap();
-        let id = seg.id();
-        let msg = WorkerMsg::ShmSegment {
-            name: id.name,
-            pid: id.pid,
-            fd: id.fd,
-        };
-        strata_net::write_frame(&mut send, &wire::encode_meta(&msg), &[])
-            .await
-            .unwrap();
-        strata_net::write_frame(&mut send, &wire::encode_meta(&WorkerMsg::Ready), &[])
-            .await
-            .unwrap();
-        let limits = Limits {
-            max_meta: wire::MAX_META,
-            max_bulk: 0,
-        };
-        let f = strata_net::read_frame(&mut recv, &limits).await.unwrap();
-        let CoordMsg::Frame(req) = wire::decode_meta::<CoordMsg>(&f.meta).unwrap() else {
-            panic!("expected a frame")
-        };
+        let (mut seg, req) = segment_ready_and_frame(&mut send, &mut recv).await;
         let at = seg.write(req.frame, u32::MAX, 0, &[0u8; 16]).unwrap();
         let msg = WorkerMsg::FrameDone {
             frame: req.frame,
@@ -1172,18 +1187,43 @@ fn a_bad_shared_memory_segment_of_a_worker_is_refused_naming_it() {
                 len: 100,
             }),
             lz4: false,
+            canvas: None,
         };
-        strata_net::write_frame(&mut send, &wire::encode_meta(&msg), &[])
-            .await
-            .unwrap();
-        tokio::time::sleep(Duration::from_secs(2)).await;
+        say_then_linger(&mut send, &msg).await;
     });
-    let (status, log) = finish(w);
-    assert!(!status.success());
-    let last = log.lines().last().unwrap_or_default();
+    let (last, log) = failed(w);
     assert!(
         last.contains("the final piece of worker 0 (fake")
             && last.contains("runs past the segment's end"),
+        "{log}"
+    );
+
+    // 3. A worker on this host is given the frame's canvas, and claims pixels past the
+    // frame's end in it.
+    let w = start_waiting_coordinator(1, &[]);
+    rt.block_on(async {
+        let (_ep, _conn, mut send, mut recv, _setup) = fake_worker(&w).await;
+        let (_seg, req) = segment_ready_and_frame(&mut send, &mut recv).await;
+        assert!(
+            req.canvas.is_some(),
+            "a worker on this host gets the canvas"
+        );
+        let n = req.width * req.height;
+        let msg = WorkerMsg::FrameDone {
+            frame: req.frame,
+            stats: Default::default(),
+            shm: None,
+            lz4: false,
+            canvas: Some(strata_common::composite::Span {
+                start: 0,
+                end: n + 5,
+            }),
+        };
+        say_then_linger(&mut send, &msg).await;
+    });
+    let (last, log) = failed(w);
+    assert!(
+        last.contains("worker 0 (fake") && last.contains("into the canvas of a"),
         "{log}"
     );
 }

@@ -11,9 +11,12 @@
 //!   timeout on every wait.
 //! * [`secret`]: the run's shared secret (file or environment), random tokens and a
 //!   constant-time comparison.
-//! * [`shm`]: shared-memory segments between processes on one host (files in
-//!   `/dev/shm` read with `pread`), announced over the authenticated connection.
+//! * [`shm`]: shared-memory segments between processes on one host (sealed anonymous
+//!   memory files mapped by both sides), announced over the authenticated connection.
+//! * [`canvas`]: the coordinator's frame-sized shared image that the workers on its host
+//!   write their final spans into.
 
+pub mod canvas;
 pub mod frame;
 pub mod secret;
 pub mod shm;

@@ -152,11 +152,49 @@ pub struct SegmentId {
     pub fd: i32,
 }
 
-fn io_error(path: &str) -> impl Fn(std::io::Error) -> ShmError + '_ {
+pub(crate) fn io_error(path: &str) -> impl Fn(std::io::Error) -> ShmError + '_ {
     move |source| ShmError::Io {
         path: path.to_string(),
         source,
     }
+}
+
+/// A fresh anonymous memory file with a random `strata-shm-` name, `len` bytes with their
+/// memory allocated (so that a host out of memory fails here, not on first touch of a
+/// mapping), carrying `seals` and `F_SEAL_SEAL` (so no one can undo them).
+pub(crate) fn create_sealed(len: u64, seals: libc::c_int) -> Result<(File, String), ShmError> {
+    let hex: String = crate::secret::random_bytes::<16>()
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect();
+    let name = format!("{PREFIX}{hex}");
+    let c_name = std::ffi::CString::new(name.clone()).expect("no NUL in a hex name");
+    // SAFETY: a valid C string and flags; the result is checked.
+    let fd =
+        unsafe { libc::memfd_create(c_name.as_ptr(), libc::MFD_CLOEXEC | libc::MFD_ALLOW_SEALING) };
+    if fd < 0 {
+        return Err(io_error(&name)(std::io::Error::last_os_error()));
+    }
+    // SAFETY: `fd` is a fresh descriptor that nothing else owns.
+    let file = unsafe { File::from_raw_fd(fd) };
+    if len > 0 {
+        let len = libc::off_t::try_from(len).map_err(|_| {
+            io_error(&name)(std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                format!("a segment of {len} bytes"),
+            ))
+        })?;
+        // SAFETY: fallocate on a descriptor we own; the result is checked.
+        if unsafe { libc::fallocate(fd, 0, 0, len) } != 0 {
+            return Err(io_error(&name)(std::io::Error::last_os_error()));
+        }
+    }
+    // SAFETY: fcntl on a descriptor we own; the result is checked.
+    let r = unsafe { libc::fcntl(fd, libc::F_ADD_SEALS, seals | libc::F_SEAL_SEAL) };
+    if r < 0 {
+        return Err(io_error(&name)(std::io::Error::last_os_error()));
+    }
+    Ok((file, name))
 }
 
 /// The sending side of one segment.
@@ -172,32 +210,7 @@ pub struct ShmWriter {
 impl ShmWriter {
     /// Creates a fresh, empty segment, sealed against shrinking.
     pub fn create() -> Result<ShmWriter, ShmError> {
-        let hex: String = crate::secret::random_bytes::<16>()
-            .iter()
-            .map(|b| format!("{b:02x}"))
-            .collect();
-        let name = format!("{PREFIX}{hex}");
-        let c_name = std::ffi::CString::new(name.clone()).expect("no NUL in a hex name");
-        // SAFETY: a valid C string and flags; the result is checked.
-        let fd = unsafe {
-            libc::memfd_create(c_name.as_ptr(), libc::MFD_CLOEXEC | libc::MFD_ALLOW_SEALING)
-        };
-        if fd < 0 {
-            return Err(io_error(&name)(std::io::Error::last_os_error()));
-        }
-        // SAFETY: `fd` is a fresh descriptor that nothing else owns.
-        let file = unsafe { File::from_raw_fd(fd) };
-        // SAFETY: fcntl on a descriptor we own; the result is checked.
-        let r = unsafe {
-            libc::fcntl(
-                fd,
-                libc::F_ADD_SEALS,
-                libc::F_SEAL_SHRINK | libc::F_SEAL_SEAL,
-            )
-        };
-        if r < 0 {
-            return Err(io_error(&name)(std::io::Error::last_os_error()));
-        }
+        let (file, name) = create_sealed(0, libc::F_SEAL_SHRINK)?;
         Ok(ShmWriter {
             file,
             map: None,
@@ -346,6 +359,57 @@ impl ShmWriter {
     }
 }
 
+/// Opens the memory file a peer announced (`id`, received over the authenticated
+/// connection), for reading or also for `write`: only the memory file of that name, of
+/// this user, sealed against shrinking. Returns it and the name to show in errors.
+pub(crate) fn open_checked(id: &SegmentId, write: bool) -> Result<(File, String), ShmError> {
+    if !valid_name(&id.name) {
+        return Err(ShmError::BadName(id.name.chars().take(80).collect()));
+    }
+    let path = format!("/proc/{}/fd/{}", id.pid, id.fd);
+    let shown = format!("{} ({path})", id.name);
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .write(write)
+        .open(&path)
+        .map_err(io_error(&shown))?;
+    let refuse = |why: String| ShmError::NotPrivate {
+        path: shown.clone(),
+        why,
+    };
+    // What this process holds now (the sender's descriptor could have been reused
+    // between the announcement and the open).
+    let held = std::fs::read_link(format!("/proc/self/fd/{}", file.as_raw_fd()))
+        .map_err(io_error(&shown))?;
+    let want = format!("/memfd:{} (deleted)", id.name);
+    if held.as_os_str() != want.as_str() {
+        return Err(refuse(format!(
+            "the descriptor is {}, not the announced segment",
+            held.display()
+        )));
+    }
+    let m = file.metadata().map_err(io_error(&shown))?;
+    // SAFETY: geteuid has no preconditions and cannot fail.
+    let me = unsafe { libc::geteuid() };
+    if !m.is_file() {
+        return Err(refuse("not a regular file".into()));
+    }
+    if m.uid() != me {
+        return Err(refuse(format!(
+            "owned by uid {}, not this user ({me})",
+            m.uid()
+        )));
+    }
+    // SAFETY: fcntl on a descriptor we own; the result is checked.
+    let seals = unsafe { libc::fcntl(file.as_raw_fd(), libc::F_GET_SEALS) };
+    if seals < 0 || seals & libc::F_SEAL_SHRINK == 0 {
+        return Err(refuse(
+            "not sealed against shrinking (a mapping of it could fault)".into(),
+        ));
+    }
+    Ok((file, shown))
+}
+
 /// The receiving side of one segment.
 #[derive(Debug)]
 pub struct ShmReader {
@@ -374,49 +438,7 @@ impl ShmReader {
     /// connection): only the memory file of that name, of this user, sealed against
     /// shrinking.
     pub fn open(id: &SegmentId) -> Result<ShmReader, ShmError> {
-        if !valid_name(&id.name) {
-            return Err(ShmError::BadName(id.name.chars().take(80).collect()));
-        }
-        let path = format!("/proc/{}/fd/{}", id.pid, id.fd);
-        let shown = format!("{} ({path})", id.name);
-        let file = std::fs::OpenOptions::new()
-            .read(true)
-            .open(&path)
-            .map_err(io_error(&shown))?;
-        let refuse = |why: String| ShmError::NotPrivate {
-            path: shown.clone(),
-            why,
-        };
-        // What this process holds now (the sender's descriptor could have been reused
-        // between the announcement and the open).
-        let held = std::fs::read_link(format!("/proc/self/fd/{}", file.as_raw_fd()))
-            .map_err(io_error(&shown))?;
-        let want = format!("/memfd:{} (deleted)", id.name);
-        if held.as_os_str() != want.as_str() {
-            return Err(refuse(format!(
-                "the descriptor is {}, not the announced segment",
-                held.display()
-            )));
-        }
-        let m = file.metadata().map_err(io_error(&shown))?;
-        // SAFETY: geteuid has no preconditions and cannot fail.
-        let me = unsafe { libc::geteuid() };
-        if !m.is_file() {
-            return Err(refuse("not a regular file".into()));
-        }
-        if m.uid() != me {
-            return Err(refuse(format!(
-                "owned by uid {}, not this user ({me})",
-                m.uid()
-            )));
-        }
-        // SAFETY: fcntl on a descriptor we own; the result is checked.
-        let seals = unsafe { libc::fcntl(file.as_raw_fd(), libc::F_GET_SEALS) };
-        if seals < 0 || seals & libc::F_SEAL_SHRINK == 0 {
-            return Err(refuse(
-                "not sealed against shrinking (a mapping of it could fault)".into(),
-            ));
-        }
+        let (file, shown) = open_checked(id, false)?;
         Ok(ShmReader {
             file,
             path: shown,

@@ -441,6 +441,7 @@ pub fn seeds() -> Vec<(&'static str, String, Vec<u8>)> {
                     },
                     shm: None,
                     lz4: false,
+                    canvas: None,
                 }),
             ),
         ));
@@ -483,6 +484,11 @@ pub fn seeds() -> Vec<(&'static str, String, Vec<u8>)> {
             occlusion_block: 16,
             occlusion_prepass: 4,
             wall: None,
+            canvas: Some(strata_common::wire::CanvasRef {
+                name: format!("strata-shm-{}", "0f".repeat(16)),
+                pid: 4242,
+                fd: 9,
+            }),
         };
         out.push((
             "wire_message",

@@ -39,6 +39,7 @@ use strata_common::wire::{
     self, CompositeChoice, CoordMsg, Fingerprint, FrameRequest, FrameSource, Limits, PeerInfo,
     PeerMsg, Setup, WorkerFrameStats, WorkerMsg,
 };
+use strata_net::canvas::{self, CanvasWriter};
 use strata_net::frame::{
     read_frame, send_uni, send_uni_chunks, with_timeout, write_frame, write_frame_chunks, NetError,
 };
@@ -267,26 +268,43 @@ async fn node(opts: NodeOptions) -> Result<()> {
                             // (encoded straight into the segment); QUIC when not, or when the
                             // segment cannot take it (a host out of memory).
                             let t = Instant::now();
-                            let layout = PieceLayout::of(&piece.pixels);
-                            let shm = node.gather_shm.as_mut().and_then(|w| {
-                                w.reset();
-                                tokio::task::block_in_place(|| {
-                                    w.write_piece(
-                                        frame,
-                                        wire::GATHER_ROUND,
-                                        rank,
-                                        &[Segment::Pixels(&piece.pixels)],
-                                        &layout,
-                                        piece.span,
-                                        piece.format,
-                                    )
-                                })
-                                .map_err(|e| warn!(frame, "final piece over QUIC instead: {e}"))
-                                .ok()
+                            // Into the coordinator's canvas when it gave one: in place,
+                            // nothing to encode or assemble.
+                            let canvas = req.canvas.as_ref().and_then(|c| {
+                                tokio::task::block_in_place(|| node.write_canvas(&req, c, &piece))
+                                    .map_err(|e| {
+                                        warn!(frame, "final piece not in the canvas: {e:#}")
+                                    })
+                                    .ok()
                             });
+                            let layout = if canvas.is_some() {
+                                PieceLayout::of(&[])
+                            } else {
+                                PieceLayout::of(&piece.pixels)
+                            };
+                            let shm = node
+                                .gather_shm
+                                .as_mut()
+                                .filter(|_| canvas.is_none())
+                                .and_then(|w| {
+                                    w.reset();
+                                    tokio::task::block_in_place(|| {
+                                        w.write_piece(
+                                            frame,
+                                            wire::GATHER_ROUND,
+                                            rank,
+                                            &[Segment::Pixels(&piece.pixels)],
+                                            &layout,
+                                            piece.span,
+                                            piece.format,
+                                        )
+                                    })
+                                    .map_err(|e| warn!(frame, "final piece over QUIC instead: {e}"))
+                                    .ok()
+                                });
                             let mut bulk = Vec::new();
-                            let lz4 = shm.is_none() && node.lz4;
-                            if shm.is_none() {
+                            let lz4 = shm.is_none() && canvas.is_none() && node.lz4;
+                            if shm.is_none() && canvas.is_none() {
                                 let encoded = SparsePiece::encode_with(
                                     &piece.pixels,
                                     layout.clone(),
@@ -300,7 +318,9 @@ async fn node(opts: NodeOptions) -> Result<()> {
                                 };
                             }
                             stats.gather_s += t.elapsed().as_secs_f64();
-                            stats.gather_bytes = if shm.is_none() {
+                            stats.gather_bytes = if canvas.is_some() {
+                                piece.pixels.len() * canvas::PIXEL_BYTES as usize
+                            } else if shm.is_none() {
                                 bulk.iter().map(|b| b.len()).sum()
                             } else {
                                 layout.byte_len(piece.format)
@@ -311,6 +331,7 @@ async fn node(opts: NodeOptions) -> Result<()> {
                                 stats,
                                 shm,
                                 lz4,
+                                canvas,
                             };
                             write_frame_chunks(&mut csend, &wire::encode_meta(&msg), bulk).await?;
                         }
@@ -618,6 +639,7 @@ async fn mesh(
         plans: HashMap::new(),
         timeout,
         gather_shm: None,
+        canvases: Vec::new(),
         suspects: Vec::new(),
         deferred: Default::default(),
         front_last: None,
@@ -897,6 +919,8 @@ struct Node {
     timeout: Duration,
     /// The segment for the final pieces (a coordinator on this host).
     gather_shm: Option<ShmWriter>,
+    /// The coordinator's canvases this worker has mapped, most recent last.
+    canvases: Vec<CanvasWriter>,
     /// The peers the last failed frame is blamed on (reported to the coordinator).
     suspects: Vec<u32>,
     /// Control messages that arrived during a frame, for after it.
@@ -958,6 +982,53 @@ const PEER_EVENTS: usize = 64;
 impl Node {
     /// Renders (or draws) this worker's image and runs its part of the exchange; returns
     /// the stats and the encoded final piece.
+    /// Writes the frame's final piece in place into the coordinator's canvas `c` (mapped
+    /// on first use; the last few stay mapped) and returns the span it covers.
+    fn write_canvas(
+        &mut self,
+        req: &FrameRequest,
+        c: &wire::CanvasRef,
+        piece: &FinalPiece,
+    ) -> Result<Span> {
+        /// Canvases kept mapped (the coordinator rotates two while callers hold images).
+        const KEEP: usize = 4;
+        let size = (req.width, req.height);
+        let at = match self
+            .canvases
+            .iter()
+            .position(|w| w.name() == c.name && w.size() == size)
+        {
+            Some(i) => i,
+            None => {
+                let id = SegmentId {
+                    name: c.name.clone(),
+                    pid: c.pid,
+                    fd: c.fd,
+                };
+                let w = CanvasWriter::open(&id, req.width, req.height)
+                    .context("opening the coordinator's canvas")?;
+                if self.canvases.len() >= KEEP {
+                    self.canvases.remove(0);
+                }
+                self.canvases.push(w);
+                self.canvases.len() - 1
+            }
+        };
+        let interlace = Interlace::new(
+            req.width,
+            req.height,
+            req.order.len() as u32,
+            req.composite.interlace && req.wall.is_none(),
+        );
+        strata_common::composite::canvas::write_span(
+            self.canvases[at].pixels_mut(),
+            &interlace,
+            piece.span,
+            &piece.pixels,
+        )?;
+        Ok(piece.span)
+    }
+
     async fn frame(
         &mut self,
         req: &FrameRequest,
@@ -1644,7 +1715,8 @@ pub fn synthetic_image(
     };
     // Boxes of different ranks sit at different places, as the projections of the k-d
     // leaves of a scene do.
-    let mix = strata_common::digest::fmix64(seed ^ (rank as u64 + 1) * 0x9e37_79b9_7f4a_7c15);
+    let mix =
+        strata_common::digest::fmix64(seed ^ (rank as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15));
     let x = if w < width {
         (mix % (width - w + 1) as u64) as u32
     } else {

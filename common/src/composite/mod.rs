@@ -42,6 +42,7 @@ use std::fmt;
 use serde::{Deserialize, Serialize};
 
 mod binary_swap;
+pub mod canvas;
 mod direct_send;
 mod exchange;
 mod interlace;

@@ -65,6 +65,22 @@ pub enum CompositeError {
         /// Image height.
         height: u32,
     },
+    /// A frame buffer whose length is not the frame's pixel count.
+    #[error("a frame buffer of {len} pixels for a frame of {pixels}")]
+    FrameLength {
+        /// Pixels in the buffer.
+        len: usize,
+        /// Pixels in the frame.
+        pixels: u64,
+    },
+    /// A span given the wrong number of pixels.
+    #[error("span {span} holds {} pixels, {pixels} given", span.len())]
+    SpanPixels {
+        /// The span.
+        span: Span,
+        /// Pixels given.
+        pixels: usize,
+    },
     /// Wrong number of images for the plan.
     #[error("{got} images for a plan of {ranks} ranks")]
     ImageCount {
@@ -629,21 +645,12 @@ pub fn assemble(
     // Interlaced: logical row l is physical row `physical_row(l)`; every active run is
     // copied straight to its rows.
     out.resize(n as usize, [0.0; 4]);
-    let w = width as usize;
     for p in order {
         let start = p.span.start as usize;
         p.for_each_active(|off, px| {
-            let mut i = start + off;
-            let mut px = px;
-            while !px.is_empty() {
-                let l = i / w;
-                let x = i - l * w;
-                let take = px.len().min(w - x);
-                let dst = interlace.physical_row(l as u32) as usize * w + x;
-                out[dst..dst + take].copy_from_slice(&px[..take]);
-                px = &px[take..];
-                i += take;
-            }
+            super::canvas::physical_runs(interlace, start + off, px.len(), |dst, o, len| {
+                out[dst..dst + len].copy_from_slice(&px[o..o + len]);
+            });
         });
     }
     Ok(out)

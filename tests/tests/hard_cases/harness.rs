@@ -170,7 +170,7 @@ impl Ctx {
             return Err(format!("{} worker(s) lost", r.lost.len()));
         }
         let converged = r.stats.iter().all(|st| st.outcome == "converged");
-        Ok((r.image, converged))
+        Ok((r.image.into_vec(), converged))
     }
 }
 
