@@ -10,7 +10,9 @@
 use strata_common::geo::Affine3;
 use strata_common::image::Rgba;
 use strata_common::scene::{Backend, Camera, Scene};
-use strata_tests::scenes::{exact_settings, render_whole, scene, volume_layer, volume_store};
+use strata_tests::scenes::{
+    exact_settings, horizon_layer, horizon_store, render_whole, scene, volume_layer, volume_store,
+};
 
 const N: u64 = 64;
 
@@ -51,6 +53,24 @@ fn ramp(dir: &std::path::Path, step: f64, pre: bool) -> Scene {
     scene(vec![layer], vec![], camera, s)
 }
 
+/// The ramp with an opaque red horizon across it at z = `at` (the ray meets it head on).
+fn ramp_onto_surface(dir: &std::path::Path, step: f64, pre: bool, at: f32) -> Scene {
+    let mut s = ramp(dir, step, pre);
+    let store = dir.join(format!("flat-{at}.strata"));
+    if !store.exists() {
+        horizon_store(
+            dir,
+            &format!("flat-{at}"),
+            [4, 4],
+            vec![at; 16],
+            Affine3::IDENTITY,
+            32,
+        );
+    }
+    s.horizons = vec![horizon_layer(store, [1.0, 0.0, 0.0], 1.0)];
+    s
+}
+
 fn centre(img: &[Rgba]) -> Rgba {
     img[4]
 }
@@ -80,6 +100,83 @@ fn a_preintegrated_ramp_matches_the_fine_reference_better_than_point_samples() {
             e_pre < factor * e_post,
             "step {step}: pre-integrated {pre:?} is {e_pre:.2e} from the reference \
              {reference:?}, point samples {post:?} {e_post:.2e}"
+        );
+    }
+}
+
+/// An opaque surface between samples: the volume's pre-integrated span in front of it is
+/// closed before the surface is blended (its half step after the last sample counted, as
+/// point samples count their last sample's whole step), so the volume in front of the
+/// surface is integrated over the same depth either way. Were the span left open, its last
+/// half step would be blended behind the opaque surface, i.e. lost.
+#[test]
+fn a_preintegrated_span_ends_at_a_surface() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    for step in [2.0f64, 4.0] {
+        // Between lattice points at this step (they lie at step/2 − 0.5 + k·step).
+        let lattice = |k: f64| step / 2.0 - 0.5 + k * step;
+        let at = (lattice((40.0 / step).floor() - 1.0) + 0.3 * step) as f32;
+        let post = centre(&render_whole(&ramp_onto_surface(d, step, false, at)));
+        let pre = centre(&render_whole(&ramp_onto_surface(d, step, true, at)));
+        let open = centre(&render_whole(&ramp(d, step, true)));
+        eprintln!("step {step}: surface at {at}: post {post:?} pre {pre:?} ramp alone {open:?}");
+        assert!(pre[3] > 0.999 && post[3] > 0.999, "the surface is opaque");
+        // The volume in front covers the same depth: the surface's share (red, less the
+        // green and blue the grey volume adds) is the same to within the pre-integration
+        // of a ramp against point samples of it.
+        let (red_post, red_pre) = (post[0] - post[1], pre[0] - pre[1]);
+        assert!(
+            (red_post - red_pre).abs() < 0.005,
+            "step {step}: the surface shows {red_pre} through the pre-integrated volume, \
+             {red_post} through point samples"
+        );
+    }
+}
+
+/// A second, all but transparent volume overlapping the back of the ramp from between two
+/// samples on: where the two overlap their mix is post-classified, so the ramp's
+/// pre-integrated span ends where the overlap begins (its half step after the last sample
+/// counted). The image stays that of the ramp alone, up to the second volume's own
+/// 2·10⁻⁴ of opacity and pre-integration against point samples over the overlap (≤ 4·10⁻⁴
+/// here, against 2–5·10⁻³ with the span left open); were the
+/// span left open, its last half step would be lost.
+#[test]
+fn a_preintegrated_span_ends_where_another_volume_begins() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let ghost = volume_store(
+        d,
+        "ghost",
+        [4, 4, 24],
+        vec![0.5; 4 * 4 * 24],
+        Affine3 {
+            rows: [
+                [1.0, 0.0, 0.0, 0.0],
+                [0.0, 1.0, 0.0, 0.0],
+                [0.0, 0.0, 1.0, 40.2],
+            ],
+        },
+        32,
+    );
+    for step in [2.0f64, 4.0] {
+        let alone = centre(&render_whole(&ramp(d, step, true)));
+        let mut s = ramp(d, step, true);
+        s.volumes.push(volume_layer(
+            ghost.clone(),
+            "grey",
+            [0.0, 1.0],
+            vec![[0.0, 1e-5], [1.0, 1e-5]],
+        ));
+        let both = centre(&render_whole(&s));
+        eprintln!("step {step}: ramp alone {alone:?}, with the overlapping volume {both:?}");
+        assert!(
+            both != alone,
+            "step {step}: the second volume was not marched"
+        );
+        assert!(
+            err(both, alone) < 0.001,
+            "step {step}: the overlap changed the ramp from {alone:?} to {both:?}"
         );
     }
 }
