@@ -465,8 +465,11 @@ pub struct RenderSettings {
     /// Base sampling step in units of the finest voxel spacing of the scene's volumes.
     #[serde(default = "default_step")]
     pub step: f64,
-    /// LOD tolerance in pixels: a level is fine enough when its voxel covers at most `tau` pixels.
-    #[serde(default = "one")]
+    /// LOD tolerance in pixels: a level is fine enough when its voxel covers at most `tau`
+    /// pixels. 0.5 by default (two samples per pixel, Nyquist's rate): `coordinator study
+    /// accuracy` put τ = 1 off the Pareto front wherever coarse levels show (the demo
+    /// survey with its volume visible: 6× the RMSE of τ 0.5 for 0.8× its time).
+    #[serde(default = "half")]
     pub tau: f64,
     /// Coarser levels step further (powers of two of the base step, opacity-corrected).
     #[serde(default = "yes")]
@@ -611,7 +614,7 @@ impl Default for RenderSettings {
             z_scale: 1.0,
             z_down: true,
             step: default_step(),
-            tau: 1.0,
+            tau: 0.5,
             adaptive_step: true,
             early_termination: default_ert(),
             empty_space_skipping: true,
@@ -657,6 +660,10 @@ fn default_h() -> u32 {
 fn default_cache() -> u64 {
     1024
 }
+fn half() -> f64 {
+    0.5
+}
+
 fn one() -> f64 {
     1.0
 }

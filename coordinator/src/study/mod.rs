@@ -2,7 +2,8 @@
 //!
 //! Renders a reference (CPU, step/16, no early termination, level 0 only, fixed step),
 //! then each knob alone and in pairs, each point converged once and then timed over
-//! `frames` frames with everything resident. Every point records the median frame time, the
+//! `frames` frames with everything resident, interleaved with frames of the defaults (a
+//! ratio measured side by side). Every point records the median frame time, the
 //! samples, and its RMSE, largest error (premultiplied linear RGBA) and 1 − SSIM (the
 //! displayed image) against the reference. The report (`report.md`), the table
 //! (`points.csv`) and one plot per knob (`<knob>.png`, `.svg`) go to the output folder,
@@ -69,6 +70,9 @@ pub struct Point {
     pub backend: String,
     /// Anything the reader should know (did not converge, ...).
     pub note: String,
+    /// It rendered the defaults' image bit for bit from as many samples (the same work):
+    /// its time cannot put the defaults off the Pareto front.
+    pub same_work: bool,
 }
 
 /// An image and how it was made.
@@ -78,34 +82,105 @@ pub(crate) struct Measured {
     pub(crate) image: Vec<Rgba>,
     pub(crate) backend: String,
     pub(crate) note: String,
+    /// Its time over the defaults', timed side by side (interleaved frames); `None` for a
+    /// point timed alone (distributed points).
+    pub(crate) ratio: Option<f64>,
+}
+
+/// A converged in-process engine whose frames can be timed again, everything resident.
+pub(crate) struct Resident {
+    engine: Engine,
+    view: strata_common::camera::View,
+    region: strata_common::kd::Region,
+    /// Seconds of every frame timed so far.
+    times: Vec<f64>,
+    /// Its image and samples (of its first frame after converging).
+    pub(crate) measured: Measured,
+}
+
+impl Resident {
+    /// Converges once, then renders one frame for the image (not timed).
+    pub(crate) fn converge(scene: &Scene) -> Result<Resident> {
+        let mut engine = Engine::new(scene)?;
+        let view = engine.view(scene.render.width, scene.render.height)?;
+        let region = engine.scene_region();
+        let b = engine.render_batch(&view, &region)?;
+        let note = match b.outcome.as_str() {
+            "converged" => String::new(),
+            o => format!("{o} after {} rounds", b.rounds),
+        };
+        let f = engine.render_frame(&view, &region)?;
+        Ok(Resident {
+            engine,
+            view,
+            region,
+            times: Vec::new(),
+            measured: Measured {
+                seconds: f.seconds,
+                samples: f.stats.samples,
+                image: f.image.to_full(),
+                backend: b.backend,
+                note,
+                ratio: None,
+            },
+        })
+    }
+
+    /// Times one more frame.
+    fn time(&mut self) -> Result<f64> {
+        let f = self.engine.render_frame(&self.view, &self.region)?;
+        self.times.push(f.seconds);
+        Ok(f.seconds)
+    }
+
+    /// Median of every frame timed so far.
+    pub(crate) fn median(&self) -> f64 {
+        median(&self.times)
+    }
+}
+
+fn median(v: &[f64]) -> f64 {
+    let mut v = v.to_vec();
+    v.sort_by(|a, b| a.total_cmp(b));
+    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+}
+
+/// Times `frames` frames of `point` interleaved with as many of `defaults` (the machine's
+/// speed drifts by tens of percent over seconds: only a ratio measured side by side is
+/// firm) and returns the point, its `seconds` its own median and its `ratio` the median
+/// of its frame times over the defaults' frame times of the same pairs.
+pub(crate) fn side_by_side(
+    mut point: Resident,
+    defaults: &mut Resident,
+    frames: usize,
+) -> Result<Measured> {
+    let mut ratios = Vec::new();
+    for i in 0..frames.max(1) {
+        // Alternate which goes first, so neither always follows the other.
+        let (p, d) = if i % 2 == 0 {
+            let p = point.time()?;
+            (p, defaults.time()?)
+        } else {
+            let d = defaults.time()?;
+            (point.time()?, d)
+        };
+        ratios.push(p / d);
+    }
+    let mut m = point.measured;
+    m.seconds = median(&point.times);
+    m.ratio = Some(median(&ratios));
+    Ok(m)
 }
 
 /// Converges once, then times `frames` frames (median) with everything resident.
 pub(crate) fn measure_in_process(scene: &Scene, frames: usize) -> Result<Measured> {
-    let mut e = Engine::new(scene)?;
-    let view = e.view(scene.render.width, scene.render.height)?;
-    let region = e.scene_region();
-    let b = e.render_batch(&view, &region)?;
-    let note = match b.outcome.as_str() {
-        "converged" => String::new(),
-        o => format!("{o} after {} rounds", b.rounds),
-    };
-    let mut times = Vec::new();
-    let mut last = None;
+    let mut r = Resident::converge(scene)?;
     for _ in 0..frames.max(1) {
-        let f = e.render_frame(&view, &region)?;
-        times.push(f.seconds);
-        last = Some(f);
+        r.time()?;
     }
-    times.sort_by(|a, b| a.total_cmp(b));
-    let f = last.expect("at least one frame");
-    Ok(Measured {
-        seconds: times[times.len() / 2],
-        samples: f.stats.samples,
-        image: f.image.to_full(),
-        backend: b.backend,
-        note,
-    })
+    let mut m = r.measured;
+    m.seconds = median(&r.times);
+    Ok(m)
 }
 
 /// Bytes of the level-0 pages of every volume of the scene (what a level-0-only frame may
@@ -248,26 +323,37 @@ pub fn run(opts: &StudyOptions, progress: &ProgressBar) -> Result<Vec<Point>> {
         errors: zero,
         backend: r.backend.clone(),
         note: r.note.clone(),
+        same_work: false,
     }];
     let reference = r.image;
 
     progress.set_message("defaults");
-    let d = measure_in_process(&base, opts.frames).context("the defaults")?;
+    // The defaults stay resident for the whole study: every in-process point's frames are
+    // timed interleaved with theirs, and its time reported as the ratio so measured times
+    // the defaults' median over the study. (Timed one after the other, identical settings
+    // differed by up to 60 % between points, and the verdict flipped with the noise.)
+    let mut defaults = Resident::converge(&base).context("the defaults")?;
+    for _ in 0..opts.frames.max(1) {
+        defaults.time().context("the defaults")?;
+    }
+    let d = &defaults.measured;
     out.push(Point {
         knob: "defaults".into(),
         label: "defaults".into(),
         sets: Vec::new(),
-        seconds: d.seconds,
+        seconds: f64::NAN,
         samples: d.samples,
         errors: metrics::compare(&d.image, &reference, w, h, bg),
-        backend: d.backend,
-        note: d.note,
+        backend: d.backend.clone(),
+        note: d.note.clone(),
+        same_work: true,
     });
+    let mut ratios: Vec<Option<f64>> = vec![None, Some(1.0)];
     progress.inc(1);
 
     for v in &vars {
         progress.set_message(format!("{} {}", v.knob, v.label));
-        let m = points::measure(v, opts, scratch.path());
+        let m = points::measure(v, opts, scratch.path(), &mut defaults);
         progress.inc(1);
         let m = match m {
             Ok(m) => m,
@@ -286,7 +372,9 @@ pub fn run(opts: &StudyOptions, progress: &ProgressBar) -> Result<Vec<Point>> {
                     },
                     backend: String::new(),
                     note: format!("skipped: {e:#}"),
+                    same_work: false,
                 });
+                ratios.push(None);
                 continue;
             }
         };
@@ -298,6 +386,22 @@ pub fn run(opts: &StudyOptions, progress: &ProgressBar) -> Result<Vec<Point>> {
                 m.image.len()
             );
         }
+        // The defaults' image, bit for bit, from as many samples: the same work, so a
+        // difference in time is noise and cannot put the defaults off the front.
+        let same_work = m.samples == defaults.measured.samples
+            && m.image.len() == defaults.measured.image.len()
+            && m
+                .image
+                .iter()
+                .zip(&defaults.measured.image)
+                .all(|(a, b)| (0..4).all(|c| a[c].to_bits() == b[c].to_bits()));
+        let mut note = m.note;
+        if same_work {
+            if !note.is_empty() {
+                note.push_str("; ");
+            }
+            note.push_str("the defaults' image and samples");
+        }
         out.push(Point {
             knob: v.knob.into(),
             label: v.label.clone(),
@@ -306,8 +410,17 @@ pub fn run(opts: &StudyOptions, progress: &ProgressBar) -> Result<Vec<Point>> {
             samples: m.samples,
             errors: metrics::compare(&m.image, &reference, w, h, bg),
             backend: m.backend,
-            note: m.note,
+            note,
+            same_work,
         });
+        ratios.push(m.ratio);
+    }
+    // Side-by-side ratios become times at the defaults' median over the whole study.
+    let base_s = defaults.median();
+    for (p, r) in out.iter_mut().zip(&ratios) {
+        if let Some(r) = r {
+            p.seconds = r * base_s;
+        }
     }
     report::write(opts, &base, &out)?;
     Ok(out)

@@ -1,6 +1,6 @@
 //! The knobs of the accuracy study and how each point is rendered.
 
-use super::{measure_in_process, rebuild_with_filter, Measured, StudyOptions};
+use super::{rebuild_with_filter, side_by_side, Measured, Resident, StudyOptions};
 use crate::overrides::load_scene;
 use crate::render::{render_distributed, RenderOptions};
 use anyhow::{Context, Result};
@@ -172,13 +172,20 @@ pub fn variants(scene: &Scene, opts: &StudyOptions) -> Vec<Variant> {
 }
 
 /// Renders one point.
-pub(crate) fn measure(v: &Variant, opts: &StudyOptions, scratch: &Path) -> Result<Measured> {
+/// Measures one point: in process, its frames interleaved with the `defaults`' (see
+/// [`side_by_side`]); distributed, one batch frame timed alone.
+pub(crate) fn measure(
+    v: &Variant,
+    opts: &StudyOptions,
+    scratch: &Path,
+    defaults: &mut Resident,
+) -> Result<Measured> {
     let mut sets = opts.sets.clone();
     sets.extend(v.sets.iter().cloned());
     match &v.how {
         Where::InProcess => {
             let scene = load_scene(&opts.scene, &sets, opts.size)?;
-            measure_in_process(&scene, opts.frames)
+            side_by_side(Resident::converge(&scene)?, defaults, opts.frames)
         }
         Where::Filter(f) => {
             let mut scene = load_scene(&opts.scene, &sets, opts.size)?;
@@ -189,7 +196,7 @@ pub(crate) fn measure(v: &Variant, opts: &StudyOptions, scratch: &Path) -> Resul
                 }
                 l.store = out;
             }
-            measure_in_process(&scene, opts.frames)
+            side_by_side(Resident::converge(&scene)?, defaults, opts.frames)
         }
         Where::Distributed(n) => {
             let png = scratch.join("distributed.png");
@@ -215,6 +222,7 @@ pub(crate) fn measure(v: &Variant, opts: &StudyOptions, scratch: &Path) -> Resul
                     s.exchange_bytes,
                     s.algorithm.unwrap_or_default()
                 ),
+                ratio: None,
             })
         }
     }
