@@ -13,6 +13,7 @@
 //! processes on one host exchange through shared memory (`cluster.transport`).
 
 use crate::decompose;
+use crate::setup_blame::{self, Answer, Verdict};
 use anyhow::{anyhow, bail, Context, Result};
 use std::future::IntoFuture;
 use std::net::SocketAddr;
@@ -1034,14 +1035,8 @@ impl Cluster {
                 return Ok(Some((vec![rank], anyhow!("{e}"))));
             }
         }
-        #[derive(PartialEq)]
-        enum State {
-            Waiting,
-            Ready,
-            Failed(String, Vec<u32>),
-        }
         let n = self.workers.len();
-        let mut state: Vec<State> = (0..n).map(|_| State::Waiting).collect();
+        let mut state: Vec<Answer> = (0..n).map(|_| Answer::Waiting).collect();
         let mut lost: Vec<(u32, String)> = Vec::new();
         // A worker's mesh gives up within its connect timeout of receiving the set-up (a
         // scene to parse comes first): the coordinator waits out two, so that the workers'
@@ -1064,64 +1059,37 @@ impl Cluster {
                     .join("; ");
                 return Ok(Some((ranks, anyhow!("{why}"))));
             }
-            let waiting: Vec<u32> = slots
-                .iter()
-                .copied()
-                .filter(|&r| state[r as usize] == State::Waiting)
-                .collect();
-            let failures: Vec<(u32, &String, &Vec<u32>)> = slots
-                .iter()
-                .filter_map(|&r| match &state[r as usize] {
-                    State::Failed(m, s) => Some((r, m, s)),
-                    _ => None,
-                })
-                .collect();
-            // Every worker still waiting is one a failed peer could not mesh with: it
-            // hung, and the peers said so before the deadline.
-            let blamed = |r: &u32| failures.iter().any(|f| f.2.contains(r));
-            if !waiting.is_empty() && !failures.is_empty() && waiting.iter().all(blamed) {
-                for &r in &waiting {
-                    let (by, msg, _) = failures.iter().find(|f| f.2.contains(&r)).expect("blamed");
-                    let who = self.workers[*by as usize].describe();
-                    lost.push((r, format!("{who} could not mesh with it: {msg}")));
-                }
-                continue;
-            }
-            if waiting.is_empty() {
-                // Everyone answered, some failed. If every failure names peers it could not
-                // mesh with, the one named most (a newcomer first) is the one lost: an
-                // unreachable worker blames its peers too, but they all blame it.
-                if !failures.is_empty() && failures.iter().all(|f| !f.2.is_empty()) {
-                    let blames = |r: u32| failures.iter().filter(|f| f.2.contains(&r)).count();
-                    let worst = slots
-                        .iter()
-                        .copied()
-                        .max_by_key(|&r| (blames(r), fresh.contains(&r), r))
-                        .expect("ranks in the run");
-                    if blames(worst) >= 2 || fresh.contains(&worst) {
-                        let (by, msg, _) = failures
-                            .iter()
-                            .find(|f| f.2.contains(&worst))
-                            .expect("blamed");
-                        let who = self.workers[*by as usize].describe();
-                        lost.push((
-                            worst,
-                            format!(
-                                "{} of its peers could not mesh with it ({who}: {msg})",
-                                blames(worst)
-                            ),
-                        ));
-                        continue;
-                    }
-                }
-                if let Some((r, msg, _)) = failures.first() {
+            let waiting: Vec<u32> = match setup_blame::judge(&slots, &state, fresh) {
+                Verdict::Ready => return Ok(None),
+                Verdict::Fail(r, msg) => {
                     bail!(
                         "{} failed to set up: {msg}",
-                        self.workers[*r as usize].describe()
-                    );
+                        self.workers[r as usize].describe()
+                    )
                 }
-                return Ok(None);
-            }
+                Verdict::GiveUp(blamed) => {
+                    for b in blamed {
+                        let who = self.workers[b.by as usize].describe();
+                        lost.push((
+                            b.rank,
+                            if b.silent {
+                                format!("{who} could not mesh with it: {}", b.message)
+                            } else {
+                                format!(
+                                    "{} of its peers could not mesh with it ({who}: {})",
+                                    b.count, b.message
+                                )
+                            },
+                        ));
+                    }
+                    continue;
+                }
+                Verdict::Wait => slots
+                    .iter()
+                    .copied()
+                    .filter(|&r| state[r as usize] == Answer::Waiting)
+                    .collect(),
+            };
             let ev = match self.next_event(deadline).await {
                 Ok(ev) => ev,
                 Err(()) => {
@@ -1171,7 +1139,7 @@ impl Cluster {
                             );
                             give_up_fresh(fresh, rank, e, &mut lost)?;
                         } else {
-                            state[rank as usize] = State::Ready;
+                            state[rank as usize] = Answer::Ready;
                         }
                     }
                     Ok(WorkerMsg::ShmSegment { name, pid, fd })
@@ -1202,7 +1170,7 @@ impl Cluster {
                         frame: None,
                         message,
                         suspects,
-                    }) => state[rank as usize] = State::Failed(message, suspects),
+                    }) => state[rank as usize] = Answer::Failed(message, suspects),
                     // A frame's leftovers cannot come before the first frame.
                     Ok(other) => {
                         let e = anyhow!(

@@ -20,4 +20,5 @@ pub use strata_worker::image_out;
 pub mod overrides;
 pub mod render;
 pub mod sequence;
+pub mod setup_blame;
 pub mod study;

@@ -390,8 +390,7 @@ pub fn run(opts: &StudyOptions, progress: &ProgressBar) -> Result<Vec<Point>> {
         // difference in time is noise and cannot put the defaults off the front.
         let same_work = m.samples == defaults.measured.samples
             && m.image.len() == defaults.measured.image.len()
-            && m
-                .image
+            && m.image
                 .iter()
                 .zip(&defaults.measured.image)
                 .all(|(a, b)| (0..4).all(|c| a[c].to_bits() == b[c].to_bits()));
