@@ -634,8 +634,13 @@ pub struct WorkerFrameStats {
     pub shm_bytes_sent: u64,
     /// Bytes received from peers.
     pub bytes_received: u64,
-    /// Bytes of the final piece sent to the coordinator.
+    /// Bytes of the final piece sent to the coordinator (written into its canvas: the
+    /// f32 pixels of the span).
     pub gather_bytes: u64,
+    /// The last compositing round was blended straight into the coordinator's canvas
+    /// (no interlacing), so the gather copied nothing.
+    #[serde(default)]
+    pub blended_in_canvas: bool,
     /// Compositing rounds.
     pub rounds: u32,
     /// Feedback rounds of the renderer.

@@ -277,6 +277,8 @@ pub struct FrameResult {
     pub gather_bytes: u64,
     /// Workers whose final piece was written in place into the canvas.
     pub canvas_gather: usize,
+    /// Of these, workers whose last round was blended straight into the canvas.
+    pub canvas_blended: usize,
     /// Seconds this coordinator spent reading and checking final pieces (shared-memory
     /// reads and parsing; part of `composite_s`).
     pub collect_s: f64,
@@ -1790,6 +1792,7 @@ impl Cluster {
             .iter()
             .map(|&r| pieces[r as usize].take().unwrap())
             .collect();
+        let canvas_blended = stats.iter().filter(|s| s.blended_in_canvas).count();
         let pieces_in_canvas = pieces
             .iter()
             .filter(|p| matches!(p, Final::InCanvas(_)))
@@ -1865,6 +1868,7 @@ impl Cluster {
             wall_s: t0.elapsed().as_secs_f64(),
             gather_bytes,
             canvas_gather: pieces_in_canvas,
+            canvas_blended,
             collect_s,
             assemble_s,
             lost: Vec::new(),

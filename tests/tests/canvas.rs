@@ -40,7 +40,7 @@ fn frames(
     s: &Scene,
     transport: Transport,
     shots: &[(f32, bool, u64)],
-) -> (Vec<Vec<Rgba>>, Vec<usize>, Vec<FrameImage>) {
+) -> (Vec<Vec<Rgba>>, Vec<(usize, usize)>, Vec<FrameImage>) {
     let mut opts = ClusterOptions::from_scene(s, Some(WORKERS)).unwrap();
     opts.worker_exe = Some(PathBuf::from(env!("CARGO_BIN_EXE_strata-test-worker")));
     opts.worker_threads = 1;
@@ -74,7 +74,7 @@ fn frames(
                 .unwrap();
             assert!(r.lost.is_empty());
             copies.push(r.image.to_vec());
-            in_canvas.push(r.canvas_gather);
+            in_canvas.push((r.canvas_gather, r.canvas_blended));
             held.push(r.image);
         }
         c.shutdown().await;
@@ -104,12 +104,18 @@ fn the_canvas_equals_the_assembled_image_and_a_held_frame_stays_as_it_was() {
     ];
     let (canvas, in_canvas, held) = frames(&s, Transport::Shm, &shots);
     let (quic, over_quic, _) = frames(&s, Transport::Quic, &shots);
+    // Every worker wrote in place; without interlacing the last round was blended
+    // straight into the canvas.
+    let want: Vec<(usize, usize)> = shots
+        .iter()
+        .map(|&(_, interlace, _)| (WORKERS, if interlace { 0 } else { WORKERS }))
+        .collect();
+    assert_eq!(in_canvas, want);
     assert_eq!(
-        in_canvas,
-        vec![WORKERS; shots.len()],
-        "every worker wrote in place"
+        over_quic,
+        vec![(0, 0); shots.len()],
+        "QUIC gathers send pieces"
     );
-    assert_eq!(over_quic, vec![0; shots.len()], "QUIC gathers send pieces");
     for (i, (a, b)) in canvas.iter().zip(&quic).enumerate() {
         assert!(opaque_pixels(a) > 100, "shot {i}: blank");
         assert!(

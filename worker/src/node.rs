@@ -26,8 +26,8 @@ use std::time::{Duration, Instant};
 use strata_common::camera::View;
 use strata_common::composite::{
     build_plan, build_plan_to, Exchange, ExchangeError, ExchangeEvent, ExchangeLimits, FinalPiece,
-    Interlace, Outgoing, OutgoingPiece, PieceLayout, PieceSink, Plan, RankCompositor, Segment,
-    Span, SparsePiece, WireFormat,
+    FinalTarget, Interlace, Outgoing, OutgoingPiece, PieceLayout, PieceSink, Plan, RankCompositor,
+    Segment, Span, SparsePiece, WireFormat,
 };
 use strata_common::image::{composite_front_to_back, PartialImage, Rect, Rgba};
 use strata_common::occlusion::{
@@ -261,6 +261,7 @@ async fn node(opts: NodeOptions) -> Result<()> {
                         r = node.frame(&req, &mut ev_rx, &mut ctl_rx, &mut csend) => r,
                         e = conn.closed() => bail!("lost the coordinator during frame {frame}: {e}"),
                     };
+                    node.reclaim_canvas();
                     match result {
                         Ok((mut stats, piece, composite_start)) => {
                             test_fault(rank, frame, "gather");
@@ -318,8 +319,9 @@ async fn node(opts: NodeOptions) -> Result<()> {
                                 };
                             }
                             stats.gather_s += t.elapsed().as_secs_f64();
+                            stats.blended_in_canvas = canvas.is_some() && piece.placed;
                             stats.gather_bytes = if canvas.is_some() {
-                                piece.pixels.len() * canvas::PIXEL_BYTES as usize
+                                piece.span.len() as usize * canvas::PIXEL_BYTES as usize
                             } else if shm.is_none() {
                                 bulk.iter().map(|b| b.len()).sum()
                             } else {
@@ -982,50 +984,73 @@ const PEER_EVENTS: usize = 64;
 impl Node {
     /// Renders (or draws) this worker's image and runs its part of the exchange; returns
     /// the stats and the encoded final piece.
-    /// Writes the frame's final piece in place into the coordinator's canvas `c` (mapped
-    /// on first use; the last few stay mapped) and returns the span it covers.
+    /// The coordinator's canvas `c` for `req`'s frame, mapped on first use (the last few
+    /// stay mapped), taken out of the cache until [`put_canvas`](Self::put_canvas).
+    fn take_canvas(&mut self, req: &FrameRequest, c: &wire::CanvasRef) -> Result<CanvasWriter> {
+        /// Canvases kept mapped (the coordinator rotates two while callers hold images).
+        const KEEP: usize = 4;
+        let size = (req.width, req.height);
+        if let Some(i) = self
+            .canvases
+            .iter()
+            .position(|w| w.name() == c.name && w.size() == size)
+        {
+            return Ok(self.canvases.remove(i));
+        }
+        let id = SegmentId {
+            name: c.name.clone(),
+            pid: c.pid,
+            fd: c.fd,
+        };
+        let w = CanvasWriter::open(&id, req.width, req.height)
+            .context("opening the coordinator's canvas")?;
+        while self.canvases.len() >= KEEP {
+            self.canvases.remove(0);
+        }
+        Ok(w)
+    }
+
+    /// Returns a canvas to the cache (most recent last).
+    fn put_canvas(&mut self, w: CanvasWriter) {
+        self.canvases.push(w);
+    }
+
+    /// Takes the canvas back from the exchange (the frame that used it is over).
+    fn reclaim_canvas(&mut self) {
+        if let Some(t) = self.exchange.take_final_target() {
+            let t: Box<dyn std::any::Any> = t;
+            if let Ok(t) = t.downcast::<CanvasTarget>() {
+                self.put_canvas(t.0);
+            }
+        }
+    }
+
+    /// Puts the frame's final piece into the coordinator's canvas `c`, unless the last
+    /// round was already blended there, and returns the span it covers.
     fn write_canvas(
         &mut self,
         req: &FrameRequest,
         c: &wire::CanvasRef,
         piece: &FinalPiece,
     ) -> Result<Span> {
-        /// Canvases kept mapped (the coordinator rotates two while callers hold images).
-        const KEEP: usize = 4;
-        let size = (req.width, req.height);
-        let at = match self
-            .canvases
-            .iter()
-            .position(|w| w.name() == c.name && w.size() == size)
-        {
-            Some(i) => i,
-            None => {
-                let id = SegmentId {
-                    name: c.name.clone(),
-                    pid: c.pid,
-                    fd: c.fd,
-                };
-                let w = CanvasWriter::open(&id, req.width, req.height)
-                    .context("opening the coordinator's canvas")?;
-                if self.canvases.len() >= KEEP {
-                    self.canvases.remove(0);
-                }
-                self.canvases.push(w);
-                self.canvases.len() - 1
-            }
-        };
+        if piece.placed {
+            return Ok(piece.span);
+        }
+        let mut w = self.take_canvas(req, c)?;
         let interlace = Interlace::new(
             req.width,
             req.height,
             req.order.len() as u32,
             req.composite.interlace && req.wall.is_none(),
         );
-        strata_common::composite::canvas::write_span(
-            self.canvases[at].pixels_mut(),
+        let r = strata_common::composite::canvas::write_span(
+            w.pixels_mut(),
             &interlace,
             piece.span,
             &piece.pixels,
-        )?;
+        );
+        self.put_canvas(w);
+        r?;
         Ok(piece.span)
     }
 
@@ -1264,6 +1289,14 @@ impl Node {
         let format = req.composite.format;
         // A dense image becomes the compositor's buffer as it is.
         let rc = RankCompositor::from_image(plan.clone(), position, image, &interlace)?;
+        // With the coordinator's canvas and no interlacing, the result span lies
+        // contiguous in the canvas: the last round is blended straight there.
+        if let Some(c) = req.canvas.as_ref().filter(|_| interlace.is_identity()) {
+            match tokio::task::block_in_place(|| self.take_canvas(req, c)) {
+                Ok(w) => self.exchange.set_final_target(Box::new(CanvasTarget(w))),
+                Err(e) => warn!(frame = req.frame, "the canvas is not usable: {e:#}"),
+            }
+        }
         // The exchange itself is the sans-IO state machine; this loop only moves its
         // pieces and the time.
         let t_exchange = Instant::now();
@@ -1369,6 +1402,7 @@ impl Node {
                     span: Span::EMPTY,
                     format,
                     pixels: Vec::new(),
+                    placed: false,
                 }
             }
             _ => result,
@@ -1691,6 +1725,18 @@ fn replace_blocks(base: &PartialImage, again: &PartialImage, blocks: &BlockMask)
         }
     }
     PartialImage::from_full(w, h, &full)
+}
+
+/// The coordinator's canvas as the exchange's final target: the result span of a frame
+/// without interlacing lies contiguous in it.
+struct CanvasTarget(CanvasWriter);
+
+impl FinalTarget for CanvasTarget {
+    fn pixels(&mut self, span: Span) -> Option<&mut [Rgba]> {
+        self.0
+            .pixels_mut()
+            .get_mut(span.start as usize..span.end as usize)
+    }
 }
 
 /// A benchmark image: a translucent box's footprint for rank `rank` of `ranks`, covering

@@ -67,6 +67,17 @@ pub trait PieceSink: Send {
     ) -> Option<ShmRef>;
 }
 
+/// Where this rank's final span lands when the frame's image is shared (the coordinator's
+/// canvas, mapped by a worker on its host): the exchange blends the last round straight
+/// there ([`RankCompositor::finish_last_round_into`]) and the gather copies nothing.
+/// `Any`, so the driver can take its own target back
+/// ([`Exchange::take_final_target`]).
+pub trait FinalTarget: std::any::Any + Send {
+    /// The `span.len()` writable pixels where logical `span` of the frame lands, if they
+    /// lie contiguous there; `None` keeps the result in the rank's buffer.
+    fn pixels(&mut self, span: Span) -> Option<&mut [Rgba]>;
+}
+
 /// An outgoing piece: encoded, or already written by the [`PieceSink`].
 #[derive(Clone, Debug, PartialEq)]
 pub enum OutgoingPiece {
@@ -83,8 +94,10 @@ pub struct FinalPiece {
     pub span: Span,
     /// The frame's wire format.
     pub format: WireFormat,
-    /// The span's pixels, logical order.
+    /// The span's pixels, logical order; empty when `placed`.
     pub pixels: Vec<Rgba>,
+    /// The last round was blended into the [`FinalTarget`]: the pixels are there.
+    pub placed: bool,
 }
 
 impl FinalPiece {
@@ -289,6 +302,7 @@ pub struct Exchange {
     events: VecDeque<ExchangeEvent>,
     stats: ExchangeStats,
     sink: Option<Box<dyn PieceSink>>,
+    final_target: Option<Box<dyn FinalTarget>>,
 }
 
 impl Exchange {
@@ -308,7 +322,19 @@ impl Exchange {
             events: VecDeque::new(),
             stats: ExchangeStats::default(),
             sink: None,
+            final_target: None,
         }
+    }
+
+    /// Blends the last round of the frame in progress, or of the next one started, into
+    /// `target` where it offers the place (until taken back).
+    pub fn set_final_target(&mut self, target: Box<dyn FinalTarget>) {
+        self.final_target = Some(target);
+    }
+
+    /// Takes the final target back (the frame that used it is over or abandoned).
+    pub fn take_final_target(&mut self) -> Option<Box<dyn FinalTarget>> {
+        self.final_target.take()
     }
 
     /// Offers every later outgoing piece to `sink` before encoding it.
@@ -596,6 +622,7 @@ impl Exchange {
         while let Some(a) = self.active.as_mut() {
             let Some(round) = a.rc.round() else {
                 let a = self.active.take().unwrap();
+                let placed = a.rc.placed();
                 let (span, pixels) = a.rc.into_result();
                 self.events.push_back(ExchangeEvent::Done {
                     frame: a.frame,
@@ -603,6 +630,7 @@ impl Exchange {
                         span,
                         format: a.format,
                         pixels,
+                        placed,
                     },
                 });
                 return;
@@ -668,7 +696,23 @@ impl Exchange {
                 return;
             }
             let t = Instant::now();
-            if let Err(e) = a.rc.finish_round() {
+            // The last round straight into the final target where it offers the place.
+            let last =
+                a.rc.round()
+                    .is_some_and(|r| r + 1 == a.rc.plan().rounds.len());
+            let placed = match self.final_target.as_mut().filter(|_| last) {
+                Some(target) => match target.pixels(a.rc.result_span()) {
+                    Some(out) => a.rc.finish_last_round_into(out),
+                    None => Ok(false),
+                },
+                None => Ok(false),
+            };
+            let finished = match placed {
+                Ok(true) => Ok(()),
+                Ok(false) => a.rc.finish_round(),
+                Err(e) => Err(e),
+            };
+            if let Err(e) = finished {
                 return self.fail(ExchangeError::Composite(e));
             }
             a.sent = false;

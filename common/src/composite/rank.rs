@@ -175,6 +175,8 @@ pub struct RankCompositor {
     /// outside it are known transparent, never written nor read), and only the span
     /// kept is laid out. `buf` is empty meanwhile.
     source: Option<Box<(PartialImage, Interlace)>>,
+    /// The last round was blended into the caller's place, not into `buf`.
+    placed: bool,
 }
 
 impl RankCompositor {
@@ -225,6 +227,7 @@ impl RankCompositor {
             buf,
             received: Vec::new(),
             source: None,
+            placed: false,
         };
         c.reset_received();
         c
@@ -426,27 +429,9 @@ impl RankCompositor {
     /// list) go under the buffer in order, pieces in front go over it nearest first;
     /// by associativity of OVER this is the ordered composite of the blend list.
     pub fn finish_round(&mut self) -> Result<(), CompositeError> {
-        let position = self.position;
-        let Some(round) = self.round() else {
-            return Err(CompositeError::Finished { position });
-        };
-        if !self.is_ready() {
-            let step = &self.plan.rounds[round].steps[position];
-            let missing = step
-                .blend
-                .iter()
-                .zip(&self.received)
-                .filter(|&(&q, r)| q != position && r.is_none())
-                .map(|(&q, _)| q)
-                .collect();
-            return Err(CompositeError::NotReady {
-                position,
-                round,
-                missing,
-            });
-        }
+        let round = self.ready_round()?;
         let plan = Arc::clone(&self.plan);
-        let step = &plan.rounds[round].steps[position];
+        let step = &plan.rounds[round].steps[self.position];
         let keep = step.keep;
         let source = self.source.take();
         if keep.is_empty() {
@@ -463,23 +448,116 @@ impl RankCompositor {
                 self.buf.copy_within(off..off + len, 0);
                 self.buf.truncate(len);
             }
-            let me = step
-                .blend
-                .iter()
-                .position(|&q| q == position)
-                .expect("validated plan: a keeping rank blends itself");
-            let received = std::mem::take(&mut self.received);
-            for piece in received[..me].iter().rev().flatten() {
-                piece.blend_over(&mut self.buf, keep.start)?;
+            let mut buf = std::mem::take(&mut self.buf);
+            self.blend_received(step, &mut buf, keep.start)?;
+            self.buf = buf;
+        }
+        self.next_round(keep);
+        Ok(())
+    }
+
+    /// Blends the last round straight into `out`, the place where this rank's result
+    /// span lands in the frame (logical order, `out.len()` = the span's length), instead
+    /// of into this rank's buffer: the kept pixels are copied there once and the received
+    /// pieces blended in place, so the gather copies nothing afterwards. Returns `false`
+    /// (nothing done) unless this is the last round, it keeps exactly the result span and
+    /// `out` has its length; then [`into_result`](Self::into_result) returns no pixels and
+    /// [`placed`](Self::placed) is true.
+    pub fn finish_last_round_into(&mut self, out: &mut [Rgba]) -> Result<bool, CompositeError> {
+        let Some(round) = self.round() else {
+            return Err(CompositeError::Finished {
+                position: self.position,
+            });
+        };
+        let plan = Arc::clone(&self.plan);
+        let step = &plan.rounds[round].steps[self.position];
+        let keep = step.keep;
+        if round + 1 != plan.rounds.len()
+            || keep != self.result_span()
+            || keep.is_empty()
+            || out.len() != keep.len() as usize
+        {
+            return Ok(false);
+        }
+        self.ready_round()?;
+        match self.source.take() {
+            Some(src) => {
+                let mut at = 0;
+                for_each_part(&src.0, &src.1, keep, |seg| match seg {
+                    Segment::Zeros(n) => {
+                        out[at..at + n].fill([0.0; 4]);
+                        at += n;
+                    }
+                    Segment::Pixels(p) => {
+                        out[at..at + p.len()].copy_from_slice(p);
+                        at += p.len();
+                    }
+                });
             }
-            for piece in received[me + 1..].iter().flatten() {
-                piece.blend_under(&mut self.buf, keep.start)?;
+            None => {
+                let off = (keep.start - self.span.start) as usize;
+                out.copy_from_slice(&self.buf[off..off + out.len()]);
             }
         }
+        self.blend_received(step, out, keep.start)?;
+        self.buf = Vec::new();
+        self.placed = true;
+        self.next_round(keep);
+        Ok(true)
+    }
+
+    /// Whether the result was blended into the caller's place
+    /// ([`finish_last_round_into`](Self::finish_last_round_into)).
+    pub fn placed(&self) -> bool {
+        self.placed
+    }
+
+    /// The current round, once every expected piece of it has arrived.
+    fn ready_round(&self) -> Result<usize, CompositeError> {
+        let position = self.position;
+        let Some(round) = self.round() else {
+            return Err(CompositeError::Finished { position });
+        };
+        if !self.is_ready() {
+            return Err(CompositeError::NotReady {
+                position,
+                round,
+                missing: self.missing(),
+            });
+        }
+        Ok(round)
+    }
+
+    /// Blends this round's received pieces into `dst` (the kept span, starting at logical
+    /// pixel `start`): pieces behind this rank (after it in the blend list) go under in
+    /// order, pieces in front go over nearest first; by associativity of OVER this is the
+    /// ordered composite of the blend list.
+    fn blend_received(
+        &mut self,
+        step: &super::RankStep,
+        dst: &mut [Rgba],
+        start: u32,
+    ) -> Result<(), CompositeError> {
+        let me = step
+            .blend
+            .iter()
+            .position(|&q| q == self.position)
+            .expect("validated plan: a keeping rank blends itself");
+        let received = std::mem::take(&mut self.received);
+        for piece in received[..me].iter().rev().flatten() {
+            piece.blend_over(dst, start)?;
+        }
+        for piece in received[me + 1..].iter().flatten() {
+            piece.blend_under(dst, start)?;
+        }
+        Ok(())
+    }
+
+    /// Moves to the next round, the buffer holding `keep`.
+    fn next_round(&mut self, keep: Span) {
         self.span = keep;
         self.round += 1;
         self.reset_received();
-        Ok(())
     }
 
     /// The span this rank owns when all rounds are done (possibly empty).
@@ -506,6 +584,9 @@ impl RankCompositor {
     /// [`round`](Self::round) is `None`, as [`result`](Self::result).
     pub fn into_result(mut self) -> (Span, Vec<Rgba>) {
         let r = self.result_span();
+        if self.placed {
+            return (r, Vec::new());
+        }
         if r.is_empty() || !self.span.contains(&r) {
             return (Span::new(r.start, r.start), Vec::new());
         }
