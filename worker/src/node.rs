@@ -265,12 +265,9 @@ async fn node(opts: NodeOptions) -> Result<()> {
                     match result {
                         Ok((mut stats, piece, composite_start)) => {
                             test_fault(rank, frame, "gather");
-                            // Through shared memory when the coordinator shares this host
-                            // (encoded straight into the segment); QUIC when not, or when the
-                            // segment cannot take it (a host out of memory).
                             let t = Instant::now();
                             // Into the coordinator's canvas when it gave one: in place,
-                            // nothing to encode or assemble.
+                            // nothing to encode or assemble; else `send_final`.
                             let canvas = req.canvas.as_ref().and_then(|c| {
                                 tokio::task::block_in_place(|| node.write_canvas(&req, c, &piece))
                                     .map_err(|e| {
@@ -278,55 +275,18 @@ async fn node(opts: NodeOptions) -> Result<()> {
                                     })
                                     .ok()
                             });
-                            let layout = if canvas.is_some() {
-                                PieceLayout::of(&[])
-                            } else {
-                                PieceLayout::of(&piece.pixels)
+                            let (shm, bulk, lz4, bytes) = match canvas {
+                                Some(span) => (
+                                    None,
+                                    Vec::new(),
+                                    false,
+                                    span.len() as u64 * canvas::PIXEL_BYTES,
+                                ),
+                                None => node.send_final(frame, &piece),
                             };
-                            let shm = node
-                                .gather_shm
-                                .as_mut()
-                                .filter(|_| canvas.is_none())
-                                .and_then(|w| {
-                                    w.reset();
-                                    tokio::task::block_in_place(|| {
-                                        w.write_piece(
-                                            frame,
-                                            wire::GATHER_ROUND,
-                                            rank,
-                                            &[Segment::Pixels(&piece.pixels)],
-                                            &layout,
-                                            piece.span,
-                                            piece.format,
-                                        )
-                                    })
-                                    .map_err(|e| warn!(frame, "final piece over QUIC instead: {e}"))
-                                    .ok()
-                                });
-                            let mut bulk = Vec::new();
-                            let lz4 = shm.is_none() && canvas.is_none() && node.lz4;
-                            if shm.is_none() && canvas.is_none() {
-                                let encoded = SparsePiece::encode_with(
-                                    &piece.pixels,
-                                    layout.clone(),
-                                    piece.span,
-                                    piece.format,
-                                );
-                                bulk = if lz4 {
-                                    vec![tokio::task::block_in_place(|| encoded.write_lz4()).into()]
-                                } else {
-                                    encoded.wire_chunks().to_vec()
-                                };
-                            }
                             stats.gather_s += t.elapsed().as_secs_f64();
                             stats.blended_in_canvas = canvas.is_some() && piece.placed;
-                            stats.gather_bytes = if canvas.is_some() {
-                                piece.span.len() as usize * canvas::PIXEL_BYTES as usize
-                            } else if shm.is_none() {
-                                bulk.iter().map(|b| b.len()).sum()
-                            } else {
-                                layout.byte_len(piece.format)
-                            } as u64;
+                            stats.gather_bytes = bytes;
                             stats.composite_s = composite_start.elapsed().as_secs_f64();
                             let msg = WorkerMsg::FrameDone {
                                 frame,
@@ -1013,6 +973,47 @@ impl Node {
     /// Returns a canvas to the cache (most recent last).
     fn put_canvas(&mut self, w: CanvasWriter) {
         self.canvases.push(w);
+    }
+
+    /// The final piece for the coordinator when it is not in its canvas: encoded straight
+    /// into the gather segment (a coordinator on this host), else encoded (LZ4 with
+    /// `composite.lz4`) as bulk for QUIC, which also takes it when the segment cannot (a
+    /// host out of memory). Returns the segment record, the bulk, whether it is LZ4 and
+    /// the bytes handed over.
+    fn send_final(
+        &mut self,
+        frame: u64,
+        piece: &FinalPiece,
+    ) -> (Option<wire::ShmRef>, Vec<bytes::Bytes>, bool, u64) {
+        let layout = PieceLayout::of(&piece.pixels);
+        let rank = self.rank;
+        let shm = self.gather_shm.as_mut().and_then(|w| {
+            w.reset();
+            tokio::task::block_in_place(|| {
+                w.write_piece(
+                    frame,
+                    wire::GATHER_ROUND,
+                    rank,
+                    &[Segment::Pixels(&piece.pixels)],
+                    &layout,
+                    piece.span,
+                    piece.format,
+                )
+            })
+            .map_err(|e| warn!(frame, "final piece over QUIC instead: {e}"))
+            .ok()
+        });
+        if shm.is_some() {
+            return (shm, Vec::new(), false, layout.byte_len(piece.format) as u64);
+        }
+        let encoded = SparsePiece::encode_with(&piece.pixels, layout, piece.span, piece.format);
+        let bulk: Vec<bytes::Bytes> = if self.lz4 {
+            vec![tokio::task::block_in_place(|| encoded.write_lz4()).into()]
+        } else {
+            encoded.wire_chunks().to_vec()
+        };
+        let bytes = bulk.iter().map(|b| b.len() as u64).sum();
+        (None, bulk, self.lz4, bytes)
     }
 
     /// Takes the canvas back from the exchange (the frame that used it is over).
