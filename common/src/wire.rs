@@ -637,8 +637,8 @@ pub struct WorkerFrameStats {
     /// Bytes of the final piece sent to the coordinator (written into its canvas: the
     /// f32 pixels of the span).
     pub gather_bytes: u64,
-    /// The last compositing round was blended straight into the coordinator's canvas
-    /// (no interlacing), so the gather copied nothing.
+    /// The last compositing round was blended straight into the coordinator's canvas,
+    /// so the gather copied nothing.
     #[serde(default)]
     pub blended_in_canvas: bool,
     /// Compositing rounds.

@@ -1290,11 +1290,13 @@ impl Node {
         let format = req.composite.format;
         // A dense image becomes the compositor's buffer as it is.
         let rc = RankCompositor::from_image(plan.clone(), position, image, &interlace)?;
-        // With the coordinator's canvas and no interlacing, the result span lies
-        // contiguous in the canvas: the last round is blended straight there.
-        if let Some(c) = req.canvas.as_ref().filter(|_| interlace.is_identity()) {
+        // With the coordinator's canvas, the last round is blended straight to the result
+        // span's physical rows there (through the interlace map).
+        if let Some(c) = req.canvas.as_ref() {
             match tokio::task::block_in_place(|| self.take_canvas(req, c)) {
-                Ok(w) => self.exchange.set_final_target(Box::new(CanvasTarget(w))),
+                Ok(w) => self
+                    .exchange
+                    .set_final_target(Box::new(CanvasTarget(w, interlace))),
                 Err(e) => warn!(frame = req.frame, "the canvas is not usable: {e:#}"),
             }
         }
@@ -1728,15 +1730,13 @@ fn replace_blocks(base: &PartialImage, again: &PartialImage, blocks: &BlockMask)
     PartialImage::from_full(w, h, &full)
 }
 
-/// The coordinator's canvas as the exchange's final target: the result span of a frame
-/// without interlacing lies contiguous in it.
-struct CanvasTarget(CanvasWriter);
+/// The coordinator's canvas as the exchange's final target, with the frame's interlace
+/// map (the canvas is the physical frame).
+struct CanvasTarget(CanvasWriter, Interlace);
 
 impl FinalTarget for CanvasTarget {
-    fn pixels(&mut self, span: Span) -> Option<&mut [Rgba]> {
-        self.0
-            .pixels_mut()
-            .get_mut(span.start as usize..span.end as usize)
+    fn frame(&mut self) -> Option<(&mut [Rgba], Interlace)> {
+        Some((self.0.pixels_mut(), self.1))
     }
 }
 

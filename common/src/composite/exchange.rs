@@ -39,7 +39,9 @@
 use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
 
-use super::{CompositeError, PieceLayout, RankCompositor, Segment, Span, SparsePiece, WireFormat};
+use super::{
+    CompositeError, Interlace, PieceLayout, RankCompositor, Segment, Span, SparsePiece, WireFormat,
+};
 use crate::image::Rgba;
 use crate::wire::ShmRef;
 
@@ -69,13 +71,13 @@ pub trait PieceSink: Send {
 
 /// Where this rank's final span lands when the frame's image is shared (the coordinator's
 /// canvas, mapped by a worker on its host): the exchange blends the last round straight
-/// there ([`RankCompositor::finish_last_round_into`]) and the gather copies nothing.
-/// `Any`, so the driver can take its own target back
+/// there ([`RankCompositor::finish_last_round_into`], through the interlace map) and the
+/// gather copies nothing. `Any`, so the driver can take its own target back
 /// ([`Exchange::take_final_target`]).
 pub trait FinalTarget: std::any::Any + Send {
-    /// The `span.len()` writable pixels where logical `span` of the frame lands, if they
-    /// lie contiguous there; `None` keeps the result in the rank's buffer.
-    fn pixels(&mut self, span: Span) -> Option<&mut [Rgba]>;
+    /// The writable physical frame (row-major) and the frame's interlace map; `None`
+    /// keeps the result in the rank's buffer.
+    fn frame(&mut self) -> Option<(&mut [Rgba], Interlace)>;
 }
 
 /// An outgoing piece: encoded, or already written by the [`PieceSink`].
@@ -701,8 +703,8 @@ impl Exchange {
                 a.rc.round()
                     .is_some_and(|r| r + 1 == a.rc.plan().rounds.len());
             let placed = match self.final_target.as_mut().filter(|_| last) {
-                Some(target) => match target.pixels(a.rc.result_span()) {
-                    Some(out) => a.rc.finish_last_round_into(out),
+                Some(target) => match target.frame() {
+                    Some((frame, interlace)) => a.rc.finish_last_round_into(frame, &interlace),
                     None => Ok(false),
                 },
                 None => Ok(false),

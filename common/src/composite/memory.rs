@@ -199,12 +199,17 @@ mod tests {
         })
     }
 
-    /// [`run_in_memory`] without interlacing, but each rank blends its last round
-    /// straight into its result span of one shared frame
+    /// [`run_in_memory`], but each rank blends its last round straight into its result
+    /// span of one shared physical frame, through the interlace map
     /// ([`RankCompositor::finish_last_round_into`]) where it can.
-    fn in_place(plan: &Plan, images: &[PartialImage], format: WireFormat) -> Vec<Rgba> {
+    fn in_place(
+        plan: &Plan,
+        images: &[PartialImage],
+        interlace: bool,
+        format: WireFormat,
+    ) -> Vec<Rgba> {
         let (w, h) = (images[0].width, images[0].height);
-        let il = Interlace::new(w, h, 1, false);
+        let il = Interlace::new(w, h, plan.ranks as u32, interlace);
         let shared = Arc::new(plan.clone());
         let mut ranks: Vec<RankCompositor> = images
             .iter()
@@ -228,10 +233,8 @@ mod tests {
                 ranks[to].receive(from, piece).unwrap();
             }
             for rank in &mut ranks {
-                let span = rank.result_span();
-                let out = &mut frame[span.start as usize..span.end as usize];
                 let last = r + 1 == plan.rounds.len();
-                if !(last && rank.finish_last_round_into(out).unwrap()) {
+                if !(last && rank.finish_last_round_into(&mut frame, &il).unwrap()) {
                     rank.finish_round().unwrap();
                 }
             }
@@ -271,16 +274,14 @@ mod tests {
         let refs: Vec<&PartialImage> = by_position.iter().collect();
         let want = composite_front_to_back(w, h, &refs);
         let run = run_in_memory(&plan, &by_position, interlace, format).unwrap();
-        if !interlace {
-            // The last round blended straight into the frame (the gather into a shared
-            // canvas): the same pixels, bit for bit where the gather is f32 (an f16 gather
-            // rounds the result; in place it is not).
-            let placed = in_place(&plan, &by_position, format);
-            if format == WireFormat::F32 {
-                prop_assert!(placed == run.image, "in place differs from the gather");
-            }
-            prop_assert!(max_error(&placed, &want) <= tolerance);
+        // The last round blended straight into the frame (the gather into a shared
+        // canvas), interlaced or not: the same pixels, bit for bit where the gather is f32
+        // (an f16 gather rounds the result; in place it is not).
+        let placed = in_place(&plan, &by_position, interlace, format);
+        if format == WireFormat::F32 {
+            prop_assert!(placed == run.image, "in place differs from the gather");
         }
+        prop_assert!(max_error(&placed, &want) <= tolerance);
         let err = max_error(&run.image, &want);
         prop_assert!(
             err <= tolerance,

@@ -9,6 +9,7 @@
 
 use std::sync::Arc;
 
+use super::canvas::physical_runs;
 use super::{
     Interlace, PieceError, PieceLayout, Plan, PlanError, Segment, Span, SparsePiece, WireFormat,
 };
@@ -449,21 +450,32 @@ impl RankCompositor {
                 self.buf.truncate(len);
             }
             let mut buf = std::mem::take(&mut self.buf);
-            self.blend_received(step, &mut buf, keep.start)?;
+            self.blend_received(step, |piece, in_front| {
+                if in_front {
+                    piece.blend_over(&mut buf, keep.start)
+                } else {
+                    piece.blend_under(&mut buf, keep.start)
+                }
+            })?;
             self.buf = buf;
         }
         self.next_round(keep);
         Ok(())
     }
 
-    /// Blends the last round straight into `out`, the place where this rank's result
-    /// span lands in the frame (logical order, `out.len()` = the span's length), instead
-    /// of into this rank's buffer: the kept pixels are copied there once and the received
-    /// pieces blended in place, so the gather copies nothing afterwards. Returns `false`
-    /// (nothing done) unless this is the last round, it keeps exactly the result span and
-    /// `out` has its length; then [`into_result`](Self::into_result) returns no pixels and
-    /// [`placed`](Self::placed) is true.
-    pub fn finish_last_round_into(&mut self, out: &mut [Rgba]) -> Result<bool, CompositeError> {
+    /// Blends the last round straight into `frame`, the physical frame (row-major,
+    /// `interlace.pixels()` long) where this rank's result span lands through
+    /// `interlace`'s row map, instead of into this rank's buffer: the kept pixels are
+    /// copied there once and the received pieces blended in place, so the gather copies
+    /// nothing afterwards. Returns `false` (nothing done) unless this is the last round, it
+    /// keeps exactly the (non-empty) result span and `frame` is the interlace map's frame;
+    /// then [`into_result`](Self::into_result) returns no pixels and
+    /// [`placed`](Self::placed) is true. Only the result span's pixels are written.
+    pub fn finish_last_round_into(
+        &mut self,
+        frame: &mut [Rgba],
+        interlace: &Interlace,
+    ) -> Result<bool, CompositeError> {
         let Some(round) = self.round() else {
             return Err(CompositeError::Finished {
                 position: self.position,
@@ -475,31 +487,39 @@ impl RankCompositor {
         if round + 1 != plan.rounds.len()
             || keep != self.result_span()
             || keep.is_empty()
-            || out.len() != keep.len() as usize
+            || frame.len() as u64 != interlace.pixels()
+            || keep.end as u64 > interlace.pixels()
         {
             return Ok(false);
         }
         self.ready_round()?;
-        match self.source.take() {
-            Some(src) => {
-                let mut at = 0;
-                for_each_part(&src.0, &src.1, keep, |seg| match seg {
-                    Segment::Zeros(n) => {
-                        out[at..at + n].fill([0.0; 4]);
-                        at += n;
-                    }
-                    Segment::Pixels(p) => {
-                        out[at..at + p.len()].copy_from_slice(p);
-                        at += p.len();
-                    }
+        // The kept pixels, in logical order from `keep.start`, to their physical places
+        // (one run per row touched; one run in all without interlacing).
+        let mut at = keep.start as usize;
+        let mut put = |seg: Segment<'_>| match seg {
+            Segment::Zeros(n) => {
+                physical_runs(interlace, at, n, |d, _, len| {
+                    frame[d..d + len].fill([0.0; 4])
                 });
+                at += n;
             }
+            Segment::Pixels(p) => {
+                physical_runs(interlace, at, p.len(), |d, o, len| {
+                    frame[d..d + len].copy_from_slice(&p[o..o + len])
+                });
+                at += p.len();
+            }
+        };
+        match self.source.take() {
+            Some(src) => for_each_part(&src.0, &src.1, keep, &mut put),
             None => {
                 let off = (keep.start - self.span.start) as usize;
-                out.copy_from_slice(&self.buf[off..off + out.len()]);
+                put(Segment::Pixels(&self.buf[off..off + keep.len() as usize]));
             }
         }
-        self.blend_received(step, out, keep.start)?;
+        self.blend_received(step, |piece, in_front| {
+            piece.blend_in_frame(frame, interlace, keep, in_front)
+        })?;
         self.buf = Vec::new();
         self.placed = true;
         self.next_round(keep);
@@ -528,15 +548,14 @@ impl RankCompositor {
         Ok(round)
     }
 
-    /// Blends this round's received pieces into `dst` (the kept span, starting at logical
-    /// pixel `start`): pieces behind this rank (after it in the blend list) go under in
-    /// order, pieces in front go over nearest first; by associativity of OVER this is the
-    /// ordered composite of the blend list.
+    /// Blends this round's received pieces into the kept span with `blend(piece,
+    /// in_front)`: pieces behind this rank (after it in the blend list) go under in order,
+    /// pieces in front go over nearest first; by associativity of OVER this is the ordered
+    /// composite of the blend list.
     fn blend_received(
         &mut self,
         step: &super::RankStep,
-        dst: &mut [Rgba],
-        start: u32,
+        mut blend: impl FnMut(&SparsePiece, bool) -> Result<(), PieceError>,
     ) -> Result<(), CompositeError> {
         let me = step
             .blend
@@ -545,10 +564,10 @@ impl RankCompositor {
             .expect("validated plan: a keeping rank blends itself");
         let received = std::mem::take(&mut self.received);
         for piece in received[..me].iter().rev().flatten() {
-            piece.blend_over(dst, start)?;
+            blend(piece, true)?;
         }
         for piece in received[me + 1..].iter().flatten() {
-            piece.blend_under(dst, start)?;
+            blend(piece, false)?;
         }
         Ok(())
     }

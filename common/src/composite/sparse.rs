@@ -13,7 +13,7 @@ use half::f16;
 use half::slice::{HalfBitsSliceExt, HalfFloatSliceExt};
 use serde::{Deserialize, Serialize};
 
-use super::Span;
+use super::{Interlace, Span};
 use crate::image::{over, Rgba};
 
 /// How active pixels' channels travel on the wire.
@@ -924,6 +924,42 @@ impl SparsePiece {
             for (d, s) in d.iter_mut().zip(px) {
                 *d = over(*d, *s);
             }
+        });
+        Ok(())
+    }
+
+    /// `OVER` of the piece into the physical `frame` where logical span `keep` lies
+    /// (through `interlace`'s row map): `in_front` puts the piece over what is there,
+    /// else under it. The piece must lie inside `keep`, and `keep` inside the frame.
+    pub(super) fn blend_in_frame(
+        &self,
+        frame: &mut [Rgba],
+        interlace: &Interlace,
+        keep: Span,
+        in_front: bool,
+    ) -> Result<(), PieceError> {
+        // The same check as a contiguous destination holding `keep`.
+        self.locate(keep.len() as usize, keep.start)?;
+        if keep.end as u64 > interlace.pixels() || frame.len() as u64 != interlace.pixels() {
+            return Err(PieceError::OutOfRange {
+                span: keep,
+                dst: Span::new(0, frame.len().min(u32::MAX as usize) as u32),
+            });
+        }
+        let start = self.span.start as usize;
+        self.for_each_active(|off, px| {
+            super::canvas::physical_runs(interlace, start + off, px.len(), |d, o, len| {
+                let dst = &mut frame[d..d + len];
+                if in_front {
+                    for (d, s) in dst.iter_mut().zip(&px[o..o + len]) {
+                        *d = over(*s, *d);
+                    }
+                } else {
+                    for (d, s) in dst.iter_mut().zip(&px[o..o + len]) {
+                        *d = over(*d, *s);
+                    }
+                }
+            });
         });
         Ok(())
     }
