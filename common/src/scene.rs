@@ -225,6 +225,12 @@ pub struct ClusterSettings {
     /// (0: no wait; a replacement that comes later joins at the frame after it connects).
     #[serde(default)]
     pub replacement_wait_s: f64,
+    /// Local mode (`spawn = true`): how many lost workers this run may replace with a
+    /// freshly spawned worker process (0: none; the run goes on with the workers left).
+    /// A replacement joins at the next frame, as one would in cluster mode; that frame
+    /// waits for it up to `connect_timeout_s`.
+    #[serde(default)]
+    pub respawn: u32,
     /// Cross-worker occlusion: workers leave uncast the screen blocks that content in
     /// front of their region (owned by other workers) already makes opaque to
     /// `render.early_termination`, predicted from the previous frame of a sequence and
@@ -296,6 +302,7 @@ impl Default for ClusterSettings {
             transport: Transport::Auto,
             on_worker_loss: OnWorkerLoss::Reassign,
             replacement_wait_s: 0.0,
+            respawn: 0,
             occlusion: true,
             occlusion_block: default_occlusion_block(),
             occlusion_prepass: true,

@@ -81,6 +81,8 @@ pub struct ClusterOptions {
     pub on_worker_loss: strata_common::scene::OnWorkerLoss,
     /// `cluster.replacement_wait_s`: how long a frame after a loss waits for a replacement.
     pub replacement_wait: Duration,
+    /// `cluster.respawn`: lost local workers this run may replace by spawning new ones.
+    pub respawn: u32,
     /// `cluster.occlusion`: cross-worker occlusion with every rendered frame.
     pub occlusion: bool,
     /// `cluster.occlusion_block`: side of its screen blocks in pixels.
@@ -219,6 +221,7 @@ impl ClusterOptions {
             transport: c.transport,
             on_worker_loss: c.on_worker_loss,
             replacement_wait: Duration::from_secs_f64(c.replacement_wait_s),
+            respawn: c.respawn,
             occlusion: c.occlusion,
             occlusion_block: c.occlusion_block,
             occlusion_prepass: c.occlusion_prepass,
@@ -496,6 +499,13 @@ pub struct Cluster {
     /// A worker was lost since the last frame began: that frame waits up to
     /// `cluster.replacement_wait_s` for a replacement (once).
     awaiting_replacement: bool,
+    /// Local mode: how the workers were started, to start replacements.
+    spawner: Option<Spawner>,
+    /// Lost local workers that may still be replaced (`cluster.respawn`).
+    respawns_left: u32,
+    /// Replacements spawned and not yet admitted: the next frame waits for them up to
+    /// `cluster.connect_timeout_s`.
+    respawned: usize,
 }
 
 impl Drop for Cluster {
@@ -609,72 +619,26 @@ impl Cluster {
         let secret = opts.secret.clone().unwrap_or_else(secret::new_secret);
         let (tx, events) = mpsc::unbounded_channel();
         let mut child_pids = Vec::new();
-        if opts.spawn {
-            let exe = match &opts.worker_exe {
-                Some(p) => (p.clone(), vec![]),
-                None => (std::env::current_exe()?, vec!["worker".to_string()]),
-            };
-            let threads = if opts.worker_threads > 0 {
-                opts.worker_threads
-            } else {
-                let cores = std::thread::available_parallelism().map_or(1, |c| c.get());
-                cores.div_ceil(n).max(1)
-            };
+        let spawner = match opts.spawn {
+            true => Some(Spawner::new(&opts, n, local, &fp, &secret)?),
+            false => None,
+        };
+        if let Some(sp) = &spawner {
             for i in 0..n {
-                let mut cmd = tokio::process::Command::new(&exe.0);
-                cmd.args(&exe.1)
-                    .arg("--connect")
-                    .arg(local.to_string())
-                    .arg("--fingerprint")
-                    .arg(&fp)
-                    .arg("--name")
-                    .arg(format!("local-{i}"))
-                    .arg("--bind")
-                    .arg(format!("{}:0", local.ip()))
-                    .arg("--idle-timeout-s")
-                    .arg(opts.idle_timeout.as_secs_f64().to_string())
-                    .arg("--connect-timeout-s")
-                    .arg(opts.connect_timeout.as_secs_f64().to_string())
-                    .arg("--quic-mtu")
-                    .arg(opts.quic_mtu.to_string())
-                    .env(
-                        secret::SECRET_ENV,
-                        std::ffi::OsString::from_vec(secret.clone()),
-                    )
-                    .env("RAYON_NUM_THREADS", threads.to_string())
-                    // Spread GPU workers over the node's GPUs (one each while there are enough).
-                    .env(strata_worker::gpu::GPU_SLOT_ENV, i.to_string())
-                    .stdin(Stdio::null())
-                    .kill_on_drop(true);
-                // The workers die with the coordinator, however it ends (even SIGKILL).
-                unsafe {
-                    cmd.pre_exec(|| {
-                        if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
-                            return Err(std::io::Error::last_os_error());
-                        }
-                        Ok(())
-                    });
-                }
-                let mut child = cmd
-                    .spawn()
-                    .with_context(|| format!("cannot start worker {}", exe.0.display()))?;
-                child_pids.push(child.id().unwrap_or(0));
-                let tx = tx.clone();
-                tokio::spawn(async move {
-                    let status = match child.wait().await {
-                        Ok(s) => describe_status(s),
-                        Err(e) => e.to_string(),
-                    };
-                    let _ = tx.send(Event::Exited { child: i, status });
-                });
+                child_pids.push(sp.spawn(i, &tx)?);
             }
-            info!(workers = n, threads_each = threads, "spawned local workers");
+            info!(
+                workers = n,
+                threads_each = sp.threads,
+                "spawned local workers"
+            );
         } else {
             info!(
                 "waiting for {n} workers: start them with `worker --connect HOST:{} --fingerprint {fp} --secret-file FILE`",
                 local.port()
             );
         }
+        let respawns_left = if spawner.is_some() { opts.respawn } else { 0 };
         let mut cluster = Cluster {
             ep,
             workers: Vec::new(),
@@ -697,6 +661,9 @@ impl Cluster {
             acceptor: None,
             events_tx: tx.clone(),
             awaiting_replacement: false,
+            respawns_left,
+            spawner,
+            respawned: 0,
         };
         cluster.gather_workers(&secret, &tx).await?;
         cluster.setup(&[]).await?;
@@ -797,7 +764,7 @@ impl Cluster {
                 }
             }
         }
-        if self.opts.spawn {
+        if self.opts.spawn && self.respawns_left == 0 {
             acceptor.abort();
             // The run is full: no new connections; authenticated extras are told why.
             self.ep.set_server_config(None);
@@ -805,8 +772,8 @@ impl Cluster {
                 refuse_full(j, n).await;
             }
         } else {
-            // Cluster mode: later workers may replace lost ones (or are refused while the
-            // run is full), at the start of a frame.
+            // Cluster mode, or local mode with `cluster.respawn`: later workers may replace
+            // lost ones (or are refused while the run is full), at the start of a frame.
             self.joiners = Some(auth_rx);
             self.acceptor = Some(acceptor);
         }
@@ -823,9 +790,16 @@ impl Cluster {
         };
         let want = self.opts.workers;
         // Only the frame after a loss waits; later ones take a replacement when it comes.
+        // Replacements this coordinator spawned itself are waited for as the first
+        // workers were (they are ours, and were started for this).
+        let wait = match (self.awaiting_replacement, self.respawned > 0) {
+            (_, true) => self.opts.replacement_wait.max(self.opts.connect_timeout),
+            (true, false) => self.opts.replacement_wait,
+            (false, false) => Duration::ZERO,
+        };
         let deadline = Instant::now()
-            + if self.slots.len() < want && self.awaiting_replacement {
-                self.opts.replacement_wait
+            + if self.slots.len() < want {
+                wait
             } else {
                 Duration::ZERO
             };
@@ -897,6 +871,8 @@ impl Cluster {
             self.new_leaves.push(None);
             fresh.push(rank);
         }
+        // Spawned replacements have joined, or had their wait.
+        self.respawned = 0;
         self.joiners = Some(rx);
         if fresh.is_empty() {
             return Ok(Vec::new());
@@ -1337,6 +1313,28 @@ impl Cluster {
         }
     }
 
+    /// Local mode with `cluster.respawn`: starts up to `lost` new worker processes (within
+    /// what is left of the run's allowance) to take the places of lost ones; they join at
+    /// the start of the next frame ([`admit_joiners`](Self::admit_joiners)).
+    fn respawn(&mut self, lost: usize) {
+        let Some(sp) = &self.spawner else { return };
+        for _ in 0..lost.min(self.respawns_left as usize) {
+            let child = self.child_pids.len();
+            match sp.spawn(child, &self.events_tx) {
+                Ok(pid) => {
+                    info!(child, pid, "spawned a replacement worker (cluster.respawn)");
+                    self.child_pids.push(pid);
+                    self.respawns_left -= 1;
+                    self.respawned += 1;
+                }
+                Err(e) => {
+                    warn!("could not spawn a replacement worker: {e:#}");
+                    return;
+                }
+            }
+        }
+    }
+
     /// Gives up on `lost` workers: kills (local) or disconnects them and splits the scene
     /// over the ranks left; returns the new assignment.
     async fn drop_workers(&mut self, lost: &[u32]) -> Vec<Assignment> {
@@ -1352,6 +1350,7 @@ impl Cluster {
         }
         self.slots.retain(|r| !lost.contains(r));
         self.awaiting_replacement = true;
+        self.respawn(lost.len());
         // Survivors still waiting on a lost peer in the failed attempt stop at once.
         for &rank in &self.slots.clone() {
             let w = &mut self.workers[rank as usize];
@@ -2127,6 +2126,108 @@ fn spawn_reader(
             }
         }
     });
+}
+
+/// How this coordinator starts its local worker processes (local mode), kept for the
+/// whole run so that lost ones can be replaced (`cluster.respawn`).
+struct Spawner {
+    exe: PathBuf,
+    args: Vec<String>,
+    connect: SocketAddr,
+    fingerprint: String,
+    secret: Vec<u8>,
+    idle_timeout: Duration,
+    connect_timeout: Duration,
+    quic_mtu: u16,
+    /// Rayon threads per worker.
+    threads: usize,
+}
+
+impl Spawner {
+    fn new(
+        opts: &ClusterOptions,
+        workers: usize,
+        connect: SocketAddr,
+        fingerprint: &str,
+        secret: &[u8],
+    ) -> Result<Spawner> {
+        let (exe, args) = match &opts.worker_exe {
+            Some(p) => (p.clone(), vec![]),
+            None => (
+                std::env::current_exe().context("locating this executable to spawn workers")?,
+                vec!["worker".to_string()],
+            ),
+        };
+        let threads = if opts.worker_threads > 0 {
+            opts.worker_threads
+        } else {
+            let cores = std::thread::available_parallelism().map_or(1, |c| c.get());
+            cores.div_ceil(workers.max(1)).max(1)
+        };
+        Ok(Spawner {
+            exe,
+            args,
+            connect,
+            fingerprint: fingerprint.to_string(),
+            secret: secret.to_vec(),
+            idle_timeout: opts.idle_timeout,
+            connect_timeout: opts.connect_timeout,
+            quic_mtu: opts.quic_mtu,
+            threads,
+        })
+    }
+
+    /// Starts local worker process number `child` (named `local-{child}`), which dials this
+    /// coordinator; its exit is reported on `tx` as [`Event::Exited`]. Returns its pid.
+    fn spawn(&self, child: usize, tx: &mpsc::UnboundedSender<Event>) -> Result<u32> {
+        let mut cmd = tokio::process::Command::new(&self.exe);
+        cmd.args(&self.args)
+            .arg("--connect")
+            .arg(self.connect.to_string())
+            .arg("--fingerprint")
+            .arg(&self.fingerprint)
+            .arg("--name")
+            .arg(format!("local-{child}"))
+            .arg("--bind")
+            .arg(format!("{}:0", self.connect.ip()))
+            .arg("--idle-timeout-s")
+            .arg(self.idle_timeout.as_secs_f64().to_string())
+            .arg("--connect-timeout-s")
+            .arg(self.connect_timeout.as_secs_f64().to_string())
+            .arg("--quic-mtu")
+            .arg(self.quic_mtu.to_string())
+            .env(
+                secret::SECRET_ENV,
+                std::ffi::OsString::from_vec(self.secret.clone()),
+            )
+            .env("RAYON_NUM_THREADS", self.threads.to_string())
+            // Spread GPU workers over the node's GPUs (one each while there are enough).
+            .env(strata_worker::gpu::GPU_SLOT_ENV, child.to_string())
+            .stdin(Stdio::null())
+            .kill_on_drop(true);
+        // The workers die with the coordinator, however it ends (even SIGKILL).
+        unsafe {
+            cmd.pre_exec(|| {
+                if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
+                    return Err(std::io::Error::last_os_error());
+                }
+                Ok(())
+            });
+        }
+        let mut proc = cmd
+            .spawn()
+            .with_context(|| format!("cannot start worker {}", self.exe.display()))?;
+        let pid = proc.id().unwrap_or(0);
+        let tx = tx.clone();
+        tokio::spawn(async move {
+            let status = match proc.wait().await {
+                Ok(s) => describe_status(s),
+                Err(e) => e.to_string(),
+            };
+            let _ = tx.send(Event::Exited { child, status });
+        });
+        Ok(pid)
+    }
 }
 
 fn describe_status(s: std::process::ExitStatus) -> String {

@@ -708,6 +708,103 @@ fn a_hung_worker_is_given_up_on_and_the_sequence_goes_on_without_it() {
     assert_eq!(text.matches("\"kind\":\"worker\"").count(), 6, "{text}");
 }
 
+/// The checks of a 4-frame orbit on 2 workers where worker 1 was lost in frame 0 and a
+/// replacement joined at frame 1: every frame (`out(i)`) equals the in-process one in
+/// `refs`, the summary lists one loss and one joiner (rank 2, frame 1, assignment 0 and 2),
+/// frame 0 was rendered by worker 0 alone and frames 1..3 by workers 0 and 2.
+fn check_replacement(stats: &str, refs: &Path, out: impl Fn(usize) -> PathBuf) {
+    for i in 0..4 {
+        let d = max_diff(
+            &read_exr(&refs.join(format!("in_{i:03}.exr"))),
+            &read_exr(&out(i)),
+        );
+        assert!(d <= 1e-5, "frame {i} differs by {d}");
+    }
+    let summary: serde_json::Value = serde_json::from_str(stats.lines().last().unwrap()).unwrap();
+    let joined = summary["joined_workers"].as_array().unwrap();
+    assert_eq!(joined.len(), 1, "{stats}");
+    assert_eq!(joined[0]["rank"], 2, "{stats}");
+    assert_eq!(joined[0]["frame"], 1, "{stats}");
+    let ranks: Vec<u64> = joined[0]["assignment"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|a| a["rank"].as_u64().unwrap())
+        .collect();
+    assert_eq!(ranks, [0, 2], "{stats}");
+    assert_eq!(
+        summary["lost_workers"].as_array().unwrap().len(),
+        1,
+        "{stats}"
+    );
+    // Frame 0 by worker 0 alone; frames 1..3 by workers 0 and 2.
+    let per_frame = |f: u64| {
+        stats
+            .lines()
+            .filter(|l| l.contains("\"kind\":\"worker\""))
+            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+            .filter(|v| v["frame"] == f)
+            .map(|v| v["rank"].as_u64().unwrap())
+            .collect::<Vec<u64>>()
+    };
+    assert_eq!(per_frame(0), [0], "{stats}");
+    for f in 1..4 {
+        assert_eq!(per_frame(f), [0, 2], "frame {f}: {stats}");
+    }
+}
+
+#[test]
+fn a_lost_local_worker_is_replaced_by_a_spawned_one_with_cluster_respawn() {
+    let scene = survey().join("scene.toml");
+    let refs = tempfile::tempdir().unwrap();
+    let (_, _) = orbit_run(&scene, refs.path(), "in", 4, &["--in-process"]);
+    // Local mode, 2 workers: worker 1 kills itself in frame 0's exchange, frame 0 is
+    // re-rendered by worker 0 alone, and the coordinator spawns a replacement that takes
+    // load from frame 1 on.
+    let dir = tempfile::tempdir().unwrap();
+    // An orbit of `frames` on 2 workers, worker 1 killing itself in frame 0's exchange;
+    // returns the stats and the log.
+    let run = |name: &str, frames: &str, extra: &[&str]| {
+        let stats = dir.path().join(format!("{name}.jsonl"));
+        let mut args = vec![
+            "--orbit",
+            frames,
+            "--workers",
+            "2",
+            "--stats",
+            stats.to_str().unwrap(),
+            "--set",
+            "cluster.idle_timeout_s=2",
+        ];
+        args.extend_from_slice(extra);
+        let o = render_scene(
+            &scene,
+            &dir.path().join(format!("{name}_%03d.exr")),
+            &args,
+            &[
+                ("STRATA_TEST_FAULT", "1:kill:exchange"),
+                ("RUST_LOG", "info"),
+            ],
+        );
+        let log = strip_ansi(&String::from_utf8_lossy(&o.stderr));
+        assert!(o.status.success(), "{name}: {log}");
+        (std::fs::read_to_string(&stats).unwrap(), log)
+    };
+    let (stats, log) = run("respawn", "4", &["--set", "cluster.respawn=1"]);
+    assert!(log.contains("spawned a replacement worker"), "{log}");
+    check_replacement(&stats, refs.path(), |i| {
+        dir.path().join(format!("respawn_{i:03}.exr"))
+    });
+    // Without `cluster.respawn` the run goes on with worker 0 alone.
+    let (stats, _) = run("alone", "2", &[]);
+    let summary: serde_json::Value = serde_json::from_str(stats.lines().last().unwrap()).unwrap();
+    assert!(
+        summary["joined_workers"].as_array().unwrap().is_empty(),
+        "{stats}"
+    );
+    assert_eq!(stats.matches("\"kind\":\"worker\"").count(), 2, "{stats}");
+}
+
 #[test]
 fn a_replacement_worker_joins_a_running_sequence_and_takes_load() {
     let scene = survey().join("scene.toml");
@@ -762,44 +859,9 @@ fn a_replacement_worker_joins_a_running_sequence_and_takes_load() {
         let _ = p.wait();
     }
     let stats = std::fs::read_to_string(at("rep.jsonl")).unwrap();
-    for i in 0..4 {
-        let d = max_diff(
-            &read_exr(&refs.path().join(format!("in_{i:03}.exr"))),
-            &read_exr(Path::new(&at(&format!("rep_{i:03}.exr")))),
-        );
-        assert!(d <= 1e-5, "frame {i} differs by {d}");
-    }
-    let summary: serde_json::Value = serde_json::from_str(stats.lines().last().unwrap()).unwrap();
-    let joined = summary["joined_workers"].as_array().unwrap();
-    assert_eq!(joined.len(), 1, "{stats}");
-    assert_eq!(joined[0]["rank"], 2, "{stats}");
-    assert_eq!(joined[0]["frame"], 1, "{stats}");
-    let ranks: Vec<u64> = joined[0]["assignment"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|a| a["rank"].as_u64().unwrap())
-        .collect();
-    assert_eq!(ranks, [0, 2], "{stats}");
-    assert_eq!(
-        summary["lost_workers"].as_array().unwrap().len(),
-        1,
-        "{stats}"
-    );
-    // Frame 0 by worker 0 alone; frames 1..3 by workers 0 and 2.
-    let per_frame = |f: u64| {
-        stats
-            .lines()
-            .filter(|l| l.contains("\"kind\":\"worker\""))
-            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
-            .filter(|v| v["frame"] == f)
-            .map(|v| v["rank"].as_u64().unwrap())
-            .collect::<Vec<u64>>()
-    };
-    assert_eq!(per_frame(0), [0], "{stats}");
-    for f in 1..4 {
-        assert_eq!(per_frame(f), [0, 2], "frame {f}: {stats}");
-    }
+    check_replacement(&stats, refs.path(), |i| {
+        PathBuf::from(at(&format!("rep_{i:03}.exr")))
+    });
     assert!(
         text.contains("worker joined the running sequence"),
         "{text}"
