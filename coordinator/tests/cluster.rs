@@ -738,19 +738,21 @@ fn check_replacement(stats: &str, refs: &Path, out: impl Fn(usize) -> PathBuf) {
         "{stats}"
     );
     // Frame 0 by worker 0 alone; frames 1..3 by workers 0 and 2.
-    let per_frame = |f: u64| {
-        stats
-            .lines()
-            .filter(|l| l.contains("\"kind\":\"worker\""))
-            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
-            .filter(|v| v["frame"] == f)
-            .map(|v| v["rank"].as_u64().unwrap())
-            .collect::<Vec<u64>>()
-    };
-    assert_eq!(per_frame(0), [0], "{stats}");
+    assert_eq!(ranks_in_frame(stats, 0), [0], "{stats}");
     for f in 1..4 {
-        assert_eq!(per_frame(f), [0, 2], "frame {f}: {stats}");
+        assert_eq!(ranks_in_frame(stats, f), [0, 2], "frame {f}: {stats}");
     }
+}
+
+/// The ranks whose worker stats the stats file lists for frame `f`.
+fn ranks_in_frame(stats: &str, f: u64) -> Vec<u64> {
+    stats
+        .lines()
+        .filter(|l| l.contains("\"kind\":\"worker\""))
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .filter(|v| v["frame"] == f)
+        .map(|v| v["rank"].as_u64().unwrap())
+        .collect()
 }
 
 #[test]
@@ -762,9 +764,9 @@ fn a_lost_local_worker_is_replaced_by_a_spawned_one_with_cluster_respawn() {
     // re-rendered by worker 0 alone, and the coordinator spawns a replacement that takes
     // load from frame 1 on.
     let dir = tempfile::tempdir().unwrap();
-    // An orbit of `frames` on 2 workers, worker 1 killing itself in frame 0's exchange;
-    // returns the stats and the log.
-    let run = |name: &str, frames: &str, extra: &[&str]| {
+    // An orbit of `frames` on 2 workers, `faults` (worker 1 killing itself in frame 0's
+    // exchange, and more); returns the stats and the log.
+    let run_with = |name: &str, frames: &str, extra: &[&str], faults: &str| {
         let stats = dir.path().join(format!("{name}.jsonl"));
         let mut args = vec![
             "--orbit",
@@ -781,15 +783,14 @@ fn a_lost_local_worker_is_replaced_by_a_spawned_one_with_cluster_respawn() {
             &scene,
             &dir.path().join(format!("{name}_%03d.exr")),
             &args,
-            &[
-                ("STRATA_TEST_FAULT", "1:kill:exchange"),
-                ("RUST_LOG", "info"),
-            ],
+            &[("STRATA_TEST_FAULT", faults), ("RUST_LOG", "info")],
         );
         let log = strip_ansi(&String::from_utf8_lossy(&o.stderr));
         assert!(o.status.success(), "{name}: {log}");
         (std::fs::read_to_string(&stats).unwrap(), log)
     };
+    let run =
+        |name: &str, frames: &str, extra: &[&str]| run_with(name, frames, extra, "1:kill:exchange");
     let (stats, log) = run("respawn", "4", &["--set", "cluster.respawn=1"]);
     assert!(log.contains("spawned a replacement worker"), "{log}");
     check_replacement(&stats, refs.path(), |i| {
@@ -803,6 +804,42 @@ fn a_lost_local_worker_is_replaced_by_a_spawned_one_with_cluster_respawn() {
         "{stats}"
     );
     assert_eq!(stats.matches("\"kind\":\"worker\"").count(), 2, "{stats}");
+    // A replacement that dies in its set-up is given up on, never the run, and the next
+    // replacement takes its place: frames 0 and 1 by worker 0 alone, 2 and 3 by workers 0
+    // and 3, every frame as in-process.
+    let (stats, log) = run_with(
+        "twice",
+        "4",
+        &["--set", "cluster.respawn=2"],
+        "1:kill:exchange,2:kill:setup",
+    );
+    for i in 0..4 {
+        let d = max_diff(
+            &read_exr(&refs.path().join(format!("in_{i:03}.exr"))),
+            &read_exr(&dir.path().join(format!("twice_{i:03}.exr"))),
+        );
+        assert!(d <= 1e-5, "frame {i} differs by {d}");
+    }
+    assert_eq!(
+        log.matches("spawned a replacement worker").count(),
+        2,
+        "{log}"
+    );
+    let summary: serde_json::Value = serde_json::from_str(stats.lines().last().unwrap()).unwrap();
+    let lost: Vec<u64> = summary["lost_workers"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| l["rank"].as_u64().unwrap())
+        .collect();
+    assert_eq!(lost, [1, 2], "{stats}");
+    let joined = summary["joined_workers"].as_array().unwrap();
+    assert_eq!(joined.len(), 1, "{stats}");
+    assert_eq!(joined[0]["rank"], 3, "{stats}");
+    assert_eq!(joined[0]["frame"], 2, "{stats}");
+    for (f, want) in [(0, vec![0]), (1, vec![0]), (2, vec![0, 3]), (3, vec![0, 3])] {
+        assert_eq!(ranks_in_frame(&stats, f), want, "frame {f}: {stats}");
+    }
 }
 
 #[test]

@@ -907,7 +907,8 @@ struct FrontLast {
 }
 
 /// Test hook (debug builds only, what the tests run; release binaries ignore it):
-/// `STRATA_TEST_FAULT=RANK:kill|stop:PHASE` makes worker RANK SIGKILL or SIGSTOP itself at
+/// `STRATA_TEST_FAULT=RANK:kill|stop:PHASE` (several separated by commas) makes worker RANK
+/// SIGKILL or SIGSTOP itself at
 /// PHASE: `setup` (on its first set-up, before it dials its peers), `ready` (meshed, before
 /// it says so) or, in frame 0, `render` (before rendering), `exchange` (after rendering,
 /// before sending anything), `round` or `round0` (with its first round's pieces sent),
@@ -918,14 +919,17 @@ fn test_fault(rank: u32, frame: u64, phase: &str) {
     if !cfg!(debug_assertions) || frame != 0 {
         return;
     }
-    let Ok(spec) = std::env::var("STRATA_TEST_FAULT") else {
+    let Ok(specs) = std::env::var("STRATA_TEST_FAULT") else {
         return;
     };
-    let parts: Vec<&str> = spec.split(':').collect();
-    let [r, signal, p] = parts[..] else { return };
-    if r != rank.to_string() || p != phase {
-        return;
-    }
+    let mine = specs.split(',').find_map(|spec| {
+        let parts: Vec<&str> = spec.split(':').collect();
+        match parts[..] {
+            [r, signal, p] if r == rank.to_string() && p == phase => Some(signal),
+            _ => None,
+        }
+    });
+    let Some(signal) = mine else { return };
     let sig = match signal {
         "kill" => libc::SIGKILL,
         "stop" => libc::SIGSTOP,
