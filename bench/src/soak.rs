@@ -55,14 +55,18 @@ struct Cli {
     /// being set up (counts against `--faults`' limit of workers − 1).
     #[arg(long, value_parser = ["kill", "stop"])]
     setup_fault: Option<String>,
+    /// `cluster.respawn`: the coordinator replaces up to this many lost workers with new
+    /// worker processes (which become victims like the others).
+    #[arg(long, default_value_t = 0)]
+    respawn: u32,
 }
 
 fn main() -> Result<()> {
     let cli = Cli::parse();
     let setup_faults = cli.setup_fault.is_some() as u32;
     anyhow::ensure!(
-        cli.faults + setup_faults < cli.workers,
-        "--faults (and --setup-fault) must leave at least one worker"
+        cli.faults + setup_faults < cli.workers + cli.respawn,
+        "--faults (and --setup-fault) must leave at least one worker (counting --respawn)"
     );
     std::fs::create_dir_all(&cli.dir)?;
     let common = |name: &str| -> Vec<String> {
@@ -114,6 +118,8 @@ fn main() -> Result<()> {
         .args([
             "--set",
             &format!("cluster.idle_timeout_s={}", cli.idle_timeout),
+            "--set",
+            &format!("cluster.respawn={}", cli.respawn),
         ])
         .env("RUST_LOG", "info")
         // Plain log lines (tracing honours NO_COLOR), so pids parse without escapes.
@@ -279,6 +285,26 @@ fn main() -> Result<()> {
             "lost {}: given up {det:.2} s into its frame, frame done {rec:.2} s later ({total:.2} s in all); bound 2 × median frame + idle timeout = {bound:.2} s: {}",
             l["worker"].as_str().unwrap_or("?"),
             if total <= bound { "met" } else { "NOT met" }
+        );
+    }
+    let joined = summary["joined_workers"]
+        .as_array()
+        .cloned()
+        .unwrap_or_default();
+    if cli.respawn > 0 || !joined.is_empty() {
+        // The ranks that rendered the last frame.
+        let last = cli.frames.saturating_sub(1) as u64;
+        let ranks: Vec<u64> = stats
+            .lines()
+            .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+            .filter(|v| v["kind"] == "worker" && v["frame"] == last)
+            .filter_map(|v| v["rank"].as_u64())
+            .collect();
+        println!(
+            "replacements spawned and joined: {} of at most {} (at frames {:?}); ranks rendering the last frame: {ranks:?}",
+            joined.len(),
+            cli.respawn,
+            joined.iter().map(|j| j["frame"].as_u64().unwrap_or(0)).collect::<Vec<_>>()
         );
     }
     anyhow::ensure!(
