@@ -228,7 +228,8 @@ pub struct ClusterSettings {
     /// Local mode (`spawn = true`): how many lost workers this run may replace with a
     /// freshly spawned worker process (0: none; the run goes on with the workers left).
     /// A replacement joins at the next frame, as one would in cluster mode; that frame
-    /// waits for it up to `connect_timeout_s`.
+    /// waits for the replacements it spawned (while they are alive) up to
+    /// `connect_timeout_s`.
     #[serde(default)]
     pub respawn: u32,
     /// Cross-worker occlusion: workers leave uncast the screen blocks that content in

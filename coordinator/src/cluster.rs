@@ -503,9 +503,11 @@ pub struct Cluster {
     spawner: Option<Spawner>,
     /// Lost local workers that may still be replaced (`cluster.respawn`).
     respawns_left: u32,
-    /// Replacements spawned and not yet admitted: the next frame waits for them up to
-    /// `cluster.connect_timeout_s`.
-    respawned: usize,
+    /// The GPU slot (`GPU_SLOT_ENV`) of each local worker process, by child index.
+    child_gpu: Vec<usize>,
+    /// Pids of replacements spawned and not yet admitted: the next frame waits for them
+    /// (while one of them is alive) up to `cluster.connect_timeout_s`.
+    respawned: Vec<u32>,
 }
 
 impl Drop for Cluster {
@@ -625,7 +627,7 @@ impl Cluster {
         };
         if let Some(sp) = &spawner {
             for i in 0..n {
-                child_pids.push(sp.spawn(i, &tx)?);
+                child_pids.push(sp.spawn(i, i, &tx)?);
             }
             info!(
                 workers = n,
@@ -639,6 +641,7 @@ impl Cluster {
             );
         }
         let respawns_left = if spawner.is_some() { opts.respawn } else { 0 };
+        let child_pids_len = child_pids.len();
         let mut cluster = Cluster {
             ep,
             workers: Vec::new(),
@@ -663,7 +666,8 @@ impl Cluster {
             awaiting_replacement: false,
             respawns_left,
             spawner,
-            respawned: 0,
+            respawned: Vec::new(),
+            child_gpu: (0..child_pids_len).collect(),
         };
         cluster.gather_workers(&secret, &tx).await?;
         cluster.setup(&[]).await?;
@@ -792,7 +796,8 @@ impl Cluster {
         // Only the frame after a loss waits; later ones take a replacement when it comes.
         // Replacements this coordinator spawned itself are waited for as the first
         // workers were (they are ours, and were started for this).
-        let wait = match (self.awaiting_replacement, self.respawned > 0) {
+        let spawned = !self.respawned.is_empty();
+        let wait = match (self.awaiting_replacement, spawned) {
             (_, true) => self.opts.replacement_wait.max(self.opts.connect_timeout),
             (true, false) => self.opts.replacement_wait,
             (false, false) => Duration::ZERO,
@@ -806,19 +811,32 @@ impl Cluster {
         self.awaiting_replacement = false;
         let mut fresh = Vec::new();
         loop {
+            // Spawned replacements are waited for only while one of them has not joined
+            // and is still alive (checked every 50 ms: one that died never connects).
+            let waiting = !spawned || self.respawned.iter().any(|&p| process_alive(p));
             let j = match rx.try_recv() {
                 Ok(j) => j,
-                Err(_) if self.slots.len() < want && Instant::now() < deadline => {
-                    let left = deadline.saturating_duration_since(Instant::now());
+                Err(_) if self.slots.len() < want && Instant::now() < deadline && waiting => {
+                    let mut left = deadline.saturating_duration_since(Instant::now());
+                    if spawned {
+                        left = left.min(Duration::from_millis(50));
+                    }
                     match tokio::time::timeout(left, rx.recv()).await {
                         Ok(Some(j)) => j,
-                        _ => break,
+                        Ok(None) => break,
+                        Err(_) => continue,
                     }
                 }
                 Err(_) => break,
             };
             if self.slots.len() >= want {
                 refuse_full(j, want).await;
+                continue;
+            }
+            // A process of ours that died after it connected (SIGKILL sends no close).
+            if self.child_pids.contains(&j.1) && !process_alive(j.1) {
+                info!(name = %j.0, pid = j.1, "a spawned worker exited before it was admitted");
+                self.respawned.retain(|&p| p != j.1);
                 continue;
             }
             // One that gave up waiting to be admitted is gone already.
@@ -869,10 +887,11 @@ impl Cluster {
             });
             self.slots.push(rank);
             self.new_leaves.push(None);
+            self.respawned.retain(|&p| p != pid);
             fresh.push(rank);
         }
         // Spawned replacements have joined, or had their wait.
-        self.respawned = 0;
+        self.respawned.clear();
         self.joiners = Some(rx);
         if fresh.is_empty() {
             return Ok(Vec::new());
@@ -1316,16 +1335,18 @@ impl Cluster {
     /// Local mode with `cluster.respawn`: starts up to `lost` new worker processes (within
     /// what is left of the run's allowance) to take the places of lost ones; they join at
     /// the start of the next frame ([`admit_joiners`](Self::admit_joiners)).
-    fn respawn(&mut self, lost: usize) {
+    /// Each takes the GPU slot of the worker it replaces (`gpu_slots`).
+    fn respawn(&mut self, gpu_slots: &[usize]) {
         let Some(sp) = &self.spawner else { return };
-        for _ in 0..lost.min(self.respawns_left as usize) {
+        for &gpu in gpu_slots.iter().take(self.respawns_left as usize) {
             let child = self.child_pids.len();
-            match sp.spawn(child, &self.events_tx) {
+            match sp.spawn(child, gpu, &self.events_tx) {
                 Ok(pid) => {
                     info!(child, pid, "spawned a replacement worker (cluster.respawn)");
                     self.child_pids.push(pid);
+                    self.child_gpu.push(gpu);
                     self.respawns_left -= 1;
-                    self.respawned += 1;
+                    self.respawned.push(pid);
                 }
                 Err(e) => {
                     warn!("could not spawn a replacement worker: {e:#}");
@@ -1350,7 +1371,18 @@ impl Cluster {
         }
         self.slots.retain(|r| !lost.contains(r));
         self.awaiting_replacement = true;
-        self.respawn(lost.len());
+        // A replacement takes the GPU slot of the worker it replaces.
+        let gpu_slots: Vec<usize> = lost
+            .iter()
+            .map(|&r| {
+                let pid = self.workers[r as usize].pid;
+                let child = self.child_pids.iter().position(|&p| p == pid);
+                child
+                    .and_then(|c| self.child_gpu.get(c).copied())
+                    .unwrap_or(r as usize)
+            })
+            .collect();
+        self.respawn(&gpu_slots);
         // Survivors still waiting on a lost peer in the failed attempt stop at once.
         for &rank in &self.slots.clone() {
             let w = &mut self.workers[rank as usize];
@@ -1975,6 +2007,13 @@ impl Cluster {
     /// Tells every worker to exit and waits (briefly) for them; stragglers are killed
     /// when the cluster is dropped.
     pub async fn shutdown(mut self) {
+        // Replacements spawned and never admitted have no part in the run to finish.
+        for &pid in &self.respawned {
+            // SAFETY: a plain syscall on our own child process.
+            unsafe {
+                libc::kill(pid as i32, libc::SIGKILL);
+            }
+        }
         let slots = self.slots.clone();
         for w in self.workers.iter_mut().filter(|w| slots.contains(&w.rank)) {
             let _ = tokio::time::timeout(
@@ -2128,6 +2167,13 @@ fn spawn_reader(
     });
 }
 
+/// Whether process `pid` exists (a child of ours that exited is reaped at once by its
+/// wait task, so a dead one is gone).
+fn process_alive(pid: u32) -> bool {
+    // SAFETY: signal 0 only checks that the process exists.
+    pid != 0 && unsafe { libc::kill(pid as i32, 0) } == 0
+}
+
 /// How this coordinator starts its local worker processes (local mode), kept for the
 /// whole run so that lost ones can be replaced (`cluster.respawn`).
 struct Spawner {
@@ -2177,9 +2223,10 @@ impl Spawner {
         })
     }
 
-    /// Starts local worker process number `child` (named `local-{child}`), which dials this
-    /// coordinator; its exit is reported on `tx` as [`Event::Exited`]. Returns its pid.
-    fn spawn(&self, child: usize, tx: &mpsc::UnboundedSender<Event>) -> Result<u32> {
+    /// Starts local worker process number `child` (named `local-{child}`, on GPU slot
+    /// `gpu`), which dials this coordinator; its exit is reported on `tx` as
+    /// [`Event::Exited`]. Returns its pid.
+    fn spawn(&self, child: usize, gpu: usize, tx: &mpsc::UnboundedSender<Event>) -> Result<u32> {
         let mut cmd = tokio::process::Command::new(&self.exe);
         cmd.args(&self.args)
             .arg("--connect")
@@ -2202,7 +2249,7 @@ impl Spawner {
             )
             .env("RAYON_NUM_THREADS", self.threads.to_string())
             // Spread GPU workers over the node's GPUs (one each while there are enough).
-            .env(strata_worker::gpu::GPU_SLOT_ENV, child.to_string())
+            .env(strata_worker::gpu::GPU_SLOT_ENV, gpu.to_string())
             .stdin(Stdio::null())
             .kill_on_drop(true);
         // The workers die with the coordinator, however it ends (even SIGKILL).

@@ -764,15 +764,13 @@ fn a_lost_local_worker_is_replaced_by_a_spawned_one_with_cluster_respawn() {
     // re-rendered by worker 0 alone, and the coordinator spawns a replacement that takes
     // load from frame 1 on.
     let dir = tempfile::tempdir().unwrap();
-    // An orbit of `frames` on 2 workers, `faults` (worker 1 killing itself in frame 0's
+    // An orbit of `frames`, `faults` (worker 1 killing itself in frame 0's
     // exchange, and more); returns the stats and the log.
     let run_with = |name: &str, frames: &str, extra: &[&str], faults: &str| {
         let stats = dir.path().join(format!("{name}.jsonl"));
         let mut args = vec![
             "--orbit",
             frames,
-            "--workers",
-            "2",
             "--stats",
             stats.to_str().unwrap(),
             "--set",
@@ -789,8 +787,10 @@ fn a_lost_local_worker_is_replaced_by_a_spawned_one_with_cluster_respawn() {
         assert!(o.status.success(), "{name}: {log}");
         (std::fs::read_to_string(&stats).unwrap(), log)
     };
-    let run =
-        |name: &str, frames: &str, extra: &[&str]| run_with(name, frames, extra, "1:kill:exchange");
+    let run = |name: &str, frames: &str, extra: &[&str]| {
+        let args = [&["--workers", "2"], extra].concat();
+        run_with(name, frames, &args, "1:kill:exchange")
+    };
     let (stats, log) = run("respawn", "4", &["--set", "cluster.respawn=1"]);
     assert!(log.contains("spawned a replacement worker"), "{log}");
     check_replacement(&stats, refs.path(), |i| {
@@ -810,7 +810,7 @@ fn a_lost_local_worker_is_replaced_by_a_spawned_one_with_cluster_respawn() {
     let (stats, log) = run_with(
         "twice",
         "4",
-        &["--set", "cluster.respawn=2"],
+        &["--workers", "2", "--set", "cluster.respawn=2"],
         "1:kill:exchange,2:kill:setup",
     );
     for i in 0..4 {
@@ -840,6 +840,29 @@ fn a_lost_local_worker_is_replaced_by_a_spawned_one_with_cluster_respawn() {
     for (f, want) in [(0, vec![0]), (1, vec![0]), (2, vec![0, 3]), (3, vec![0, 3])] {
         assert_eq!(ranks_in_frame(&stats, f), want, "frame {f}: {stats}");
     }
+    // Two workers of three lost in one frame and one replacement allowed: frame 1 waits
+    // for the one spawned, not for the run to be full again (`connect_timeout_s`).
+    let t = Instant::now();
+    let (stats, _) = run_with(
+        "two",
+        "2",
+        &[
+            "--workers",
+            "3",
+            "--set",
+            "cluster.respawn=1",
+            "--set",
+            "cluster.connect_timeout_s=120",
+        ],
+        "1:kill:exchange,2:kill:exchange",
+    );
+    assert!(
+        t.elapsed() < Duration::from_secs(60),
+        "took {:?}",
+        t.elapsed()
+    );
+    assert_eq!(ranks_in_frame(&stats, 0), [0], "{stats}");
+    assert_eq!(ranks_in_frame(&stats, 1), [0, 3], "{stats}");
 }
 
 #[test]
