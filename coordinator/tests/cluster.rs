@@ -713,13 +713,7 @@ fn a_hung_worker_is_given_up_on_and_the_sequence_goes_on_without_it() {
 /// `refs`, the summary lists one loss and one joiner (rank 2, frame 1, assignment 0 and 2),
 /// frame 0 was rendered by worker 0 alone and frames 1..3 by workers 0 and 2.
 fn check_replacement(stats: &str, refs: &Path, out: impl Fn(usize) -> PathBuf) {
-    for i in 0..4 {
-        let d = max_diff(
-            &read_exr(&refs.join(format!("in_{i:03}.exr"))),
-            &read_exr(&out(i)),
-        );
-        assert!(d <= 1e-5, "frame {i} differs by {d}");
-    }
+    same_as_in_process(refs, 4, out);
     let summary: serde_json::Value = serde_json::from_str(stats.lines().last().unwrap()).unwrap();
     let joined = summary["joined_workers"].as_array().unwrap();
     assert_eq!(joined.len(), 1, "{stats}");
@@ -865,25 +859,37 @@ fn a_lost_local_worker_is_replaced_by_a_spawned_one_with_cluster_respawn() {
     assert_eq!(ranks_in_frame(&stats, 1), [0, 3], "{stats}");
 }
 
-#[test]
-fn a_replacement_worker_joins_a_running_sequence_and_takes_load() {
+/// Frames `0..frames` (`out(i)`) equal the in-process ones in `refs` (`in_%03d.exr`).
+fn same_as_in_process(refs: &Path, frames: usize, out: impl Fn(usize) -> PathBuf) {
+    for i in 0..frames {
+        let d = max_diff(
+            &read_exr(&refs.join(format!("in_{i:03}.exr"))),
+            &read_exr(&out(i)),
+        );
+        assert!(d <= 1e-5, "frame {i} differs by {d}");
+    }
+}
+
+/// The in-process orbit of `frames` into a new folder (`in_%03d.exr`), and a waiting
+/// cluster-mode coordinator for 2 workers rendering the same orbit into another
+/// (`{name}_%03d.exr`, stats `{name}.jsonl`), which after a loss waits up to 30 s for a
+/// replacement.
+fn replacement_run(name: &str, frames: u32) -> (tempfile::TempDir, tempfile::TempDir, Waiting) {
     let scene = survey().join("scene.toml");
     let refs = tempfile::tempdir().unwrap();
-    let (_, _) = orbit_run(&scene, refs.path(), "in", 4, &["--in-process"]);
-    // Cluster mode, 2 workers: worker 1 kills itself in frame 0's exchange, frame 0 is
-    // re-rendered by worker 0 alone, and frame 1 waits for a replacement.
+    let (_, _) = orbit_run(&scene, refs.path(), "in", frames, &["--in-process"]);
     let outd = tempfile::tempdir().unwrap();
     let at = |n: &str| outd.path().join(n).display().to_string();
     let w = start_waiting_coordinator_to(
         2,
-        &at("rep_%03d.png"),
+        &at(&format!("{name}_%03d.png")),
         &[
             "--orbit",
-            "4",
+            &frames.to_string(),
             "--exr",
-            &at("rep_%03d.exr"),
+            &at(&format!("{name}_%03d.exr")),
             "--stats",
-            &at("rep.jsonl"),
+            &at(&format!("{name}.jsonl")),
             "--set",
             "render.early_termination=1.0",
             "--set",
@@ -892,25 +898,105 @@ fn a_replacement_worker_joins_a_running_sequence_and_takes_load() {
             "cluster.replacement_wait_s=30",
         ],
     );
+    (refs, outd, w)
+}
+
+/// A worker started by hand for the waiting coordinator `w`, with `STRATA_TEST_FAULT` set
+/// to `fault`.
+fn faulty_worker(w: &Waiting, fault: Option<&str>) -> Child {
+    let mut c = Command::new(BIN);
+    c.args(["worker", "--connect"])
+        .arg(format!("127.0.0.1:{}", w.port))
+        .args(["--fingerprint", &w.fingerprint, "--connect-timeout-s", "20"])
+        .env("STRATA_SECRET", "correct-horse-battery-staple-42")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null());
+    if let Some(f) = fault {
+        c.env("STRATA_TEST_FAULT", f);
+    }
+    c.spawn().unwrap()
+}
+
+/// Two workers for `w` (waiting for 2), the second (rank 1) killing itself in frame 0's
+/// exchange; returns once the coordinator re-renders that frame without it.
+fn two_workers_losing_one(w: &Waiting) -> (Child, Child) {
     let log = w.dir.path().join("coordinator.log");
-    let start = |fault: Option<&str>| {
-        let mut c = Command::new(BIN);
-        c.args(["worker", "--connect"])
-            .arg(format!("127.0.0.1:{}", w.port))
-            .args(["--fingerprint", &w.fingerprint, "--connect-timeout-s", "20"])
-            .env("STRATA_SECRET", "correct-horse-battery-staple-42")
-            .stdout(Stdio::null())
-            .stderr(Stdio::null());
-        if let Some(f) = fault {
-            c.env("STRATA_TEST_FAULT", f);
-        }
-        c.spawn().unwrap()
-    };
-    let mut a = start(Some("1:kill:exchange"));
+    let a = faulty_worker(w, Some("1:kill:exchange"));
     wait_for_log(&log, "worker joined rank=0");
-    let mut b = start(Some("1:kill:exchange"));
+    let b = faulty_worker(w, Some("1:kill:exchange"));
     wait_for_log(&log, "re-rendering the frame without worker 1");
-    let mut c = start(None);
+    (a, b)
+}
+
+#[test]
+fn a_newcomer_announcing_a_bad_segment_is_given_up_on_not_the_run() {
+    use strata_common::wire::WorkerMsg;
+    if strata_net::shm::host_id().is_none() {
+        eprintln!("skipped: this host has no /dev/shm");
+        return;
+    }
+    // Cluster mode, 2 workers: worker 1 dies in frame 0, and the replacement frame 1
+    // waits for is a fake that announces a shared-memory segment that does not exist.
+    let (refs, outd, w) = replacement_run("new", 2);
+    let at = |n: &str| outd.path().join(n).display().to_string();
+    let (mut a, mut b) = two_workers_losing_one(&w);
+    runtime().block_on(async {
+        let (_ep, _conn, mut send, _recv, setup) = fake_worker(&w).await;
+        assert!(setup.shm_gather, "the newcomer is on this host");
+        // As a real worker does: which set-up it answers (a later one than the first).
+        let meshing = WorkerMsg::Meshing {
+            attempt: setup.attempt,
+        };
+        strata_net::write_frame(&mut send, &strata_common::wire::encode_meta(&meshing), &[])
+            .await
+            .unwrap();
+        let msg = WorkerMsg::ShmSegment {
+            name: format!("strata-shm-{}", "0f".repeat(16)),
+            pid: std::process::id(),
+            fd: 1 << 20,
+        };
+        say_then_linger(&mut send, &msg).await;
+    });
+    let (status, log) = finish(w);
+    assert!(status.success(), "{log}");
+    for p in [&mut a, &mut b] {
+        let _ = p.wait();
+    }
+    // Both frames as in-process, by worker 0 alone.
+    same_as_in_process(refs.path(), 2, |i| {
+        outd.path().join(format!("new_{i:03}.exr"))
+    });
+    let stats = std::fs::read_to_string(at("new.jsonl")).unwrap();
+    for f in 0..2 {
+        assert_eq!(ranks_in_frame(&stats, f), [0], "frame {f}: {stats}");
+    }
+    let summary: serde_json::Value = serde_json::from_str(stats.lines().last().unwrap()).unwrap();
+    assert!(
+        summary["joined_workers"].as_array().unwrap().is_empty(),
+        "{stats}"
+    );
+    let lost = summary["lost_workers"].as_array().unwrap();
+    let ranks: Vec<u64> = lost.iter().map(|l| l["rank"].as_u64().unwrap()).collect();
+    assert_eq!(ranks, [1, 2], "{stats}");
+    assert!(
+        lost[1]["worker"].as_str().unwrap().contains("fake")
+            && lost[1]["reason"]
+                .as_str()
+                .unwrap()
+                .contains("shared-memory segment"),
+        "{stats}"
+    );
+}
+
+#[test]
+fn a_replacement_worker_joins_a_running_sequence_and_takes_load() {
+    // Cluster mode, 2 workers: worker 1 kills itself in frame 0's exchange, frame 0 is
+    // re-rendered by worker 0 alone, and frame 1 waits for a replacement.
+    let (refs, outd, w) = replacement_run("rep", 4);
+    let at = |n: &str| outd.path().join(n).display().to_string();
+    let log = w.dir.path().join("coordinator.log");
+    let (mut a, mut b) = two_workers_losing_one(&w);
+    let mut c = faulty_worker(&w, None);
     let mut w = w;
     let status = w.child.wait().unwrap();
     let text = std::fs::read_to_string(&log).unwrap();
