@@ -892,7 +892,18 @@ impl Cluster {
         }
         // Spawned replacements have joined, or had their wait.
         self.respawned.clear();
-        self.joiners = Some(rx);
+        if self.opts.spawn && self.respawns_left == 0 {
+            // Local mode with its replacements used up: the run takes no one else.
+            if let Some(a) = self.acceptor.take() {
+                a.abort();
+            }
+            self.ep.set_server_config(None);
+            while let Ok(j) = rx.try_recv() {
+                refuse_full(j, want).await;
+            }
+        } else {
+            self.joiners = Some(rx);
+        }
         if fresh.is_empty() {
             return Ok(Vec::new());
         }
