@@ -768,20 +768,27 @@ impl Cluster {
                 }
             }
         }
+        self.acceptor = Some(acceptor);
+        self.settle_joiners(auth_rx).await;
+        Ok(())
+    }
+
+    /// Cluster mode, or local mode with `cluster.respawn` left: keeps `rx`, so that later
+    /// workers may replace lost ones (or are refused while the run is full) at the start of
+    /// a frame. Otherwise the run takes no one else: no new connections, and those that
+    /// authenticated meanwhile are told the run is full.
+    async fn settle_joiners(&mut self, mut rx: mpsc::UnboundedReceiver<Authenticated>) {
         if self.opts.spawn && self.respawns_left == 0 {
-            acceptor.abort();
-            // The run is full: no new connections; authenticated extras are told why.
+            if let Some(a) = self.acceptor.take() {
+                a.abort();
+            }
             self.ep.set_server_config(None);
-            while let Ok(j) = auth_rx.try_recv() {
-                refuse_full(j, n).await;
+            while let Ok(j) = rx.try_recv() {
+                refuse_full(j, self.opts.workers).await;
             }
         } else {
-            // Cluster mode, or local mode with `cluster.respawn`: later workers may replace
-            // lost ones (or are refused while the run is full), at the start of a frame.
-            self.joiners = Some(auth_rx);
-            self.acceptor = Some(acceptor);
+            self.joiners = Some(rx);
         }
-        Ok(())
     }
 
     /// Cluster mode, at the start of a frame: admits the workers that connected since as
@@ -892,18 +899,8 @@ impl Cluster {
         }
         // Spawned replacements have joined, or had their wait.
         self.respawned.clear();
-        if self.opts.spawn && self.respawns_left == 0 {
-            // Local mode with its replacements used up: the run takes no one else.
-            if let Some(a) = self.acceptor.take() {
-                a.abort();
-            }
-            self.ep.set_server_config(None);
-            while let Ok(j) = rx.try_recv() {
-                refuse_full(j, want).await;
-            }
-        } else {
-            self.joiners = Some(rx);
-        }
+        // Local mode with its replacements used up takes no one else.
+        self.settle_joiners(rx).await;
         if fresh.is_empty() {
             return Ok(Vec::new());
         }

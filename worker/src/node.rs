@@ -1042,15 +1042,9 @@ impl Node {
             return Ok(piece.span);
         }
         let mut w = self.take_canvas(req, c)?;
-        let interlace = Interlace::new(
-            req.width,
-            req.height,
-            req.order.len() as u32,
-            req.composite.interlace && req.wall.is_none(),
-        );
         let r = strata_common::composite::canvas::write_span(
             w.pixels_mut(),
-            &interlace,
+            &frame_interlace(req),
             piece.span,
             &piece.pixels,
         );
@@ -1284,13 +1278,7 @@ impl Node {
                 p
             }
         };
-        // A wall's tiles are runs of whole rows: no interlacing.
-        let interlace = Interlace::new(
-            req.width,
-            req.height,
-            n as u32,
-            req.composite.interlace && req.wall.is_none(),
-        );
+        let interlace = frame_interlace(req);
         let format = req.composite.format;
         // A dense image becomes the compositor's buffer as it is.
         let rc = RankCompositor::from_image(plan.clone(), position, image, &interlace)?;
@@ -1732,6 +1720,17 @@ fn replace_blocks(base: &PartialImage, again: &PartialImage, blocks: &BlockMask)
         }
     }
     PartialImage::from_full(w, h, &full)
+}
+
+/// The row interlacing of `req`'s frame: one group per rank in the frame's order, none for
+/// a wall (its tiles are runs of whole rows).
+fn frame_interlace(req: &FrameRequest) -> Interlace {
+    Interlace::new(
+        req.width,
+        req.height,
+        req.order.len() as u32,
+        req.composite.interlace && req.wall.is_none(),
+    )
 }
 
 /// The coordinator's canvas as the exchange's final target, with the frame's interlace
