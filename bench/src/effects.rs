@@ -247,9 +247,6 @@ fn table(args: &EffectsArgs, backend: Backend, scalar: bool) -> Result<()> {
     println!("| effect | scene without it | specialised | noise (same code again) | effect compiled in | unused cost | general path | general cost | compiled in ≤ 2 % | scene with it | cost when used | samples/s (specialised) |");
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
     for case in cases(args, scalar)? {
-        if backend == Backend::Gpu && case.effect == EffectSet::PREINTEGRATED {
-            continue; // the GPU caster has no pre-integration
-        }
         let without = sized(case.without.clone(), args.size, backend);
         let with = sized(case.with.clone(), args.size, backend);
         let runs = interleaved(

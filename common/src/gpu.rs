@@ -206,8 +206,12 @@ pub struct VolumeParams {
     /// First slice record in the transfer-function buffer: one `[axis, level-0 index,
     /// opacity, 0]` per slice (the axis as a float 0, 1 or 2).
     pub slice_base: u32,
-    /// Padding.
-    pub _pad: u32,
+    /// With [`VOLUME_PREINTEGRATED`]: first entry of this volume's pre-integrated tables in
+    /// the transfer-function buffer (`tf::PreintTable`). Entry `pre_base` is the value →
+    /// table position map `[scale, offset, last, 0]`; band `b`'s whole-step table follows
+    /// at `pre_base + 1 + 2·b·PREINT_SIZE²` and its half-step table `PREINT_SIZE²` entries
+    /// later, each front value major.
+    pub pre_base: u32,
 }
 
 /// Slices per volume, on either caster.
@@ -221,6 +225,9 @@ pub const VOLUME_NO_DATA: u32 = 2;
 /// [`VolumeParams::flags`]: the transfer function shows nothing of the volume (with
 /// empty-space skipping): it is not marched, as on the CPU (its slices still show).
 pub const VOLUME_INVISIBLE: u32 = 4;
+/// [`VolumeParams::flags`]: the volume is pre-integrated (`render.preintegrated`): its
+/// tables start at [`VolumeParams::pre_base`].
+pub const VOLUME_PREINTEGRATED: u32 = 8;
 
 /// How the device pool stores volume samples: in the narrowest width that holds every
 /// volume's sample type (`u8`/`i8` → 8 bits, `u16`/`i16` → 16, `f32` → 32), so 8- and 16-bit
@@ -425,6 +432,7 @@ const _: () = assert!(offset_of!(FrameParams, flags) == 160);
 const _: () = assert!(size_of::<VolumeParams>() == 192);
 const _: () = assert!(offset_of!(VolumeParams, n_slices) == 176);
 const _: () = assert!(offset_of!(VolumeParams, slice_base) == 184);
+const _: () = assert!(offset_of!(VolumeParams, pre_base) == 188);
 const _: () = assert!(offset_of!(VolumeParams, table_base) == 76);
 const _: () = assert!(offset_of!(VolumeParams, level_base) == 80);
 const _: () = assert!(offset_of!(VolumeParams, level_t) == 112);
@@ -490,6 +498,7 @@ pub fn volume_params_offsets() -> Vec<(&'static str, usize)> {
         ("n_slices", offset_of!(VolumeParams, n_slices)),
         ("straight_base", offset_of!(VolumeParams, straight_base)),
         ("slice_base", offset_of!(VolumeParams, slice_base)),
+        ("pre_base", offset_of!(VolumeParams, pre_base)),
     ]
 }
 

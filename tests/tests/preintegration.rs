@@ -11,7 +11,8 @@ use strata_common::geo::Affine3;
 use strata_common::image::Rgba;
 use strata_common::scene::{Backend, Camera, Scene};
 use strata_tests::scenes::{
-    exact_settings, horizon_layer, horizon_store, render_whole, scene, volume_layer, volume_store,
+    exact_settings, horizon_layer, horizon_store, render_on_both, render_whole, scene,
+    volume_layer, volume_store,
 };
 
 const N: u64 = 64;
@@ -71,6 +72,18 @@ fn ramp_onto_surface(dir: &std::path::Path, step: f64, pre: bool, at: f32) -> Sc
     s
 }
 
+/// Largest channel difference allowed between the GPU's pre-integration and the CPU's: the
+/// same tables and the same segment convention, evaluated in f32 on both (fused
+/// multiply-adds and the GPU's own rounding of the bilinear lookups aside).
+const GPU_TOL: f32 = 1e-5;
+
+/// A pre-integrated render on the CPU and, where an adapter exists, on the GPU, which must
+/// agree within [`GPU_TOL`]; the CPU image.
+fn pre_both(s: &Scene, what: &str) -> Vec<Rgba> {
+    assert!(s.render.preintegrated);
+    render_on_both(s, GPU_TOL, what)
+}
+
 fn centre(img: &[Rgba]) -> Rgba {
     img[4]
 }
@@ -91,7 +104,10 @@ fn a_preintegrated_ramp_matches_the_fine_reference_better_than_point_samples() {
     );
     for (step, factor) in [(2.0, 0.25), (4.0, 0.5), (8.0, 0.8)] {
         let post = centre(&render_whole(&ramp(d, step, false)));
-        let pre = centre(&render_whole(&ramp(d, step, true)));
+        let pre = centre(&pre_both(
+            &ramp(d, step, true),
+            &format!("ramp, step {step}"),
+        ));
         let (e_post, e_pre) = (err(post, reference), err(pre, reference));
         // The value is linear along the ray, so each step is exact up to the 256² table
         // and the far end, where the volume's values stop at 1 (at a transmittance of
@@ -118,7 +134,10 @@ fn a_preintegrated_span_ends_at_a_surface() {
         let lattice = |k: f64| step / 2.0 - 0.5 + k * step;
         let at = (lattice((40.0 / step).floor() - 1.0) + 0.3 * step) as f32;
         let post = centre(&render_whole(&ramp_onto_surface(d, step, false, at)));
-        let pre = centre(&render_whole(&ramp_onto_surface(d, step, true, at)));
+        let pre = centre(&pre_both(
+            &ramp_onto_surface(d, step, true, at),
+            &format!("ramp onto a surface, step {step}"),
+        ));
         let open = centre(&render_whole(&ramp(d, step, true)));
         eprintln!("step {step}: surface at {at}: post {post:?} pre {pre:?} ramp alone {open:?}");
         assert!(pre[3] > 0.999 && post[3] > 0.999, "the surface is opaque");
@@ -168,7 +187,10 @@ fn a_preintegrated_span_ends_where_another_volume_begins() {
             [0.0, 1.0],
             vec![[0.0, 1e-5], [1.0, 1e-5]],
         ));
-        let both = centre(&render_whole(&s));
+        let both = centre(&pre_both(
+            &s,
+            &format!("ramp and a second volume, step {step}"),
+        ));
         eprintln!("step {step}: ramp alone {alone:?}, with the overlapping volume {both:?}");
         assert!(
             both != alone,

@@ -102,6 +102,13 @@ fn gpu_equals_cpu_on_the_survey_with_lod_bands_shading_and_a_camera_inside() {
     let mut noskip = s.clone();
     noskip.render.empty_space_skipping = false;
     assert_gpu_matches_cpu(&noskip, 1e-4, "no empty-space skipping");
+    // Pre-integration: one pair of tables per step band, spans across bands and bricks.
+    let mut pre = s.clone();
+    pre.render.preintegrated = true;
+    assert_gpu_matches_cpu(&pre, 1e-4, "pre-integrated");
+    let mut pre_shaded = shaded.clone();
+    pre_shaded.render.preintegrated = true;
+    assert_gpu_matches_cpu(&pre_shaded, 1e-4, "pre-integrated and shaded");
     // A camera inside the volume: rays start inside the box.
     let e = Engine::new(&s).unwrap();
     let b = e.bounds();
@@ -124,6 +131,10 @@ fn gpu_equals_cpu_for_overlapping_volumes_and_nan_data() {
     let dir = TempDir::new().unwrap();
     let s = overlapping_volumes(dir.path(), 97); // NaN samples: transparent on both
     let whole = assert_gpu_matches_cpu(&s, 1e-4, "two overlapping volumes");
+    // Pre-integrated: spans end at no data and where the mix begins.
+    let mut pre = s.clone();
+    pre.render.preintegrated = true;
+    assert_gpu_matches_cpu(&pre, 1e-4, "two overlapping pre-integrated volumes");
     let gs = on(&s, Backend::Gpu);
     let tree = KdTree::from_splits(scene_region(&gs), &[(0, 0, 0.5), (0, 2, 0.4), (1, 1, 0.55)]);
     let d = max_diff(&whole, &render_split(&gs, &tree));

@@ -137,10 +137,7 @@ type PreintCache =
     std::collections::HashMap<(usize, u32), std::sync::Arc<strata_common::tf::PreintTable>>;
 
 /// Why the scene can't go to the GPU caster, if it can't.
-fn gpu_unfit(s: &RenderSettings, data: &SceneData) -> Option<String> {
-    if s.preintegrated {
-        return Some("render.preintegrated runs on the CPU caster only".into());
-    }
+fn gpu_unfit(data: &SceneData) -> Option<String> {
     if data.volumes.is_empty() && data.horizons.is_empty() {
         return Some("the scene has no data".into());
     }
@@ -193,7 +190,7 @@ fn open_backend(s: &RenderSettings, data: &SceneData) -> Result<Option<GpuBacken
     match s.backend {
         Backend::Cpu => Ok(None),
         Backend::Gpu => {
-            if let Some(why) = gpu_unfit(s, data) {
+            if let Some(why) = gpu_unfit(data) {
                 bail!("render.backend = \"gpu\": {why}; use \"cpu\" or \"auto\"");
             }
             GpuBackend::new(&choice(true), pyramids(), types(), s.gpu_filter)
@@ -201,7 +198,7 @@ fn open_backend(s: &RenderSettings, data: &SceneData) -> Result<Option<GpuBacken
                 .context("render.backend = \"gpu\"")
         }
         Backend::Auto => {
-            if let Some(why) = gpu_unfit(s, data) {
+            if let Some(why) = gpu_unfit(data) {
                 tracing::info!("backend auto: CPU caster ({why})");
                 return Ok(None);
             }

@@ -137,15 +137,28 @@ pub fn variants(scene: &Scene, opts: &StudyOptions) -> Vec<Variant> {
             ));
         }
     }
-    for f in [2.0, 4.0] {
+    // Pre-integration with coarser steps; on the GPU also at the scene's own step.
+    let mut pre = vec![(false, 2.0), (false, 4.0)];
+    if opts.gpu {
+        pre.extend([(true, 1.0), (true, 2.0)]);
+    }
+    for (gpu, f) in pre {
         let s = r.step * f;
+        let mut sets = vec![
+            format!("render.step={s}"),
+            "render.preintegrated=true".into(),
+        ];
+        if gpu {
+            sets.extend([
+                "render.backend=gpu".into(),
+                "render.gpu_filter=exact".into(),
+            ]);
+        }
+        let on = if gpu { "gpu, " } else { "" };
         out.push(v(
             "step+preintegrated",
-            format!("step {s}, preint."),
-            vec![
-                format!("render.step={s}"),
-                "render.preintegrated=true".into(),
-            ],
+            format!("{on}step {s}, preint."),
+            sets,
         ));
     }
     // Pairs: the two knobs that trade the most, together.

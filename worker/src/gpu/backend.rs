@@ -347,6 +347,26 @@ impl GpuBackend {
                 straight_base = tf.len() as u32;
                 tf.extend_from_slice(&v.tf.table);
             }
+            // Pre-integration: the position map, then per band the whole- and half-step
+            // tables (the CPU caster's own, shared through the engine's cache).
+            let mut pre_base = 0;
+            if let Some(pre) = &v.pre {
+                pre_base = tf.len() as u32;
+                let p0 = &pre[0];
+                tf.push([p0.scale, p0.offset, p0.last, 0.0]);
+                for p in pre {
+                    let n = strata_common::tf::PREINT_SIZE;
+                    if p.entries.len() != n * n || p.half_entries.len() != n * n {
+                        bail!(
+                            "a pre-integrated table of {} entries, not {}",
+                            p.entries.len(),
+                            n * n
+                        );
+                    }
+                    tf.extend_from_slice(&p.entries);
+                    tf.extend_from_slice(&p.half_entries);
+                }
+            }
             vols.push(VolumeParams {
                 m0: v.m[0],
                 core: v.core,
@@ -369,13 +389,18 @@ impl GpuBackend {
                         strata_common::gpu::VOLUME_INVISIBLE
                     } else {
                         0
+                    }
+                    | if v.pre.is_some() {
+                        strata_common::gpu::VOLUME_PREINTEGRATED
+                    } else {
+                        0
                     },
                 no_data: vno_data,
                 level_t,
                 n_slices: v.slices.len() as u32,
                 straight_base,
                 slice_base,
-                _pad: 0,
+                pre_base,
             });
         }
         let mut hors = Vec::with_capacity(setup.hors.len());

@@ -47,6 +47,11 @@ override POOL_BITS: u32 = 32u;
 override HW_FILTER: bool = false;
 // Some volume has slices: crossings are collected even without horizons.
 override SLICES: bool = false;
+// render.preintegrated: volumes flagged VOLUME_PREINTEGRATED march segment by segment
+// through their pre-integrated tables (raycast.rs `march_typed` with PRE).
+override PRE: bool = false;
+const VOLUME_PREINTEGRATED: u32 = 8u;
+const PREINT_SIZE: u32 = 256u;
 const VOLUME_SIGNED: u32 = 1u;
 const VOLUME_NO_DATA: u32 = 2u;
 const VOLUME_INVISIBLE: u32 = 4u;
@@ -104,7 +109,9 @@ struct Volume {
     straight_base: u32,
     // Slice s is tf[slice_base + s] = (axis, level-0 index, opacity, 0).
     slice_base: u32,
-    _pad0: u32,
+    // With VOLUME_PREINTEGRATED: tf[pre_base] = (scale, offset, last, 0) of the value ->
+    // table position map, then per band the whole-step and the half-step table.
+    pre_base: u32,
 }
 
 struct Horizon {
@@ -142,6 +149,15 @@ struct Cursor {
     o: vec3<f32>,
     // First texel of the slot in the texture pool (HW_FILTER).
     tex_o: vec3<f32>,
+    // Pre-integration (raycast.rs `Cursor`): the ray's previous sample of this volume (valid
+    // with has_prev), the one before it, whether the half step before `prev` is still to be
+    // composited, `prev`'s light, and where the ray leaves the volume.
+    has_prev: bool,
+    prev: f32,
+    before: f32,
+    lead: bool,
+    prev_light: vec2<f32>,
+    span_end: f32,
 }
 
 @group(0) @binding(0) var<uniform> F: Frame;
@@ -481,8 +497,9 @@ fn classify(vi: u32, band: u32, s: f32) -> vec4<f32> {
     return a + f * (b - a);
 }
 
-// Headlight Blinn-Phong from the index-space gradient (central differences).
-fn shade(vi: u32, cur: ptr<function, Cursor>, q: vec3<f32>, d: vec3<f32>, rgba: vec4<f32>) -> vec4<f32> {
+// Headlight Blinn-Phong factors from the index-space gradient (central differences):
+// (ambient + diffuse, specular per unit of opacity), or (1, 0) where the gradient vanishes.
+fn light(vi: u32, cur: ptr<function, Cursor>, q: vec3<f32>, d: vec3<f32>) -> vec2<f32> {
     let g = vec3<f32>(
         tap(vi, cur, q, vec3<f32>(1.0, 0.0, 0.0)) - tap(vi, cur, q, vec3<f32>(-1.0, 0.0, 0.0)),
         tap(vi, cur, q, vec3<f32>(0.0, 1.0, 0.0)) - tap(vi, cur, q, vec3<f32>(0.0, -1.0, 0.0)),
@@ -491,7 +508,7 @@ fn shade(vi: u32, cur: ptr<function, Cursor>, q: vec3<f32>, d: vec3<f32>, rgba: 
     let n = mul_cols(vols[vi].m0, vols[vi].m1, vols[vi].m2, g);
     let len = sqrt(n.x * n.x + n.y * n.y + n.z * n.z);
     if (!(len > 1e-12) || !is_finite(len)) {
-        return rgba;
+        return vec2<f32>(1.0, 0.0);
     }
     let cosv = abs((n.x * d.x + n.y * d.y + n.z * d.z) / len);
     let k = 0.3 + 0.6 * cosv;
@@ -499,8 +516,68 @@ fn shade(vi: u32, cur: ptr<function, Cursor>, q: vec3<f32>, d: vec3<f32>, rgba: 
     let c4 = c2 * c2;
     let c8 = c4 * c4;
     let c16 = c8 * c8;
-    let spec = 0.25 * (c16 * c8) * rgba.w;
-    return vec4<f32>(rgba.xyz * k + vec3<f32>(spec), rgba.w);
+    return vec2<f32>(k, 0.25 * (c16 * c8));
+}
+
+// A premultiplied colour lit with light()'s factors.
+fn apply_light(rgba: vec4<f32>, l: vec2<f32>) -> vec4<f32> {
+    return vec4<f32>(rgba.xyz * l.x + vec3<f32>(l.y * rgba.w), rgba.w);
+}
+
+fn shade(vi: u32, cur: ptr<function, Cursor>, q: vec3<f32>, d: vec3<f32>, rgba: vec4<f32>) -> vec4<f32> {
+    return apply_light(rgba, light(vi, cur, q, d));
+}
+
+// Premultiplied RGBA of a segment from value `front` to value `back` in band b (bilinear
+// between entries; tf.rs `PreintTable::lookup_in`); `half`: a segment half a step long.
+fn pre_lookup(vi: u32, band: u32, half: bool, front: f32, back: f32) -> vec4<f32> {
+    let base = vols[vi].pre_base;
+    let map = tf[base];
+    let n = PREINT_SIZE;
+    let pf = clamp(front * map.x + map.y, 0.0, map.z);
+    let pb = clamp(back * map.x + map.y, 0.0, map.z);
+    let i = min(u32(pf), n - 2u);
+    let j = min(u32(pb), n - 2u);
+    let u = pf - f32(i);
+    let v = pb - f32(j);
+    var o = base + 1u + band * 2u * n * n;
+    if (half) { o = o + n * n; }
+    let a = tf[o + i * n + j];
+    let b = tf[o + i * n + j + 1u];
+    let c = tf[o + (i + 1u) * n + j];
+    let e = tf[o + (i + 1u) * n + j + 1u];
+    let top = a + v * (b - a);
+    let bottom = c + v * (e - c);
+    return top + u * (bottom - top);
+}
+
+// Ends a span of samples (raycast.rs `end_span`): the half step after its last sample joins
+// the ray, the value extrapolated linearly from the sample before (a one-sample span: the
+// sample's whole step), lit as that sample was. The cursor then has no sample before the next.
+fn end_span(vi: u32, band: u32, cur: ptr<function, Cursor>, acc: vec4<f32>) -> vec4<f32> {
+    var out = acc;
+    if ((*cur).has_prev) {
+        let p = (*cur).prev;
+        var rgba: vec4<f32>;
+        if ((*cur).lead) {
+            rgba = pre_lookup(vi, band, false, p, p);
+        } else {
+            rgba = pre_lookup(vi, band, true, p, 1.5 * p - 0.5 * (*cur).before);
+        }
+        out = blend(acc, apply_light(rgba, (*cur).prev_light));
+    }
+    (*cur).has_prev = false;
+    (*cur).lead = false;
+    return out;
+}
+
+// Ends volume vi's pre-integrated span at t (a surface, or where the volume begins to overlap
+// another, whose mix is post-classified; raycast.rs `end_pre_span`).
+fn end_pre_span(vi: u32, cur: ptr<function, Cursor>, t: f32, ray: ptr<function, Ray>) {
+    if (!PRE || (vols[vi].flags & VOLUME_PREINTEGRATED) == 0u || !(*cur).has_prev || (*ray).done) {
+        return;
+    }
+    (*ray).acc = end_span(vi, first_band(t), cur, (*ray).acc);
 }
 
 struct Ray {
@@ -532,6 +609,8 @@ fn march_one(vi: u32, cur: ptr<function, Cursor>, md: vec3<f32>, d: vec3<f32>, t
     var band = first_band(ta);
     var t_start = ta;
     let c = vols[vi].c;
+    let pre = PRE && (vols[vi].flags & VOLUME_PREINTEGRATED) != 0u;
+    let shading = SHADING && (F.flags & FRAME_SHADING) != 0u;
     loop {
         if (!(t_start < tb) || (*ray).done || band >= F.n_bands) { break; }
         let dt = band_dt(band);
@@ -547,16 +626,48 @@ fn march_one(vi: u32, cur: ptr<function, Cursor>, md: vec3<f32>, d: vec3<f32>, t
                 let nk = max(first_k(min((*cur).t_exit, seg_end), dt), k + 1);
                 (*ray).skipped += u32(nk - k);
                 k = nk;
+                if (pre) { (*ray).acc = end_span(vi, band, cur, (*ray).acc); }
                 continue;
             }
             let q = c + t * md;
             let s = sample_at(vi, cur, q);
             (*ray).samples += 1u;
             k = k + 1;
-            if (is_nan(s)) { continue; }
+            if (is_nan(s)) {
+                if (pre) { (*ray).acc = end_span(vi, band, cur, (*ray).acc); }
+                continue;
+            }
+            if (pre) {
+                var l = vec2<f32>(1.0, 0.0);
+                if (shading) { l = light(vi, cur, q, d); }
+                if (!(*cur).has_prev) {
+                    // A span's first sample: the half step before it waits for the next
+                    // sample, which gives the slope to extrapolate it with.
+                    (*cur).lead = true;
+                } else {
+                    if ((*cur).lead) {
+                        let front = 1.5 * (*cur).prev - 0.5 * s;
+                        let h = pre_lookup(vi, band, true, front, (*cur).prev);
+                        (*ray).acc = blend((*ray).acc, apply_light(h, (*cur).prev_light));
+                        (*cur).lead = false;
+                    }
+                    let g = pre_lookup(vi, band, false, (*cur).prev, s);
+                    (*ray).acc = blend((*ray).acc, apply_light(g, l));
+                }
+                (*cur).before = (*cur).prev;
+                (*cur).prev = s;
+                (*cur).has_prev = true;
+                (*cur).prev_light = l;
+                if ((*ray).acc.w >= (*ray).ert) {
+                    (*ray).done = true;
+                    (*ray).terminated = 1u;
+                    return;
+                }
+                continue;
+            }
             var rgba = classify(vi, band, s);
             if (rgba.w <= 0.0) { continue; }
-            if (SHADING && (F.flags & FRAME_SHADING) != 0u) {
+            if (shading) {
                 rgba = shade(vi, cur, q, d, rgba);
             }
             (*ray).acc = blend((*ray).acc, rgba);
@@ -565,6 +676,10 @@ fn march_one(vi: u32, cur: ptr<function, Cursor>, md: vec3<f32>, d: vec3<f32>, t
                 (*ray).terminated = 1u;
                 return;
             }
+        }
+        // The ray leaves the volume: its span ends half a step after its last sample.
+        if (pre && seg_end >= (*cur).span_end) {
+            (*ray).acc = end_span(vi, band, cur, (*ray).acc);
         }
         t_start = seg_end;
         band = band + 1u;
@@ -678,6 +793,14 @@ fn march_fragments(spans: ptr<function, array<vec2<f32>, 4>>, curs: ptr<function
             march_one(only, &cur, (*mds)[only], d, fa, fb, ray);
             (*curs)[only] = cur;
         } else if (count > 1u) {
+            // The mix stays post-classified: pre-integrated spans end where it begins.
+            for (var i = 0u; i < F.n_vols; i = i + 1u) {
+                if ((active_set & (1u << i)) != 0u) {
+                    var cur = (*curs)[i];
+                    end_pre_span(i, &cur, fa, ray);
+                    (*curs)[i] = cur;
+                }
+            }
             march_mixed(active_set, curs, mds, d, fa, fb, ray);
         }
     }
@@ -1196,7 +1319,7 @@ fn add64(lo: u32, v: u32) {
 }
 
 fn new_cursor() -> Cursor {
-    return Cursor(0u, -BIG, true, 0u, 1.0, vec3<f32>(0.0), vec3<f32>(0.0));
+    return Cursor(0u, -BIG, true, 0u, 1.0, vec3<f32>(0.0), vec3<f32>(0.0), false, 0.0, 0.0, false, vec2<f32>(1.0, 0.0), BIG);
 }
 
 @compute @workgroup_size(8, 8, 1)
@@ -1245,6 +1368,7 @@ fn cast_rays(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
                     spans[i] = vec2<f32>(0.0, 0.0);
                 }
                 curs[i] = new_cursor();
+                curs[i].span_end = spans[i].y;
             }
             var nh = 0u;
             if (HORIZONS || SLICES) {
@@ -1294,6 +1418,14 @@ fn cast_rays(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
                 }
                 if (ray.done) { break; }
                 if ((HORIZONS || SLICES) && next < nh && next_hit < tt.y && seg_end >= next_hit) {
+                    // Pre-integrated spans end at the surface (an opaque one ends the ray).
+                    if (PRE) {
+                        for (var i = 0u; i < F.n_vols; i = i + 1u) {
+                            var cur = curs[i];
+                            end_pre_span(i, &cur, next_hit, &ray);
+                            curs[i] = cur;
+                        }
+                    }
                     ray.acc = blend(ray.acc, hit_c[next]);
                     ray.hits = ray.hits + 1u;
                     next = next + 1u;

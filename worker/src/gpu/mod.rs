@@ -26,6 +26,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use strata_common::effects::EffectSet;
 use strata_common::gpu::{
     FrameParams, HorizonParams, VolumeParams, FRAME_SHADING, HORIZON_LIGHTING, MAX_HORIZONS,
+    VOLUME_PREINTEGRATED,
 };
 
 pub mod backend;
@@ -170,13 +171,14 @@ pub struct GpuCaster {
 }
 
 /// The effects a cast pipeline is specialised on: those `cast.wgsl` has override constants
-/// for (it has no separate volume or pre-integration code).
+/// for (it has no separate single-volume code).
 pub fn pipeline_effects(compiled: EffectSet) -> EffectSet {
     let on = EffectSet::VOLUMES
         .union(EffectSet::HORIZONS)
         .union(EffectSet::LIGHTING)
         .union(EffectSet::SLICES)
-        .union(EffectSet::SHADING);
+        .union(EffectSet::SHADING)
+        .union(EffectSet::PREINTEGRATED);
     EffectSet::from_bits(compiled.bits() & on.bits())
 }
 
@@ -750,6 +752,7 @@ impl GpuCaster {
                 ("POOL_BITS", self.pool_bits as f64),
                 ("HW_FILTER", if hw { 1.0 } else { 0.0 }),
                 ("SLICES", on(EffectSet::SLICES)),
+                ("PRE", on(EffectSet::PREINTEGRATED)),
             ];
             device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some("cast"),
@@ -821,6 +824,10 @@ impl GpuCaster {
             .with_if(EffectSet::HORIZONS, !hors.is_empty())
             .with_if(EffectSet::SLICES, vols.iter().any(|v| v.n_slices > 0))
             .with_if(EffectSet::SHADING, frame.flags & FRAME_SHADING != 0)
+            .with_if(
+                EffectSet::PREINTEGRATED,
+                vols.iter().any(|v| v.flags & VOLUME_PREINTEGRATED != 0),
+            )
             .with_if(
                 EffectSet::LIGHTING,
                 hors.iter().any(|h| h.flags & HORIZON_LIGHTING != 0),
