@@ -203,7 +203,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
         while band + 1 < bands.start.len() && t >= bands.start[band + 1] {
             band += 1;
         }
-        end_span(Some(&*pre[band]), cur, &mut self.acc);
+        end_span(Some(&*pre[band]), cur, &mut self.acc, false);
     }
 
     /// Marches one volume over `[ta, tb)` on the lattice.
@@ -308,7 +308,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                     let nk = first_k_near(cur.t_exit.min(seg_end), dt, inv_dt).max(k + 1);
                     skipped += (nk - k) as u64;
                     k = nk;
-                    end_span(pre, cur, &mut acc);
+                    end_span(pre, cur, &mut acc, true);
                     continue;
                 }
                 let q = [v.c[0] + t * md[0], v.c[1] + t * md[1], v.c[2] + t * md[2]];
@@ -320,7 +320,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                             first_k_near(exit.min(cur.t_exit).min(seg_end), dt, inv_dt).max(k + 1);
                         skipped += (nk - k) as u64;
                         k = nk;
-                        end_span(pre, cur, &mut acc);
+                        end_span(pre, cur, &mut acc, true);
                         continue;
                     }
                     cell_exit = exit;
@@ -331,7 +331,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                 samples += 1;
                 k += 1;
                 if s.is_nan() {
-                    end_span(pre, cur, &mut acc);
+                    end_span(pre, cur, &mut acc, false);
                     continue; // no data: transparent
                 }
                 if let (true, Some(pre)) = (has(S, PRE), pre) {
@@ -342,17 +342,53 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                     };
                     if cur.prev.is_nan() {
                         // A span's first sample: the half step before it waits for the
-                        // next sample, which gives the slope to extrapolate it with.
+                        // next sample, which gives the slope to extrapolate it with. Should
+                        // none come (a one-sample span), the value's change along the ray
+                        // over a step, by central differences half a voxel either side,
+                        // stands in for it.
                         cur.lead = true;
+                        if !cur.entered {
+                            // The ray's first sample of this volume in this region: were the
+                            // lattice point before it inside the volume and hidden, an
+                            // undivided region would have skipped it, and this span's lead
+                            // is a whole step whichever region the point lies in.
+                            cur.entered = true;
+                            let tp = t - dt;
+                            if !cur.gap && tp >= cur.vol_start && f.skipping {
+                                let qp = [
+                                    v.c[0] + tp * md[0],
+                                    v.c[1] + tp * md[1],
+                                    v.c[2] + tp * md[2],
+                                ];
+                                cur.gap = v.hidden_at(tp, qp);
+                            }
+                        }
+                        let e = slope_eps(md);
+                        let [qa, qb] =
+                            [-e, e].map(|o| [q[0] + o * md[0], q[1] + o * md[1], q[2] + o * md[2]]);
+                        // SAFETY: as for `s` (`local` clamps into the slot).
+                        let (sa, sb) = unsafe {
+                            (
+                                trilinear_at(data, cur.off, p, v.local(cur, qa)),
+                                trilinear_at(data, cur.off, p, v.local(cur, qb)),
+                            )
+                        };
+                        let slope = (sb - sa) / (2.0 * e) * dt;
+                        cur.slope = if slope.is_finite() { slope } else { 0.0 };
                     } else {
                         if cur.lead {
-                            // The half step before the span's first sample, the value
-                            // extrapolated linearly to its front.
-                            let front = 1.5 * cur.prev - 0.5 * s;
-                            let mut rgba = pre.lookup_half(front, cur.prev);
+                            // The half step before the span's first sample (a whole step
+                            // after skipped empty space), the value extrapolated linearly
+                            // to its front.
+                            let mut rgba = if cur.gap {
+                                pre.lookup(2.0 * cur.prev - s, cur.prev)
+                            } else {
+                                pre.lookup_half(1.5 * cur.prev - 0.5 * s, cur.prev)
+                            };
                             apply_light(&mut rgba, cur.prev_light);
                             blend(&mut acc, rgba);
                             cur.lead = false;
+                            cur.gap = false;
                         }
                         // The segment from the previous sample.
                         let mut rgba = pre.lookup(cur.prev, s);
@@ -386,7 +422,18 @@ impl<'s, 'a> RayCtx<'s, 'a> {
             }
             // The ray leaves the volume: its span ends half a step after its last sample.
             if has(S, PRE) && !terminated && seg_end >= cur.span_end {
-                end_span(pre, cur, &mut acc);
+                // Past the region, were the next lattice point inside the volume and hidden,
+                // an undivided region would skip it: the span ends with a whole step.
+                let tn = k as f32 * dt;
+                let skip = f.skipping && !cur.prev.is_nan() && tn < cur.vol_end && {
+                    let qn = [
+                        v.c[0] + tn * md[0],
+                        v.c[1] + tn * md[1],
+                        v.c[2] + tn * md[2],
+                    ];
+                    v.hidden_at(tn, qn)
+                };
+                end_span(pre, cur, &mut acc, skip);
             }
             self.acc = acc;
             self.stats.samples += samples;
@@ -487,17 +534,38 @@ impl<'s, 'a> RayCtx<'s, 'a> {
 /// extrapolated linearly to its back from the sample before (a one-sample span: the
 /// sample's whole step, classified alone), lit as that sample was: a span covers half a
 /// step before its first sample and after its last, as point samples would, and a value
-/// linear along the ray is integrated exactly. The cursor then has no sample before the
-/// next.
+/// linear along the ray is integrated exactly. Where skipped empty space follows (`skip`:
+/// a brick or macrocell whose values the transfer function hides) the span covers the
+/// whole step to the next lattice point instead, and the next span the whole step before
+/// its first sample (`Cursor::gap`): the segment between a hidden sample and a visible one
+/// can cross opacity that neither sample shows (a thin peak of the transfer function
+/// between the two values), and the extrapolation integrates it exactly for a linear
+/// value. A one-sample span has no neighbour to extrapolate from: its value's slope along
+/// the ray (`Cursor::slope`) stands in. The cursor then has no sample before the next.
 #[inline(always)]
-fn end_span(pre: Option<&PreintTable>, cur: &mut Cursor, acc: &mut Rgba) {
+fn end_span(pre: Option<&PreintTable>, cur: &mut Cursor, acc: &mut Rgba, skip: bool) {
     if let Some(pre) = pre {
         let p = cur.prev;
         if !p.is_nan() {
-            let mut rgba = if cur.lead {
-                pre.lookup(p, p)
+            // The value half a step and a step past the last sample.
+            let (half, whole) = if cur.lead {
+                // A one-sample span: the step before it too, both by its slope.
+                let g = cur.slope;
+                let mut rgba = if cur.gap {
+                    pre.lookup(p - g, p)
+                } else {
+                    pre.lookup_half(p - 0.5 * g, p)
+                };
+                apply_light(&mut rgba, cur.prev_light);
+                blend(acc, rgba);
+                (p + 0.5 * g, p + g)
             } else {
-                pre.lookup_half(p, 1.5 * p - 0.5 * cur.before)
+                (1.5 * p - 0.5 * cur.before, 2.0 * p - cur.before)
+            };
+            let mut rgba = if skip {
+                pre.lookup(p, whole)
+            } else {
+                pre.lookup_half(p, half)
             };
             apply_light(&mut rgba, cur.prev_light);
             blend(acc, rgba);
@@ -506,6 +574,14 @@ fn end_span(pre: Option<&PreintTable>, cur: &mut Cursor, acc: &mut Rgba) {
     cur.prev = f32::NAN;
     cur.before = f32::NAN;
     cur.lead = false;
+    cur.gap = skip;
+}
+
+/// The ray distance that moves a sample half a level-0 voxel along its largest index axis
+/// (a one-sample span's slope is taken over twice that).
+#[inline(always)]
+fn slope_eps(md: [f32; 3]) -> f32 {
+    0.5 / md[0].abs().max(md[1].abs()).max(md[2].abs())
 }
 
 fn shade(v: &VolFrame<'_>, cur: &Cursor, q: [f32; 3], d: [f32; 3], rgba: &mut Rgba) {
@@ -811,6 +887,7 @@ impl<'a> FrameSetup<'a> {
                 (a.max(t0), b.min(t1))
             };
             st.single.span_end = st.span0.1;
+            (st.single.vol_start, st.single.vol_end) = (a, b);
         } else if has(R, VOLUMES) && nv > 1 {
             for v in &self.vols {
                 let md = v.index_dir(d);
@@ -823,8 +900,9 @@ impl<'a> FrameSetup<'a> {
                 });
             }
             st.curs.resize_with(nv, Cursor::default);
-            for (c, s) in st.curs.iter_mut().zip(&st.spans) {
+            for ((c, s), v) in st.curs.iter_mut().zip(&st.spans).zip(&self.vols) {
                 c.span_end = s.1;
+                (c.vol_start, c.vol_end) = v.interval(v.index_dir(d));
             }
         }
         st

@@ -87,6 +87,21 @@ pub struct Cursor {
     pub before: f32,
     /// `prev` began its span and the half step before it is still to be composited.
     pub lead: bool,
+    /// The span (or the next one) begins after skipped empty space: its lead is a whole
+    /// step (see `raycast::end_span`).
+    pub gap: bool,
+    /// The change of the value along the ray over one step at `prev` (central differences),
+    /// taken at a span's first sample: a one-sample span's ends are extrapolated by it.
+    pub slope: f32,
+    /// Where the ray enters and leaves the volume itself (not its part of the region), and
+    /// whether the ray has taken a sample of it yet: a region's first sample past the
+    /// volume's own entry follows a lattice point, and its last before the volume's own
+    /// exit precedes one, that another region may skip as hidden (see `raycast::end_span`).
+    pub vol_start: f32,
+    /// See `vol_start`.
+    pub vol_end: f32,
+    /// See `vol_start`.
+    pub entered: bool,
     /// Where the ray leaves this volume (within its region): the end of its last span.
     pub span_end: f32,
 }
@@ -106,6 +121,11 @@ impl Default for Cursor {
             prev_light: NO_LIGHT,
             before: f32::NAN,
             lead: false,
+            gap: false,
+            slope: 0.0,
+            vol_start: f32::NEG_INFINITY,
+            vol_end: f32::INFINITY,
+            entered: false,
             span_end: f32::INFINITY,
         }
     }
@@ -141,6 +161,24 @@ impl<'a> VolFrame<'a> {
             }
         }
         (t0, t1)
+    }
+
+    /// Whether the sample at `t` (index position `q`) lies in a brick the transfer function
+    /// hides, at the level its distance calls for: from the page bounds alone, resident or
+    /// not, as [`locate`](Self::locate) classifies it.
+    pub fn hidden_at(&self, t: f32, q: [f32; 3]) -> bool {
+        let nl = self.level_t.len();
+        let mut level = 0;
+        while level + 1 < nl && t >= self.level_t[level + 1] {
+            level += 1;
+        }
+        let scale = (0.5f32).powi(level as i32);
+        let li = &self.table.levels[level];
+        let b = [0, 1, 2].map(|a| {
+            let f = (q[a] + 0.5) * scale / self.core;
+            (f.max(0.0) as u32).min(li.bricks[a] - 1)
+        });
+        self.transparent[self.table.index(level, b)]
     }
 
     /// Moves the cursor to the brick holding the sample at `t` (index position `q`),

@@ -7,6 +7,7 @@
 //! `cargo test --test hard_cases -- [FILTER] [--backend cpu|cpu-scalar|gpu|distributed]`
 //! runs the cases whose number or name contains FILTER on the chosen backends.
 
+mod classification;
 mod compositing;
 mod geometry;
 mod harness;
@@ -48,6 +49,7 @@ fn all_cases() -> Vec<Case> {
     v.extend(shapes::cases());
     v.extend(compositing::cases());
     v.extend(lod::cases());
+    v.extend(classification::cases());
     v
 }
 

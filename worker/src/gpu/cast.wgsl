@@ -156,8 +156,19 @@ struct Cursor {
     prev: f32,
     before: f32,
     lead: bool,
+    // The span (or the next) begins after skipped empty space: its lead is a whole step.
+    gap: bool,
+    // The value's change along the ray over one step at a span's first sample (central
+    // differences): a one-sample span's ends are extrapolated by it.
+    slope: f32,
     prev_light: vec2<f32>,
     span_end: f32,
+    // Where the ray enters and leaves the volume itself (not its part of the region), and
+    // whether it has sampled it yet (raycast.rs: the lattice points either side of a region
+    // that another region may skip as hidden).
+    vol_start: f32,
+    vol_end: f32,
+    entered: bool,
 }
 
 @group(0) @binding(0) var<uniform> F: Frame;
@@ -307,6 +318,27 @@ fn locate(vi: u32, cur: ptr<function, Cursor>, t: f32, q: vec3<f32>, md: vec3<f3
 
 // `locate`; with `skip_transparent` false, pages invisible under the transfer function are
 // located (and requested) too: a slice shows every value (volume.rs `locate_page`).
+// Whether the sample at t (index position q) lies in a brick the transfer function hides, at
+// the level its distance calls for, from the transparency bits alone (volume.rs `hidden_at`).
+fn hidden_at(vi: u32, t: f32, q: vec3<f32>) -> bool {
+    let nl = vols[vi].n_levels;
+    let core = vols[vi].core;
+    var level = 0u;
+    loop {
+        if (level + 1u < nl && t >= level_t(vi, level + 1u)) { level = level + 1u; } else { break; }
+    }
+    let scale = ldexp(1.0, -i32(level));
+    let li = levels[vols[vi].level_base + level];
+    let bricks = li.yzw;
+    var b = vec3<u32>(0u);
+    for (var a = 0u; a < 3u; a = a + 1u) {
+        let f = floor((q[a] + 0.5) * scale / core);
+        b[a] = min(u32(max(f, 0.0)), bricks[a] - 1u);
+    }
+    let g = vols[vi].table_base + li.x + (b.z * bricks.y + b.y) * bricks.x + b.x;
+    return ((transparent[g >> 5u] >> (g & 31u)) & 1u) != 0u;
+}
+
 fn locate_page(vi: u32, cur: ptr<function, Cursor>, t: f32, q: vec3<f32>, md: vec3<f32>, skip_transparent: bool) {
     let nl = vols[vi].n_levels;
     let core = vols[vi].core;
@@ -552,22 +584,43 @@ fn pre_lookup(vi: u32, band: u32, half: bool, front: f32, back: f32) -> vec4<f32
 }
 
 // Ends a span of samples (raycast.rs `end_span`): the half step after its last sample joins
-// the ray, the value extrapolated linearly from the sample before (a one-sample span: the
-// sample's whole step), lit as that sample was. The cursor then has no sample before the next.
-fn end_span(vi: u32, band: u32, cur: ptr<function, Cursor>, acc: vec4<f32>) -> vec4<f32> {
+// the ray (a whole step where skipped empty space follows, `skip`), the value extrapolated
+// linearly from the sample before (a one-sample span: by its slope, and the step before it
+// too), lit as that sample was. The cursor then has no sample before the next.
+fn end_span(vi: u32, band: u32, cur: ptr<function, Cursor>, acc: vec4<f32>, skip: bool) -> vec4<f32> {
     var out = acc;
     if ((*cur).has_prev) {
         let p = (*cur).prev;
-        var rgba: vec4<f32>;
+        // The value half a step and a step past the last sample.
+        var half: f32;
+        var whole: f32;
         if ((*cur).lead) {
-            rgba = pre_lookup(vi, band, false, p, p);
+            // A one-sample span: the step before it too, both by its slope.
+            let g = (*cur).slope;
+            var h: vec4<f32>;
+            if ((*cur).gap) {
+                h = pre_lookup(vi, band, false, p - g, p);
+            } else {
+                h = pre_lookup(vi, band, true, p - 0.5 * g, p);
+            }
+            out = blend(out, apply_light(h, (*cur).prev_light));
+            half = p + 0.5 * g;
+            whole = p + g;
         } else {
-            rgba = pre_lookup(vi, band, true, p, 1.5 * p - 0.5 * (*cur).before);
+            half = 1.5 * p - 0.5 * (*cur).before;
+            whole = 2.0 * p - (*cur).before;
         }
-        out = blend(acc, apply_light(rgba, (*cur).prev_light));
+        var rgba: vec4<f32>;
+        if (skip) {
+            rgba = pre_lookup(vi, band, false, p, whole);
+        } else {
+            rgba = pre_lookup(vi, band, true, p, half);
+        }
+        out = blend(out, apply_light(rgba, (*cur).prev_light));
     }
     (*cur).has_prev = false;
     (*cur).lead = false;
+    (*cur).gap = skip;
     return out;
 }
 
@@ -577,7 +630,7 @@ fn end_pre_span(vi: u32, cur: ptr<function, Cursor>, t: f32, ray: ptr<function, 
     if (!PRE || (vols[vi].flags & VOLUME_PREINTEGRATED) == 0u || !(*cur).has_prev || (*ray).done) {
         return;
     }
-    (*ray).acc = end_span(vi, first_band(t), cur, (*ray).acc);
+    (*ray).acc = end_span(vi, first_band(t), cur, (*ray).acc, false);
 }
 
 struct Ray {
@@ -626,7 +679,7 @@ fn march_one(vi: u32, cur: ptr<function, Cursor>, md: vec3<f32>, d: vec3<f32>, t
                 let nk = max(first_k(min((*cur).t_exit, seg_end), dt), k + 1);
                 (*ray).skipped += u32(nk - k);
                 k = nk;
-                if (pre) { (*ray).acc = end_span(vi, band, cur, (*ray).acc); }
+                if (pre) { (*ray).acc = end_span(vi, band, cur, (*ray).acc, true); }
                 continue;
             }
             let q = c + t * md;
@@ -634,7 +687,7 @@ fn march_one(vi: u32, cur: ptr<function, Cursor>, md: vec3<f32>, d: vec3<f32>, t
             (*ray).samples += 1u;
             k = k + 1;
             if (is_nan(s)) {
-                if (pre) { (*ray).acc = end_span(vi, band, cur, (*ray).acc); }
+                if (pre) { (*ray).acc = end_span(vi, band, cur, (*ray).acc, false); }
                 continue;
             }
             if (pre) {
@@ -642,14 +695,36 @@ fn march_one(vi: u32, cur: ptr<function, Cursor>, md: vec3<f32>, d: vec3<f32>, t
                 if (shading) { l = light(vi, cur, q, d); }
                 if (!(*cur).has_prev) {
                     // A span's first sample: the half step before it waits for the next
-                    // sample, which gives the slope to extrapolate it with.
+                    // sample, which gives the slope to extrapolate it with; should none come,
+                    // central differences half a voxel either side stand in.
                     (*cur).lead = true;
+                    if (!(*cur).entered) {
+                        // The first sample of the volume in this region: a hidden lattice
+                        // point before it inside the volume makes its lead a whole step.
+                        (*cur).entered = true;
+                        let tp = t - dt;
+                        if (!(*cur).gap && tp >= (*cur).vol_start) {
+                            (*cur).gap = hidden_at(vi, tp, c + tp * md);
+                        }
+                    }
+                    let e = 0.5 / max(abs(md.x), max(abs(md.y), abs(md.z)));
+                    let sa = sample_at(vi, cur, q - e * md);
+                    let sb = sample_at(vi, cur, q + e * md);
+                    let g = (sb - sa) / (2.0 * e) * dt;
+                    (*cur).slope = select(0.0, g, is_finite(g));
                 } else {
                     if ((*cur).lead) {
-                        let front = 1.5 * (*cur).prev - 0.5 * s;
-                        let h = pre_lookup(vi, band, true, front, (*cur).prev);
+                        // The half step before the span's first sample (a whole step after
+                        // skipped empty space), extrapolated linearly to its front.
+                        var h: vec4<f32>;
+                        if ((*cur).gap) {
+                            h = pre_lookup(vi, band, false, 2.0 * (*cur).prev - s, (*cur).prev);
+                        } else {
+                            h = pre_lookup(vi, band, true, 1.5 * (*cur).prev - 0.5 * s, (*cur).prev);
+                        }
                         (*ray).acc = blend((*ray).acc, apply_light(h, (*cur).prev_light));
                         (*cur).lead = false;
+                        (*cur).gap = false;
                     }
                     let g = pre_lookup(vi, band, false, (*cur).prev, s);
                     (*ray).acc = blend((*ray).acc, apply_light(g, l));
@@ -679,7 +754,13 @@ fn march_one(vi: u32, cur: ptr<function, Cursor>, md: vec3<f32>, d: vec3<f32>, t
         }
         // The ray leaves the volume: its span ends half a step after its last sample.
         if (pre && seg_end >= (*cur).span_end) {
-            (*ray).acc = end_span(vi, band, cur, (*ray).acc);
+            // Past the region, a hidden lattice point inside the volume: a whole step.
+            let tn = f32(k) * dt;
+            var skip = false;
+            if ((*cur).has_prev && tn < (*cur).vol_end) {
+                skip = hidden_at(vi, tn, c + tn * md);
+            }
+            (*ray).acc = end_span(vi, band, cur, (*ray).acc, skip);
         }
         t_start = seg_end;
         band = band + 1u;
@@ -1319,7 +1400,7 @@ fn add64(lo: u32, v: u32) {
 }
 
 fn new_cursor() -> Cursor {
-    return Cursor(0u, -BIG, true, 0u, 1.0, vec3<f32>(0.0), vec3<f32>(0.0), false, 0.0, 0.0, false, vec2<f32>(1.0, 0.0), BIG);
+    return Cursor(0u, -BIG, true, 0u, 1.0, vec3<f32>(0.0), vec3<f32>(0.0), false, 0.0, 0.0, false, false, 0.0, vec2<f32>(1.0, 0.0), BIG, -BIG, BIG, false);
 }
 
 @compute @workgroup_size(8, 8, 1)
@@ -1369,6 +1450,8 @@ fn cast_rays(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
                 }
                 curs[i] = new_cursor();
                 curs[i].span_end = spans[i].y;
+                curs[i].vol_start = iv.x;
+                curs[i].vol_end = iv.y;
             }
             var nh = 0u;
             if (HORIZONS || SLICES) {
