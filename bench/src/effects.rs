@@ -38,6 +38,8 @@ pub(crate) struct EffectsArgs {
     pub(crate) gpu: bool,
     /// Threads of the CPU caster's pool (1: no scheduling noise between rayon threads).
     pub(crate) threads: usize,
+    /// Only these effects' rows (by name; empty: all).
+    pub(crate) only: Vec<String>,
 }
 
 /// One effect's comparison.
@@ -247,6 +249,9 @@ fn table(args: &EffectsArgs, backend: Backend, scalar: bool) -> Result<()> {
     println!("| effect | scene without it | specialised | noise (same code again) | effect compiled in | unused cost | general path | general cost | compiled in ≤ 2 % | scene with it | cost when used | samples/s (specialised) |");
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
     for case in cases(args, scalar)? {
+        if !args.only.is_empty() && !args.only.contains(&case.effect.to_string()) {
+            continue;
+        }
         let without = sized(case.without.clone(), args.size, backend);
         let with = sized(case.with.clone(), args.size, backend);
         let runs = interleaved(

@@ -64,6 +64,9 @@ struct Cli {
     /// CPU caster threads of `--only-effects`.
     #[arg(long, default_value_t = 1)]
     effects_threads: usize,
+    /// `--only-effects`: only the rows of these effects (e.g. `preintegrated,shading`).
+    #[arg(long, value_delimiter = ',')]
+    effects_only: Vec<String>,
     /// Threads for `--only-caster` (each a separate rayon pool).
     #[arg(long, value_delimiter = ',', default_values_t = [1usize, 2])]
     threads: Vec<usize>,
@@ -477,6 +480,7 @@ fn main() -> Result<()> {
             cpu: !cli.effects_gpu_only,
             gpu: !cli.no_gpu && !strata_worker::gpu::list_adapters().is_empty(),
             threads: cli.effects_threads,
+            only: cli.effects_only.clone(),
         })?;
         println!("peak RSS {:.0} MiB", peak_rss_mib());
         return Ok(());

@@ -582,11 +582,9 @@ impl Engine {
                     })
                     .collect()
             });
-            // Not under pre-integration: a skipped macrocell would end a span where the
-            // GPU caster (which has none) and a region without the page's cells go on.
             let cells = pool
                 .cells()
-                .filter(|_| s.empty_space_skipping && s.macrocells && !s.preintegrated);
+                .filter(|_| s.empty_space_skipping && s.macrocells);
             vols.push(VolFrame {
                 ds: v.ds,
                 m,

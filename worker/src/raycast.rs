@@ -313,17 +313,28 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                 }
                 let q = [v.c[0] + t * md[0], v.c[1] + t * md[1], v.c[2] + t * md[2]];
                 let l = v.local(cur, q);
+                // Pre-integration crosses an invisible cell instead of skipping it: its
+                // first and last lattice points are sampled, so the segments into and out
+                // of it come from real values as without cells (and as on the GPU, which
+                // has none), and only the segments between two values of the cell's range,
+                // which are clear, are left out.
+                let mut cross_to = None;
                 if t >= cell_exit {
                     let (visible, exit) = v.cell_at(cur, l, md, inv);
                     if !visible {
                         let nk =
                             first_k_near(exit.min(cur.t_exit).min(seg_end), dt, inv_dt).max(k + 1);
-                        skipped += (nk - k) as u64;
-                        k = nk;
-                        end_span(pre, cur, &mut acc, true);
-                        continue;
+                        if pre.is_none() {
+                            skipped += (nk - k) as u64;
+                            k = nk;
+                            continue;
+                        }
+                        if nk - k >= 3 {
+                            cross_to = Some(nk - 1);
+                        }
+                    } else {
+                        cell_exit = exit;
                     }
-                    cell_exit = exit;
                 }
                 // SAFETY: `locate` checked that the cursor's slot lies inside the pool, and
                 // `local` clamps to [0, p − 1).
@@ -401,6 +412,44 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                     if acc[3] >= ert {
                         terminated = true;
                         break;
+                    }
+                    if let Some(j) = cross_to {
+                        // On to the cell's last lattice point (same brick and band).
+                        let tj = j as f32 * dt;
+                        let qj = [
+                            v.c[0] + tj * md[0],
+                            v.c[1] + tj * md[1],
+                            v.c[2] + tj * md[2],
+                        ];
+                        // SAFETY: as for `s`.
+                        let sj = unsafe { trilinear_at(data, cur.off, p, v.local(cur, qj)) };
+                        samples += 1;
+                        skipped += (j - k) as u64;
+                        k = j + 1;
+                        if sj.is_nan() {
+                            end_span(Some(pre), cur, &mut acc, false);
+                            continue;
+                        }
+                        // Steps from `s` to `sj`: the value's slope across the cell.
+                        let g = (sj - s) / (tj - t) * dt;
+                        if cur.lead {
+                            let mut rgba = if cur.gap {
+                                pre.lookup(s - g, s)
+                            } else {
+                                pre.lookup_half(s - 0.5 * g, s)
+                            };
+                            apply_light(&mut rgba, light);
+                            blend(&mut acc, rgba);
+                            cur.lead = false;
+                            cur.gap = false;
+                        }
+                        cur.before = sj - g;
+                        cur.prev = sj;
+                        cur.prev_light = if shading {
+                            self::light(v, cur, qj, self.d)
+                        } else {
+                            NO_LIGHT
+                        };
                     }
                     continue;
                 }
