@@ -298,7 +298,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                     break;
                 }
                 if t >= cur.t_exit {
-                    let q = [v.c[0] + t * md[0], v.c[1] + t * md[1], v.c[2] + t * md[2]];
+                    let q = v.point(t, md);
                     v.locate(cur, t, q, md, fb);
                     cell_exit = no_cell;
                 }
@@ -311,7 +311,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                     end_span(pre, cur, &mut acc, true);
                     continue;
                 }
-                let q = [v.c[0] + t * md[0], v.c[1] + t * md[1], v.c[2] + t * md[2]];
+                let q = v.point(t, md);
                 let l = v.local(cur, q);
                 // Pre-integration crosses an invisible cell instead of skipping it: its
                 // first and last lattice points are sampled, so the segments into and out
@@ -366,11 +366,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                             cur.entered = true;
                             let tp = t - dt;
                             if !cur.gap && tp >= cur.vol_start && f.skipping {
-                                let qp = [
-                                    v.c[0] + tp * md[0],
-                                    v.c[1] + tp * md[1],
-                                    v.c[2] + tp * md[2],
-                                ];
+                                let qp = v.point(tp, md);
                                 cur.gap = v.hidden_at(tp, qp);
                             }
                         }
@@ -416,11 +412,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                     if let Some(j) = cross_to {
                         // On to the cell's last lattice point (same brick and band).
                         let tj = j as f32 * dt;
-                        let qj = [
-                            v.c[0] + tj * md[0],
-                            v.c[1] + tj * md[1],
-                            v.c[2] + tj * md[2],
-                        ];
+                        let qj = v.point(tj, md);
                         // SAFETY: as for `s`.
                         let sj = unsafe { trilinear_at(data, cur.off, p, v.local(cur, qj)) };
                         samples += 1;
@@ -475,11 +467,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                 // an undivided region would skip it: the span ends with a whole step.
                 let tn = k as f32 * dt;
                 let skip = f.skipping && !cur.prev.is_nan() && tn < cur.vol_end && {
-                    let qn = [
-                        v.c[0] + tn * md[0],
-                        v.c[1] + tn * md[1],
-                        v.c[2] + tn * md[2],
-                    ];
+                    let qn = v.point(tn, md);
                     v.hidden_at(tn, qn)
                 };
                 end_span(pre, cur, &mut acc, skip);
@@ -533,7 +521,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                     let v = &f.vols[vi];
                     let md = mds[vi];
                     let cur = &mut curs[vi];
-                    let q = [v.c[0] + t * md[0], v.c[1] + t * md[1], v.c[2] + t * md[2]];
+                    let q = v.point(t, md);
                     if t >= cur.t_exit {
                         v.locate(cur, t, q, md, fb);
                     }
@@ -938,20 +926,19 @@ impl<'a> FrameSetup<'a> {
             st.single.span_end = st.span0.1;
             (st.single.vol_start, st.single.vol_end) = (a, b);
         } else if has(R, VOLUMES) && nv > 1 {
-            for v in &self.vols {
+            st.curs.resize_with(nv, Cursor::default);
+            for (v, c) in self.vols.iter().zip(st.curs.iter_mut()) {
                 let md = v.index_dir(d);
                 let (a, b) = v.interval(md);
                 st.mds.push(md);
-                st.spans.push(if v.invisible {
+                let span = if v.invisible {
                     (0.0, 0.0)
                 } else {
                     (a.max(t0), b.min(t1))
-                });
-            }
-            st.curs.resize_with(nv, Cursor::default);
-            for ((c, s), v) in st.curs.iter_mut().zip(&st.spans).zip(&self.vols) {
-                c.span_end = s.1;
-                (c.vol_start, c.vol_end) = v.interval(v.index_dir(d));
+                };
+                st.spans.push(span);
+                c.span_end = span.1;
+                (c.vol_start, c.vol_end) = (a, b);
             }
         }
         st

@@ -163,6 +163,17 @@ impl<'a> VolFrame<'a> {
         (t0, t1)
     }
 
+    /// The level-0 index position of the ray's point at distance `t` (`md`: the ray's
+    /// index-space direction).
+    #[inline(always)]
+    pub fn point(&self, t: f32, md: [f32; 3]) -> [f32; 3] {
+        [
+            self.c[0] + t * md[0],
+            self.c[1] + t * md[1],
+            self.c[2] + t * md[2],
+        ]
+    }
+
     /// Whether the sample at `t` (index position `q`) lies in a brick the transfer function
     /// hides, at the level its distance calls for: from the page bounds alone, resident or
     /// not, as [`locate`](Self::locate) classifies it.
@@ -318,11 +329,7 @@ impl<'a> VolFrame<'a> {
             if !(t >= t0 && t < t1) {
                 continue;
             }
-            let mut q = [
-                self.c[0] + t * md[0],
-                self.c[1] + t * md[1],
-                self.c[2] + t * md[2],
-            ];
+            let mut q = self.point(t, md);
             q[a] = s.index;
             if (0..3).any(|k| k != a && !(q[k] >= -0.5 && q[k] < self.hi[k])) {
                 continue;
@@ -350,11 +357,7 @@ impl<'a> VolFrame<'a> {
         feedback: &mut crate::feedback::Requests,
     ) -> Option<[f32; 3]> {
         let md = self.index_dir(d);
-        let q = [
-            self.c[0] + t * md[0],
-            self.c[1] + t * md[1],
-            self.c[2] + t * md[2],
-        ];
+        let q = self.point(t, md);
         if !(0..3).all(|k| q[k] >= -0.5 && q[k] < self.hi[k]) {
             return None;
         }
