@@ -36,6 +36,73 @@ pub struct GpuBackend {
     /// Each volume's sample type and no-data sentinel.
     types: Vec<(SampleType, Option<f32>)>,
     scratch: Vec<u8>,
+    /// The pre-integration tables as last laid out for the shader.
+    pre: PreRegion,
+}
+
+/// The pre-integration tables of a frame's volumes, laid out once at the start of the
+/// transfer-function buffer and kept while the engine hands out the same tables: they are
+/// 2 MiB per band, and the engine's cache returns the same `Arc`s until the transfer
+/// function or the bands change.
+#[derive(Default)]
+struct PreRegion {
+    /// Per volume, the tables laid out (empty: not pre-integrated).
+    key: Vec<Vec<std::sync::Arc<strata_common::tf::PreintTable>>>,
+    /// Per volume, its first record (`VolumeParams::pre_base`).
+    base: Vec<u32>,
+    /// The records.
+    data: Vec<[f32; 4]>,
+    /// Bumped whenever `data` changes.
+    generation: u64,
+}
+
+impl PreRegion {
+    /// Lays out the volumes' tables unless they are the ones laid out already.
+    fn update<'v>(
+        &mut self,
+        pres: impl ExactSizeIterator<
+            Item = Option<&'v [std::sync::Arc<strata_common::tf::PreintTable>]>,
+        >,
+    ) -> Result<()> {
+        let pres: Vec<&[std::sync::Arc<strata_common::tf::PreintTable>]> =
+            pres.map(|p| p.unwrap_or(&[])).collect();
+        let same = self.key.len() == pres.len()
+            && self.key.iter().zip(&pres).all(|(k, p)| {
+                k.len() == p.len()
+                    && k.iter()
+                        .zip(p.iter())
+                        .all(|(a, b)| std::sync::Arc::ptr_eq(a, b))
+            });
+        if same {
+            return Ok(());
+        }
+        let n = strata_common::tf::PREINT_SIZE;
+        // A new generation whatever follows: the data changes from here.
+        self.generation += 1;
+        self.data.clear();
+        self.base.clear();
+        self.key.clear();
+        for pre in &pres {
+            self.base.push(self.data.len() as u32);
+            self.key.push(pre.to_vec());
+            let Some(p0) = pre.first() else { continue };
+            // The position map, then per band the whole- and half-step tables.
+            self.data.push([p0.scale, p0.offset, p0.last, 0.0]);
+            for p in pre.iter() {
+                if p.entries.len() != n * n || p.half_entries.len() != n * n {
+                    self.key.clear(); // nothing valid laid out
+                    bail!(
+                        "a pre-integrated table of {} entries, not {}",
+                        p.entries.len(),
+                        n * n
+                    );
+                }
+                self.data.extend_from_slice(&p.entries);
+                self.data.extend_from_slice(&p.half_entries);
+            }
+        }
+        Ok(())
+    }
 }
 
 /// What a GPU frame adds to the CPU's counters.
@@ -123,6 +190,7 @@ impl GpuBackend {
             format,
             types,
             scratch: Vec::new(),
+            pre: PreRegion::default(),
             caster,
             volumes,
             table_base,
@@ -290,6 +358,10 @@ impl GpuBackend {
         let mut vols = Vec::with_capacity(setup.vols.len());
         let mut levels = Vec::new();
         let mut tf = Vec::with_capacity(setup.vols.len() * nb * TF_SIZE);
+        self.pre
+            .update(setup.vols.iter().map(|v| v.pre.as_deref()))?;
+        // Records of `tf` follow the pre-integration tables in the buffer.
+        let off = self.pre.data.len();
         let mut bits = vec![0u32; (self.entries as usize).div_ceil(32)];
         for (i, v) in setup.vols.iter().enumerate() {
             debug_assert_eq!(v.ds as usize, i);
@@ -297,7 +369,7 @@ impl GpuBackend {
             let level_t = level_t_array(&v.level_t);
             let t0 = &v.tables[0];
             // Step tables, then (with slices) the straight table: bases are taken as built.
-            let tf_base = tf.len() as u32;
+            let tf_base = (off + tf.len()) as u32;
             for t in &v.tables {
                 if t.entries.len() != TF_SIZE {
                     bail!(
@@ -325,7 +397,7 @@ impl GpuBackend {
                 );
             }
             // One record per slice, after the tables.
-            let slice_base = tf.len() as u32;
+            let slice_base = (off + tf.len()) as u32;
             tf.extend(
                 v.slices
                     .iter()
@@ -344,29 +416,11 @@ impl GpuBackend {
                         v.tf.table.len()
                     );
                 }
-                straight_base = tf.len() as u32;
+                straight_base = (off + tf.len()) as u32;
                 tf.extend_from_slice(&v.tf.table);
             }
-            // Pre-integration: the position map, then per band the whole- and half-step
-            // tables (the CPU caster's own, shared through the engine's cache).
-            let mut pre_base = 0;
-            if let Some(pre) = &v.pre {
-                pre_base = tf.len() as u32;
-                let p0 = &pre[0];
-                tf.push([p0.scale, p0.offset, p0.last, 0.0]);
-                for p in pre {
-                    let n = strata_common::tf::PREINT_SIZE;
-                    if p.entries.len() != n * n || p.half_entries.len() != n * n {
-                        bail!(
-                            "a pre-integrated table of {} entries, not {}",
-                            p.entries.len(),
-                            n * n
-                        );
-                    }
-                    tf.extend_from_slice(&p.entries);
-                    tf.extend_from_slice(&p.half_entries);
-                }
-            }
+            // Pre-integration: laid out at the start of the buffer (`PreRegion`).
+            let pre_base = if v.pre.is_some() { self.pre.base[i] } else { 0 };
             vols.push(VolumeParams {
                 m0: v.m[0],
                 core: v.core,
@@ -427,12 +481,12 @@ impl GpuBackend {
             let (mut map_base, mut map_len, mut depth) = (0, 0, [0.0; 2]);
             if let Some((_, no_data)) = h.attribute {
                 // The no-data colour where the depth map would start.
-                map_base = tf.len() as u32;
+                map_base = (off + tf.len()) as u32;
                 tf.push([no_data[0], no_data[1], no_data[2], 1.0]);
             }
             if let Some((map, range)) = h.depth_map {
                 flags |= HORIZON_DEPTH_MAP;
-                map_base = tf.len() as u32;
+                map_base = (off + tf.len()) as u32;
                 map_len = map.points().len() as u32;
                 tf.extend(map.points().iter().map(|p| [p[0], p[1], p[2], 1.0]));
                 depth = range;
@@ -465,7 +519,13 @@ impl GpuBackend {
                 level_t,
             });
         }
-        self.caster.sync_frame_tables(&bits, &levels, &tf, &hbounds);
+        self.caster.sync_frame_tables(
+            &bits,
+            &levels,
+            (self.pre.generation, &self.pre.data),
+            &tf,
+            &hbounds,
+        );
         stats.uploaded_bytes = self.caster.take_uploaded();
         let out = self.caster.cast(
             &frame,
@@ -516,5 +576,84 @@ impl GpuBackend {
             local -= n;
         }
         None
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::PreRegion;
+    use std::sync::Arc;
+    use strata_common::tf::{PreintTable, PREINT_SIZE};
+
+    fn table(v: f32) -> Arc<PreintTable> {
+        let n = PREINT_SIZE * PREINT_SIZE;
+        Arc::new(PreintTable {
+            entries: vec![[v; 4]; n],
+            half_entries: vec![[v / 2.0; 4]; n],
+            scale: v,
+            offset: 0.5,
+            last: (PREINT_SIZE - 1) as f32,
+        })
+    }
+
+    #[test]
+    fn pre_region_is_laid_out_once_per_set_of_tables() {
+        let n = PREINT_SIZE * PREINT_SIZE;
+        let (a, b, c) = (table(1.0), table(2.0), table(3.0));
+        let mut r = PreRegion::default();
+        // Volume 0 plain, volume 1 with two bands, volume 2 with one.
+        let pres = [
+            None,
+            Some(vec![a.clone(), b.clone()]),
+            Some(vec![c.clone()]),
+        ];
+        r.update(pres.iter().map(|p| p.as_deref())).unwrap();
+        assert_eq!(r.generation, 1);
+        assert_eq!(r.base, vec![0, 0, (1 + 4 * n) as u32]);
+        assert_eq!(r.data.len(), 1 + 4 * n + 1 + 2 * n);
+        // Header, band 0 whole and half, band 1 whole and half; then volume 2.
+        assert_eq!(r.data[0], [1.0, 0.5, (PREINT_SIZE - 1) as f32, 0.0]);
+        assert_eq!(r.data[1], [1.0; 4]);
+        assert_eq!(r.data[1 + n], [0.5; 4]);
+        assert_eq!(r.data[1 + 2 * n], [2.0; 4]);
+        assert_eq!(r.data[1 + 3 * n], [1.0; 4]);
+        assert_eq!(
+            r.data[r.base[2] as usize],
+            [3.0, 0.5, (PREINT_SIZE - 1) as f32, 0.0]
+        );
+        // The same tables again: nothing laid out, the generation kept.
+        let again = [
+            None,
+            Some(vec![a.clone(), b.clone()]),
+            Some(vec![c.clone()]),
+        ];
+        r.update(again.iter().map(|p| p.as_deref())).unwrap();
+        assert_eq!(r.generation, 1);
+        // Equal contents in another table (a new transfer function that happens to match)
+        // are laid out again: identity, not contents, is the key.
+        let other = [
+            None,
+            Some(vec![a.clone(), table(2.0)]),
+            Some(vec![c.clone()]),
+        ];
+        r.update(other.iter().map(|p| p.as_deref())).unwrap();
+        assert_eq!(r.generation, 2);
+        // Fewer volumes pre-integrated.
+        let fewer: [Option<Vec<Arc<PreintTable>>>; 3] = [None, None, Some(vec![c])];
+        r.update(fewer.iter().map(|p| p.as_deref())).unwrap();
+        assert_eq!((r.generation, r.base.clone()), (3, vec![0, 0, 0]));
+        assert_eq!(r.data.len(), 1 + 2 * n);
+        // A malformed table is refused and leaves nothing that matches.
+        let bad = Arc::new(PreintTable {
+            entries: vec![[0.0; 4]; 3],
+            ..(*a).clone()
+        });
+        let e = r.update([Some(&[bad][..])].into_iter()).unwrap_err();
+        assert!(
+            format!("{e}").contains("pre-integrated table of 3 entries"),
+            "{e}"
+        );
+        r.update([Some(&[a][..])].into_iter()).unwrap();
+        assert_eq!(r.generation, 5);
     }
 }

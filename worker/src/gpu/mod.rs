@@ -156,6 +156,9 @@ pub struct GpuCaster {
     table_mirror: Vec<u32>,
     transparent_mirror: Vec<u32>,
     tf_mirror: Vec<[f32; 4]>,
+    /// The generation and length of the pre-integration tables at the start of the
+    /// transfer-function buffer (see [`GpuCaster::sync_frame_tables`]).
+    tf_pre: Option<(u64, usize)>,
     levels_mirror: Vec<[u32; 4]>,
     hbounds_mirror: Vec<[f32; 2]>,
     page_bytes: u64,
@@ -446,6 +449,7 @@ impl GpuCaster {
             table_mirror: Vec::new(),
             transparent_mirror: Vec::new(),
             tf_mirror: Vec::new(),
+            tf_pre: None,
             levels_mirror: Vec::new(),
             hbounds_mirror: Vec::new(),
             page_bytes: 0,
@@ -670,10 +674,16 @@ impl GpuCaster {
     /// Brings the per-entry transparency bits, the level records, the transfer-function and
     /// colour-map tables and the horizons' tile bounds up to date (each written only when it
     /// changed).
+    ///
+    /// The transfer-function buffer holds `pre.1` (the pre-integration tables, megabytes per
+    /// band, which change only with the transfer function or the bands) followed by `tf`.
+    /// `pre.0` is their generation: equal generations mean equal contents, so the large
+    /// part is neither compared nor written again.
     pub fn sync_frame_tables(
         &mut self,
         transparent: &[u32],
         levels: &[[u32; 4]],
+        pre: (u64, &[[f32; 4]]),
         tf: &[[f32; 4]],
         hbounds: &[[f32; 2]],
     ) {
@@ -711,14 +721,31 @@ impl GpuCaster {
             levels,
             &mut self.uploaded,
         );
-        sync(
+        let (generation, pre) = pre;
+        let fresh = self.tf.ensure(
             d,
-            q,
-            &mut self.tf,
-            &mut self.tf_mirror,
-            tf,
-            &mut self.uploaded,
+            std::mem::size_of_val(pre) as u64 + std::mem::size_of_val(tf) as u64,
         );
+        let pre_same = !fresh && self.tf_pre == Some((generation, pre.len()));
+        if !pre_same {
+            if !pre.is_empty() {
+                q.write_buffer(self.tf.get(), 0, bytemuck::cast_slice(pre));
+            }
+            self.tf_pre = Some((generation, pre.len()));
+            self.uploaded += std::mem::size_of_val(pre) as u64;
+        }
+        if !pre_same || self.tf_mirror.as_slice() != tf {
+            if !tf.is_empty() {
+                q.write_buffer(
+                    self.tf.get(),
+                    std::mem::size_of_val(pre) as u64,
+                    bytemuck::cast_slice(tf),
+                );
+            }
+            self.tf_mirror.clear();
+            self.tf_mirror.extend_from_slice(tf);
+            self.uploaded += std::mem::size_of_val(tf) as u64;
+        }
         sync(
             d,
             q,
