@@ -546,10 +546,15 @@ pub struct RenderSettings {
     /// Pre-integrated classification (seed 001): each sample composites the segment from
     /// the previous sample to it, integrated over the transfer function with the value
     /// running linearly between the two, instead of the transfer function at the sample
-    /// alone. Keeps thin opacity features a coarse step would step over. CPU caster only;
+    /// alone. Keeps thin opacity features a coarse step would step over. Both casters;
     /// where volumes overlap the mix stays post-classified.
     #[serde(default)]
     pub preintegrated: bool,
+    /// Accumulate each ray's colour in f64 instead of f32 (CPU caster only, scalar march
+    /// on the general code path: slower). The accuracy study's reference uses it, so that
+    /// the rounding of its many blend steps stays far below the errors it measures.
+    #[serde(default)]
+    pub f64_accumulation: bool,
     /// Which copy of the casters' code renders: `specialised` (compiled for the frame's
     /// effects only, so an unused effect costs nothing) or `general` (one path with every
     /// effect compiled in, deciding at run time). The image is the same; stats and the log
@@ -642,6 +647,7 @@ impl Default for RenderSettings {
             gpu_adapter: None,
             gpu_filter: GpuFilter::Exact,
             preintegrated: false,
+            f64_accumulation: false,
             variant: CodePath::Specialised,
         }
     }

@@ -135,6 +135,19 @@ fn accuracy_study_of_a_small_survey() {
 
     let report = std::fs::read_to_string(dir.join("report.md")).unwrap();
     assert!(report.contains("**Verdict: the defaults are"), "{report}");
+    // The reference accumulates in f64; the same accumulated in f32 is noted beside it,
+    // as close to it as f32 rounding of a few hundred blend steps.
+    assert!(
+        report.contains("accumulated in f64 (`render.f64_accumulation`)"),
+        "{report}"
+    );
+    let f32_rmse: f64 = report
+        .split("accumulated in f32 instead: RMSE ")
+        .nth(1)
+        .and_then(|r| r.split(',').next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no f32 note: {report}"));
+    assert!(f32_rmse < 1e-5, "f32 against f64 reference: {f32_rmse}");
     assert!(report.contains("![step](step.png)"));
     for stem in ["step", "tau", "early-termination", "step-and-tau"] {
         let png = std::fs::read(dir.join(format!("{stem}.png"))).unwrap();

@@ -610,3 +610,108 @@ fn empty_space_skipping_changes_samples_not_pixels() {
         "on: {stats_on:?}, off: {stats_off:?}"
     );
 }
+
+/// `render.f64_accumulation` (the accuracy study's reference): 10⁵ blend steps of α = 10⁻⁶
+/// each (hard case 15's ray) accumulated in f64 land on the analytic 1 − (1 − α)ⁿ to f32
+/// rounding of the result (measured 3.2·10⁻⁹), where the f32 sum drifts by its rounding
+/// per step (5.2·10⁻⁶); on an ordinary frame the two agree to f32 rounding. The GPU caster refuses
+/// it (`gpu`) or leaves it to the CPU (`auto`).
+#[test]
+fn f64_accumulation_keeps_many_tiny_steps_exact() {
+    let dir = TempDir::new().unwrap();
+    let store = volume_store(
+        dir.path(),
+        "long",
+        [4, 4, 1000],
+        vec![1.0; 4 * 4 * 1000],
+        Affine3::IDENTITY,
+        32,
+    );
+    let step = 0.01;
+    // Per voxel the α that makes 10⁻⁶ per sample at this step.
+    let a = 1.0 - (1.0f64 - 1e-6).powf(1.0 / step);
+    let mut r = exact_settings(3, 3);
+    r.adaptive_step = false;
+    r.lighting = false;
+    r.tau = 1e-6;
+    r.step = step;
+    r.backend = strata_common::scene::Backend::Cpu;
+    let s = scene(
+        vec![volume_layer(
+            store,
+            "grey",
+            [0.0, 2.0],
+            vec![[0.0, a], [1.0, a]],
+        )],
+        vec![],
+        Camera {
+            eye: [1.5, 1.5, -10.0],
+            target: [1.5, 1.5, 90.0],
+            up: [0.0, 1.0, 0.0],
+            fov_deg: 1.0,
+        },
+        r,
+    );
+    let n = lattice_count(9.5, 1009.5, step as f32);
+    assert!((99_000..=101_000).contains(&n), "{n} samples: mis-built");
+    // The transfer function holds α in f32.
+    let want = 1.0 - (1.0 - a as f32 as f64).powf(step * n as f64);
+    let err = |img: &[[f32; 4]]| {
+        let c = img[4];
+        (0..4)
+            .map(|i| {
+                let w = if i == 3 { want } else { 0.5 * want };
+                (c[i] as f64 - w).abs()
+            })
+            .fold(0.0, f64::max)
+    };
+    let e32 = err(&render_whole(&s));
+    let mut s64 = s.clone();
+    s64.render.f64_accumulation = true;
+    let e64 = err(&render_whole(&s64));
+    // f32 rounding of the result (alpha ≈ 0.095) is 4·10⁻⁹; the step table's α per sample
+    // is f32 too (relative 6·10⁻⁸, 6·10⁻⁹ over the ray).
+    assert!(
+        e64 < 5e-8,
+        "f64 accumulation: {e64:.2e} from the analytic {want}"
+    );
+    assert!(
+        e32 > 5.0 * e64,
+        "f32 accumulation {e32:.2e} should drift further than f64 {e64:.2e}"
+    );
+
+    // An ordinary frame: the same image to f32 rounding.
+    let store = constant_volume(dir.path(), 1.0);
+    let mut r = exact_settings(W, W);
+    r.backend = strata_common::scene::Backend::Cpu;
+    let s = scene(
+        vec![volume_layer(
+            store,
+            "seismic",
+            [0.0, 2.0],
+            vec![[0.0, 0.3], [1.0, 0.05]],
+        )],
+        vec![],
+        axis_camera([-20.0, 8.0, -40.0], [15.5, 15.5, 15.5]),
+        r,
+    );
+    let a32 = render_whole(&s);
+    let mut s64 = s.clone();
+    s64.render.f64_accumulation = true;
+    let a64 = render_whole(&s64);
+    let d = max_diff(&a32, &a64);
+    assert!(
+        d < 1e-5 && a32.iter().any(|p| p[3] > 0.5),
+        "f32 and f64 differ by {d}"
+    );
+
+    // The GPU caster accumulates in f32: `gpu` refuses, `auto` takes the CPU.
+    s64.render.backend = strata_common::scene::Backend::Gpu;
+    let e = strata_worker::engine::Engine::new(&s64)
+        .err()
+        .expect("refused");
+    assert!(format!("{e:#}").contains("f64_accumulation"), "{e:#}");
+    s64.render.backend = strata_common::scene::Backend::Auto;
+    let e = strata_worker::engine::Engine::new(&s64).unwrap();
+    assert!(e.backend_name().starts_with("cpu"), "{}", e.backend_name());
+}

@@ -190,6 +190,12 @@ fn open_backend(s: &RenderSettings, data: &SceneData) -> Result<Option<GpuBacken
     match s.backend {
         Backend::Cpu => Ok(None),
         Backend::Gpu => {
+            if s.f64_accumulation {
+                bail!(
+                    "render.backend = \"gpu\": the GPU caster accumulates in f32, not f64 \
+                     (render.f64_accumulation); use \"cpu\" or \"auto\""
+                );
+            }
             if let Some(why) = gpu_unfit(data) {
                 bail!("render.backend = \"gpu\": {why}; use \"cpu\" or \"auto\"");
             }
@@ -198,6 +204,10 @@ fn open_backend(s: &RenderSettings, data: &SceneData) -> Result<Option<GpuBacken
                 .context("render.backend = \"gpu\"")
         }
         Backend::Auto => {
+            if s.f64_accumulation {
+                tracing::info!("backend auto: CPU caster (render.f64_accumulation)");
+                return Ok(None);
+            }
             if let Some(why) = gpu_unfit(data) {
                 tracing::info!("backend auto: CPU caster ({why})");
                 return Ok(None);
@@ -700,6 +710,7 @@ impl Engine {
                 && packet_indices_fit
                 && !s.volume_shading
                 && !s.preintegrated
+                && !s.f64_accumulation
                 && crate::packet::available(),
             // 32 base steps: deep enough to amortize, shallow enough that the bricks a
             // tile's rays touch in one chunk stay in cache. With no volume to march (only
@@ -710,7 +721,16 @@ impl Engine {
                 f32::INFINITY
             },
             limits,
-            variant: Variant::new(effects, self.extra_effects),
+            // f64 accumulation has one copy of the caster: the general one.
+            variant: Variant::new(
+                effects,
+                if s.f64_accumulation {
+                    EffectSet::ALL
+                } else {
+                    self.extra_effects
+                },
+            ),
+            f64_accumulation: s.f64_accumulation,
         }
     }
 
@@ -725,6 +745,7 @@ impl Engine {
                 crate::gpu::pipeline_effects(v.compiled)
             ),
             None if packets => "simd".into(),
+            None if self.settings.f64_accumulation => "scalar f64".into(),
             None => "scalar".into(),
         };
         format!("{} [{}] {how}", v.path_name(), v.compiled)

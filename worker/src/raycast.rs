@@ -78,6 +78,9 @@ pub struct FrameSetup<'a> {
     pub limits: Option<RayLimits<'a>>,
     /// The frame's effects and the code path that renders them.
     pub variant: Variant,
+    /// Accumulate each ray's colour in f64 (`render.f64_accumulation`): on the general
+    /// path, without packets.
+    pub f64_accumulation: bool,
 }
 
 /// Bits of the ray loop's effects (`const R`).
@@ -150,13 +153,80 @@ pub struct CastOutput {
     pub stats: CastStats,
 }
 
-#[inline(always)]
-fn blend(acc: &mut Rgba, s: Rgba) {
-    let t = 1.0 - acc[3];
-    acc[0] += t * s[0];
-    acc[1] += t * s[1];
-    acc[2] += t * s[2];
-    acc[3] += t * s[3];
+/// The colour a ray accumulates front to back: `Rgba` (f32), as every frame, or `[f64; 4]`
+/// (`render.f64_accumulation`, the accuracy study's reference), where the rounding of
+/// many blend steps does not grow with the number of samples. Samples and their colours
+/// stay f32 either way: each enters the sum once, so their rounding does not accumulate.
+pub trait Accum: Copy + Send + Sync + 'static {
+    /// Nothing yet.
+    const ZERO: Self;
+    /// Composites `s` (premultiplied) behind what is there: `acc += (1 − αacc)·s`.
+    fn blend(&mut self, s: Rgba);
+    /// Whether the opacity reached the termination threshold `ert`.
+    fn reached(&self, ert: f32) -> bool;
+    /// The colour, rounded to f32.
+    fn rgba(&self) -> Rgba;
+    /// The rays as f32 rays, for the SIMD packets (which accumulate in f32), if they are.
+    fn as_f32<'x, 's, 'a>(
+        rays: &'x mut [RayState<'s, 'a, Self>],
+    ) -> Option<&'x mut [RayState<'s, 'a, Rgba>]>;
+}
+
+impl Accum for Rgba {
+    const ZERO: Self = [0.0; 4];
+
+    #[inline(always)]
+    fn blend(&mut self, s: Rgba) {
+        let t = 1.0 - self[3];
+        self[0] += t * s[0];
+        self[1] += t * s[1];
+        self[2] += t * s[2];
+        self[3] += t * s[3];
+    }
+
+    #[inline(always)]
+    fn reached(&self, ert: f32) -> bool {
+        self[3] >= ert
+    }
+
+    #[inline(always)]
+    fn rgba(&self) -> Rgba {
+        *self
+    }
+
+    fn as_f32<'x, 's, 'a>(
+        rays: &'x mut [RayState<'s, 'a, Self>],
+    ) -> Option<&'x mut [RayState<'s, 'a, Rgba>]> {
+        Some(rays)
+    }
+}
+
+impl Accum for [f64; 4] {
+    const ZERO: Self = [0.0; 4];
+
+    #[inline(always)]
+    fn blend(&mut self, s: Rgba) {
+        let t = 1.0 - self[3];
+        for (a, c) in self.iter_mut().zip(s) {
+            *a += t * c as f64;
+        }
+    }
+
+    #[inline(always)]
+    fn reached(&self, ert: f32) -> bool {
+        self[3] >= ert as f64
+    }
+
+    #[inline(always)]
+    fn rgba(&self) -> Rgba {
+        self.map(|v| v as f32)
+    }
+
+    fn as_f32<'x, 's, 'a>(
+        _: &'x mut [RayState<'s, 'a, Self>],
+    ) -> Option<&'x mut [RayState<'s, 'a, Rgba>]> {
+        None
+    }
 }
 
 /// Half-open `[t0, t1)` of the ray inside the region box (origin is the eye at 0).
@@ -179,17 +249,17 @@ pub fn clip_region(lo: [f32; 3], hi: [f32; 3], d: [f32; 3]) -> (f32, f32) {
     (t0, t1)
 }
 
-struct RayCtx<'s, 'a> {
+struct RayCtx<'s, 'a, A: Accum> {
     f: &'s FrameSetup<'a>,
     d: [f32; 3],
-    acc: Rgba,
+    acc: A,
     stats: CastStats,
     done: bool,
     /// This ray's termination threshold (the frame's, or lower under occlusion).
     ert: f32,
 }
 
-impl<'s, 'a> RayCtx<'s, 'a> {
+impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
     /// Ends volume `v`'s pre-integrated span at `t` (a surface, or where the volume begins
     /// to overlap another, whose mix is post-classified): the half step after its last
     /// sample joins the ray, and the next sample starts a new span.
@@ -393,19 +463,19 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                                 pre.lookup_half(1.5 * cur.prev - 0.5 * s, cur.prev)
                             };
                             apply_light(&mut rgba, cur.prev_light);
-                            blend(&mut acc, rgba);
+                            acc.blend(rgba);
                             cur.lead = false;
                             cur.gap = false;
                         }
                         // The segment from the previous sample.
                         let mut rgba = pre.lookup(cur.prev, s);
                         apply_light(&mut rgba, light);
-                        blend(&mut acc, rgba);
+                        acc.blend(rgba);
                     }
                     cur.before = cur.prev;
                     cur.prev = s;
                     cur.prev_light = light;
-                    if acc[3] >= ert {
+                    if acc.reached(ert) {
                         terminated = true;
                         break;
                     }
@@ -431,7 +501,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                                 pre.lookup_half(s - 0.5 * g, s)
                             };
                             apply_light(&mut rgba, light);
-                            blend(&mut acc, rgba);
+                            acc.blend(rgba);
                             cur.lead = false;
                             cur.gap = false;
                         }
@@ -455,8 +525,8 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                 // Unconditionally: a zero-opacity entry is all zeros (premultiplied), so the
                 // blend leaves `acc` exactly as it is, and a data-dependent branch costs more
                 // than the arithmetic.
-                blend(&mut acc, rgba);
-                if acc[3] >= ert {
+                acc.blend(rgba);
+                if acc.reached(ert) {
                     terminated = true;
                     break;
                 }
@@ -553,8 +623,8 @@ impl<'s, 'a> RayCtx<'s, 'a> {
                 // opacity (the premultiplied sums, renormalised to the combined alpha).
                 let a = 1.0 - transmit;
                 let w = a / alpha_sum;
-                blend(&mut self.acc, [sum[0] * w, sum[1] * w, sum[2] * w, a]);
-                if self.acc[3] >= self.ert {
+                self.acc.blend([sum[0] * w, sum[1] * w, sum[2] * w, a]);
+                if self.acc.reached(self.ert) {
                     self.done = true;
                     self.stats.terminated += 1;
                     return;
@@ -580,7 +650,7 @@ impl<'s, 'a> RayCtx<'s, 'a> {
 /// value. A one-sample span has no neighbour to extrapolate from: its value's slope along
 /// the ray (`Cursor::slope`) stands in. The cursor then has no sample before the next.
 #[inline(always)]
-fn end_span(pre: Option<&PreintTable>, cur: &mut Cursor, acc: &mut Rgba, skip: bool) {
+fn end_span<A: Accum>(pre: Option<&PreintTable>, cur: &mut Cursor, acc: &mut A, skip: bool) {
     if let Some(pre) = pre {
         let p = cur.prev;
         if !p.is_nan() {
@@ -594,7 +664,7 @@ fn end_span(pre: Option<&PreintTable>, cur: &mut Cursor, acc: &mut Rgba, skip: b
                     pre.lookup_half(p - 0.5 * g, p)
                 };
                 apply_light(&mut rgba, cur.prev_light);
-                blend(acc, rgba);
+                acc.blend(rgba);
                 (p + 0.5 * g, p + g)
             } else {
                 (1.5 * p - 0.5 * cur.before, 2.0 * p - cur.before)
@@ -605,7 +675,7 @@ fn end_span(pre: Option<&PreintTable>, cur: &mut Cursor, acc: &mut Rgba, skip: b
                 pre.lookup_half(p, half)
             };
             apply_light(&mut rgba, cur.prev_light);
-            blend(acc, rgba);
+            acc.blend(rgba);
         }
     }
     cur.prev = f32::NAN;
@@ -658,8 +728,8 @@ fn apply_light(rgba: &mut Rgba, l: [f32; 2]) {
 /// rays in lockstep chunks of `t` so that neighbouring rays touch the same bricks while
 /// they are in cache; because samples sit on the global lattice, where a march is cut
 /// into chunks changes nothing.
-pub struct RayState<'s, 'a> {
-    ctx: RayCtx<'s, 'a>,
+pub struct RayState<'s, 'a, A: Accum = Rgba> {
+    ctx: RayCtx<'s, 'a, A>,
     t1: f32,
     cur_t: f32,
     hits: Vec<Hit>,
@@ -672,7 +742,7 @@ pub struct RayState<'s, 'a> {
     curs: Vec<Cursor>,
 }
 
-impl<'s, 'a> RayState<'s, 'a> {
+impl<'s, 'a, A: Accum> RayState<'s, 'a, A> {
     /// Whether the ray needs more marching.
     pub fn active(&self) -> bool {
         !self.ctx.done && self.cur_t < self.t1
@@ -709,31 +779,9 @@ impl<'s, 'a> RayState<'s, 'a> {
         &self.single
     }
 
-    /// The accumulated premultiplied colour.
+    /// The accumulated premultiplied colour (rounded to f32).
     pub fn acc(&self) -> Rgba {
-        self.ctx.acc
-    }
-
-    /// Takes the outcome of a packet's march of the interval [`pending`](Self::pending)
-    /// gave: what the scalar march would have left.
-    pub fn finish_packet(
-        &mut self,
-        acc: Rgba,
-        cur: Cursor,
-        samples: u64,
-        skipped: u64,
-        terminated: bool,
-        then: f32,
-    ) {
-        self.ctx.acc = acc;
-        self.single = cur;
-        self.ctx.stats.samples += samples;
-        self.ctx.stats.skipped += skipped;
-        if terminated {
-            self.ctx.done = true;
-            self.ctx.stats.terminated += 1;
-        }
-        self.cur_t = then;
+        self.ctx.acc.rgba()
     }
 
     /// Marches (volumes and surfaces, front to back) up to `until` (exclusive), with the
@@ -800,10 +848,10 @@ impl<'s, 'a> RayState<'s, 'a> {
                     _ => {}
                 }
                 let h = self.hits[self.hi];
-                blend(&mut self.ctx.acc, h.rgba);
+                self.ctx.acc.blend(h.rgba);
                 self.ctx.stats.hits += 1;
                 self.hi += 1;
-                if self.ctx.acc[3] >= self.ctx.ert {
+                if self.ctx.acc.reached(self.ctx.ert) {
                     self.ctx.done = true;
                     self.ctx.stats.terminated += 1;
                     return;
@@ -816,6 +864,30 @@ impl<'s, 'a> RayState<'s, 'a> {
             }
             return;
         }
+    }
+}
+
+impl<'s, 'a> RayState<'s, 'a, Rgba> {
+    /// Takes the outcome of a packet's march of the interval [`pending`](Self::pending)
+    /// gave: what the scalar march would have left.
+    pub fn finish_packet(
+        &mut self,
+        acc: Rgba,
+        cur: Cursor,
+        samples: u64,
+        skipped: u64,
+        terminated: bool,
+        then: f32,
+    ) {
+        self.ctx.acc = acc;
+        self.single = cur;
+        self.ctx.stats.samples += samples;
+        self.ctx.stats.skipped += skipped;
+        if terminated {
+            self.ctx.done = true;
+            self.ctx.stats.terminated += 1;
+        }
+        self.cur_t = then;
     }
 }
 
@@ -837,24 +909,24 @@ impl<'a> FrameSetup<'a> {
         fb: &mut crate::feedback::Requests,
         hits: Vec<Hit>,
     ) -> RayState<'s, 'a> {
-        self.start_r::<RAY_EFFECTS>(d, fb, hits)
+        self.start_r::<RAY_EFFECTS, Rgba>(d, fb, hits)
     }
 
     /// [`start_with`](Self::start_with) compiled for the ray effects `R`.
     #[inline(always)]
-    fn start_r<'s, const R: u8>(
+    fn start_r<'s, const R: u8, A: Accum>(
         &'s self,
         d: [f32; 3],
         fb: &mut crate::feedback::Requests,
         mut hits: Vec<Hit>,
-    ) -> RayState<'s, 'a> {
+    ) -> RayState<'s, 'a, A> {
         hits.clear();
         let (t0, t1) = clip_region(self.region_lo, self.region_hi, d);
         let mut st = RayState {
             ctx: RayCtx {
                 f: self,
                 d,
-                acc: [0.0; 4],
+                acc: A::ZERO,
                 stats: CastStats {
                     rays: 1,
                     ..CastStats::default()
@@ -954,9 +1026,9 @@ impl<'a> FrameSetup<'a> {
     /// Cuts `[ta, tb)` at the volumes' box boundaries and marches each fragment with its
     /// active set.
     #[allow(clippy::too_many_arguments)]
-    fn march_fragments<'s>(
+    fn march_fragments<'s, A: Accum>(
         &'s self,
-        ctx: &mut RayCtx<'s, 'a>,
+        ctx: &mut RayCtx<'s, 'a, A>,
         curs: &mut [Cursor],
         mds: &[[f32; 3]],
         spans: &[(f32, f32)],
@@ -1016,6 +1088,10 @@ impl<'a> FrameSetup<'a> {
     /// its pixels straight into the image. Runs the copy of the ray loop compiled for the
     /// frame's [`Variant`].
     pub fn render(&self) -> CastOutput {
+        if self.f64_accumulation {
+            // The accuracy study's reference: one copy, every effect compiled in.
+            return self.render_with::<RAY_EFFECTS, [f64; 4]>();
+        }
         // Every closed set of ray effects: volumes (none, one, several) × horizons (none,
         // unlit, lit) × slices. A set outside the list (not closed) takes the general path.
         const V1: u8 = VOLUME;
@@ -1026,8 +1102,8 @@ impl<'a> FrameSetup<'a> {
         macro_rules! one_of {
             ($($v:expr),*) => {
                 match self.variant.compiled.bits() & RAY_EFFECTS {
-                    $(b if b == $v => self.render_with::<{ $v }>(),)*
-                    _ => self.render_with::<RAY_EFFECTS>(),
+                    $(b if b == $v => self.render_with::<{ $v }, Rgba>(),)*
+                    _ => self.render_with::<RAY_EFFECTS, Rgba>(),
                 }
             };
         }
@@ -1052,7 +1128,7 @@ impl<'a> FrameSetup<'a> {
         )
     }
 
-    fn render_with<const R: u8>(&self) -> CastOutput {
+    fn render_with<const R: u8, A: Accum>(&self) -> CastOutput {
         let r = self.rect;
         let tiles_x = r.w.div_ceil(TILE);
         let tiles_y = r.h.div_ceil(TILE);
@@ -1083,26 +1159,27 @@ impl<'a> FrameSetup<'a> {
                     for y in ty..ty + h {
                         for x in tx..tx + w {
                             let Some(e) = ert(x, y) else { continue };
-                            let mut ray = self.start_r::<R>(ray_dir(self, x, y), &mut fb, hits);
+                            let mut ray = self.start_r::<R, A>(ray_dir(self, x, y), &mut fb, hits);
                             ray.ctx.ert = e;
                             ray.advance_with::<R>(f32::INFINITY, &mut fb);
                             st += ray.ctx.stats;
                             let i = (y - r.y) * r.w + (x - r.x);
                             // SAFETY: (x, y) lies in this tile, inside the rectangle; tiles do
                             // not overlap, and `pixels` outlives the parallel loop.
-                            unsafe { out.write(i as usize, sanitize(ray.ctx.acc)) };
+                            unsafe { out.write(i as usize, sanitize(ray.ctx.acc.rgba())) };
                             hits = std::mem::take(&mut ray.hits);
                         }
                     }
                     return (crate::feedback::reduce_tile(&mut fb), st);
                 }
-                let mut rays: Vec<RayState<'_, '_>> = Vec::with_capacity((w * h) as usize);
+                let mut rays: Vec<RayState<'_, '_, A>> = Vec::with_capacity((w * h) as usize);
                 // Each ray's pixel (within the rectangle), as some may be skipped.
                 let mut at: Vec<u32> = Vec::with_capacity((w * h) as usize);
                 for y in ty..ty + h {
                     for x in tx..tx + w {
                         let Some(e) = ert(x, y) else { continue };
-                        let mut ray = self.start_r::<R>(ray_dir(self, x, y), &mut fb, Vec::new());
+                        let mut ray =
+                            self.start_r::<R, A>(ray_dir(self, x, y), &mut fb, Vec::new());
                         ray.ctx.ert = e;
                         rays.push(ray);
                         at.push((y - r.y) * r.w + (x - r.x));
@@ -1117,7 +1194,8 @@ impl<'a> FrameSetup<'a> {
                 let mut work = Vec::with_capacity(crate::packet::LANES);
                 while c.is_finite() {
                     let until = (c + 1.0) * self.chunk;
-                    if self.packets {
+                    // (f64 accumulation has no packets: `packets` is off then.)
+                    if let (true, Some(rays)) = (self.packets, A::as_f32(&mut rays)) {
                         // The chunk's first volume span of every ray, eight rays at a time;
                         // `advance` below then does the rest (surfaces, later spans).
                         for i in 0..rays.len() {
@@ -1133,12 +1211,12 @@ impl<'a> FrameSetup<'a> {
                                 }
                             }
                             if work.len() == crate::packet::LANES {
-                                crate::packet::march(self, &mut rays, &work, &mut fb);
+                                crate::packet::march(self, rays, &work, &mut fb);
                                 work.clear();
                             }
                         }
                         if !work.is_empty() {
-                            crate::packet::march(self, &mut rays, &work, &mut fb);
+                            crate::packet::march(self, rays, &work, &mut fb);
                             work.clear();
                         }
                     }
@@ -1162,7 +1240,7 @@ impl<'a> FrameSetup<'a> {
                     // SAFETY: pixel `i` lies in this tile, inside the rectangle, and tiles do
                     // not overlap, so no other thread writes this pixel; `pixels` outlives
                     // the parallel loop.
-                    unsafe { out.write(i as usize, sanitize(ray.ctx.acc)) };
+                    unsafe { out.write(i as usize, sanitize(ray.ctx.acc.rgba())) };
                 }
                 let red = crate::feedback::reduce_tile(&mut fb);
                 (red, st)

@@ -1,6 +1,7 @@
 //! `coordinator study accuracy`: what accuracy costs in time, for one scene.
 //!
-//! Renders a reference (CPU, step/16, no early termination, level 0 only, fixed step),
+//! Renders a reference (CPU, step/16, no early termination, level 0 only, fixed step,
+//! colours accumulated in f64; the same accumulated in f32 is compared with it and noted),
 //! then each knob alone and in pairs, each point converged once and then timed over
 //! `frames` frames with everything resident, interleaved with frames of the defaults (a
 //! ratio measured side by side). Every point records the median frame time, the
@@ -210,6 +211,7 @@ fn reference_sets(scene: &Scene) -> Result<Vec<String>> {
         format!("render.atlas_mb={}", r.atlas_mb.max(mib + mib / 4)),
         format!("render.cache_mb={}", r.cache_mb.max(mib + mib / 4)),
         format!("render.max_rounds={}", r.max_rounds.max(64)),
+        "render.f64_accumulation=true".into(),
     ])
 }
 
@@ -308,6 +310,29 @@ pub fn run(opts: &StudyOptions, progress: &ProgressBar) -> Result<Vec<Point>> {
         samples = r.samples,
         "reference rendered"
     );
+    // What f64 accumulation buys: the same render accumulated in f32, as the caster
+    // accumulates every other point.
+    let mut f32_sets = ref_sets.clone();
+    f32_sets.push("render.f64_accumulation=false".into());
+    let r32 = measure_in_process(&load_scene(&opts.scene, &f32_sets, opts.size)?, 1)
+        .context("the reference's settings accumulated in f32")?;
+    let e32 = metrics::compare(&r32.image, &r.image, w, h, bg);
+    info!(
+        rmse = e32.rmse,
+        max = e32.max,
+        seconds = r32.seconds,
+        "the reference accumulated in f32"
+    );
+    let mut ref_note = r.note.clone();
+    if !ref_note.is_empty() {
+        ref_note.push_str("; ");
+    }
+    ref_note.push_str(&format!(
+        "accumulated in f32 instead: RMSE {:.1e}, max {:.1e}, {:.0} ms",
+        e32.rmse,
+        e32.max,
+        r32.seconds * 1e3
+    ));
     progress.inc(1);
     let zero = Errors {
         rmse: 0.0,
@@ -322,7 +347,7 @@ pub fn run(opts: &StudyOptions, progress: &ProgressBar) -> Result<Vec<Point>> {
         samples: r.samples,
         errors: zero,
         backend: r.backend.clone(),
-        note: r.note.clone(),
+        note: ref_note,
         same_work: false,
     }];
     let reference = r.image;

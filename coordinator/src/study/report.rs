@@ -157,8 +157,8 @@ pub(crate) fn write(opts: &StudyOptions, scene: &Scene, points: &[Point]) -> Res
     let _ = writeln!(
         md,
         "**Reference:** CPU, step {} (the scene's step / 16), no early termination, fixed \
-         step, τ = 10⁻⁶ (every sample from level 0), exact trilinear filtering; f32 \
-         accumulation (the caster has no f64 path): {:.0} ms, {} samples{}.\n",
+         step, τ = 10⁻⁶ (every sample from level 0), exact trilinear filtering, colours \
+         accumulated in f64 (`render.f64_accumulation`): {:.0} ms, {} samples{}.\n",
         r.step / 16.0,
         p0.seconds * 1e3,
         p0.samples,
