@@ -194,7 +194,7 @@ fn check(s: &Scene, want: EffectSet, what: &str) {
 fn every_effect_set_renders_the_same_on_its_specialised_path_as_on_the_general_one() {
     let dir = TempDir::new().unwrap();
     let v = EffectSet::VOLUME;
-    let cases: [(Parts, EffectSet, &str); 10] = [
+    let cases: [(Parts, EffectSet, &str); 11] = [
         (
             Parts {
                 volumes: 1,
@@ -250,6 +250,23 @@ fn every_effect_set_renders_the_same_on_its_specialised_path_as_on_the_general_o
                 .union(EffectSet::LIGHTING)
                 .union(EffectSet::SLICES),
             "slices of an invisible volume and a lit horizon",
+        ),
+        (
+            // The demo's shape with pre-integration asked for: the hidden volume is not
+            // marched, so neither caster needs (or builds) its tables.
+            Parts {
+                volumes: 1,
+                invisible: true,
+                slices: true,
+                horizon: true,
+                lighting: true,
+                preintegrated: true,
+                ..Parts::default()
+            },
+            EffectSet::HORIZONS
+                .union(EffectSet::LIGHTING)
+                .union(EffectSet::SLICES),
+            "slices of an invisible volume, a lit horizon, pre-integration asked for",
         ),
         (
             // Shading asked for, two volumes, but none marched: only the slices show, and

@@ -581,7 +581,10 @@ impl Engine {
             let d = v.dims();
             let pool = self.vpool.as_ref().unwrap();
             let tables = tf_tables_for(&exps, &v.tf);
-            let pre = s.preintegrated.then(|| {
+            let invisible = s.empty_space_skipping && transparent.iter().all(|&t| t);
+            // A volume its transfer function hides is never marched: no tables (and the
+            // GPU pipeline, which has no pre-integration then, is not asked for them).
+            let pre = (s.preintegrated && !invisible).then(|| {
                 let mut cache = self.preint.lock().unwrap_or_else(|e| e.into_inner());
                 exps.iter()
                     .map(|&e| {
@@ -609,7 +612,7 @@ impl Engine {
                 samples: pool.samples(),
                 cells: cells.map(|c| c.visible()),
                 cells_per_axis: cells.map_or(0, |c| c.per_axis()),
-                invisible: s.empty_space_skipping && transparent.iter().all(|&t| t),
+                invisible,
                 transparent,
                 flat: crate::packet::FlatTables::new(&tables),
                 tables,
