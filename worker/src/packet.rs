@@ -5,8 +5,10 @@
 //! the point where the lane has the page coordinate of its next sample: locating bricks,
 //! jumping over transparent bricks and invisible macrocells, moving to the next band. What
 //! every lane then does alike, the trilinear interpolation (AVX2 gathers from the atlas
-//! slots, in the slots' own element type), the transfer-function lookup (gathers from all
-//! bands' tables laid end to end) and the front-to-back blend, runs eight lanes at a time.
+//! slots, in the slots' own element type), the transfer-function lookup (all bands' tables
+//! laid end to end; a lane's two neighbouring entries are one 32-byte load, and eight such
+//! loads are transposed into channels across lanes) and the front-to-back blend, runs
+//! eight lanes at a time.
 //!
 //! **Same image, bit for bit.** Every lane performs the scalar caster's operations in the
 //! same order with the same roundings (no fused multiply-adds, truncating conversions as
@@ -402,9 +404,18 @@ mod avx2 {
                 let mut ready = [Ready::default(); LANES];
                 let mut on = [0i32; LANES];
                 let mut any = false;
+                // The band of the ready lanes if they share one (`usize::MAX`: not yet,
+                // `MIXED`: they do not).
+                const MIXED: usize = usize::MAX - 1;
+                let mut common = usize::MAX;
                 for (i, lane) in lanes.iter_mut().enumerate() {
                     if lane.live {
                         if let Some(r) = lane.next(f, v, fb) {
+                            common = if common == usize::MAX || common == r.band {
+                                r.band
+                            } else {
+                                MIXED
+                            };
                             ready[i] = r;
                             on[i] = -1;
                             any = true;
@@ -417,22 +428,45 @@ mod avx2 {
                 // Lanes with no sample read the start of slot 0 (in bounds) and are masked.
                 let (mut lx, mut ly, mut lz) = ([0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES]);
                 let mut offs = [0i32; LANES];
-                let mut base = [0i32; LANES];
-                let mut scale = [0.0f32; LANES];
-                let mut offset = [0.0f32; LANES];
-                let mut last = [0.0f32; LANES];
-                let mut maxi = [0i32; LANES];
                 for i in 0..LANES {
                     let r = &ready[i];
-                    let b = &v.flat.bands[r.band];
                     (lx[i], ly[i], lz[i]) = (r.l[0], r.l[1], r.l[2]);
                     offs[i] = r.off as i32;
-                    base[i] = b.base as i32;
-                    scale[i] = b.scale;
-                    offset[i] = b.offset;
-                    last[i] = b.last;
-                    maxi[i] = b.len as i32 - 2;
                 }
+                // Each lane's band table: one broadcast when the lanes share a band (nearly
+                // always), else per lane. Masked lanes take the same (their lookups stay
+                // inside that band's table).
+                let (base, scale, offset, last, maxi) = if common != MIXED {
+                    let b = &v.flat.bands[common];
+                    (
+                        _mm256_set1_epi32(b.base as i32),
+                        _mm256_set1_ps(b.scale),
+                        _mm256_set1_ps(b.offset),
+                        _mm256_set1_ps(b.last),
+                        _mm256_set1_epi32(b.len as i32 - 2),
+                    )
+                } else {
+                    let mut base = [0i32; LANES];
+                    let mut scale = [0.0f32; LANES];
+                    let mut offset = [0.0f32; LANES];
+                    let mut last = [0.0f32; LANES];
+                    let mut maxi = [0i32; LANES];
+                    for i in 0..LANES {
+                        let b = &v.flat.bands[ready[i].band];
+                        base[i] = b.base as i32;
+                        scale[i] = b.scale;
+                        offset[i] = b.offset;
+                        last[i] = b.last;
+                        maxi[i] = b.len as i32 - 2;
+                    }
+                    (
+                        load_i(&base),
+                        load_f(&scale),
+                        load_f(&offset),
+                        load_f(&last),
+                        load_i(&maxi),
+                    )
+                };
                 let (x, y, z) = (load_f(&lx), load_f(&ly), load_f(&lz));
                 let mask = _mm256_castsi256_ps(load_i(&on));
                 // Trilinear, as `trilinear_at`: coordinates are in [0, p − 1), so every
@@ -470,27 +504,49 @@ mod avx2 {
                 // lookup (max_ps returns its second operand for NaN).
                 let valid = _mm256_and_ps(mask, _mm256_cmp_ps::<_CMP_ORD_Q>(s, s));
                 // Lookup, as `StepTable::lookup`.
-                let pos = _mm256_add_ps(_mm256_mul_ps(s, load_f(&scale)), load_f(&offset));
-                let pos = _mm256_min_ps(_mm256_max_ps(pos, zero), load_f(&last));
-                let e = _mm256_min_epi32(_mm256_cvttps_epi32(pos), load_i(&maxi));
+                let pos = _mm256_add_ps(_mm256_mul_ps(s, scale), offset);
+                let pos = _mm256_min_ps(_mm256_max_ps(pos, zero), last);
+                let e = _mm256_min_epi32(_mm256_cvttps_epi32(pos), maxi);
                 let fe = _mm256_sub_ps(pos, _mm256_cvtepi32_ps(e));
-                // Entry e of the lane's band, as an index into the flat f32 array (e ≤ len − 2,
-                // so e + 1 is in the band's table).
-                let ei = _mm256_slli_epi32::<2>(_mm256_add_epi32(e, load_i(&base)));
+                // Entries e and e + 1 of the lane's band (e ≤ len − 2, so e + 1 is in the
+                // band's table) are eight consecutive floats: one load per lane, then an
+                // 8 × 8 transpose into the entries' channels across lanes (cheaper than
+                // eight gathers).
+                let mut ei = [0i32; LANES];
+                _mm256_storeu_si256(
+                    ei.as_mut_ptr() as *mut __m256i,
+                    _mm256_slli_epi32::<2>(_mm256_add_epi32(e, base)),
+                );
+                // (Spelled out: a closure would not inherit this function's AVX2.)
+                let r0 = _mm256_loadu_ps(lut.add(ei[0] as usize));
+                let r1 = _mm256_loadu_ps(lut.add(ei[1] as usize));
+                let r2 = _mm256_loadu_ps(lut.add(ei[2] as usize));
+                let r3 = _mm256_loadu_ps(lut.add(ei[3] as usize));
+                let r4 = _mm256_loadu_ps(lut.add(ei[4] as usize));
+                let r5 = _mm256_loadu_ps(lut.add(ei[5] as usize));
+                let r6 = _mm256_loadu_ps(lut.add(ei[6] as usize));
+                let r7 = _mm256_loadu_ps(lut.add(ei[7] as usize));
+                let (t0, t1) = (_mm256_unpacklo_ps(r0, r1), _mm256_unpackhi_ps(r0, r1));
+                let (t2, t3) = (_mm256_unpacklo_ps(r2, r3), _mm256_unpackhi_ps(r2, r3));
+                let (t4, t5) = (_mm256_unpacklo_ps(r4, r5), _mm256_unpackhi_ps(r4, r5));
+                let (t6, t7) = (_mm256_unpacklo_ps(r6, r7), _mm256_unpackhi_ps(r6, r7));
+                let u0 = _mm256_shuffle_ps::<0x44>(t0, t2);
+                let u1 = _mm256_shuffle_ps::<0xee>(t0, t2);
+                let u2 = _mm256_shuffle_ps::<0x44>(t1, t3);
+                let u3 = _mm256_shuffle_ps::<0xee>(t1, t3);
+                let u4 = _mm256_shuffle_ps::<0x44>(t4, t6);
+                let u5 = _mm256_shuffle_ps::<0xee>(t4, t6);
+                let u6 = _mm256_shuffle_ps::<0x44>(t5, t7);
+                let u7 = _mm256_shuffle_ps::<0xee>(t5, t7);
+                // Channel c of entry e in column c, of entry e + 1 in column c + 4.
                 macro_rules! ch {
-                    ($c:expr) => {{
-                        let a = _mm256_i32gather_ps::<4>(
-                            lut,
-                            _mm256_add_epi32(ei, _mm256_set1_epi32($c)),
-                        );
-                        let b = _mm256_i32gather_ps::<4>(
-                            lut,
-                            _mm256_add_epi32(ei, _mm256_set1_epi32($c + 4)),
-                        );
+                    ($u:expr, $w:expr) => {{
+                        let a = _mm256_permute2f128_ps::<0x20>($u, $w);
+                        let b = _mm256_permute2f128_ps::<0x31>($u, $w);
                         _mm256_and_ps(lerp(a, b, fe), valid)
                     }};
                 }
-                let (sr, sg, sb, sa) = (ch!(0), ch!(1), ch!(2), ch!(3));
+                let (sr, sg, sb, sa) = (ch!(u0, u4), ch!(u1, u5), ch!(u2, u6), ch!(u3, u7));
                 // Blend, as `blend`: masked lanes add t·0 and keep their value exactly.
                 let t = _mm256_sub_ps(one, aa);
                 ar = _mm256_add_ps(ar, _mm256_mul_ps(t, sr));
