@@ -202,6 +202,58 @@ impl Lane {
     }
 }
 
+/// The lanes' state for the lockstep step, in lanes (structure of arrays): a lane whose last
+/// sample came from [`Lane::next`] takes its next one here, eight wide, while `k·dt` stays
+/// short of `end` (the segment's end, the brick's exit and the macrocell's exit), and goes
+/// back to `Lane::next` for the step that reaches one of them.
+#[derive(Default)]
+struct Fast {
+    /// −1 where the lane's state is here (its `Lane::k` is then stale), else 0.
+    on: [i32; LANES],
+    /// The lattice index of the lane's next sample.
+    k: [i32; LANES],
+    dt: [f32; LANES],
+    /// The least of the segment's end, the brick's exit and the cell's exit (−∞ if any is
+    /// NaN: `t < NaN` fails where `min` would not).
+    end: [f32; LANES],
+    md: [[f32; LANES]; 3],
+    /// The cursor's index → slot scale and offsets, and its slot's first element.
+    s: [f32; LANES],
+    o: [[f32; LANES]; 3],
+    off: [i32; LANES],
+    band: [usize; LANES],
+    /// Samples taken here (added to the lane's at the end).
+    count: [i32; LANES],
+}
+
+impl Fast {
+    /// Takes lane `i` after [`Lane::next`] gave it a sample, where the lockstep step can
+    /// reproduce its arithmetic: `k` and the slot offset fit an `i32` (whose conversion to
+    /// f32 rounds as `i64 as f32` does).
+    fn take(&mut self, i: usize, lane: &Lane) {
+        let (k, off) = (lane.k, lane.cur.off);
+        if k.unsigned_abs() >= 1 << 30 || off >= i32::MAX as usize {
+            return;
+        }
+        let (a, b, c) = (lane.seg_end, lane.cur.t_exit, lane.cell_exit);
+        self.on[i] = -1;
+        self.k[i] = k as i32;
+        self.dt[i] = lane.dt;
+        self.end[i] = if a.is_nan() || b.is_nan() || c.is_nan() {
+            f32::NEG_INFINITY
+        } else {
+            a.min(b).min(c)
+        };
+        for ax in 0..3 {
+            self.md[ax][i] = lane.md[ax];
+            self.o[ax][i] = lane.cur.o[ax];
+        }
+        self.s[i] = lane.cur.s;
+        self.off[i] = off as i32;
+        self.band[i] = lane.band;
+    }
+}
+
 /// Marches up to [`LANES`] rays of a tile (`rays[p.ray]` for each `p` in `work`) through the
 /// frame's single volume, each over its pending interval, and leaves every ray exactly as
 /// its scalar march would.
@@ -388,6 +440,9 @@ mod avx2 {
             }
             erts[i] = rays[w.ray].ert();
         }
+        // The lockstep state of the lanes whose next sample needs none of the scalar
+        // control flow.
+        let mut fast = Fast::default();
         // SAFETY (all intrinsics below): AVX2 is enabled for this function; every gather
         // index is in bounds as argued where it is formed.
         unsafe {
@@ -400,38 +455,90 @@ mod avx2 {
             let zero = _mm256_setzero_ps();
             let lut = v.flat.rgba.as_ptr();
             let (sy, sz) = (p as i32, (p * p) as i32);
+            let vc = [0, 1, 2].map(|a| _mm256_set1_ps(v.c[a]));
+            let maxc = _mm256_set1_ps((p - 1) as f32 - 1e-3);
             loop {
-                let mut ready = [Ready::default(); LANES];
+                // The fast lanes' next sample: `t = k·dt` short of the segment's end, the
+                // brick's exit and the macrocell's exit, so the scalar `Lane::next` would
+                // do no more than compute `l` as `VolFrame::local` does (same operations,
+                // same order) and count the sample. Lanes outside those bounds run it.
+                let kv = load_i(&fast.k);
+                let t = _mm256_mul_ps(_mm256_cvtepi32_ps(kv), load_f(&fast.dt));
+                let go = _mm256_and_ps(
+                    _mm256_castsi256_ps(load_i(&fast.on)),
+                    _mm256_cmp_ps::<_CMP_LT_OQ>(t, load_f(&fast.end)),
+                );
+                let go_bits = _mm256_movemask_ps(go);
+                let go_i = _mm256_castps_si256(go);
+                let s_v = load_f(&fast.s);
+                // (Spelled out per axis: a closure would not inherit this function's AVX2.)
+                macro_rules! local {
+                    ($a:expr) => {{
+                        let q = _mm256_add_ps(vc[$a], _mm256_mul_ps(t, load_f(&fast.md[$a])));
+                        let l = _mm256_add_ps(_mm256_mul_ps(q, s_v), load_f(&fast.o[$a]));
+                        // `f32::clamp(0, maxc)`: below 0 → 0, then above maxc → maxc.
+                        let l = _mm256_blendv_ps(l, zero, _mm256_cmp_ps::<_CMP_LT_OQ>(l, zero));
+                        let l = _mm256_blendv_ps(l, maxc, _mm256_cmp_ps::<_CMP_GT_OQ>(l, maxc));
+                        // Lanes without a fast sample read the start of slot 0 (in bounds)
+                        // unless the scalar march gives them one below.
+                        _mm256_and_ps(l, go)
+                    }};
+                }
+                let (mut lx, mut ly, mut lz) = ([0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES]);
+                let mut offs = [0i32; LANES];
+                _mm256_storeu_ps(lx.as_mut_ptr(), local!(0));
+                _mm256_storeu_ps(ly.as_mut_ptr(), local!(1));
+                _mm256_storeu_ps(lz.as_mut_ptr(), local!(2));
+                _mm256_storeu_si256(
+                    offs.as_mut_ptr() as *mut __m256i,
+                    _mm256_and_si256(load_i(&fast.off), go_i),
+                );
+                // k + 1 and one more sample where a fast lane sampled.
+                _mm256_storeu_si256(
+                    fast.k.as_mut_ptr() as *mut __m256i,
+                    _mm256_sub_epi32(kv, go_i),
+                );
+                _mm256_storeu_si256(
+                    fast.count.as_mut_ptr() as *mut __m256i,
+                    _mm256_sub_epi32(load_i(&fast.count), go_i),
+                );
                 let mut on = [0i32; LANES];
                 let mut any = false;
                 // The band of the ready lanes if they share one (`usize::MAX`: not yet,
                 // `MIXED`: they do not).
                 const MIXED: usize = usize::MAX - 1;
                 let mut common = usize::MAX;
+                let mut bands = [0usize; LANES];
                 for (i, lane) in lanes.iter_mut().enumerate() {
-                    if lane.live {
-                        if let Some(r) = lane.next(f, v, fb) {
-                            common = if common == usize::MAX || common == r.band {
-                                r.band
-                            } else {
-                                MIXED
-                            };
-                            ready[i] = r;
-                            on[i] = -1;
-                            any = true;
+                    let band = if go_bits >> i & 1 == 1 {
+                        fast.band[i]
+                    } else {
+                        if !lane.live {
+                            continue;
                         }
-                    }
+                        if fast.on[i] != 0 {
+                            lane.k = fast.k[i] as i64;
+                            fast.on[i] = 0;
+                        }
+                        let Some(r) = lane.next(f, v, fb) else {
+                            continue;
+                        };
+                        (lx[i], ly[i], lz[i]) = (r.l[0], r.l[1], r.l[2]);
+                        offs[i] = r.off as i32;
+                        fast.take(i, lane);
+                        r.band
+                    };
+                    common = if common == usize::MAX || common == band {
+                        band
+                    } else {
+                        MIXED
+                    };
+                    bands[i] = band;
+                    on[i] = -1;
+                    any = true;
                 }
                 if !any {
                     break;
-                }
-                // Lanes with no sample read the start of slot 0 (in bounds) and are masked.
-                let (mut lx, mut ly, mut lz) = ([0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES]);
-                let mut offs = [0i32; LANES];
-                for i in 0..LANES {
-                    let r = &ready[i];
-                    (lx[i], ly[i], lz[i]) = (r.l[0], r.l[1], r.l[2]);
-                    offs[i] = r.off as i32;
                 }
                 // Each lane's band table: one broadcast when the lanes share a band (nearly
                 // always), else per lane. Masked lanes take the same (their lookups stay
@@ -452,7 +559,7 @@ mod avx2 {
                     let mut last = [0.0f32; LANES];
                     let mut maxi = [0i32; LANES];
                     for i in 0..LANES {
-                        let b = &v.flat.bands[ready[i].band];
+                        let b = &v.flat.bands[bands[i]];
                         base[i] = b.base as i32;
                         scale[i] = b.scale;
                         offset[i] = b.offset;
@@ -560,6 +667,7 @@ mod avx2 {
                         if done >> i & 1 == 1 {
                             lane.live = false;
                             lane.terminated = true;
+                            fast.on[i] = 0;
                         }
                     }
                 }
@@ -574,7 +682,7 @@ mod avx2 {
             r.finish_packet(
                 [acc[0][i], acc[1][i], acc[2][i], acc[3][i]],
                 lane.cur,
-                lane.samples,
+                lane.samples + fast.count[i] as u64,
                 lane.skipped,
                 lane.terminated,
                 w.then,
