@@ -3,7 +3,10 @@
 //! Each lane is one ray with its own lattice index, band, brick cursor and macrocell. The
 //! control flow of the scalar march ([`crate::raycast`]) runs per lane, in scalar code, up to
 //! the point where the lane has the page coordinate of its next sample: locating bricks,
-//! jumping over transparent bricks and invisible macrocells, moving to the next band. What
+//! jumping over transparent bricks and invisible macrocells, moving to the next band. A
+//! lane whose next sample needs none of that (it lies short of the segment's end, the
+//! brick's exit and the macrocell's exit) takes a lockstep step instead ([`Fast`]): its
+//! `t`, index position and page coordinate computed eight wide. What
 //! every lane then does alike, the trilinear interpolation (AVX2 gathers from the atlas
 //! slots, in the slots' own element type), the transfer-function lookup (all bands' tables
 //! laid end to end; a lane's two neighbouring entries are one 32-byte load, and eight such
