@@ -5,7 +5,7 @@
 //! the point where the lane has the page coordinate of its next sample: locating bricks,
 //! jumping over transparent bricks and invisible macrocells, moving to the next band. A
 //! lane whose next sample needs none of that (it lies short of the segment's end, the
-//! brick's exit and the macrocell's exit) takes a lockstep step instead ([`Fast`]): its
+//! brick's exit and the macrocell's exit) takes a lockstep step instead (`Fast`): its
 //! `t`, index position and page coordinate computed eight wide. What
 //! every lane then does alike, the trilinear interpolation (AVX2 gathers from the atlas
 //! slots, in the slots' own element type), the transfer-function lookup (all bands' tables
