@@ -4,9 +4,10 @@
 //! control flow of the scalar march ([`crate::raycast`]) runs per lane, in scalar code, up to
 //! the point where the lane has the page coordinate of its next sample: locating bricks,
 //! jumping over transparent bricks and invisible macrocells, moving to the next band. A
-//! lane whose next sample needs none of that (it lies short of the segment's end, the
-//! brick's exit and the macrocell's exit) takes a lockstep step instead (`Fast`): its
-//! `t`, index position and page coordinate computed eight wide. What
+//! lane whose next sample needs none of that (it lies short of the segment's end and the
+//! brick's exit, in the same macrocell or a visible next one) takes a lockstep step instead
+//! (`Fast`): its `t`, index position, page coordinate and macrocell crossing computed eight
+//! wide. What
 //! every lane then does alike, the trilinear interpolation (AVX2 gathers from the atlas
 //! slots, in the slots' own element type), the transfer-function lookup (all bands' tables
 //! laid end to end; a lane's two neighbouring entries are one 32-byte load, and eight such
@@ -207,8 +208,9 @@ impl Lane {
 
 /// The lanes' state for the lockstep step, in lanes (structure of arrays): a lane whose last
 /// sample came from [`Lane::next`] takes its next one here, eight wide, while `k·dt` stays
-/// short of `end` (the segment's end, the brick's exit and the macrocell's exit), and goes
-/// back to `Lane::next` for the step that reaches one of them.
+/// short of `hard` (the segment's end and the brick's exit), crossing into the next
+/// macrocell here too when that cell is visible, and goes back to `Lane::next` for the step
+/// that reaches a segment end, a brick boundary or an invisible cell.
 #[derive(Default)]
 struct Fast {
     /// −1 where the lane's state is here (its `Lane::k` is then stale), else 0.
@@ -216,13 +218,20 @@ struct Fast {
     /// The lattice index of the lane's next sample.
     k: [i32; LANES],
     dt: [f32; LANES],
-    /// The least of the segment's end, the brick's exit and the cell's exit (−∞ if any is
-    /// NaN: `t < NaN` fails where `min` would not).
-    end: [f32; LANES],
+    /// The lesser of the segment's end and the brick's exit (−∞ if either is NaN: `t < NaN`
+    /// fails where `min` would not).
+    hard: [f32; LANES],
+    /// The macrocell's exit (+∞ without macrocells).
+    cell: [f32; LANES],
     md: [[f32; LANES]; 3],
-    /// The cursor's index → slot scale and offsets, and its slot's first element.
+    /// `1 / md`, as the lane's `inv`.
+    inv: [[f32; LANES]; 3],
+    /// The cursor's index → slot scale, its inverse and offsets, its slot and the slot's
+    /// first element.
     s: [f32; LANES],
+    rs: [f32; LANES],
     o: [[f32; LANES]; 3],
+    slot: [u32; LANES],
     off: [i32; LANES],
     band: [usize; LANES],
     /// Samples taken here (added to the lane's at the end).
@@ -238,20 +247,24 @@ impl Fast {
         if k.unsigned_abs() >= 1 << 30 || off >= i32::MAX as usize {
             return;
         }
-        let (a, b, c) = (lane.seg_end, lane.cur.t_exit, lane.cell_exit);
+        let (a, b) = (lane.seg_end, lane.cur.t_exit);
         self.on[i] = -1;
         self.k[i] = k as i32;
         self.dt[i] = lane.dt;
-        self.end[i] = if a.is_nan() || b.is_nan() || c.is_nan() {
+        self.hard[i] = if a.is_nan() || b.is_nan() {
             f32::NEG_INFINITY
         } else {
-            a.min(b).min(c)
+            a.min(b)
         };
+        self.cell[i] = lane.cell_exit;
         for ax in 0..3 {
             self.md[ax][i] = lane.md[ax];
+            self.inv[ax][i] = lane.inv[ax];
             self.o[ax][i] = lane.cur.o[ax];
         }
         self.s[i] = lane.cur.s;
+        self.rs[i] = lane.cur.rs;
+        self.slot[i] = lane.cur.slot;
         self.off[i] = off as i32;
         self.band[i] = lane.band;
     }
@@ -467,12 +480,12 @@ mod avx2 {
                 // same order) and count the sample. Lanes outside those bounds run it.
                 let kv = load_i(&fast.k);
                 let t = _mm256_mul_ps(_mm256_cvtepi32_ps(kv), load_f(&fast.dt));
-                let go = _mm256_and_ps(
+                let below = _mm256_and_ps(
                     _mm256_castsi256_ps(load_i(&fast.on)),
-                    _mm256_cmp_ps::<_CMP_LT_OQ>(t, load_f(&fast.end)),
+                    _mm256_cmp_ps::<_CMP_LT_OQ>(t, load_f(&fast.hard)),
                 );
-                let go_bits = _mm256_movemask_ps(go);
-                let go_i = _mm256_castps_si256(go);
+                let cell_v = load_f(&fast.cell);
+                let mut go = _mm256_and_ps(below, _mm256_cmp_ps::<_CMP_LT_OQ>(t, cell_v));
                 let s_v = load_f(&fast.s);
                 // (Spelled out per axis: a closure would not inherit this function's AVX2.)
                 macro_rules! local {
@@ -482,16 +495,76 @@ mod avx2 {
                         // `f32::clamp(0, maxc)`: below 0 → 0, then above maxc → maxc.
                         let l = _mm256_blendv_ps(l, zero, _mm256_cmp_ps::<_CMP_LT_OQ>(l, zero));
                         let l = _mm256_blendv_ps(l, maxc, _mm256_cmp_ps::<_CMP_GT_OQ>(l, maxc));
-                        // Lanes without a fast sample read the start of slot 0 (in bounds)
-                        // unless the scalar march gives them one below.
-                        _mm256_and_ps(l, go)
+                        l
                     }};
                 }
+                let l3 = [local!(0), local!(1), local!(2)];
+                // Lanes at their macrocell's exit (inside the brick and the segment): the
+                // next cell as `VolFrame::cell_at` finds it; into a visible one the lane
+                // samples here, an invisible one is skipped by `Lane::next`.
+                let cross = _mm256_andnot_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(t, cell_v), below);
+                if let (Some(cells), true) = (v.cells, _mm256_movemask_ps(cross) != 0) {
+                    let n = v.cells_per_axis;
+                    // `l as usize / CELL` (`l` is clamped to [0, p − 1)); CELL is 2⁴.
+                    const _: () = assert!(crate::macrocell::CELL == 16);
+                    let ci = [
+                        _mm256_srli_epi32::<4>(_mm256_cvttps_epi32(l3[0])),
+                        _mm256_srli_epi32::<4>(_mm256_cvttps_epi32(l3[1])),
+                        _mm256_srli_epi32::<4>(_mm256_cvttps_epi32(l3[2])),
+                    ];
+                    let vn = _mm256_set1_epi32(n as i32);
+                    let idx = _mm256_add_epi32(
+                        _mm256_mullo_epi32(
+                            _mm256_add_epi32(_mm256_mullo_epi32(ci[2], vn), ci[1]),
+                            vn,
+                        ),
+                        ci[0],
+                    );
+                    let mut exit = _mm256_set1_ps(f32::INFINITY);
+                    let cell = _mm256_set1_epi32(crate::macrocell::CELL as i32);
+                    let rs_v = load_f(&fast.rs);
+                    for a in (0..3).rev() {
+                        let dir = _mm256_mul_ps(load_f(&fast.md[a]), s_v);
+                        let lo = _mm256_mullo_epi32(ci[a], cell);
+                        let hi = _mm256_add_epi32(lo, cell);
+                        let up = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_GT_OQ>(dir, zero));
+                        let bound = _mm256_cvtepi32_ps(_mm256_blendv_epi8(lo, hi, up));
+                        let e = _mm256_mul_ps(
+                            _mm256_sub_ps(
+                                _mm256_mul_ps(_mm256_sub_ps(bound, load_f(&fast.o[a])), rs_v),
+                                vc[a],
+                            ),
+                            load_f(&fast.inv[a]),
+                        );
+                        // (No NaN: `inv` is finite where `dir` is not 0.)
+                        let moving = _mm256_cmp_ps::<_CMP_NEQ_OQ>(dir, zero);
+                        exit = _mm256_blendv_ps(exit, _mm256_min_ps(exit, e), moving);
+                    }
+                    let (mut idxs, mut exits) = ([0i32; LANES], [0.0f32; LANES]);
+                    _mm256_storeu_si256(idxs.as_mut_ptr() as *mut __m256i, idx);
+                    _mm256_storeu_ps(exits.as_mut_ptr(), exit);
+                    let bits = _mm256_movemask_ps(cross);
+                    let mut into = [0i32; LANES];
+                    for i in 0..LANES {
+                        if bits >> i & 1 == 1 {
+                            let c = fast.slot[i] as usize * n * n * n + idxs[i] as usize;
+                            if cells[c] != 0 {
+                                fast.cell[i] = exits[i];
+                                into[i] = -1;
+                            }
+                        }
+                    }
+                    go = _mm256_or_ps(go, _mm256_castsi256_ps(load_i(&into)));
+                }
+                let go_bits = _mm256_movemask_ps(go);
+                let go_i = _mm256_castps_si256(go);
                 let (mut lx, mut ly, mut lz) = ([0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES]);
                 let mut offs = [0i32; LANES];
-                _mm256_storeu_ps(lx.as_mut_ptr(), local!(0));
-                _mm256_storeu_ps(ly.as_mut_ptr(), local!(1));
-                _mm256_storeu_ps(lz.as_mut_ptr(), local!(2));
+                // Lanes without a lockstep sample read the start of slot 0 (in bounds)
+                // unless the scalar march gives them one below.
+                _mm256_storeu_ps(lx.as_mut_ptr(), _mm256_and_ps(l3[0], go));
+                _mm256_storeu_ps(ly.as_mut_ptr(), _mm256_and_ps(l3[1], go));
+                _mm256_storeu_ps(lz.as_mut_ptr(), _mm256_and_ps(l3[2], go));
                 _mm256_storeu_si256(
                     offs.as_mut_ptr() as *mut __m256i,
                     _mm256_and_si256(load_i(&fast.off), go_i),
