@@ -477,7 +477,8 @@ mod avx2 {
                 // The fast lanes' next sample: `t = k·dt` short of the segment's end, the
                 // brick's exit and the macrocell's exit, so the scalar `Lane::next` would
                 // do no more than compute `l` as `VolFrame::local` does (same operations,
-                // same order) and count the sample. Lanes outside those bounds run it.
+                // same order) and count the sample (or, at the cell's exit, also find the
+                // next cell visible, below). Lanes outside those bounds run it.
                 let kv = load_i(&fast.k);
                 let t = _mm256_mul_ps(_mm256_cvtepi32_ps(kv), load_f(&fast.dt));
                 let below = _mm256_and_ps(
@@ -521,6 +522,9 @@ mod avx2 {
                         ci[0],
                     );
                     let mut exit = _mm256_set1_ps(f32::INFINITY);
+                    // Lanes whose exit would be NaN on some axis (`f32::min` skips a NaN,
+                    // `min_ps` does not) leave the crossing to `Lane::next`.
+                    let mut nan = _mm256_setzero_ps();
                     let cell = _mm256_set1_epi32(crate::macrocell::CELL as i32);
                     let rs_v = load_f(&fast.rs);
                     for a in (0..3).rev() {
@@ -536,14 +540,18 @@ mod avx2 {
                             ),
                             load_f(&fast.inv[a]),
                         );
-                        // (No NaN: `inv` is finite where `dir` is not 0.)
-                        let moving = _mm256_cmp_ps::<_CMP_NEQ_OQ>(dir, zero);
+                        // `dir != 0.0`, true for NaN as in the scalar code.
+                        let moving = _mm256_cmp_ps::<_CMP_NEQ_UQ>(dir, zero);
                         exit = _mm256_blendv_ps(exit, _mm256_min_ps(exit, e), moving);
+                        nan = _mm256_or_ps(
+                            nan,
+                            _mm256_and_ps(moving, _mm256_cmp_ps::<_CMP_UNORD_Q>(e, e)),
+                        );
                     }
                     let (mut idxs, mut exits) = ([0i32; LANES], [0.0f32; LANES]);
                     _mm256_storeu_si256(idxs.as_mut_ptr() as *mut __m256i, idx);
                     _mm256_storeu_ps(exits.as_mut_ptr(), exit);
-                    let bits = _mm256_movemask_ps(cross);
+                    let bits = _mm256_movemask_ps(_mm256_andnot_ps(nan, cross));
                     let mut into = [0i32; LANES];
                     for i in 0..LANES {
                         if bits >> i & 1 == 1 {
@@ -594,6 +602,7 @@ mod avx2 {
                         }
                         if fast.on[i] != 0 {
                             lane.k = fast.k[i] as i64;
+                            lane.cell_exit = fast.cell[i];
                             fast.on[i] = 0;
                         }
                         let Some(r) = lane.next(f, v, fb) else {
