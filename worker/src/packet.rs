@@ -241,10 +241,16 @@ struct Fast {
 impl Fast {
     /// Takes lane `i` after [`Lane::next`] gave it a sample, where the lockstep step can
     /// reproduce its arithmetic: `k` and the slot offset fit an `i32` (whose conversion to
-    /// f32 rounds as `i64 as f32` does).
+    /// f32 rounds as `i64 as f32` does), and the direction is finite.
     fn take(&mut self, i: usize, lane: &Lane) {
         let (k, off) = (lane.k, lane.cur.off);
         if k.unsigned_abs() >= 1 << 30 || off >= i32::MAX as usize {
+            return;
+        }
+        // A cell crossing's exits are then never NaN (`min_ps` would not skip a NaN as
+        // `f32::min` does).
+        let (md, inv) = (lane.md, lane.inv);
+        if !(0..3).all(|a| md[a].is_finite() && (md[a] == 0.0 || inv[a].is_finite())) {
             return;
         }
         let (a, b) = (lane.seg_end, lane.cur.t_exit);
@@ -522,9 +528,6 @@ mod avx2 {
                         ci[0],
                     );
                     let mut exit = _mm256_set1_ps(f32::INFINITY);
-                    // Lanes whose exit would be NaN on some axis (`f32::min` skips a NaN,
-                    // `min_ps` does not) leave the crossing to `Lane::next`.
-                    let mut nan = _mm256_setzero_ps();
                     let cell = _mm256_set1_epi32(crate::macrocell::CELL as i32);
                     let rs_v = load_f(&fast.rs);
                     for a in (0..3).rev() {
@@ -540,18 +543,16 @@ mod avx2 {
                             ),
                             load_f(&fast.inv[a]),
                         );
-                        // `dir != 0.0`, true for NaN as in the scalar code.
+                        // `dir != 0.0` as the scalar code has it. Where it holds, `e` is not
+                        // NaN (`Fast::take` admits only lanes with finite `md`, and finite
+                        // `inv` where `md` is not 0), so `min_ps` is `f32::min` here.
                         let moving = _mm256_cmp_ps::<_CMP_NEQ_UQ>(dir, zero);
                         exit = _mm256_blendv_ps(exit, _mm256_min_ps(exit, e), moving);
-                        nan = _mm256_or_ps(
-                            nan,
-                            _mm256_and_ps(moving, _mm256_cmp_ps::<_CMP_UNORD_Q>(e, e)),
-                        );
                     }
                     let (mut idxs, mut exits) = ([0i32; LANES], [0.0f32; LANES]);
                     _mm256_storeu_si256(idxs.as_mut_ptr() as *mut __m256i, idx);
                     _mm256_storeu_ps(exits.as_mut_ptr(), exit);
-                    let bits = _mm256_movemask_ps(_mm256_andnot_ps(nan, cross));
+                    let bits = _mm256_movemask_ps(cross);
                     let mut into = [0i32; LANES];
                     for i in 0..LANES {
                         if bits >> i & 1 == 1 {
