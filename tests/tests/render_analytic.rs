@@ -21,6 +21,12 @@ fn constant_volume(dir: &std::path::Path, value: f32) -> std::path::PathBuf {
     )
 }
 
+/// A grey volume over the window [0, 2] whose transfer function has the constant opacity
+/// `a` (per unit step, before opacity correction).
+fn grey_alpha(store: std::path::PathBuf, a: f64) -> strata_common::scene::VolumeLayer {
+    volume_layer(store, "grey", [0.0, 2.0], vec![[0.0, a], [1.0, a]])
+}
+
 fn axis_camera(eye: [f64; 3], target: [f64; 3]) -> Camera {
     Camera {
         eye,
@@ -51,12 +57,7 @@ fn homogeneous_slab_transmittance_for_many_steps() {
         r.adaptive_step = false;
         r.step = step;
         let s = scene(
-            vec![volume_layer(
-                store.clone(),
-                "grey",
-                [0.0, 2.0],
-                vec![[0.0, a], [1.0, a]],
-            )],
+            vec![grey_alpha(store.clone(), a)],
             vec![],
             axis_camera([15.5, 15.5, -50.0], [15.5, 15.5, 0.0]),
             r,
@@ -94,12 +95,7 @@ fn adaptive_bands_keep_the_optical_depth() {
     let mut r = exact_settings(9, 9);
     r.adaptive_step = true;
     let s = scene(
-        vec![volume_layer(
-            store,
-            "grey",
-            [0.0, 2.0],
-            vec![[0.0, a], [1.0, a]],
-        )],
+        vec![grey_alpha(store, a)],
         vec![],
         axis_camera([15.5, 15.5, -200.0], [15.5, 15.5, 0.0]),
         r,
@@ -186,12 +182,7 @@ fn opaque_plane_behind_translucent_fog() {
     r.adaptive_step = false;
     r.lighting = false;
     let s = scene(
-        vec![volume_layer(
-            fog,
-            "grey",
-            [0.0, 2.0],
-            vec![[0.0, a], [1.0, a]],
-        )],
+        vec![grey_alpha(fog, a)],
         vec![horizon_layer(p, [1.0, 0.0, 0.0], 1.0)],
         axis_camera([15.5, 15.5, 100.0], [15.5, 15.5, 0.0]),
         r,
@@ -217,12 +208,7 @@ fn camera_inside_a_volume_and_saturating_alpha() {
     let mut r = exact_settings(W, W);
     r.adaptive_step = false;
     let s = scene(
-        vec![volume_layer(
-            store.clone(),
-            "grey",
-            [0.0, 2.0],
-            vec![[0.0, a], [1.0, a]],
-        )],
+        vec![grey_alpha(store.clone(), a)],
         vec![],
         axis_camera([15.5, 15.5, 10.0], [15.5, 15.5, 40.0]),
         r.clone(),
@@ -264,12 +250,7 @@ fn nan_samples_are_transparent() {
     let mut r = exact_settings(W, W);
     r.adaptive_step = false;
     let s = scene(
-        vec![volume_layer(
-            store,
-            "grey",
-            [0.0, 2.0],
-            vec![[0.0, a], [1.0, a]],
-        )],
+        vec![grey_alpha(store, a)],
         vec![],
         axis_camera([15.5, 15.5, -50.0], [15.5, 15.5, 0.0]),
         r,
@@ -637,12 +618,7 @@ fn f64_accumulation_keeps_many_tiny_steps_exact() {
     r.step = step;
     r.backend = strata_common::scene::Backend::Cpu;
     let s = scene(
-        vec![volume_layer(
-            store,
-            "grey",
-            [0.0, 2.0],
-            vec![[0.0, a], [1.0, a]],
-        )],
+        vec![grey_alpha(store, a)],
         vec![],
         Camera {
             eye: [1.5, 1.5, -10.0],

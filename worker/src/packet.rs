@@ -126,7 +126,7 @@ struct Lane {
 }
 
 /// The coordinates of a lane's next sample.
-#[derive(Copy, Clone, Default)]
+#[derive(Copy, Clone)]
 struct Ready {
     l: [f32; 3],
     off: usize,
