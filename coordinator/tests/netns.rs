@@ -1,13 +1,15 @@
 //! A cluster on a real (virtual) network: the coordinator and each worker in a network
-//! namespace of its own, wired by veth pairs to a bridge in a switch namespace that the
-//! test makes, every link rate-limited to 1 Gbit/s (`tbf`) both ways, pieces over QUIC.
-//! The sequence must equal the in-process one frame by frame, also when one worker's link
-//! is cut during the sequence (its leaves go to the others).
+//! namespace of its own, wired by veth pairs to a switch namespace that the test makes,
+//! every link rate-limited to 1 Gbit/s (`tbf`) both ways, every packet between two hosts
+//! delayed by 5 ms and 1 % of them lost, pieces over QUIC. The sequence must equal the
+//! in-process one frame by frame, also when one worker's link is cut during the sequence
+//! (its leaves go to the others).
 //!
-//! Needs root (CAP_NET_ADMIN) and network namespaces; where either is missing the test
-//! says so on stderr and ends. Latency and loss (`tc netem`) are not emulated: the kernel
-//! of the machines this runs on has no `sch_netem` ("Specified qdisc kind is unknown";
-//! `tests/netns/netem-probe.sh` shows it).
+//! Latency and loss: the kernel of the machines this runs on has no `sch_netem` ("Specified
+//! qdisc kind is unknown"; `tests/netns/netem-probe.sh` shows it), so the switch routes every
+//! packet through a TUN device to a relay thread of the test that delays and drops them
+//! (`netns/impair.rs`). Needs root (CAP_NET_ADMIN), network namespaces and `/dev/net/tun`;
+//! where these are missing the test says so on stderr and ends.
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
@@ -15,6 +17,8 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 mod common;
+#[path = "netns/impair.rs"]
+mod impair;
 use common::{max_diff, read_exr, strip_ansi, survey_in, BIN, SIZE};
 
 const FRAMES: u32 = 8;
@@ -55,6 +59,9 @@ impl Drop for Net {
 }
 
 impl Net {
+    /// The TUN device of the switch namespace that every packet between hosts crosses.
+    const TUN: &'static str = "impair0";
+
     fn new(nodes: usize) -> Result<Net, String> {
         let tag = std::process::id();
         let mut net = Net {
@@ -64,8 +71,51 @@ impl Net {
         };
         let sw = net.switch.clone();
         run("ip", &["netns", "add", &sw])?;
-        run("ip", &["-n", &sw, "link", "add", "br0", "type", "bridge"])?;
-        run("ip", &["-n", &sw, "link", "set", "br0", "up"])?;
+        // The switch routes: a packet from a port goes to the TUN device (table 100), one
+        // from the TUN device to its host's port (main table). The relay thread sits
+        // between the two.
+        run(
+            "ip",
+            &["-n", &sw, "tuntap", "add", "dev", Self::TUN, "mode", "tun"],
+        )?;
+        run("ip", &["-n", &sw, "link", "set", Self::TUN, "up"])?;
+        run("ip", &["-n", &sw, "link", "set", "lo", "up"])?;
+        let tun_route = [
+            "-n",
+            &sw,
+            "route",
+            "add",
+            "default",
+            "dev",
+            Self::TUN,
+            "table",
+            "100",
+        ];
+        run("ip", &tun_route)?;
+        run(
+            "ip",
+            &[
+                "-n",
+                &sw,
+                "rule",
+                "add",
+                "iif",
+                Self::TUN,
+                "lookup",
+                "main",
+                "pref",
+                "100",
+            ],
+        )?;
+        run(
+            "ip",
+            &["-n", &sw, "rule", "add", "lookup", "100", "pref", "200"],
+        )?;
+        // A host whose port is down (a cut link) is unreachable, not routed back in.
+        run(
+            "ip",
+            &["-n", &sw, "route", "add", "blackhole", "10.88.0.0/24"],
+        )?;
         let tbf = ["tbf", "rate", "1gbit", "burst", "256kb", "latency", "50ms"];
         for k in 0..nodes {
             let ns = format!("strata{tag}n{k}");
@@ -79,12 +129,40 @@ impl Net {
             )?;
             run("ip", &["link", "set", &v, "netns", &ns])?;
             run("ip", &["link", "set", &p, "netns", &sw])?;
-            let addr = format!("10.88.0.{}/24", k + 1);
-            run("ip", &["-n", &ns, "addr", "add", &addr, "dev", &v])?;
+            // A host has its address alone on its link and reaches the others through the
+            // switch port, a gateway at 169.254.88.1 (the same on every port).
+            let host = format!("10.88.0.{}", k + 1);
+            run(
+                "ip",
+                &["-n", &ns, "addr", "add", &format!("{host}/32"), "dev", &v],
+            )?;
             run("ip", &["-n", &ns, "link", "set", &v, "up"])?;
             run("ip", &["-n", &ns, "link", "set", "lo", "up"])?;
-            run("ip", &["-n", &sw, "link", "set", &p, "master", "br0"])?;
+            run(
+                "ip",
+                &["-n", &ns, "route", "add", "169.254.88.1/32", "dev", &v],
+            )?;
+            let via = [
+                "-n",
+                &ns,
+                "route",
+                "add",
+                "10.88.0.0/24",
+                "via",
+                "169.254.88.1",
+                "dev",
+                &v,
+            ];
+            run("ip", &via)?;
+            run(
+                "ip",
+                &["-n", &sw, "addr", "add", "169.254.88.1/32", "dev", &p],
+            )?;
             run("ip", &["-n", &sw, "link", "set", &p, "up"])?;
+            run(
+                "ip",
+                &["-n", &sw, "route", "add", &format!("{host}/32"), "dev", &p],
+            )?;
             // 1 Gbit/s each way: into the node (the switch port's egress) and out of it.
             let mut a = vec!["-n", &sw, "qdisc", "add", "dev", &p, "root"];
             a.extend(tbf);
@@ -94,7 +172,18 @@ impl Net {
             run("tc", &a)?;
             net.ports.push(p);
         }
+        // Forward, and take packets back from the TUN device whatever their source (the
+        // reverse-path filter would drop them: their sources route through the ports).
+        let sysctl = "echo 1 > /proc/sys/net/ipv4/ip_forward; \
+                      for f in /proc/sys/net/ipv4/conf/*/rp_filter; do echo 0 > $f; done";
+        run("ip", &["netns", "exec", &sw, "sh", "-c", sysctl])?;
         Ok(net)
+    }
+
+    /// Starts the relay: every packet between hosts delayed by `delay`, a fraction `loss`
+    /// of them dropped.
+    fn impair(&self, delay: Duration, loss: f64) -> Result<impair::Relay, String> {
+        impair::start(&self.switch, Self::TUN, delay, loss, 0x5eed_0f_1055)
     }
 
     /// A command run inside node `k`'s namespace.
@@ -242,8 +331,15 @@ fn distributed(
 }
 
 #[test]
-fn a_rate_limited_namespace_network_renders_like_in_process_and_survives_a_cut_link() {
+fn a_namespace_network_with_latency_loss_and_rate_limits_renders_like_in_process_and_survives_a_cut_link(
+) {
     let Some(net) = network(4) else { return };
+    // 5 ms between any two hosts and 1 % of packets lost, as `tc netem delay 5ms loss 1%`
+    // would do, on top of the 1 Gbit/s links.
+    let delay = Duration::from_millis(5);
+    let relay = net
+        .impair(delay, 0.01)
+        .unwrap_or_else(|e| panic!("the latency and loss relay: {e}"));
     let dir = tempfile::tempdir().unwrap();
     let refs = reference(dir.path());
     let check = |run: &Path, stats: &str| {
@@ -254,7 +350,7 @@ fn a_rate_limited_namespace_network_renders_like_in_process_and_survives_a_cut_l
         }
     };
 
-    // 1. Three workers over the 1 Gbit/s links: every frame as in process, all pieces
+    // 1. Three workers over the impaired links: every frame as in process, all pieces
     //    over QUIC.
     let run = dir.path().join("plain");
     let stats = distributed(&net, &run, 3, |_, _| {});
@@ -294,4 +390,17 @@ fn a_rate_limited_namespace_network_renders_like_in_process_and_survives_a_cut_l
         "{stats}"
     );
     assert_eq!(lost[0]["phase"], "frame", "{stats}");
+
+    // The relay was in the path of both runs: it held every packet it forwarded for the
+    // delay, and lost about 1 % of them.
+    let c = relay.finish();
+    let seen = c.forwarded + c.dropped;
+    let lost = c.dropped as f64 / seen as f64;
+    assert!(c.forwarded > 1000, "{c:?}");
+    assert!(
+        (0.002..0.03).contains(&lost),
+        "lost {lost} of {seen}: {c:?}"
+    );
+    assert!(c.min_held >= delay, "{c:?}");
+    eprintln!("relay: {c:?}, lost {:.2} %", 100.0 * lost);
 }

@@ -2,8 +2,9 @@
 # Shows what coordinator/tests/netns.rs can and cannot emulate on this machine: it makes a
 # veth pair and tries each traffic-control discipline the issue asks for. On the project's
 # machines (kernel 6.18, no modules directory) `tbf` (rate) works and `netem` (latency,
-# loss) fails with "Specified qdisc kind is unknown", so the namespace test limits rate and
-# cuts a link, but cannot add latency or loss. Needs root. Exit 0 when netem works.
+# loss) fails with "Specified qdisc kind is unknown", so the namespace test limits rate with
+# tbf and adds latency and loss in user space instead (a TUN relay in its switch namespace,
+# coordinator/tests/netns/impair.rs). Needs root. Exit 0 when netem works.
 set -u
 A=strata-probe-a
 ip link add "$A" type veth peer name strata-probe-b || { echo "cannot make a veth pair (root and CAP_NET_ADMIN needed)"; exit 2; }
