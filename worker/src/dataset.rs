@@ -25,6 +25,9 @@ pub struct Volume {
     pub tf: TransferFunction,
     /// `[min, max]` per page, in page-table order (NaN range for empty pages).
     pub bounds: Vec<[f32; 2]>,
+    /// Each page's feedback key (data set, level, Morton index), in page-table order: the
+    /// march records one per brick it enters, so the key is looked up, not encoded.
+    pub page_keys: Vec<u64>,
     /// Slices drawn through it.
     pub slices: Vec<Slice>,
 }
@@ -77,6 +80,21 @@ fn page_bounds(store: &PageStore) -> Vec<[f32; 2]> {
                         _ => [f32::NAN, f32::NAN],
                     };
                     out.push(b);
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Every page's key in page-table order (the order of `page_bounds` and `PageTable::index`).
+fn page_keys(ds: u16, p: &Pyramid) -> Vec<u64> {
+    let mut out = Vec::new();
+    for (l, lev) in p.levels().iter().enumerate() {
+        for z in 0..lev.bricks[2] {
+            for y in 0..lev.bricks[1] {
+                for x in 0..lev.bricks[0] {
+                    out.push(p.id(l, [x, y, z]).with_dataset(ds).0);
                 }
             }
         }
@@ -224,6 +242,7 @@ impl Volume {
             to_world: h.transform,
             tf,
             bounds: page_bounds(&store),
+            page_keys: page_keys(ds, store.pyramid()),
             store,
         })
     }

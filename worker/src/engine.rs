@@ -618,6 +618,7 @@ impl Engine {
                 tables,
                 pre,
                 pyramid: &v.pyramid,
+                page_keys: &v.page_keys,
                 slices: &v.slices,
                 tf: &v.tf,
             });

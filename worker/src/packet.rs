@@ -233,7 +233,7 @@ struct Fast {
     o: [[f32; LANES]; 3],
     slot: [u32; LANES],
     off: [i32; LANES],
-    band: [usize; LANES],
+    band: [i32; LANES],
     /// Samples taken here (added to the lane's at the end).
     count: [i32; LANES],
 }
@@ -272,7 +272,7 @@ impl Fast {
         self.rs[i] = lane.cur.rs;
         self.slot[i] = lane.cur.slot;
         self.off[i] = off as i32;
-        self.band[i] = lane.band;
+        self.band[i] = lane.band as i32;
     }
 }
 
@@ -465,6 +465,8 @@ mod avx2 {
         // The lockstep state of the lanes whose next sample needs none of the scalar
         // control flow.
         let mut fast = Fast::default();
+        // The lanes still marching, a bit each.
+        let mut live_bits: i32 = (1 << lanes.len()) - 1;
         // SAFETY (all intrinsics below): AVX2 is enabled for this function; every gather
         // index is in bounds as argued where it is formed.
         unsafe {
@@ -567,17 +569,6 @@ mod avx2 {
                 }
                 let go_bits = _mm256_movemask_ps(go);
                 let go_i = _mm256_castps_si256(go);
-                let (mut lx, mut ly, mut lz) = ([0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES]);
-                let mut offs = [0i32; LANES];
-                // Lanes without a lockstep sample read the start of slot 0 (in bounds)
-                // unless the scalar march gives them one below.
-                _mm256_storeu_ps(lx.as_mut_ptr(), _mm256_and_ps(l3[0], go));
-                _mm256_storeu_ps(ly.as_mut_ptr(), _mm256_and_ps(l3[1], go));
-                _mm256_storeu_ps(lz.as_mut_ptr(), _mm256_and_ps(l3[2], go));
-                _mm256_storeu_si256(
-                    offs.as_mut_ptr() as *mut __m256i,
-                    _mm256_and_si256(load_i(&fast.off), go_i),
-                );
                 // k + 1 and one more sample where a fast lane sampled.
                 _mm256_storeu_si256(
                     fast.k.as_mut_ptr() as *mut __m256i,
@@ -587,45 +578,86 @@ mod avx2 {
                     fast.count.as_mut_ptr() as *mut __m256i,
                     _mm256_sub_epi32(load_i(&fast.count), go_i),
                 );
-                let mut on = [0i32; LANES];
-                let mut any = false;
-                // The band of the ready lanes if they share one (`usize::MAX`: not yet,
-                // `MIXED`: they do not).
+                // The band of the ready lanes if they share one (`MIXED`: they do not).
                 const MIXED: usize = usize::MAX - 1;
-                let mut common = usize::MAX;
                 let mut bands = [0usize; LANES];
-                for (i, lane) in lanes.iter_mut().enumerate() {
-                    let band = if go_bits >> i & 1 == 1 {
-                        fast.band[i]
+                // Where every live lane has a lockstep sample (nearly every step), the
+                // sample positions stay in registers and no lane runs scalar code.
+                let band0 = fast.band[(go_bits.trailing_zeros() as usize).min(LANES - 1)];
+                let same_band = _mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpeq_epi32(
+                    load_i(&fast.band),
+                    _mm256_set1_epi32(band0),
+                ))) & go_bits
+                    == go_bits;
+                let (x, y, z, offs, mask, common) =
+                    if go_bits != 0 && go_bits == live_bits && same_band {
+                        (
+                            _mm256_and_ps(l3[0], go),
+                            _mm256_and_ps(l3[1], go),
+                            _mm256_and_ps(l3[2], go),
+                            _mm256_and_si256(load_i(&fast.off), go_i),
+                            go,
+                            band0 as usize,
+                        )
                     } else {
-                        if !lane.live {
-                            continue;
+                        let (mut lx, mut ly, mut lz) =
+                            ([0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES]);
+                        let mut offs = [0i32; LANES];
+                        // Lanes without a lockstep sample read the start of slot 0 (in bounds)
+                        // unless the scalar march gives them one below.
+                        _mm256_storeu_ps(lx.as_mut_ptr(), _mm256_and_ps(l3[0], go));
+                        _mm256_storeu_ps(ly.as_mut_ptr(), _mm256_and_ps(l3[1], go));
+                        _mm256_storeu_ps(lz.as_mut_ptr(), _mm256_and_ps(l3[2], go));
+                        _mm256_storeu_si256(
+                            offs.as_mut_ptr() as *mut __m256i,
+                            _mm256_and_si256(load_i(&fast.off), go_i),
+                        );
+                        let mut on = [0i32; LANES];
+                        let mut any = false;
+                        // `usize::MAX`: no ready lane yet.
+                        let mut common = usize::MAX;
+                        for (i, lane) in lanes.iter_mut().enumerate() {
+                            let band = if go_bits >> i & 1 == 1 {
+                                fast.band[i] as usize
+                            } else {
+                                if !lane.live {
+                                    continue;
+                                }
+                                if fast.on[i] != 0 {
+                                    lane.k = fast.k[i] as i64;
+                                    lane.cell_exit = fast.cell[i];
+                                    fast.on[i] = 0;
+                                }
+                                let Some(r) = lane.next(f, v, fb) else {
+                                    live_bits &= !(1 << i);
+                                    continue;
+                                };
+                                (lx[i], ly[i], lz[i]) = (r.l[0], r.l[1], r.l[2]);
+                                offs[i] = r.off as i32;
+                                fast.take(i, lane);
+                                r.band
+                            };
+                            common = if common == usize::MAX || common == band {
+                                band
+                            } else {
+                                MIXED
+                            };
+                            bands[i] = band;
+                            on[i] = -1;
+                            any = true;
                         }
-                        if fast.on[i] != 0 {
-                            lane.k = fast.k[i] as i64;
-                            lane.cell_exit = fast.cell[i];
-                            fast.on[i] = 0;
+                        if !any {
+                            break;
                         }
-                        let Some(r) = lane.next(f, v, fb) else {
-                            continue;
-                        };
-                        (lx[i], ly[i], lz[i]) = (r.l[0], r.l[1], r.l[2]);
-                        offs[i] = r.off as i32;
-                        fast.take(i, lane);
-                        r.band
+                        (
+                            load_f(&lx),
+                            load_f(&ly),
+                            load_f(&lz),
+                            load_i(&offs),
+                            _mm256_castsi256_ps(load_i(&on)),
+                            common,
+                        )
                     };
-                    common = if common == usize::MAX || common == band {
-                        band
-                    } else {
-                        MIXED
-                    };
-                    bands[i] = band;
-                    on[i] = -1;
-                    any = true;
-                }
-                if !any {
-                    break;
-                }
                 // Each lane's band table: one broadcast when the lanes share a band (nearly
                 // always), else per lane. Masked lanes take the same (their lookups stay
                 // inside that band's table).
@@ -660,8 +692,6 @@ mod avx2 {
                         load_i(&maxi),
                     )
                 };
-                let (x, y, z) = (load_f(&lx), load_f(&ly), load_f(&lz));
-                let mask = _mm256_castsi256_ps(load_i(&on));
                 // Trilinear, as `trilinear_at`: coordinates are in [0, p − 1), so every
                 // tap index is below off + p³ (and 8-bit pair reads stay within the pool's
                 // padding).
@@ -673,7 +703,7 @@ mod avx2 {
                 let fz = _mm256_sub_ps(z, _mm256_cvtepi32_ps(zi));
                 let vp = _mm256_set1_epi32(p as i32);
                 let idx = _mm256_add_epi32(
-                    load_i(&offs),
+                    offs,
                     _mm256_add_epi32(
                         _mm256_mullo_epi32(_mm256_add_epi32(_mm256_mullo_epi32(zi, vp), yi), vp),
                         xi,
@@ -751,6 +781,7 @@ mod avx2 {
                 if done != 0 {
                     for (i, lane) in lanes.iter_mut().enumerate() {
                         if done >> i & 1 == 1 {
+                            live_bits &= !(1 << i);
                             lane.live = false;
                             lane.terminated = true;
                             fast.on[i] = 0;

@@ -48,12 +48,22 @@ pub struct VolFrame<'a> {
     pub pre: Option<Vec<std::sync::Arc<strata_common::tf::PreintTable>>>,
     /// The same tables laid end to end (for SIMD packets).
     pub flat: crate::packet::FlatTables,
-    /// The pyramid (for page keys).
+    /// The pyramid.
     pub pyramid: &'a Pyramid,
+    /// Each page's feedback key, in page-table order.
+    pub page_keys: &'a [u64],
     /// Slices through the volume (empty: no slice code runs).
     pub slices: &'a [crate::dataset::Slice],
     /// The transfer function (slices take its colour).
     pub tf: &'a strata_common::tf::TransferFunction,
+}
+
+/// 2^−n, exactly (`0.5f32.powi(n)` without the libm call on the locate path); levels stay
+/// far below the exponent's range.
+#[inline(always)]
+pub fn half_pow(n: usize) -> f32 {
+    debug_assert!(n < 127);
+    f32::from_bits((127 - n as u32) << 23)
 }
 
 /// The light of an unshaded sample: colour times 1, no specular.
@@ -183,7 +193,7 @@ impl<'a> VolFrame<'a> {
         while level + 1 < nl && t >= self.level_t[level + 1] {
             level += 1;
         }
-        let scale = (0.5f32).powi(level as i32);
+        let scale = half_pow(level);
         let li = &self.table.levels[level];
         let b = [0, 1, 2].map(|a| {
             let f = (q[a] + 0.5) * scale / self.core;
@@ -224,7 +234,7 @@ impl<'a> VolFrame<'a> {
             level += 1;
         }
         cur.level = level;
-        let scale = (0.5f32).powi(level as i32);
+        let scale = half_pow(level);
         let li = &self.table.levels[level];
         let mut b = [0u32; 3];
         let mut t_exit = if level + 1 < nl {
@@ -232,7 +242,8 @@ impl<'a> VolFrame<'a> {
         } else {
             f32::INFINITY
         };
-        let span = self.core / scale; // brick size in level-0 samples
+        // Brick size in level-0 samples (`core / scale`, exactly: `scale` is a power of two).
+        let span = self.core * (1u32 << level) as f32;
         for a in 0..3 {
             // Truncation is the floor here: negative positions clamp to brick 0 either way
             // (and `floor` is a libm call on baseline x86-64).
@@ -255,7 +266,7 @@ impl<'a> VolFrame<'a> {
         if cur.transparent {
             return;
         }
-        feedback.push(self.pyramid.id(level, b).with_dataset(self.ds).0);
+        feedback.push(self.page_keys[idx]);
         let e = self.table.entries[idx];
         if e == NOT_RESIDENT {
             cur.transparent = true;
@@ -263,7 +274,7 @@ impl<'a> VolFrame<'a> {
         }
         let r = (e >> 24) as usize;
         let slot = e & SLOT_MASK;
-        let sr = (0.5f32).powi(r as i32);
+        let sr = half_pow(r);
         let k = (r - level) as u32;
         let ps = self.pool.page_samples;
         assert_eq!(ps, self.page * self.page * self.page);
@@ -509,6 +520,23 @@ pub fn first_k_near(t: f32, dt: f32, inv_dt: f32) -> i64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn half_pow_is_powi_bit_for_bit() {
+        for n in 0..64usize {
+            assert_eq!(
+                half_pow(n).to_bits(),
+                0.5f32.powi(n as i32).to_bits(),
+                "2^-{n}"
+            );
+            // The brick span: `core / 2^-n` is `core · 2^n` exactly.
+            if n < 24 {
+                for core in [7.0f32, 62.0, 63.0, 126.0] {
+                    assert_eq!(core / half_pow(n), core * (1u32 << n) as f32);
+                }
+            }
+        }
+    }
 
     #[test]
     fn lattice_start_is_exact() {
