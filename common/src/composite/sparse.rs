@@ -172,10 +172,18 @@ impl PieceLayout {
                     let mut i = 0usize;
                     while i < n {
                         let s = i;
+                        // Whole blocks first (a branch-free test of `SCAN` pixels), then
+                        // pixel by pixel to the run's end.
+                        while i + SCAN <= n && block_inactive(&bits[i..i + SCAN]) {
+                            i += SCAN;
+                        }
                         while i < n && is_inactive(&bits[i]) {
                             i += 1;
                         }
                         let a = i;
+                        while i + SCAN <= n && block_active(&bits[i..i + SCAN]) {
+                            i += SCAN;
+                        }
                         while i < n && !is_inactive(&bits[i]) {
                             i += 1;
                         }
@@ -385,6 +393,27 @@ const CHUNK: usize = 256;
 #[inline(always)]
 fn is_inactive(p: &[u32; 4]) -> bool {
     (p[0] | p[1] | p[2] | p[3]) == 0
+}
+
+/// Pixels tested at once while scanning for runs (one 8-pixel block is 128 bytes).
+const SCAN: usize = 8;
+
+/// Whether every pixel of `block` is inactive (all bits zero): one OR over the block, which
+/// the compiler vectorises, instead of a branch per pixel.
+#[inline(always)]
+fn block_inactive(block: &[[u32; 4]]) -> bool {
+    block
+        .iter()
+        .fold(0u32, |acc, p| acc | p[0] | p[1] | p[2] | p[3])
+        == 0
+}
+
+/// Whether every pixel of `block` is active (some bit set), without a branch per pixel.
+#[inline(always)]
+fn block_active(block: &[[u32; 4]]) -> bool {
+    block
+        .iter()
+        .fold(true, |acc, p| acc & ((p[0] | p[1] | p[2] | p[3]) != 0))
 }
 
 /// The bytes as RGBA `f32` pixels without copying, when layout and alignment allow.
@@ -1345,6 +1374,61 @@ mod tests {
         long.push(0);
         assert!(SparsePiece::parse_split(&bytes[..head_len], long.into(), 1 << 20).is_err());
         assert!(SparsePiece::parse_split(&bytes[..head_len + 1], data.into(), 1 << 20).is_err());
+    }
+
+    /// Pixels in runs of 0..40 alike pixels, active ones including `-0.0` and denormals
+    /// (bits set, values ~0): the layouts' block scan sees whole blocks and run ends at
+    /// every offset within a block.
+    fn runs_strategy() -> impl Strategy<Value = Vec<Rgba>> {
+        let active = prop_oneof![
+            Just([-0.0f32, 0.0, 0.0, 0.0]),
+            Just([0.0f32, 0.0, 0.0, f32::from_bits(1)]),
+            (0.0f32..=1.0).prop_map(|a| [a, a, a, a]),
+        ];
+        prop::collection::vec((any::<bool>(), 0usize..40, active), 0..40).prop_map(|runs| {
+            runs.into_iter()
+                .flat_map(|(on, n, px)| std::iter::repeat_n(if on { px } else { [0.0; 4] }, n))
+                .collect()
+        })
+    }
+
+    /// The layout as a plain pixel-by-pixel scan finds it.
+    fn reference_runs(pixels: &[Rgba]) -> Vec<u32> {
+        let mut b = RunBuilder::default();
+        for p in pixels {
+            if p.iter().all(|c| c.to_bits() == 0) {
+                b.inactive(1);
+            } else {
+                b.active(1);
+            }
+        }
+        b.finish().runs
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(256))]
+
+        /// The block scan finds the runs a pixel-by-pixel scan does, also across segments.
+        #[test]
+        fn layouts_match_a_pixel_by_pixel_scan(pixels in runs_strategy(), zeros in 0usize..20, cut in 0usize..400) {
+            let layout = PieceLayout::of(&pixels);
+            prop_assert_eq!(&layout.runs, &reference_runs(&pixels));
+            prop_assert_eq!(
+                layout.active,
+                pixels.iter().filter(|p| p.iter().any(|c| c.to_bits() != 0)).count()
+            );
+            let cut = cut.min(pixels.len());
+            let (a, b) = pixels.split_at(cut);
+            let parts = PieceLayout::of_segments(&[
+                Segment::Pixels(a),
+                Segment::Zeros(zeros),
+                Segment::Pixels(b),
+            ]);
+            let mut joined = a.to_vec();
+            joined.extend(std::iter::repeat_n([0.0f32; 4], zeros));
+            joined.extend_from_slice(b);
+            prop_assert_eq!(&parts.runs, &reference_runs(&joined));
+        }
     }
 
     proptest! {
