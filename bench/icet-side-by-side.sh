@@ -5,6 +5,7 @@
 # shared-memory transport.
 #
 #   bench/icet-side-by-side.sh ICET_SRC OUT_DIR [ROUNDS] [FRAMES]
+#   (STRATA_FRAMES, default 7: bench-composite's timed frames per configuration)
 #
 # ICET_SRC is an IceT source tree (the baselines in ../shared/baselines/RESULTS.md used
 # wilsonCernWq/icet @088aa5a26137). It is copied to OUT_DIR, given SimpleTiming's `-direct`
@@ -13,8 +14,9 @@
 # and a release bench-composite (cargo build --release -p strata-bench).
 #
 # IceT runs as the baselines did (`-transparent`, `-seed 12345`, sparse images interlaced,
-# `-dense-images` for dense); frame 0 is dropped and the median of the others kept. Strata
-# runs `bench-composite --transports shm` (its own median of FRAMES timed frames). Each
+# `-dense-images` for dense), FRAMES frames; frame 0 is dropped and the median of the others
+# kept. Strata runs `bench-composite --transports shm` (its own median of STRATA_FRAMES
+# timed frames after a warm-up). Each
 # round runs every IceT configuration, then Strata; the summary keeps, per configuration,
 # the lowest of the rounds' medians, and writes OUT_DIR/summary.md.
 set -euo pipefail
@@ -22,6 +24,7 @@ SRC=${1:?IceT source tree}
 OUT=${2:?output folder}
 ROUNDS=${3:-2}
 FRAMES=${4:-21}
+STRATA_FRAMES=${STRATA_FRAMES:-7}
 BENCH=${BENCH:-target/release/bench-composite}
 [ -x "$BENCH" ] || { echo "error: $BENCH missing (cargo build --release -p strata-bench)" >&2; exit 1; }
 mkdir -p "$OUT"
@@ -48,6 +51,8 @@ EOF
   make -C "$OUT/icet-build" -j2 icetTests_mpi >/dev/null
 fi
 ICET="$OUT/icet-build/bin/icetTests_mpi"
+# This session's measurements only (the IceT build above is kept between sessions).
+rm -f "$OUT/icet.csv" "$OUT"/strata-*.jsonl "$OUT/summary.md"
 
 for r in $(seq 1 "$ROUNDS"); do
   for p in 2 4 8; do
@@ -60,7 +65,7 @@ for r in $(seq 1 "$ROUNDS"); do
       done
     done
   done
-  "$BENCH" --procs 2,4,8 --transports shm --frames 7 --json "$OUT/strata-$r.jsonl" >/dev/null
+  "$BENCH" --procs 2,4,8 --transports shm --frames "$STRATA_FRAMES" --json "$OUT/strata-$r.jsonl" >/dev/null
   echo "round $r done"
 done
 

@@ -136,9 +136,11 @@ fn main() -> Result<()> {
     // with the stats' seconds into the frame, this puts the frames' starts on the faults'
     // clock.
     let detections: Arc<Mutex<Vec<Instant>>> = Arc::default();
+    // Each fault's victim and when it was signalled (the set-up fault's from the reader).
+    let fault_at: Arc<Mutex<Vec<(i32, Instant)>>> = Arc::default();
     let reader = {
         let (pids, ready, done) = (pids.clone(), ready.clone(), setup_fault.clone());
-        let detections = detections.clone();
+        let (detections, signalled) = (detections.clone(), fault_at.clone());
         let mut pending = cli.setup_fault.clone();
         let stderr = child.stderr.take().unwrap();
         std::thread::spawn(move || {
@@ -168,6 +170,7 @@ fn main() -> Result<()> {
                             };
                             // SAFETY: a plain syscall on a worker process this run started.
                             unsafe { libc::kill(victim, sig) };
+                            signalled.lock().unwrap().push((victim, Instant::now()));
                             *done.lock().unwrap() = Some(format!(
                                 "SIG{} pid {victim} during set-up",
                                 how.to_uppercase()
@@ -199,8 +202,6 @@ fn main() -> Result<()> {
     let start = Instant::now();
     let share = 2.0 * reference_s / (cli.faults + 1) as f64;
     let mut faults = Vec::new();
-    // Each in-frame fault's victim and when it was signalled.
-    let mut fault_at: Vec<(i32, Instant)> = Vec::new();
     if let Some(f) = setup_fault.lock().unwrap().clone() {
         println!("fault: {f}");
         faults.push(f);
@@ -234,7 +235,7 @@ fn main() -> Result<()> {
                 std::io::Error::last_os_error()
             );
         }
-        fault_at.push((victim, Instant::now()));
+        fault_at.lock().unwrap().push((victim, Instant::now()));
         faults.push(format!("{name} pid {victim} at {after:.2} s"));
         println!("fault: {}", faults.last().unwrap());
     }
@@ -282,6 +283,7 @@ fn main() -> Result<()> {
         median * 1e3
     );
     let detected = detections.lock().unwrap().clone();
+    let fault_at = fault_at.lock().unwrap().clone();
     // Losses that share a detection (one re-render) have the same seconds into the frame;
     // the k-th such group is the k-th "re-rendering" line.
     let mut group = 0usize;

@@ -10,7 +10,7 @@
 use std::collections::VecDeque;
 use std::ffi::CString;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -27,14 +27,21 @@ pub(crate) struct Counts {
 /// A running relay; stops (and its device goes down with the namespace) on `finish`/drop.
 pub(crate) struct Relay {
     stop: Arc<AtomicBool>,
-    thread: Option<JoinHandle<Counts>>,
+    counts: Arc<Mutex<Counts>>,
+    thread: Option<JoinHandle<()>>,
 }
 
 impl Relay {
+    /// The counts so far.
+    pub(crate) fn counts(&self) -> Counts {
+        *self.counts.lock().unwrap()
+    }
+
     /// Stops the relay and returns its counts.
     pub(crate) fn finish(mut self) -> Counts {
         self.stop.store(true, Ordering::Relaxed);
-        self.thread.take().unwrap().join().unwrap()
+        self.thread.take().unwrap().join().unwrap();
+        self.counts()
     }
 }
 
@@ -63,10 +70,10 @@ fn os_err(what: &str) -> String {
     format!("{what}: {}", std::io::Error::last_os_error())
 }
 
-/// Enters network namespace `netns` (this thread only) and attaches to its TUN device `dev`.
-fn attach(netns: &str, dev: &str) -> Result<libc::c_int, String> {
+/// Moves the calling thread (only) into network namespace `netns` (made by `ip netns add`).
+pub(crate) fn enter(netns: &str) -> Result<(), String> {
     let path = CString::new(format!("/run/netns/{netns}")).unwrap();
-    // SAFETY: plain system calls on descriptors this function owns; `req` outlives the ioctl.
+    // SAFETY: plain system calls on a descriptor this function owns.
     unsafe {
         let ns = libc::open(path.as_ptr(), libc::O_RDONLY | libc::O_CLOEXEC);
         if ns < 0 {
@@ -77,6 +84,15 @@ fn attach(netns: &str, dev: &str) -> Result<libc::c_int, String> {
         if r != 0 {
             return Err(os_err(&format!("entering namespace {netns}")));
         }
+    }
+    Ok(())
+}
+
+/// Enters network namespace `netns` (this thread only) and attaches to its TUN device `dev`.
+fn attach(netns: &str, dev: &str) -> Result<libc::c_int, String> {
+    enter(netns)?;
+    // SAFETY: plain system calls on descriptors this function owns; `req` outlives the ioctl.
+    unsafe {
         let fd = libc::open(
             c"/dev/net/tun".as_ptr(),
             libc::O_RDWR | libc::O_NONBLOCK | libc::O_CLOEXEC,
@@ -111,8 +127,14 @@ pub(crate) fn start(
 ) -> Result<Relay, String> {
     assert!(dev.len() < libc::IFNAMSIZ && (0.0..1.0).contains(&loss));
     let stop = Arc::new(AtomicBool::new(false));
+    let counts = Arc::new(Mutex::new(Counts::default()));
     let (ready_tx, ready_rx) = std::sync::mpsc::channel();
-    let (netns, dev, halt) = (netns.to_string(), dev.to_string(), stop.clone());
+    let (netns, dev, halt, shared) = (
+        netns.to_string(),
+        dev.to_string(),
+        stop.clone(),
+        counts.clone(),
+    );
     let thread = std::thread::spawn(move || {
         let fd = match attach(&netns, &dev) {
             Ok(fd) => {
@@ -121,17 +143,17 @@ pub(crate) fn start(
             }
             Err(e) => {
                 let _ = ready_tx.send(Err(e));
-                return Counts::default();
+                return;
             }
         };
-        let counts = relay(fd, delay, loss, seed, &halt);
+        relay(fd, delay, loss, seed, &halt, &shared);
         // SAFETY: `fd` is this thread's, and nothing uses it after this.
         unsafe { libc::close(fd) };
-        counts
     });
     match ready_rx.recv() {
         Ok(Ok(())) => Ok(Relay {
             stop,
+            counts,
             thread: Some(thread),
         }),
         Ok(Err(e)) => {
@@ -143,8 +165,16 @@ pub(crate) fn start(
 }
 
 /// The loop: read what has arrived, queue it (or drop it), write what is due, sleep in
-/// `poll` until the next packet is due or one arrives.
-fn relay(fd: libc::c_int, delay: Duration, loss: f64, seed: u64, stop: &AtomicBool) -> Counts {
+/// `poll` until the next packet is due or one arrives. Ends when told to, or when reading
+/// fails (the device is gone): the test then sees packets stop being forwarded.
+fn relay(
+    fd: libc::c_int,
+    delay: Duration,
+    loss: f64,
+    seed: u64,
+    stop: &AtomicBool,
+    shared: &Mutex<Counts>,
+) {
     let mut counts = Counts {
         min_held: Duration::MAX,
         ..Counts::default()
@@ -165,6 +195,16 @@ fn relay(fd: libc::c_int, delay: Duration, loss: f64, seed: u64, stop: &AtomicBo
         loop {
             // SAFETY: `buf` is valid for its length.
             let n = unsafe { libc::read(fd, buf.as_mut_ptr().cast(), buf.len()) };
+            if n < 0 {
+                let e = std::io::Error::last_os_error();
+                if !matches!(
+                    e.kind(),
+                    std::io::ErrorKind::WouldBlock | std::io::ErrorKind::Interrupted
+                ) {
+                    eprintln!("impair: reading the TUN device: {e}");
+                    return;
+                }
+            }
             if n <= 0 {
                 break;
             }
@@ -186,6 +226,13 @@ fn relay(fd: libc::c_int, delay: Duration, loss: f64, seed: u64, stop: &AtomicBo
             counts.min_held = counts.min_held.min(held);
             counts.max_held = counts.max_held.max(held);
         }
+        {
+            let mut c = shared.lock().unwrap();
+            *c = counts;
+            if c.forwarded == 0 {
+                c.min_held = Duration::ZERO;
+            }
+        }
         let wait = queue
             .front()
             .map_or(Duration::from_millis(20), |(_, due, _)| {
@@ -203,8 +250,4 @@ fn relay(fd: libc::c_int, delay: Duration, loss: f64, seed: u64, stop: &AtomicBo
         // SAFETY: one valid pollfd; `ts` outlives the call.
         unsafe { libc::ppoll(&mut p, 1, &ts, std::ptr::null()) };
     }
-    if counts.forwarded == 0 {
-        counts.min_held = Duration::ZERO;
-    }
-    counts
 }
