@@ -195,7 +195,9 @@ impl Net {
         c
     }
 
-    /// Cuts node `k`'s link at the switch.
+    /// Cuts node `k`'s link at the switch. The port's route to the host goes with it, so
+    /// the switch's blackhole route drops the host's packets from then on (bringing the
+    /// port up again would need that route added back).
     fn cut(&self, k: usize) {
         run(
             "ip",
