@@ -65,7 +65,24 @@ for r in $(seq 1 "$ROUNDS"); do
       done
     done
   done
-  "$BENCH" --procs 2,4,8 --transports shm --frames "$STRATA_FRAMES" --json "$OUT/strata-$r.jsonl" >/dev/null
+  # Strata's sparse images at IceT's coverage: the active pixels one rank sent under
+  # IceT's direct strategy this round (bytes sent over the p - 1 senders, 16 bytes a
+  # pixel), as a fraction of the frame. IceT's boxes shrink as p grows; a fixed coverage
+  # would compare different work.
+  for p in 2 4 8; do
+    cov=$(python3 - "$OUT/icet.csv" "$r" "$p" <<'EOF2'
+import csv, statistics, sys
+path, rnd, p = sys.argv[1], sys.argv[2], int(sys.argv[3])
+b = [float(row[2:][-2]) for row in csv.reader(open(path))
+     if row[0] == rnd and row[1] == "-direct" and int(row[2:][1]) == p
+     and row[2:][12] == "no" and row[2:][14] != "0"]
+print(f"{statistics.median(b) / (p - 1) / 16 / (1920 * 1080):.4f}")
+EOF2
+)
+    echo "round $r: p = $p, sparse coverage $cov (IceT direct's active pixels per rank)"
+    "$BENCH" --procs "$p" --transports shm --frames "$STRATA_FRAMES" --sparse-coverage "$cov" \
+      --json "$OUT/strata-$r-p$p.jsonl" >/dev/null
+  done
   echo "round $r done"
 done
 

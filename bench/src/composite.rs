@@ -229,7 +229,12 @@ fn main() -> Result<()> {
                 ("dense", 1.0f32, false),
                 ("sparse", cli.sparse_coverage, true),
             ] {
-                for algorithm in [Algorithm::DirectSend, Algorithm::BinarySwap, Algorithm::RadixK] {
+                for algorithm in [
+                    Algorithm::DirectSend,
+                    Algorithm::BinarySwap,
+                    Algorithm::RadixK,
+                    Algorithm::Gather,
+                ] {
                     for wire in [WireFormat::F32, WireFormat::F16] {
                         let choice = CompositeChoice {
                             algorithm,

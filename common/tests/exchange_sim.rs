@@ -286,10 +286,26 @@ fn simulate(p: usize, algorithm: Algorithm, frames: u64, faults: Faults, seed: u
                 when[frame as usize][r as usize] = now;
                 next_frame[r as usize] = frame + 1;
                 if frame + 1 < frames {
-                    // The next frame starts a little later (ranks drift apart).
-                    let at = now + Duration::from_micros(rng.below(4000));
-                    queue.insert((at, seq), Ev::Start(r));
-                    seq += 1;
+                    // The next frame starts a little later (ranks drift apart). Under
+                    // gather the ranks that only send are done at once and would run any
+                    // number of frames ahead of position 0; the coordinator's frame
+                    // requests (one frame at a time) keep them within one, so here the
+                    // next frame starts once every rank has ended this one.
+                    let starts: Vec<u32> = if algorithm == Algorithm::Gather {
+                        let f = frame as usize;
+                        if results[f].iter().all(|x| x.is_some()) {
+                            (0..p as u32).collect()
+                        } else {
+                            Vec::new()
+                        }
+                    } else {
+                        vec![r]
+                    };
+                    for q in starts {
+                        let at = now + Duration::from_micros(rng.below(4000));
+                        queue.insert((at, seq), Ev::Start(q));
+                        seq += 1;
+                    }
                 }
             }
         }
@@ -319,6 +335,7 @@ fn latency_reordering_and_duplication_leave_every_frame_exact() {
             Algorithm::DirectSend,
             Algorithm::BinarySwap,
             Algorithm::RadixK,
+            Algorithm::Gather,
         ] {
             for seed in 0..4u64 {
                 // Every other seed with sinks (pieces written where the peer reads them).

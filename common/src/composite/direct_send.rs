@@ -3,7 +3,7 @@
 //! It is radix-k with the single factor `p`: each rank sends `p - 1` pieces and blends
 //! the `p` pieces of its slice front to back. One rank needs no round at all.
 
-use super::{radix_k, Round, Span};
+use super::{radix_k, RankStep, Round, Span};
 
 /// Factors (`[p]`, or `[]` for one rank) and rounds of direct send; `cur` is updated to
 /// the final spans.
@@ -12,6 +12,31 @@ pub(super) fn rounds(ranks: usize, cur: &mut [Span]) -> (Vec<usize>, Vec<Round>)
     let members: Vec<usize> = (0..ranks).collect();
     let rounds = radix_k::rounds(ranks, &members, &factors, cur);
     (factors, rounds)
+}
+
+/// The one round that delivers `targets[j]` (possibly empty) to position `j`: every
+/// position sends its part of each non-empty target to that target's position, and a
+/// position with a target blends all ranks' parts of it. No round for one rank.
+pub(super) fn rounds_to(targets: &[Span]) -> Vec<Round> {
+    let ranks = targets.len();
+    if ranks < 2 {
+        return Vec::new();
+    }
+    let steps = (0..ranks)
+        .map(|j| RankStep {
+            sends: (0..ranks)
+                .filter(|&q| q != j && !targets[q].is_empty())
+                .map(|q| (q, targets[q]))
+                .collect(),
+            keep: targets[j],
+            blend: if targets[j].is_empty() {
+                Vec::new()
+            } else {
+                (0..ranks).collect()
+            },
+        })
+        .collect();
+    vec![Round { steps }]
 }
 
 #[cfg(test)]

@@ -172,13 +172,14 @@ mod tests {
     }
 
     /// 0 direct send, 1 binary swap, 2 radix-k auto, 3 radix-k target, 4 radix-k with
-    /// exact factors (the auto factors in reverse order).
+    /// exact factors (the auto factors in reverse order), 5 gather.
     fn plan_for(ranks: usize, pixels: u32, choice: u8, target: usize) -> Result<Plan, PlanError> {
         match choice {
             0 => build_plan(ranks, pixels, Algorithm::DirectSend, None),
             1 => build_plan(ranks, pixels, Algorithm::BinarySwap, None),
             2 => build_plan(ranks, pixels, Algorithm::RadixK, None),
             3 => build_plan(ranks, pixels, Algorithm::RadixK, Some(&[target])),
+            5 => build_plan(ranks, pixels, Algorithm::Gather, None),
             _ => {
                 // (A single factor would read as a target; it gives the same plan.)
                 let mut f = auto_factors(ranks, target);
@@ -303,7 +304,7 @@ mod tests {
         #[test]
         fn f32_matches_serial_over(
             case in case_strategy(),
-            choice in 0u8..5,
+            choice in 0u8..6,
             target in 2usize..=8,
             interlace in any::<bool>(),
         ) {
@@ -313,7 +314,7 @@ mod tests {
         #[test]
         fn f16_is_close_to_serial_over(
             case in case_strategy(),
-            choice in 0u8..5,
+            choice in 0u8..6,
             target in 2usize..=8,
             interlace in any::<bool>(),
         ) {
@@ -321,7 +322,7 @@ mod tests {
         }
 
         #[test]
-        fn every_plan_validates(ranks in 1usize..=64, pixels in 0u32..200, choice in 0u8..5, target in 2usize..=8) {
+        fn every_plan_validates(ranks in 1usize..=64, pixels in 0u32..200, choice in 0u8..6, target in 2usize..=8) {
             let plan = plan_for(ranks, pixels, choice, target).unwrap();
             plan.validate().unwrap();
         }
@@ -407,6 +408,7 @@ mod tests {
             Algorithm::DirectSend,
             Algorithm::BinarySwap,
             Algorithm::RadixK,
+            Algorithm::Gather,
         ] {
             let plan = build_plan(3, 4, alg, None).unwrap();
             let img = composite_in_memory(

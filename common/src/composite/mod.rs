@@ -45,6 +45,7 @@ mod binary_swap;
 pub mod canvas;
 mod direct_send;
 mod exchange;
+mod gather;
 mod interlace;
 mod memory;
 mod radix_k;
@@ -80,6 +81,10 @@ pub enum Algorithm {
     /// least significant, so round-0 groups are runs of consecutive positions); the
     /// member with digit `d` keeps part `d` of the group's current span.
     RadixK,
+    /// One round: every rank sends its whole image to position 0, which blends them all
+    /// (IceT's direct strategy with a single tile). For sparse images at many ranks: one
+    /// piece per rank, and only their active pixels are blended.
+    Gather,
 }
 
 impl fmt::Display for Algorithm {
@@ -88,6 +93,7 @@ impl fmt::Display for Algorithm {
             Algorithm::DirectSend => "direct-send",
             Algorithm::BinarySwap => "binary-swap",
             Algorithm::RadixK => "radix-k",
+            Algorithm::Gather => "gather",
         })
     }
 }
@@ -269,6 +275,7 @@ pub fn build_plan(
             let rounds = radix_k::rounds(ranks, &members, &factors, &mut cur);
             (factors, rounds)
         }
+        Algorithm::Gather => gather::rounds(ranks, &mut cur),
     };
     Ok(Plan {
         ranks,
@@ -306,25 +313,7 @@ pub fn build_plan_to(pixels: u32, targets: &[Span]) -> Result<Plan, PlanError> {
             "target spans must partition [0, {pixels}): they end at {at}"
         )));
     }
-    let rounds = if ranks > 1 {
-        let steps = (0..ranks)
-            .map(|j| RankStep {
-                sends: (0..ranks)
-                    .filter(|&q| q != j && !targets[q].is_empty())
-                    .map(|q| (q, targets[q]))
-                    .collect(),
-                keep: targets[j],
-                blend: if targets[j].is_empty() {
-                    Vec::new()
-                } else {
-                    (0..ranks).collect()
-                },
-            })
-            .collect();
-        vec![Round { steps }]
-    } else {
-        Vec::new()
-    };
+    let rounds = direct_send::rounds_to(targets);
     Ok(Plan {
         ranks,
         pixels,
@@ -531,7 +520,7 @@ impl Plan {
             .iter()
             .try_fold(1usize, |a, &f| a.checked_mul(f));
         let (virtual_ranks, extra_rounds) = match self.algorithm {
-            Algorithm::DirectSend | Algorithm::RadixK => (p, 0),
+            Algorithm::DirectSend | Algorithm::RadixK | Algorithm::Gather => (p, 0),
             Algorithm::BinarySwap => {
                 if self.factors.iter().any(|&f| f != 2) {
                     return Err(PlanError::Shape(format!(
@@ -550,7 +539,9 @@ impl Plan {
                 ranks: virtual_ranks,
             });
         }
-        if self.algorithm == Algorithm::DirectSend && self.factors.len() > 1 {
+        if matches!(self.algorithm, Algorithm::DirectSend | Algorithm::Gather)
+            && self.factors.len() > 1
+        {
             return Err(PlanError::Shape(format!(
                 "direct send with factors {:?}",
                 self.factors
@@ -600,6 +591,7 @@ mod tests {
             Algorithm::DirectSend,
             Algorithm::BinarySwap,
             Algorithm::RadixK,
+            Algorithm::Gather,
         ] {
             assert_eq!(build_plan(0, 10, a, None), Err(PlanError::NoRanks));
         }
@@ -609,7 +601,7 @@ mod tests {
     fn algorithm_serde_names() {
         let v: Vec<Algorithm> =
             toml::from_str::<std::collections::BTreeMap<String, Vec<Algorithm>>>(
-                "a = [\"direct-send\", \"binary-swap\", \"radix-k\"]",
+                "a = [\"direct-send\", \"binary-swap\", \"radix-k\", \"gather\"]",
             )
             .unwrap()
             .remove("a")
@@ -619,7 +611,8 @@ mod tests {
             [
                 Algorithm::DirectSend,
                 Algorithm::BinarySwap,
-                Algorithm::RadixK
+                Algorithm::RadixK,
+                Algorithm::Gather
             ]
         );
     }

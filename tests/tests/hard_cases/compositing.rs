@@ -284,6 +284,7 @@ fn reversed(ctx: &Ctx) -> Res<f64> {
         Algorithm::DirectSend,
         Algorithm::BinarySwap,
         Algorithm::RadixK,
+        Algorithm::Gather,
     ] {
         s.composite.algorithm = alg;
         let split = ctx.render_regions(&s, &tree)?;
