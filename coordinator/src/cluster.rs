@@ -729,7 +729,7 @@ impl Cluster {
                     let remote = conn.remote_address();
                     let addr = SocketAddr::new(remote.ip().to_canonical(), remote.port());
                     info!(rank, %name, pid, %addr, "worker joined");
-                    spawn_reader(rank, conn.clone(), recv, Limits::for_pixels(self.opts.max_pixels), tx.clone());
+                    spawn_reader(rank, conn.clone(), recv, Limits::for_pixels(self.opts.max_pixels), tx.clone(), self.opts.idle_timeout);
                     self.workers.push(Worker { rank, name, pid, addr, fingerprint, conn, send, host, shm: None, attempt: 0 });
                 }
                 ev = self.events.recv() => {
@@ -879,6 +879,7 @@ impl Cluster {
                 recv,
                 Limits::for_pixels(self.opts.max_pixels),
                 self.events_tx.clone(),
+                self.opts.idle_timeout,
             );
             self.workers.push(Worker {
                 rank,
@@ -2144,14 +2145,17 @@ async fn authenticate(incoming: quinn::Incoming, secret: &[u8]) -> Result<Authen
 }
 
 /// Forwards a worker's control messages as events; a malformed frame closes that
-/// worker's connection (and only that one).
+/// worker's connection (and only that one), and so does a worker silent for `silence`
+/// ([`spawn_watchdog`]).
 fn spawn_reader(
     rank: u32,
     conn: quinn::Connection,
     mut recv: quinn::RecvStream,
     limits: Limits,
     tx: mpsc::UnboundedSender<Event>,
+    silence: Duration,
 ) {
+    spawn_watchdog(conn.clone(), silence);
     tokio::spawn(async move {
         loop {
             match read_frame(&mut recv, &limits).await {
@@ -2170,6 +2174,39 @@ fn spawn_reader(
                     });
                     return;
                 }
+            }
+        }
+    });
+}
+
+/// Closes `conn` once nothing (no datagram at all) has come from the worker for
+/// `silence`, the run's idle timeout, so that a hung worker (stopped, or its host gone) is
+/// given up after that long whatever the load. Both sides send keep-alives at half the idle
+/// timeout, so a live worker's connection is never that quiet. QUIC's own idle timeout
+/// waits for at least three probe timeouts, which on a loaded machine (inflated round-trip
+/// estimates) stretched detection to 2.9 s of a 2 s timeout (`bench-soak` at 1280×720).
+/// The reader then reports the worker lost, as for any closed connection.
+fn spawn_watchdog(conn: quinn::Connection, silence: Duration) {
+    tokio::spawn(async move {
+        let tick = (silence / 40).clamp(Duration::from_millis(5), Duration::from_millis(50));
+        let mut seen = conn.stats().udp_rx.datagrams;
+        let mut heard = Instant::now();
+        loop {
+            tokio::select! {
+                _ = conn.closed() => return,
+                _ = tokio::time::sleep(tick) => {}
+            }
+            let now = conn.stats().udp_rx.datagrams;
+            if now != seen {
+                seen = now;
+                heard = Instant::now();
+            } else if heard.elapsed() >= silence {
+                warn!(
+                    silent_s = format!("{:.2}", heard.elapsed().as_secs_f64()),
+                    "a worker has sent nothing for the idle timeout; closing its connection"
+                );
+                conn.close(8u32.into(), b"silent for the idle timeout");
+                return;
             }
         }
     });
@@ -2291,5 +2328,65 @@ fn describe_status(s: std::process::ExitStatus) -> String {
         (Some(c), _) => format!("exit status {c}"),
         (None, Some(sig)) => format!("killed by signal {sig}"),
         _ => s.to_string(),
+    }
+}
+
+#[cfg(test)]
+mod watchdog_tests {
+    use super::*;
+    use strata_net::{Identity, NetConfig};
+
+    /// A live peer keeps its connection; once its process stops answering (here: its only
+    /// runtime thread blocked, as under SIGSTOP) the watchdog closes the connection after
+    /// `silence`, long before QUIC's own idle timeout (30 s here) would.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_silent_peer_is_closed_after_the_silence_and_a_live_one_is_not() {
+        let cfg = NetConfig {
+            idle_timeout: Duration::from_secs(30),
+            keep_alive: Duration::from_millis(200),
+            ..NetConfig::default()
+        };
+        let id = Identity::generate().unwrap();
+        let server = transport::endpoint("127.0.0.1:0".parse().unwrap(), &id, &cfg).unwrap();
+        let addr = server.local_addr().unwrap();
+        let (fp, peer_cfg) = (id.fingerprint, cfg.clone());
+        let (ready_tx, ready_rx) = tokio::sync::oneshot::channel();
+        let peer = std::thread::spawn(move || {
+            let rt = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+                .unwrap();
+            rt.block_on(async move {
+                let pid = Identity::generate().unwrap();
+                let ep =
+                    transport::endpoint("127.0.0.1:0".parse().unwrap(), &pid, &peer_cfg).unwrap();
+                let conn = transport::connect(&ep, addr, fp, &peer_cfg, Duration::from_secs(5))
+                    .await
+                    .unwrap();
+                ready_tx.send(()).unwrap();
+                // Live for 2 s (its runtime answers keep-alives), then stopped for 4 s.
+                tokio::time::sleep(Duration::from_secs(2)).await;
+                std::thread::sleep(Duration::from_secs(4));
+                drop(conn);
+            });
+        });
+        let conn = server.accept().await.unwrap().await.unwrap();
+        ready_rx.await.unwrap();
+        let t = Instant::now();
+        spawn_watchdog(conn.clone(), Duration::from_secs(1));
+        tokio::time::sleep(Duration::from_millis(1800)).await;
+        assert!(conn.close_reason().is_none(), "a live peer was closed");
+        let e = conn.closed().await;
+        let at = t.elapsed();
+        assert!(
+            matches!(e, quinn::ConnectionError::LocallyClosed),
+            "{e:?} after {at:?}"
+        );
+        // Stopped at about 2 s, silent from its last datagram: closed about 1 s later.
+        assert!(
+            at >= Duration::from_millis(2500) && at < Duration::from_millis(4000),
+            "closed after {at:?}"
+        );
+        peer.join().unwrap();
     }
 }
