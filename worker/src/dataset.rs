@@ -68,38 +68,30 @@ pub struct Horizon {
     pub boxes: Vec<crate::horizon::TileBox>,
 }
 
-fn page_bounds(store: &PageStore) -> Vec<[f32; 2]> {
-    let p = store.pyramid();
-    let mut out = Vec::new();
-    for (l, lev) in p.levels().iter().enumerate() {
-        for z in 0..lev.bricks[2] {
-            for y in 0..lev.bricks[1] {
-                for x in 0..lev.bricks[0] {
-                    let b = match store.entry(p.id(l, [x, y, z])) {
-                        Some(e) if e.flags & PAGE_EMPTY == 0 && e.valid > 0 => [e.min, e.max],
-                        _ => [f32::NAN, f32::NAN],
-                    };
-                    out.push(b);
-                }
-            }
-        }
-    }
-    out
+/// Every page `(level, brick)` of a pyramid in page-table order (`PageTable::index`: level
+/// by level, x fastest).
+fn pages_in_table_order(p: &Pyramid) -> impl Iterator<Item = (usize, [u32; 3])> + '_ {
+    p.levels().iter().enumerate().flat_map(|(l, lev)| {
+        let [nx, ny, nz] = lev.bricks;
+        (0..nz).flat_map(move |z| (0..ny).flat_map(move |y| (0..nx).map(move |x| (l, [x, y, z]))))
+    })
 }
 
-/// Every page's key in page-table order (the order of `page_bounds` and `PageTable::index`).
+fn page_bounds(store: &PageStore) -> Vec<[f32; 2]> {
+    let p = store.pyramid();
+    pages_in_table_order(p)
+        .map(|(l, b)| match store.entry(p.id(l, b)) {
+            Some(e) if e.flags & PAGE_EMPTY == 0 && e.valid > 0 => [e.min, e.max],
+            _ => [f32::NAN, f32::NAN],
+        })
+        .collect()
+}
+
+/// Every page's key in page-table order.
 fn page_keys(ds: u16, p: &Pyramid) -> Vec<u64> {
-    let mut out = Vec::new();
-    for (l, lev) in p.levels().iter().enumerate() {
-        for z in 0..lev.bricks[2] {
-            for y in 0..lev.bricks[1] {
-                for x in 0..lev.bricks[0] {
-                    out.push(p.id(l, [x, y, z]).with_dataset(ds).0);
-                }
-            }
-        }
-    }
-    out
+    pages_in_table_order(p)
+        .map(|(l, b)| crate::atlas::page_key(ds, p, l, b))
+        .collect()
 }
 
 fn open(path: &std::path::Path, kind: DataKind) -> Result<Arc<PageStore>> {
@@ -288,6 +280,7 @@ impl Horizon {
                 layer.store.display()
             ),
         };
+        let bounds = page_bounds(&store);
         Ok(Horizon {
             ds,
             pyramid: store.pyramid().clone(),
@@ -296,8 +289,8 @@ impl Horizon {
             depth_map,
             attribute,
             opacity: layer.opacity as f32,
-            boxes: crate::horizon::tile_boxes(store.pyramid(), &page_bounds(&store)),
-            bounds: page_bounds(&store),
+            boxes: crate::horizon::tile_boxes(store.pyramid(), &bounds),
+            bounds,
             store,
         })
     }

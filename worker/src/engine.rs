@@ -617,7 +617,6 @@ impl Engine {
                 flat: crate::packet::FlatTables::new(&tables),
                 tables,
                 pre,
-                pyramid: &v.pyramid,
                 page_keys: &v.page_keys,
                 slices: &v.slices,
                 tf: &v.tf,

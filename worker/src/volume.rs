@@ -5,7 +5,6 @@
 //! ray therefore takes exactly the samples that rendering the ray whole would take.
 
 use crate::atlas::{PageTable, Pool, Samples, Voxel, NOT_RESIDENT, SLOT_MASK};
-use strata_common::pyramid::Pyramid;
 use strata_common::tf::StepTable;
 
 /// A volume prepared for one frame.
@@ -48,8 +47,6 @@ pub struct VolFrame<'a> {
     pub pre: Option<Vec<std::sync::Arc<strata_common::tf::PreintTable>>>,
     /// The same tables laid end to end (for SIMD packets).
     pub flat: crate::packet::FlatTables,
-    /// The pyramid.
-    pub pyramid: &'a Pyramid,
     /// Each page's feedback key, in page-table order.
     pub page_keys: &'a [u64],
     /// Slices through the volume (empty: no slice code runs).
