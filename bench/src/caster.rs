@@ -46,6 +46,9 @@ fn variants() -> Vec<(&'static str, Tweak)> {
             s.compact_slots = false;
             s.macrocells = false;
         }),
+        ("8-lane packets (AVX2), compact slots + macrocells", |s| {
+            s.simd_lanes = 8
+        }),
         ("packets, compact slots + macrocells (default)", |_| {}),
     ]
 }

@@ -498,10 +498,15 @@ pub struct RenderSettings {
     /// a quarter of the memory for 8-bit data, and the same image.
     #[serde(default = "yes")]
     pub compact_slots: bool,
-    /// The CPU caster marches eight rays at a time with AVX2 where the CPU has it (one
-    /// volume, no gradient shading); false forces the scalar march. The image is the same.
+    /// The CPU caster marches rays in SIMD packets where the CPU has AVX2 (one volume, no
+    /// gradient shading); false forces the scalar march. The image is the same.
     #[serde(default = "yes")]
     pub simd: bool,
+    /// Lanes per SIMD packet: 0 (default) for the widest the CPU runs (16 with AVX-512, 8
+    /// with AVX2), 8 or 16 to ask for one (16 runs as 8 without AVX-512). The image is the
+    /// same.
+    #[serde(default)]
+    pub simd_lanes: u32,
     /// Gradient (Blinn-Phong headlight) shading of volumes.
     #[serde(default)]
     pub volume_shading: bool,
@@ -634,6 +639,7 @@ impl Default for RenderSettings {
             macrocells: true,
             compact_slots: true,
             simd: true,
+            simd_lanes: 0,
             volume_shading: false,
             lighting: true,
             atlas_mb: default_atlas(),

@@ -416,13 +416,14 @@ fn macrocells_follow_slot_reuse() {
     }
 }
 
-/// SIMD packets against the scalar march: the same pixels bit for bit, the same counters
-/// and the same page requests, for every slot type, with NaN samples, early termination,
-/// several sampling bands (the far camera) and macrocells on and off.
+/// SIMD packets of both widths against the scalar march: the same pixels bit for bit, the
+/// same counters and the same page requests, for every slot type, with NaN samples, early
+/// termination, several sampling bands (the far camera) and macrocells on and off.
 #[test]
 fn packets_and_the_scalar_march_agree_bit_for_bit() {
-    if !strata_worker::packet::available() {
-        eprintln!("NOTICE: no AVX2 here: both runs take the scalar march");
+    let widest = strata_worker::packet::widest();
+    if widest < 16 {
+        eprintln!("NOTICE: no AVX-512 here: 16-lane packets run as {widest} lanes (0: scalar)");
     }
     let dir = TempDir::new().unwrap();
     let mut nan = blobs(100.0);
@@ -456,9 +457,11 @@ fn packets_and_the_scalar_march_agree_bit_for_bit() {
                 s.render.early_termination = ert;
                 s.render.macrocells = cells;
                 s.render.tau = 1.0;
-                let run = |simd: bool| {
+                // `None`: the scalar march; else packets of that many lanes.
+                let run = |lanes: Option<u32>| {
                     let mut s = s.clone();
-                    s.render.simd = simd;
+                    s.render.simd = lanes.is_some();
+                    s.render.simd_lanes = lanes.unwrap_or(0);
                     let mut e = Engine::new(&s).unwrap();
                     let view = e.view(s.render.width, s.render.height).unwrap();
                     let region = e.scene_region();
@@ -468,22 +471,71 @@ fn packets_and_the_scalar_march_agree_bit_for_bit() {
                     let mut fb: Vec<(u64, u32)> =
                         f.feedback.coverage.iter().map(|(&k, &c)| (k, c)).collect();
                     fb.sort_unstable();
+                    let lanes = lanes.map_or(0, |l| strata_worker::packet::lanes_for(l));
+                    let path = if lanes == 8 {
+                        " simd".to_string()
+                    } else if lanes > 0 {
+                        format!(" simd{lanes}")
+                    } else {
+                        " scalar".to_string()
+                    };
+                    assert!(f.variant_name.ends_with(&path), "{}", f.variant_name);
                     (f.image.to_full(), f.stats, fb)
                 };
-                let (pi, ps, pf) = run(true);
-                let (si, ss, sf) = run(false);
-                let what = format!("{}, camera {i}, ERT {ert}, cells {cells}", st.display());
-                assert!(pi.iter().any(|p| p[3] > 0.01), "{what}: blank");
-                assert!(
-                    bit_identical(&pi, &si),
-                    "{what}: packets differ by {}",
-                    max_diff(&pi, &si)
-                );
-                assert_eq!(ps, ss, "{what}: counters");
-                assert_eq!(pf, sf, "{what}: page requests");
-                if ert < 1.0 && i < 3 {
-                    assert!(ps.terminated > 0, "{what}: no ray terminated early");
+                let (si, ss, sf) = run(None);
+                for lanes in [8, 16] {
+                    let (pi, ps, pf) = run(Some(lanes));
+                    let what = format!(
+                        "{}, camera {i}, ERT {ert}, cells {cells}, {lanes} lanes",
+                        st.display()
+                    );
+                    assert!(pi.iter().any(|p| p[3] > 0.01), "{what}: blank");
+                    assert!(
+                        bit_identical(&pi, &si),
+                        "{what}: packets differ by {}",
+                        max_diff(&pi, &si)
+                    );
+                    assert_eq!(ps, ss, "{what}: counters");
+                    assert_eq!(pf, sf, "{what}: page requests");
+                    if ert < 1.0 && i < 3 {
+                        assert!(ps.terminated > 0, "{what}: no ray terminated early");
+                    }
                 }
+            }
+        }
+    }
+}
+
+/// `render.simd_lanes` takes 0, 8 or 16; anything else is refused by name.
+#[test]
+fn simd_lanes_other_than_0_8_16_are_refused() {
+    let dir = TempDir::new().unwrap();
+    let st = store(dir.path(), "u", SampleType::U8, blobs(255.0));
+    let opacity = vec![[0.0, 0.0], [1.0, 0.8]];
+    for (lanes, ok) in [
+        (0, true),
+        (8, true),
+        (16, true),
+        (4, false),
+        (12, false),
+        (32, false),
+    ] {
+        let mut s = scene_with(
+            st.clone(),
+            [0.0, 255.0],
+            cameras()[0].clone(),
+            opacity.clone(),
+        );
+        s.render.simd_lanes = lanes;
+        match Engine::new(&s) {
+            Ok(_) => assert!(ok, "{lanes} lanes accepted"),
+            Err(e) => {
+                assert!(!ok, "{lanes} lanes refused: {e:#}");
+                let m = format!("{e:#}");
+                assert!(
+                    m.contains("render.simd_lanes") && m.contains(&lanes.to_string()),
+                    "{m}"
+                );
             }
         }
     }

@@ -715,10 +715,11 @@ impl Engine {
                 && !s.preintegrated
                 && !s.f64_accumulation
                 && crate::packet::available(),
+            lanes: crate::packet::lanes_for(s.simd_lanes),
             // 1024 base steps: with the packets' lockstep step a lane's samples cost less
             // than its set-up, so deeper chunks pay (bonsai 1024², 2 threads, side by side:
             // 32 → 128 base steps 0.83× the time, → 256 0.82×, → 1024 0.78×; the
-            // translucent demo volume 0.97× from 128 to 1024). A tile's eight-ray packets
+            // translucent demo volume 0.97× from 128 to 1024). A tile's packets
             // still go front to back together. With no volume to march (only surfaces and
             // slices) the rays go in one piece.
             chunk: if base > 0.0 && base.is_finite() && !all_invisible {
@@ -742,15 +743,16 @@ impl Engine {
 
     /// The code path of a frame in words: `specialised`, `general` or
     /// `specialised+EFFECTS`, then the effects compiled in, then how the CPU marched
-    /// (`simd` packets or `scalar`) or the GPU pipeline's effects, e.g.
-    /// `specialised [volume+horizons] simd`.
-    pub fn variant_name(&self, v: Variant, packets: bool) -> String {
+    /// (`simd` packets of 8 lanes, `simd16` of 16, or `scalar`) or the GPU pipeline's
+    /// effects, e.g. `specialised [volume+horizons] simd16`. `lanes` is 0 without packets.
+    pub fn variant_name(&self, v: Variant, lanes: usize) -> String {
         let how = match &self.gpu {
             Some(_) => format!(
                 "gpu pipeline [{}]",
                 crate::gpu::pipeline_effects(v.compiled)
             ),
-            None if packets => "simd".into(),
+            None if lanes == 8 => "simd".into(),
+            None if lanes > 0 => format!("simd{lanes}"),
             None if self.settings.f64_accumulation => "scalar f64".into(),
             None => "scalar".into(),
         };
@@ -792,11 +794,11 @@ impl Engine {
                 seconds: t.elapsed().as_secs_f64(),
                 gpu: g,
                 variant,
-                variant_name: self.variant_name(variant, false),
+                variant_name: self.variant_name(variant, 0),
             });
         }
         let setup = self.setup(view, region, limits);
-        let (variant, packets) = (setup.variant, setup.packets);
+        let (variant, lanes) = (setup.variant, if setup.packets { setup.lanes } else { 0 });
         let out = setup.render();
         drop(setup);
         let mut feedback = Feedback::default();
@@ -808,7 +810,7 @@ impl Engine {
             seconds: t.elapsed().as_secs_f64(),
             gpu: GpuFrameStats::default(),
             variant,
-            variant_name: self.variant_name(variant, packets),
+            variant_name: self.variant_name(variant, lanes),
         })
     }
 
@@ -1017,6 +1019,12 @@ fn validate(s: &RenderSettings) -> Result<()> {
     }
     if s.atlas_mb == 0 || s.horizon_atlas_mb == 0 {
         bail!("render.atlas_mb and render.horizon_atlas_mb must be at least 1");
+    }
+    if ![0, 8, 16].contains(&s.simd_lanes) {
+        bail!(
+            "render.simd_lanes must be 0 (the widest the CPU runs), 8 or 16, got {}",
+            s.simd_lanes
+        );
     }
     if s.loader_threads == 0 || s.loader_threads > 256 {
         bail!(

@@ -72,6 +72,8 @@ pub struct FrameSetup<'a> {
     /// March single-volume spans in SIMD packets ([`crate::packet`]); only set where the
     /// CPU has AVX2, there is one volume and no gradient shading.
     pub packets: bool,
+    /// Lanes per packet (8 or 16, [`crate::packet::lanes_for`]) where `packets` is set.
+    pub lanes: usize,
     /// Cross-worker occlusion ([`strata_common::occlusion`]): per screen block, each ray's
     /// termination threshold from what lies in front, or not cast at all (left
     /// transparent, asking for no page). `None`: every ray of the rectangle, with `ert`.
@@ -1191,12 +1193,12 @@ impl<'a> FrameSetup<'a> {
                     .filter(|r| r.active())
                     .map(|r| (r.cur_t / self.chunk).floor())
                     .fold(f32::INFINITY, f32::min);
-                let mut work = Vec::with_capacity(crate::packet::LANES);
+                let mut work = Vec::with_capacity(self.lanes);
                 while c.is_finite() {
                     let until = (c + 1.0) * self.chunk;
                     // (f64 accumulation has no packets: `packets` is off then.)
                     if let (true, Some(rays)) = (self.packets, A::as_f32(&mut rays)) {
-                        // The chunk's first volume span of every ray, eight rays at a time;
+                        // The chunk's first volume span of every ray, `lanes` rays at a time;
                         // `advance` below then does the rest (surfaces, later spans).
                         for i in 0..rays.len() {
                             let r = &rays[i];
@@ -1210,7 +1212,7 @@ impl<'a> FrameSetup<'a> {
                                     });
                                 }
                             }
-                            if work.len() == crate::packet::LANES {
+                            if work.len() == self.lanes {
                                 crate::packet::march(self, rays, &work, &mut fb);
                                 work.clear();
                             }
