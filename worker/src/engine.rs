@@ -611,6 +611,7 @@ impl Engine {
                 pool,
                 samples: pool.samples(),
                 cells: cells.map(|c| c.visible()),
+                reach: cells.map(|c| c.reach()),
                 cells_per_axis: cells.map_or(0, |c| c.per_axis()),
                 invisible,
                 transparent,

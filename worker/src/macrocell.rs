@@ -14,6 +14,14 @@
 //! transfer function's [`max_alpha`](strata_common::tf::TransferFunction::max_alpha) bounds
 //! every value of a range, interpolation between table entries included. NaN samples (no
 //! data) are transparent in the march and are left out of the range.
+//!
+//! **Runs of invisible cells in one jump.** For each invisible cell and each of the eight
+//! octants of ray direction, [`reach`](MacroCells::reach) holds the side `R` of the largest
+//! cube of invisible cells that has the cell at its corner and extends in that octant's
+//! directions (clipped to the slot). A ray in that octant that is in the cell is in the
+//! cube until it leaves it, so the march jumps to the cube's exit at once instead of cell
+//! by cell. Every lattice point it passes lies in an invisible cell, margin included, so
+//! the image is the same.
 
 /// Samples per macrocell edge. 16 rather than 8: on the bonsai (64³ pages) 8³ cells skip
 /// more lattice points (76 % against 66 %) but the extra cell exits cost more than the
@@ -31,6 +39,10 @@ pub struct MacroCells {
     range: Vec<[f32; 2]>,
     /// 1 where some value of the cell may be visible, slot after slot.
     visible: Vec<u8>,
+    /// Per cell and octant (bit 0: x descending, bit 1: y, bit 2: z), the side of the
+    /// largest cube of invisible cells with the cell at its corner extending in the octant's
+    /// directions, clipped to the slot; 0 for a visible cell.
+    reach: Vec<[u8; 8]>,
 }
 
 impl MacroCells {
@@ -44,6 +56,7 @@ impl MacroCells {
             per_axis,
             range: vec![[f32::INFINITY, f32::NEG_INFINITY]; n],
             visible: vec![1; n],
+            reach: vec![[0; 8]; n],
         }
     }
 
@@ -108,9 +121,17 @@ impl MacroCells {
                     let i = first + (cz * n + cy) * n + cx;
                     self.range[i] = r;
                     self.visible[i] = 1;
+                    self.reach[i] = [0; 8];
                 }
             }
         }
+    }
+
+    /// Per cell and octant, the side of the largest cube of invisible cells starting at it
+    /// (index `slot · per_slot + cell`, see the module's notes).
+    #[inline(always)]
+    pub fn reach(&self) -> &[[u8; 8]] {
+        &self.reach
     }
 
     /// Classifies the cells of `slot`: `visible(min, max)` says whether a value range may
@@ -120,6 +141,56 @@ impl MacroCells {
         for i in first..first + self.per_slot() {
             let [lo, hi] = self.range[i];
             self.visible[i] = (lo <= hi && visible(lo, hi)) as u8;
+        }
+        self.compute_reach(slot);
+    }
+
+    /// The cubes of invisible cells of `slot` ([`reach`](Self::reach)): per octant, from
+    /// the far corner back, `R(c) = 1 + min R` over the cell's seven forward neighbours
+    /// (a neighbour outside the slot counts as unbounded), 0 for a visible cell.
+    fn compute_reach(&mut self, slot: u32) {
+        let n = self.per_axis;
+        let first = slot as usize * self.per_slot();
+        // Outside the slot: no limit (the cube is clipped to the slot where it is used).
+        const OUT: u8 = u8::MAX;
+        for oct in 0..8 {
+            let back = [oct & 1 != 0, oct & 2 != 0, oct & 4 != 0];
+            // The step towards the octant's directions along each axis, and the visiting
+            // order that has every forward neighbour done first.
+            let order = |a: usize, i: usize| if back[a] { i } else { n - 1 - i };
+            for iz in 0..n {
+                for iy in 0..n {
+                    for ix in 0..n {
+                        let c = [order(0, ix), order(1, iy), order(2, iz)];
+                        let at = |c: [usize; 3]| first + (c[2] * n + c[1]) * n + c[0];
+                        let i = at(c);
+                        if self.visible[i] != 0 {
+                            self.reach[i][oct] = 0;
+                            continue;
+                        }
+                        let mut m = OUT;
+                        for nb in 1..8usize {
+                            let mut q = c;
+                            let mut inside = true;
+                            for a in 0..3 {
+                                if nb >> a & 1 == 1 {
+                                    if back[a] {
+                                        inside &= q[a] > 0;
+                                        q[a] = q[a].wrapping_sub(1);
+                                    } else {
+                                        inside &= q[a] + 1 < n;
+                                        q[a] += 1;
+                                    }
+                                }
+                            }
+                            if inside {
+                                m = m.min(self.reach[at(q)][oct]);
+                            }
+                        }
+                        self.reach[i][oct] = m.saturating_add(1).min(n as u8);
+                    }
+                }
+            }
         }
     }
 
@@ -183,5 +254,75 @@ mod tests {
             mc.classify(1, |lo, _| lo > 400.0);
             assert!(mc.invisible_in(1) > 0);
         }
+    }
+
+    /// Every cell's cube of invisible cells, per octant, holds only invisible cells of the
+    /// slot, and one cell more on each side would take in a visible one (unless the cube
+    /// already reaches the slot's far faces), against a brute-force search, for random
+    /// visibility patterns at several densities.
+    #[test]
+    fn reach_is_the_largest_invisible_cube_per_octant() {
+        let p = 64;
+        let mut mc = MacroCells::new(p, 2);
+        let n = mc.per_axis();
+        let ps = mc.per_slot();
+        let mut jumps = 0;
+        for seed in 0..200u32 {
+            let slot = seed % 2;
+            // Visible fractions from 0 to about 60 %.
+            let dense = seed % 7;
+            for i in 0..ps {
+                let h = (i as u32 ^ seed.wrapping_mul(0x9e37_79b9)).wrapping_mul(2654435761) >> 7;
+                let visible = h % 10 < dense;
+                mc.range[slot as usize * ps + i] = if visible { [1.0, 1.0] } else { [0.0, 0.0] };
+            }
+            mc.classify(slot, |_, hi| hi > 0.5);
+            let vis = |c: [isize; 3]| {
+                let i =
+                    slot as usize * ps + ((c[2] * n as isize + c[1]) * n as isize + c[0]) as usize;
+                mc.visible[i] != 0
+            };
+            // The cells of the cube of `side` from `c` in octant `oct`, clipped to the slot.
+            let cube = |c: [usize; 3], oct: usize, side: usize| {
+                let mut cells = Vec::new();
+                for dz in 0..side as isize {
+                    for dy in 0..side as isize {
+                        for dx in 0..side as isize {
+                            let d = [dx, dy, dz];
+                            let q: [isize; 3] = std::array::from_fn(|a| {
+                                c[a] as isize + if oct >> a & 1 == 1 { -d[a] } else { d[a] }
+                            });
+                            if q.iter().all(|&x| (0..n as isize).contains(&x)) {
+                                cells.push(q);
+                            }
+                        }
+                    }
+                }
+                cells
+            };
+            for cz in 0..n {
+                for cy in 0..n {
+                    for cx in 0..n {
+                        let c = [cx, cy, cz];
+                        let i = slot as usize * ps + (cz * n + cy) * n + cx;
+                        for oct in 0..8 {
+                            let r = mc.reach()[i][oct] as usize;
+                            if mc.visible[i] != 0 {
+                                assert_eq!(r, 0);
+                                continue;
+                            }
+                            assert!((1..=n).contains(&r), "seed {seed}: reach {r}");
+                            assert!(cube(c, oct, r).into_iter().all(|q| !vis(q)), "seed {seed}");
+                            let bigger = cube(c, oct, r + 1);
+                            if r < n && bigger.len() > cube(c, oct, r).len() {
+                                assert!(bigger.into_iter().any(vis), "seed {seed}: not largest");
+                            }
+                            jumps += (r > 1) as u32;
+                        }
+                    }
+                }
+            }
+        }
+        assert!(jumps > 1000, "too few cubes of more than one cell: {jumps}");
     }
 }

@@ -140,6 +140,8 @@ struct Lane {
     cur: Cursor,
     md: [f32; 3],
     inv: [f32; 3],
+    /// `volume::octant(md)`.
+    oct: usize,
     tb: f32,
     t_start: f32,
     band: usize,
@@ -177,6 +179,7 @@ impl Lane {
             cur: r.cursor().clone(),
             md,
             inv: md.map(|m| 1.0 / m),
+            oct: crate::volume::octant(md),
             tb: w.tb,
             t_start: w.ta,
             band,
@@ -244,7 +247,7 @@ impl Lane {
             let q = [v.c[0] + t * md[0], v.c[1] + t * md[1], v.c[2] + t * md[2]];
             let l = v.local(cur, q);
             if t >= self.cell_exit {
-                let (visible, exit) = v.cell_at(cur, l, md, self.inv);
+                let (visible, exit) = v.cell_run_at(cur, l, md, self.inv, self.oct);
                 if !visible {
                     let nk = first_k_near(exit.min(cur.t_exit).min(seg_end), dt, inv_dt).max(k + 1);
                     self.skipped += (nk - k) as u64;

@@ -342,6 +342,7 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
         };
         let p = v.page;
         let inv = md.map(|m| 1.0 / m);
+        let oct = crate::volume::octant(md);
         let mut t_start = ta;
         while t_start < tb && !self.done {
             let dt = bands.dt[band];
@@ -392,7 +393,12 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
                 // which are clear, are left out.
                 let mut cross_to = None;
                 if t >= cell_exit {
-                    let (visible, exit) = v.cell_at(cur, l, md, inv);
+                    // Without pre-integration a run of invisible cells is one jump.
+                    let (visible, exit) = if pre.is_none() {
+                        v.cell_run_at(cur, l, md, inv, oct)
+                    } else {
+                        v.cell_at(cur, l, md, inv)
+                    };
                     if !visible {
                         let nk =
                             first_k_near(exit.min(cur.t_exit).min(seg_end), dt, inv_dt).max(k + 1);

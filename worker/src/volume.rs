@@ -34,6 +34,9 @@ pub struct VolFrame<'a> {
     /// The pool's macrocell visibility (`slot · cells_per_slot + cell`), when the march may
     /// skip invisible macrocells.
     pub cells: Option<&'a [u8]>,
+    /// With `cells`: per cell and octant, the side of the cube of invisible cells it
+    /// starts ([`MacroCells::reach`](crate::macrocell::MacroCells::reach)).
+    pub reach: Option<&'a [[u8; 8]]>,
     /// Macrocells per page edge.
     pub cells_per_axis: usize,
     /// Per page (page-table order): no value in it is visible under the transfer function.
@@ -53,6 +56,13 @@ pub struct VolFrame<'a> {
     pub slices: &'a [crate::dataset::Slice],
     /// The transfer function (slices take its colour).
     pub tf: &'a strata_common::tf::TransferFunction,
+}
+
+/// The octant of index-space direction `md` for [`VolFrame::cell_run_at`]: bit `a` set
+/// where the ray descends along axis `a`.
+#[inline(always)]
+pub fn octant(md: [f32; 3]) -> usize {
+    (md[0] < 0.0) as usize | ((md[1] < 0.0) as usize) << 1 | ((md[2] < 0.0) as usize) << 2
 }
 
 /// 2^−n, exactly (`0.5f32.powi(n)` without the libm call on the locate path); levels stay
@@ -293,26 +303,60 @@ impl<'a> VolFrame<'a> {
     /// (`self.cells` set).
     #[inline(always)]
     pub fn cell_at(&self, cur: &Cursor, l: [f32; 3], md: [f32; 3], inv: [f32; 3]) -> (bool, f32) {
+        self.cell_or_run_at(cur, l, md, inv, None)
+    }
+
+    /// [`cell_at`](Self::cell_at), except that for an invisible cell the `t` returned is
+    /// where the ray leaves the cube of invisible cells the cell starts in the ray's
+    /// octant (`oct`, see [`octant`]); the ray may jump there at once.
+    #[inline(always)]
+    pub fn cell_run_at(
+        &self,
+        cur: &Cursor,
+        l: [f32; 3],
+        md: [f32; 3],
+        inv: [f32; 3],
+        oct: usize,
+    ) -> (bool, f32) {
+        self.cell_or_run_at(cur, l, md, inv, Some(oct))
+    }
+
+    #[inline(always)]
+    fn cell_or_run_at(
+        &self,
+        cur: &Cursor,
+        l: [f32; 3],
+        md: [f32; 3],
+        inv: [f32; 3],
+        run: Option<usize>,
+    ) -> (bool, f32) {
         use crate::macrocell::CELL;
         let n = self.cells_per_axis;
-        let mut idx = 0usize;
+        // `l` is clamped to [0, p − 1), so the cell is below `n`.
+        let c = [0, 1, 2].map(|a| l[a] as usize / CELL);
+        let i = cur.slot as usize * n * n * n + (c[2] * n + c[1]) * n + c[0];
+        let visible = self.cells.expect("macrocells")[i] != 0;
+        // Cells the box spans from `c` in the ray's direction: 1, or the invisible cube's.
+        let side = match (visible, run, self.reach) {
+            (false, Some(oct), Some(r)) => r[i][oct] as usize,
+            _ => 1,
+        };
         let mut exit = f32::INFINITY;
         for a in (0..3).rev() {
-            // `l` is clamped to [0, p − 1), so the cell is below `n`.
-            let c = l[a] as usize / CELL;
-            idx = idx * n + c;
             let dir = md[a] * cur.s;
             if dir != 0.0 {
-                let bound = if dir > 0.0 { (c + 1) * CELL } else { c * CELL } as f32;
+                let bound = if dir > 0.0 {
+                    (c[a] + side).min(n) * CELL
+                } else {
+                    (c[a] + 1).saturating_sub(side) * CELL
+                } as f32;
                 // Slot coordinate `(c + t·md)·s + o` reaches `bound` (`s` is a power of two,
                 // so multiplying by `rs = 1 / s` is dividing by it, exactly; `inv = 1 / md` may
                 // be off by a rounding, which the cells' one-sample margin absorbs).
                 exit = exit.min(((bound - cur.o[a]) * cur.rs - self.c[a]) * inv[a]);
             }
         }
-        let cells = self.cells.expect("macrocells");
-        let i = cur.slot as usize * n * n * n + idx;
-        (cells[i] != 0, exit)
+        (visible, exit)
     }
 
     /// The ray's crossings of this volume's slices inside `[t0, t1)`, as opaque (or
