@@ -614,6 +614,11 @@ impl Engine {
                 reach: cells.map(|c| c.reach()),
                 cells_per_axis: cells.map_or(0, |c| c.per_axis()),
                 invisible,
+                transparent_runs: if s.empty_space_skipping {
+                    crate::volume::transparent_runs(&self.tables[v.ds as usize], &transparent)
+                } else {
+                    Vec::new()
+                },
                 transparent,
                 flat: crate::packet::FlatTables::new(&tables),
                 tables,

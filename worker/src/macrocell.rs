@@ -145,53 +145,13 @@ impl MacroCells {
         self.compute_reach(slot);
     }
 
-    /// The cubes of invisible cells of `slot` ([`reach`](Self::reach)): per octant, from
-    /// the far corner back, `R(c) = 1 + min R` over the cell's seven forward neighbours
-    /// (a neighbour outside the slot counts as unbounded), 0 for a visible cell.
+    /// The cubes of invisible cells of `slot` ([`reach`](Self::reach)).
     fn compute_reach(&mut self, slot: u32) {
         let n = self.per_axis;
         let first = slot as usize * self.per_slot();
-        // Outside the slot: no limit (the cube is clipped to the slot where it is used).
-        const OUT: u8 = u8::MAX;
-        for oct in 0..8 {
-            let back = [oct & 1 != 0, oct & 2 != 0, oct & 4 != 0];
-            // The step towards the octant's directions along each axis, and the visiting
-            // order that has every forward neighbour done first.
-            let order = |a: usize, i: usize| if back[a] { i } else { n - 1 - i };
-            for iz in 0..n {
-                for iy in 0..n {
-                    for ix in 0..n {
-                        let c = [order(0, ix), order(1, iy), order(2, iz)];
-                        let at = |c: [usize; 3]| first + (c[2] * n + c[1]) * n + c[0];
-                        let i = at(c);
-                        if self.visible[i] != 0 {
-                            self.reach[i][oct] = 0;
-                            continue;
-                        }
-                        let mut m = OUT;
-                        for nb in 1..8usize {
-                            let mut q = c;
-                            let mut inside = true;
-                            for a in 0..3 {
-                                if nb >> a & 1 == 1 {
-                                    if back[a] {
-                                        inside &= q[a] > 0;
-                                        q[a] = q[a].wrapping_sub(1);
-                                    } else {
-                                        inside &= q[a] + 1 < n;
-                                        q[a] += 1;
-                                    }
-                                }
-                            }
-                            if inside {
-                                m = m.min(self.reach[at(q)][oct]);
-                            }
-                        }
-                        self.reach[i][oct] = m.saturating_add(1).min(n as u8);
-                    }
-                }
-            }
-        }
+        let last = first + self.per_slot();
+        let visible = &self.visible[first..last];
+        empty_cubes([n; 3], |i| visible[i] == 0, &mut self.reach[first..last]);
     }
 
     /// Invisible cells of `slot` (for statistics).
@@ -201,6 +161,58 @@ impl MacroCells {
             .iter()
             .filter(|&&v| v == 0)
             .count()
+    }
+}
+
+/// For a grid of `dims` cells (x fastest) of which `empty(i)` are empty, writes to `out`
+/// per cell and octant of direction (bit `a` set: descending along axis `a`) the side of
+/// the largest cube of empty cells that has the cell at its corner and extends in the
+/// octant's directions, clipped to the grid (capped at 255, which is safe: a smaller cube
+/// is all empty too); 0 for a cell that is not empty.
+///
+/// Per octant, from the far corner back: `R(c) = 1 + min R` over the cell's seven forward
+/// neighbours, a neighbour outside the grid counting as unbounded (the cube is clipped to
+/// the grid where it is used), as the largest-square recurrence in three dimensions.
+pub fn empty_cubes(dims: [usize; 3], empty: impl Fn(usize) -> bool, out: &mut [[u8; 8]]) {
+    assert_eq!(out.len(), dims.iter().product::<usize>());
+    let cap = dims.into_iter().max().unwrap_or(0).min(255) as u8;
+    let at = |c: [usize; 3]| (c[2] * dims[1] + c[1]) * dims[0] + c[0];
+    for oct in 0..8 {
+        let back = [oct & 1 != 0, oct & 2 != 0, oct & 4 != 0];
+        // Visit every cell after its forward neighbours.
+        let order = |a: usize, i: usize| if back[a] { i } else { dims[a] - 1 - i };
+        for iz in 0..dims[2] {
+            for iy in 0..dims[1] {
+                for ix in 0..dims[0] {
+                    let c = [order(0, ix), order(1, iy), order(2, iz)];
+                    let i = at(c);
+                    if !empty(i) {
+                        out[i][oct] = 0;
+                        continue;
+                    }
+                    let mut m = u8::MAX;
+                    for nb in 1..8usize {
+                        let mut q = c;
+                        let mut inside = true;
+                        for a in 0..3 {
+                            if nb >> a & 1 == 1 {
+                                if back[a] {
+                                    inside &= q[a] > 0;
+                                    q[a] = q[a].wrapping_sub(1);
+                                } else {
+                                    inside &= q[a] + 1 < dims[a];
+                                    q[a] += 1;
+                                }
+                            }
+                        }
+                        if inside {
+                            m = m.min(out[at(q)][oct]);
+                        }
+                    }
+                    out[i][oct] = m.saturating_add(1).min(cap);
+                }
+            }
+        }
     }
 }
 

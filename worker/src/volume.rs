@@ -41,6 +41,10 @@ pub struct VolFrame<'a> {
     pub cells_per_axis: usize,
     /// Per page (page-table order): no value in it is visible under the transfer function.
     pub transparent: Vec<bool>,
+    /// Per page (page-table order) and octant of ray direction, the side of the largest
+    /// cube of transparent pages of its level starting at it ([`transparent_runs`]): the
+    /// march jumps over the cube at once. Empty: page by page.
+    pub transparent_runs: Vec<[u8; 8]>,
     /// With empty-space skipping: no value of the volume's range maps to a non-zero
     /// opacity, so its rays are not marched at all.
     pub invisible: bool,
@@ -56,6 +60,21 @@ pub struct VolFrame<'a> {
     pub slices: &'a [crate::dataset::Slice],
     /// The transfer function (slices take its colour).
     pub tf: &'a strata_common::tf::TransferFunction,
+}
+
+/// Per page of `table` (page-table order) and octant, the side of the largest cube of
+/// transparent pages of the page's level that starts at it
+/// ([`empty_cubes`](crate::macrocell::empty_cubes) per level).
+pub fn transparent_runs(table: &PageTable, transparent: &[bool]) -> Vec<[u8; 8]> {
+    let mut out = vec![[0u8; 8]; transparent.len()];
+    for li in &table.levels {
+        let dims = li.bricks.map(|b| b as usize);
+        let first = li.offset as usize;
+        let last = first + dims.iter().product::<usize>();
+        let t = &transparent[first..last];
+        crate::macrocell::empty_cubes(dims, |i| t[i], &mut out[first..last]);
+    }
+    out
 }
 
 /// The octant of index-space direction `md` for [`VolFrame::cell_run_at`]: bit `a` set
@@ -271,6 +290,30 @@ impl<'a> VolFrame<'a> {
         let idx = self.table.index(level, b);
         cur.transparent = skip_transparent && self.transparent[idx];
         if cur.transparent {
+            // A cube of transparent bricks ahead: its exit instead of the brick's (the same
+            // expression, so a cube of one gives the brick's exit bit for bit).
+            let side = self
+                .transparent_runs
+                .get(idx)
+                .map_or(1, |r| r[octant(md)] as u32);
+            if side > 1 {
+                let mut t_exit = if level + 1 < nl {
+                    self.level_t[level + 1]
+                } else {
+                    f32::INFINITY
+                };
+                for a in 0..3 {
+                    if md[a] != 0.0 {
+                        let bound = if md[a] > 0.0 {
+                            (b[a] + side).min(li.bricks[a]) as f32 * span - 0.5
+                        } else {
+                            (b[a] + 1).saturating_sub(side) as f32 * span - 0.5
+                        };
+                        t_exit = t_exit.min((bound - self.c[a]) / md[a]);
+                    }
+                }
+                cur.t_exit = t_exit;
+            }
             return;
         }
         feedback.push(self.page_keys[idx]);
