@@ -556,7 +556,7 @@ fn simd_lanes_other_than_0_8_16_are_refused() {
 }
 
 /// Runs of transparent bricks are jumped as one cube (`VolFrame::transparent_runs`): on a
-/// volume of 8 × 8 × 8 small bricks with one lump in a corner, shells of thin planes and
+/// volume of 5 × 5 × 5 small bricks with one lump in a corner, shells of thin planes and
 /// isolated voxels, mostly empty, brick skipping gives the image of no skipping at all,
 /// bit for bit, with every lattice point either sampled or skipped, from every camera
 /// (one looks exactly along the grid), on the scalar march and on the packets.

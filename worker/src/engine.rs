@@ -122,6 +122,9 @@ pub struct Engine {
     /// Pre-integrated tables by (volume, step exponent bits), built on first use: each
     /// costs tens of milliseconds, and a view's exponents rarely change.
     preint: std::sync::Mutex<PreintCache>,
+    /// Per volume, its runs of transparent pages (`volume::transparent_runs`), computed on
+    /// its first marched frame with skipping: the transfer function is fixed for an engine.
+    runs: std::sync::Mutex<std::collections::HashMap<usize, std::sync::Arc<Vec<[u8; 8]>>>>,
     frame_no: u32,
     /// Regions rendered in batch mode so far: a region's first batch converges whatever
     /// `render.rounds_per_frame` says.
@@ -354,6 +357,7 @@ impl Engine {
             hpool,
             tables,
             preint: Default::default(),
+            runs: Default::default(),
             frame_no: 0,
             seen_regions: HashSet::new(),
             extra_effects: match s.variant {
@@ -614,10 +618,18 @@ impl Engine {
                 reach: cells.map(|c| c.reach()),
                 cells_per_axis: cells.map_or(0, |c| c.per_axis()),
                 invisible,
-                transparent_runs: if s.empty_space_skipping {
-                    crate::volume::transparent_runs(&self.tables[v.ds as usize], &transparent)
+                transparent_runs: if s.empty_space_skipping && !invisible {
+                    let mut runs = self.runs.lock().unwrap_or_else(|e| e.into_inner());
+                    runs.entry(i)
+                        .or_insert_with(|| {
+                            std::sync::Arc::new(crate::volume::transparent_runs(
+                                &self.tables[v.ds as usize],
+                                &transparent,
+                            ))
+                        })
+                        .clone()
                 } else {
-                    Vec::new()
+                    Default::default()
                 },
                 transparent,
                 flat: crate::packet::FlatTables::new(&tables),

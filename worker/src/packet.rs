@@ -13,7 +13,7 @@
 //! and eight such loads are transposed into channels across lanes) and the front-to-back
 //! blend, runs all lanes at a time.
 //!
-//! **Two widths, one march.** The march is written once over a [`x86::Vector`] of
+//! **Two widths, one march.** The march is written once over a `Vector` trait of
 //! operations: eight lanes with AVX2 and sixteen with AVX-512 (F and DQ), chosen at run
 //! time ([`lanes_for`], `render.simd_lanes`). Sixteen lanes give the core two independent
 //! halves of each step's long chain (gathers, lookup, blend) to overlap.
@@ -113,9 +113,11 @@ pub fn widest() -> usize {
 /// 0 without packets.
 pub fn lanes_for(requested: u32) -> usize {
     let w = widest();
+    // (Other values are refused by the engine's settings check; they get 8 lanes here
+    // rather than a width no march exists for.)
     match requested {
-        0 => w,
-        r => w.min(r as usize),
+        0 | 16 => w,
+        _ => w.min(8),
     }
 }
 

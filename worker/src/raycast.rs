@@ -376,8 +376,10 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
                     cell_exit = no_cell;
                 }
                 if cur.transparent {
-                    // Jump to the first lattice point past the brick (the cursor stays
-                    // valid across segments, so a later segment may start inside it).
+                    // Jump to the first lattice point past the brick, or past the cube of
+                    // transparent bricks it starts (`VolFrame::transparent_runs`); the
+                    // cursor stays valid across segments, so a later segment may start
+                    // inside it.
                     let nk = first_k_near(cur.t_exit.min(seg_end), dt, inv_dt).max(k + 1);
                     skipped += (nk - k) as u64;
                     k = nk;

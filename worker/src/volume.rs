@@ -44,7 +44,7 @@ pub struct VolFrame<'a> {
     /// Per page (page-table order) and octant of ray direction, the side of the largest
     /// cube of transparent pages of its level starting at it ([`transparent_runs`]): the
     /// march jumps over the cube at once. Empty: page by page.
-    pub transparent_runs: Vec<[u8; 8]>,
+    pub transparent_runs: std::sync::Arc<Vec<[u8; 8]>>,
     /// With empty-space skipping: no value of the volume's range maps to a non-zero
     /// opacity, so its rays are not marched at all.
     pub invisible: bool,
