@@ -1185,14 +1185,27 @@ impl<'a> FrameSetup<'a> {
                 let mut rays: Vec<RayState<'_, '_, A>> = Vec::with_capacity((w * h) as usize);
                 // Each ray's pixel (within the rectangle), as some may be skipped.
                 let mut at: Vec<u32> = Vec::with_capacity((w * h) as usize);
-                for y in ty..ty + h {
-                    for x in tx..tx + w {
-                        let Some(e) = ert(x, y) else { continue };
-                        let mut ray =
-                            self.start_r::<R, A>(ray_dir(self, x, y), &mut fb, Vec::new());
-                        ray.ctx.ert = e;
-                        rays.push(ray);
-                        at.push((y - r.y) * r.w + (x - r.x));
+                // Rays in blocks of 4 × (lanes / 4) pixels, so that a packet's rays are
+                // neighbours both ways and cross bricks and cells at nearly the same steps
+                // (rows of 16 pixels spread a packet four times wider); one block of the
+                // tile without packets.
+                let (bw, bh) = if self.packets {
+                    (4, (self.lanes as u32 / 4).max(1))
+                } else {
+                    (w, h)
+                };
+                for by in (ty..ty + h).step_by(bh as usize) {
+                    for bx in (tx..tx + w).step_by(bw as usize) {
+                        for y in by..(by + bh).min(ty + h) {
+                            for x in bx..(bx + bw).min(tx + w) {
+                                let Some(e) = ert(x, y) else { continue };
+                                let mut ray =
+                                    self.start_r::<R, A>(ray_dir(self, x, y), &mut fb, Vec::new());
+                                ray.ctx.ert = e;
+                                rays.push(ray);
+                                at.push((y - r.y) * r.w + (x - r.x));
+                            }
+                        }
                     }
                 }
                 // March all rays of the tile chunk by chunk along t.
