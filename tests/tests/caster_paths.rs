@@ -341,10 +341,12 @@ fn compact_slots_give_the_f32_image() {
         (SampleType::U8, 255.0, 1),
         (SampleType::U16, 65535.0, 2),
         (SampleType::I16, 32767.0, 2),
+        (SampleType::I8, 127.0, 1),
     ] {
         let name = format!("{t:?}");
         let mut data = blobs(max);
-        if t == SampleType::I16 {
+        let signed = matches!(t, SampleType::I16 | SampleType::I8);
+        if signed {
             // Negative values too: the window spans both signs.
             for (i, v) in data.iter_mut().enumerate() {
                 if i % 7 == 0 {
@@ -352,7 +354,7 @@ fn compact_slots_give_the_f32_image() {
                 }
             }
         }
-        let window = if t == SampleType::I16 {
+        let window = if signed {
             [-max as f64, max as f64]
         } else {
             [0.0, max as f64]
