@@ -291,7 +291,9 @@ impl<'a> VolFrame<'a> {
         cur.transparent = skip_transparent && self.transparent[idx];
         if cur.transparent {
             // A cube of transparent bricks ahead: its exit instead of the brick's (the same
-            // expression, so a cube of one gives the brick's exit bit for bit).
+            // expression, so a cube of one gives the brick's exit bit for bit). Computed
+            // again rather than with `side` in the loop above: looking the brick up before
+            // the exits puts the table reads ahead of the divisions, 1.04x the frame time.
             let side = self
                 .transparent_runs
                 .get(idx)
