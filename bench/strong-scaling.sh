@@ -19,7 +19,8 @@
 # Environment: PS ("1 2 4 8"), FRAMES (4), ORBIT (120), SIZE (1280x720), THREADS (2),
 # MODES ("on off").
 # On a GPU-less node without a Rust toolchain: build here, carry target/release/coordinator
-# and set COORDINATOR to it.
+# and set COORDINATOR to it; where GNU time is not installed, carry /usr/bin/time and set
+# TIME_BIN to it.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 SCENE="${1:-configs/demo.toml}"
@@ -32,6 +33,7 @@ SIZE="${SIZE:-1280x720}"
 THREADS="${THREADS:-2}"
 OUT="${OUT:-target/strong-scaling}"
 COORDINATOR="${COORDINATOR:-}"
+TIME_BIN="${TIME_BIN:-/usr/bin/time}"
 if [ -z "$COORDINATOR" ]; then
   cargo build --release -p strata-coordinator --bin coordinator
   COORDINATOR=./target/release/coordinator
@@ -42,7 +44,7 @@ for mode in $MODES; do
   [ "$mode" = off ] && occ=false
   for p in $PS; do
     rm -f "$OUT"/"$mode"_p"$p"_*.png
-    /usr/bin/time -v -o "$OUT/${mode}_p$p.time" "$COORDINATOR" -q render "$SCENE" \
+    "$TIME_BIN" -v -o "$OUT/${mode}_p$p.time" "$COORDINATOR" -q render "$SCENE" \
       -o "$OUT/${mode}_p${p}_%03d.png" --orbit "$ORBIT" --frames "0..$FRAMES" --workers "$p" \
       --size "$SIZE" --set "cluster.worker_threads=$THREADS" --set "cluster.occlusion=$occ" \
       --stats "$OUT/${mode}_p$p.jsonl" "$@"

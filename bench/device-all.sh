@@ -1,0 +1,86 @@
+#!/usr/bin/env bash
+# Every check that needs the `device` machine (16 cores and an NVIDIA GPU, no Rust toolchain,
+# no ../shared), as one run that fits a 15-minute device lease:
+#   1. issue 14: the CPU caster on 1, 2, 4, 8 and 16 threads (bench/device-caster-scaling.sh);
+#   2. the engine's GPU tests (tests/tests/render_gpu.rs: GPU == CPU) on the hardware GPU;
+#   3. the engine's CPU and GPU backends on the same frames (`bench-render --only-backends`);
+#   4. issue 10: strong scaling over p = 1, 2, 4, 8 workers of 2 threads (bench/strong-scaling.sh).
+# Each step has its own time limit, so one that hangs does not cost the others.
+#
+# Prepare on the project machine (release binaries, stripped and gzipped, 18 MB in all):
+#   printf '/.gl/\n/device-carry/\n' >> .git/info/exclude   # once
+#   (the Vulkan loader debs in .gl/: /work/.library/device/README.md)
+#   cargo build --release --locked -p strata-bench -p strata-coordinator
+#   cargo test --locked -p strata-tests --test render_gpu --no-run   # prints the binary's path
+#   mkdir -p device-carry; strip -o device-carry/bench-render target/release/bench-render
+#   strip -o device-carry/coordinator target/release/coordinator
+#   strip -o device-carry/render_gpu target/debug/deps/render_gpu-HASH
+#   cp /usr/bin/time ../shared/data/real/volumes/bonsai/bonsai_256x256x256_uint8.raw device-carry/
+#   gzip -6 device-carry/*
+# Run with the device tool: carry [".gl", "device-carry"], command `bash bench/device-all.sh`.
+# Results land in $OUT (or the first argument): caster-scaling.md, gpu-tests.log,
+# backends.md, strong-scaling.md, strong-scaling-raw.tgz, machine.txt.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+RESULTS=${1:-${OUT:?set OUT or pass a results folder}}
+mkdir -p "$RESULTS"
+CARRY=${CARRY:-device-carry}
+SCALING_THREADS=${SCALING_THREADS:-1,2,4,8,16}
+PS=${PS:-1 2 4 8}
+
+if [ -d .gl ] && ! ldconfig -p | grep -q libvulkan.so.1; then
+  for f in .gl/*.deb; do dpkg -x "$f" /; done
+  ldconfig
+fi
+nv=/usr/local/nvidia/share
+[ -f $nv/vulkan/icd.d/nvidia_icd.json ] && export VK_DRIVER_FILES=$nv/vulkan/icd.d/nvidia_icd.json
+[ -f $nv/glvnd/egl_vendor.d/10_nvidia.json ] &&
+  export __EGL_VENDOR_LIBRARY_FILENAMES=$nv/glvnd/egl_vendor.d/10_nvidia.json
+for f in "$CARRY"/*.gz; do [ -e "$f" ] && gunzip -f "$f"; done
+chmod +x "$CARRY"/bench-render "$CARRY"/coordinator "$CARRY"/render_gpu "$CARRY"/time 2>/dev/null
+{
+  date -u
+  nproc
+  grep -m1 'model name' /proc/cpuinfo
+  free -g | head -2
+  nvidia-smi -L 2>&1 || echo "no nvidia-smi"
+} >"$RESULTS/machine.txt" 2>&1
+cat "$RESULTS/machine.txt"
+
+step() { # NAME LIMIT_S COMMAND...
+  local name=$1 limit=$2
+  shift 2
+  local t0=$SECONDS
+  echo "=== $name (limit $limit s)"
+  timeout -k 5 "$limit" "$@"
+  local rc=$?
+  echo "=== $name: rc $rc after $((SECONDS - t0)) s"
+}
+
+step caster-scaling "${LIMIT_CASTER:-100}" bash -c '
+  set -o pipefail
+  { echo "## default path"; echo
+    "$0/bench-render" --only-caster --case Bonsai --threads "$1" --frames 5 \
+      --path-filter "(default)" --bonsai "$0/bonsai_256x256x256_uint8.raw" --dir /tmp/strata-bench
+    echo "## the scalar f32 path with brick skipping only (before issue 14)"; echo
+    "$0/bench-render" --only-caster --case Bonsai --threads "$1" --frames 3 \
+      --path-filter "(before)" --bonsai "$0/bonsai_256x256x256_uint8.raw" --dir /tmp/strata-bench
+  } 2>&1 | tee "$2/caster-scaling.md"' "$CARRY" "$SCALING_THREADS" "$RESULTS"
+
+step gpu-tests "${LIMIT_GPU_TESTS:-90}" bash -c '
+  set -o pipefail
+  STRATA_REQUIRE_GPU_ADAPTER=1 RUST_LOG=${RUST_LOG:-info} "$0/render_gpu" --test-threads 2 2>&1 |
+    tee "$1/gpu-tests.log"' "$CARRY" "$RESULTS"
+
+step backends "${LIMIT_BACKENDS:-120}" bash -c '
+  set -o pipefail
+  "$0/bench-render" --only-backends --frames 3 --bonsai "$0/bonsai_256x256x256_uint8.raw" \
+    --dir /tmp/strata-bench 2>&1 | tee "$1/backends.md"' "$CARRY" "$RESULTS"
+
+step strong-scaling "${LIMIT_STRONG:-190}" bash -c '
+  set -o pipefail
+  PS="$2" FRAMES=5 COORDINATOR="$0/coordinator" TIME_BIN="$0/time" OUT=/tmp/strong-scaling \
+    bash bench/strong-scaling.sh configs/demo.toml --set volume.0.opacity=0.06 2>&1 |
+    tee "$1/strong-scaling.md"' "$CARRY" "$RESULTS" "$PS"
+tar czf "$RESULTS/strong-scaling-raw.tgz" -C /tmp strong-scaling 2>/dev/null
+ls -la "$RESULTS"
