@@ -4,7 +4,9 @@
 #   1. issue 14: the CPU caster on 1, 2, 4, 8 and 16 threads (bench/device-caster-scaling.sh);
 #   2. the engine's GPU tests (tests/tests/render_gpu.rs: GPU == CPU) on the hardware GPU;
 #   3. the engine's CPU and GPU backends on the same frames (`bench-render --only-backends`);
-#   4. issue 10: strong scaling over p = 1, 2, 4, 8 workers of 2 threads (bench/strong-scaling.sh).
+#   4. issue 10: strong scaling over p = 1, 2, 4, 8 CPU workers of 2 threads
+#      (bench/strong-scaling.sh; `render.backend = cpu`, since the default takes the GPU there),
+#   and a probe of the machine: one 2-thread caster alone against eight at once.
 # Each step has its own time limit, so one that hangs does not cost the others.
 #
 # Prepare on the project machine (release binaries, stripped and gzipped, 18 MB in all):
@@ -19,7 +21,8 @@
 #   gzip -6 device-carry/*
 # Run with the device tool: carry [".gl", "device-carry"], command `bash bench/device-all.sh`.
 # Results land in $OUT (or the first argument): caster-scaling.md, gpu-tests.log,
-# backends.md, strong-scaling.md, strong-scaling-raw.tgz, machine.txt.
+# backends.md, strong-scaling.md, strong-scaling-raw.tgz (the stats, without the images),
+# contention.md, machine.txt.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 RESULTS=${1:-${OUT:?set OUT or pass a results folder}}
@@ -44,6 +47,7 @@ chmod +x "$CARRY"/bench-render "$CARRY"/coordinator "$CARRY"/render_gpu "$CARRY"
   grep -m1 'model name' /proc/cpuinfo
   free -g | head -2
   nvidia-smi -L 2>&1 || echo "no nvidia-smi"
+  lscpu 2>&1 | grep -E "^(Model name|Thread|Core|Socket|CPU\(s\)|L3|Flags)" | cut -c1-400
 } >"$RESULTS/machine.txt" 2>&1
 cat "$RESULTS/machine.txt"
 
@@ -67,6 +71,18 @@ step caster-scaling "${LIMIT_CASTER:-100}" bash -c '
       --path-filter "(before)" --bonsai "$0/bonsai_256x256x256_uint8.raw" --dir /tmp/strata-bench
   } 2>&1 | tee "$2/caster-scaling.md"' "$CARRY" "$SCALING_THREADS" "$RESULTS"
 
+# Does the machine itself slow a 2-thread caster down when eight run at once (as the eight
+# 2-thread workers of the strong-scaling run do)? The bonsai at 1024², alone, then 8 copies.
+step contention "${LIMIT_CONTENTION:-90}" bash -c '
+  set -o pipefail
+  run() { "$0/bench-render" --only-caster --case 1024 --threads 2 --frames 5 \
+    --path-filter "(default)" --bonsai "$0/bonsai_256x256x256_uint8.raw" \
+    --dir /tmp/strata-bench 2>&1 | grep "^| 2 "; }
+  { echo "## one 2-thread caster alone"; run
+    echo "## eight 2-thread casters at once"
+    for i in 1 2 3 4 5 6 7 8; do run > /tmp/contention-$i.txt & done; wait
+    cat /tmp/contention-*.txt; } | tee "$1/contention.md"' "$CARRY" "$RESULTS"
+
 step gpu-tests "${LIMIT_GPU_TESTS:-90}" bash -c '
   set -o pipefail
   STRATA_REQUIRE_GPU_ADAPTER=1 RUST_LOG=${RUST_LOG:-info} "$0/render_gpu" --test-threads 2 2>&1 |
@@ -80,7 +96,8 @@ step backends "${LIMIT_BACKENDS:-120}" bash -c '
 step strong-scaling "${LIMIT_STRONG:-190}" bash -c '
   set -o pipefail
   PS="$2" FRAMES=5 COORDINATOR="$0/coordinator" TIME_BIN="$0/time" OUT=/tmp/strong-scaling \
-    bash bench/strong-scaling.sh configs/demo.toml --set volume.0.opacity=0.06 2>&1 |
+    bash bench/strong-scaling.sh configs/demo.toml --set volume.0.opacity=0.06 \
+      --set render.backend=cpu 2>&1 |
     tee "$1/strong-scaling.md"' "$CARRY" "$RESULTS" "$PS"
-tar czf "$RESULTS/strong-scaling-raw.tgz" -C /tmp strong-scaling 2>/dev/null
+tar czf "$RESULTS/strong-scaling-raw.tgz" -C /tmp --exclude '*.png' strong-scaling 2>/dev/null
 ls -la "$RESULTS"
