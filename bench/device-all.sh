@@ -7,7 +7,8 @@
 #   4. issue 10: strong scaling over p = 1, 2, 4, 8 CPU workers of 2 threads
 #      (bench/strong-scaling.sh; `render.backend = cpu`, since the default takes the GPU there),
 #   and a probe of the machine: one 2-thread caster alone against eight at once.
-# Each step has its own time limit, so one that hangs does not cost the others.
+# Each step has its own time limit, so one that hangs does not cost the others; SKIP="NAME ..."
+# leaves steps out (caster-scaling, contention, gpu-tests, backends, strong-scaling).
 #
 # Prepare on the project machine (release binaries, stripped and gzipped, 18 MB in all):
 #   printf '/.gl/\n/device-carry/\n' >> .git/info/exclude   # once
@@ -54,6 +55,7 @@ cat "$RESULTS/machine.txt"
 step() { # NAME LIMIT_S COMMAND...
   local name=$1 limit=$2
   shift 2
+  case " ${SKIP:-} " in *" $name "*) echo "=== $name: skipped (SKIP)"; return ;; esac
   local t0=$SECONDS
   echo "=== $name (limit $limit s)"
   timeout -k 5 "$limit" "$@"
