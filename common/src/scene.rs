@@ -507,6 +507,12 @@ pub struct RenderSettings {
     /// same.
     #[serde(default)]
     pub simd_lanes: u32,
+    /// After a feedback round that loaded pages, the CPU caster casts again only the tiles
+    /// (16² pixels) whose rays asked for a page that was missing; the others keep their
+    /// pixels, which had every page they wanted. The image is the same; false casts every
+    /// tile each round.
+    #[serde(default = "yes")]
+    pub selective_rounds: bool,
     /// Gradient (Blinn-Phong headlight) shading of volumes.
     #[serde(default)]
     pub volume_shading: bool,
@@ -640,6 +646,7 @@ impl Default for RenderSettings {
             compact_slots: true,
             simd: true,
             simd_lanes: 0,
+            selective_rounds: true,
             volume_shading: false,
             lighting: true,
             atlas_mb: default_atlas(),

@@ -620,3 +620,66 @@ fn transparent_brick_runs_change_no_pixel() {
         "most of the lattice should be skipped in most views: {jumped}"
     );
 }
+
+/// Selective feedback rounds (`render.selective_rounds`): after a round that loads pages,
+/// only the tiles whose rays asked for a missing page are cast again. With 4 uploads per
+/// round the batch takes many rounds, in which most tiles already had their pages: the
+/// converged image, its counters, the rounds and the outcome are those of casting every
+/// tile each round, bit for bit, for less work. Marking too few tiles (one whose page was
+/// missing kept from the round before) changes pixels; marking all saves nothing.
+#[test]
+fn selective_rounds_cast_less_and_change_no_pixel() {
+    let dir = TempDir::new().unwrap();
+    let st = store_sized(dir.path(), "blobs32", SampleType::F32, None, N, 32, blobs(100.0));
+    let mut saved = 0;
+    for (i, cam) in cameras().into_iter().enumerate() {
+        for simd in [true, false] {
+            let mut s = scene_for(st.clone(), [0.0, 100.0], cam.clone());
+            s.render.width = 160;
+            s.render.height = 120;
+            s.render.simd = simd;
+            s.render.upload_pages_per_frame = 4;
+            s.render.max_rounds = 400;
+            let run = |selective: bool| {
+                let mut s = s.clone();
+                s.render.selective_rounds = selective;
+                let mut e = Engine::new(&s).unwrap();
+                let view = e.view(s.render.width, s.render.height).unwrap();
+                let region = e.scene_region();
+                e.render_batch(&view, &region).unwrap()
+            };
+            let all = run(false);
+            let sel = run(true);
+            assert_eq!(all.outcome, Outcome::Converged, "camera {i}");
+            assert!(all.rounds >= 3, "camera {i}: {} rounds", all.rounds);
+            eprintln!(
+                "camera {i}, simd {simd}: {} rounds, {} samples cast against {}",
+                all.rounds, sel.total.samples, all.total.samples
+            );
+            let (a, b) = (all.image.to_full(), sel.image.to_full());
+            assert!(
+                b.iter().filter(|p| p[3] > 0.01).count() > 200,
+                "camera {i}: the view shows the data"
+            );
+            assert!(
+                identical(&a, &b),
+                "camera {i}, simd {simd}: selective rounds change the image by {}",
+                max_diff(&a, &b)
+            );
+            assert_eq!(sel.last, all.last, "camera {i}, simd {simd}");
+            assert_eq!(
+                (sel.rounds, sel.outcome),
+                (all.rounds, all.outcome),
+                "camera {i}"
+            );
+            assert!(sel.total.samples <= all.total.samples, "camera {i}");
+            if sel.total.samples * 10 < all.total.samples * 9 {
+                saved += 1;
+            }
+        }
+    }
+    assert!(
+        saved >= 4,
+        "selective rounds saved 10 % of the samples in only {saved} of 8 batches"
+    );
+}

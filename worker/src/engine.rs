@@ -40,6 +40,9 @@ pub struct Frame {
     pub variant: Variant,
     /// The code path in words (see [`Engine::variant_name`]).
     pub variant_name: String,
+    /// The CPU caster's feedback and counters per tile (row-major over the image's
+    /// rectangle); empty on the GPU backend.
+    pub tiles: Vec<crate::raycast::TileOut>,
 }
 
 /// What one feedback round did.
@@ -746,6 +749,7 @@ impl Engine {
                 f32::INFINITY
             },
             limits,
+            only_tiles: None,
             // f64 accumulation has one copy of the caster: the general one.
             variant: Variant::new(
                 effects,
@@ -797,6 +801,18 @@ impl Engine {
         region: &Region,
         limits: Option<RayLimits<'_>>,
     ) -> Result<Frame> {
+        self.render_frame_tiles(view, region, limits, None)
+    }
+
+    /// [`Engine::render_frame_limited`], casting only the tiles `only` marks on the CPU
+    /// ([`FrameSetup::only_tiles`]; the GPU casts every pixel).
+    fn render_frame_tiles(
+        &mut self,
+        view: &View,
+        region: &Region,
+        limits: Option<RayLimits<'_>>,
+        only: Option<&[bool]>,
+    ) -> Result<Frame> {
         let t = Instant::now();
         if let Some(mut gpu) = self.gpu.take() {
             let setup = self.setup(view, region, limits);
@@ -813,14 +829,18 @@ impl Engine {
                 gpu: g,
                 variant,
                 variant_name: self.variant_name(variant, 0),
+                tiles: Vec::new(),
             });
         }
-        let setup = self.setup(view, region, limits);
+        let mut setup = self.setup(view, region, limits);
+        setup.only_tiles = only;
         let (variant, lanes) = (setup.variant, if setup.packets { setup.lanes } else { 0 });
         let out = setup.render();
         drop(setup);
         let mut feedback = Feedback::default();
-        feedback.add(&out.feedback);
+        for tile in &out.tiles {
+            feedback.add(&tile.feedback);
+        }
         Ok(Frame {
             image: out.image,
             feedback,
@@ -829,7 +849,29 @@ impl Engine {
             gpu: GpuFrameStats::default(),
             variant,
             variant_name: self.variant_name(variant, lanes),
+            tiles: out.tiles,
         })
+    }
+
+    /// The tiles of `f` to cast again after this round's loads: those whose rays asked for
+    /// a page that is not in the atlas now (before the loads). Every other tile had each
+    /// page it wanted, at the level it wanted, so casting it again gives the same pixels.
+    /// `None` where the frame has no tiles (the GPU backend).
+    fn tiles_missing_pages(&self, f: &Frame) -> Option<Vec<bool>> {
+        if f.tiles.is_empty() {
+            return None;
+        }
+        Some(
+            f.tiles
+                .iter()
+                .map(|t| {
+                    t.feedback.iter().any(|e| {
+                        let ds = strata_common::ids::PageId(e.page).dataset();
+                        self.pool(ds).slot_of(e.page).is_none()
+                    })
+                })
+                .collect(),
+        )
     }
 
     fn parent_key(&self, key: u64) -> Option<u64> {
@@ -960,12 +1002,23 @@ impl Engine {
         let (mut cast_s, mut load_s) = (0.0, 0.0);
         let mut rounds = 0;
         let mut uploaded_bytes = 0;
+        // The last round's frame and the tiles to cast again (selective rounds).
+        let mut last: Option<(Frame, Vec<bool>)> = None;
         loop {
             rounds += 1;
-            let f = self.render_frame_limited(view, region, limits)?;
+            let only = last.as_ref().map(|(_, m)| m.as_slice());
+            let mut f = self.render_frame_tiles(view, region, limits, only)?;
             cast_s += f.seconds;
             uploaded_bytes += f.gpu.uploaded_bytes;
             total += f.stats;
+            if let Some((prev, mask)) = last.take() {
+                keep_tiles(&mut f, prev, &mask)?;
+            }
+            let again = if self.settings.selective_rounds {
+                self.tiles_missing_pages(&f)
+            } else {
+                None
+            };
             let t = Instant::now();
             let rep = self.update(&f.feedback, true).context("batch round")?;
             load_s += t.elapsed().as_secs_f64();
@@ -988,6 +1041,12 @@ impl Engine {
                 "feedback round"
             );
             reports.push(rep);
+            if outcome.is_none() {
+                if let Some(mask) = again {
+                    last = Some((f, mask));
+                    continue;
+                }
+            }
             if let Some(outcome) = outcome {
                 return Ok(BatchResult {
                     image: f.image,
@@ -1143,4 +1202,37 @@ fn plane_rect_to_image(view: &View, xa: u32, ya: u32, xb: u32, yb: u32) -> Rect 
         w: ix1 - ix0,
         h: iy1 - iy0,
     }
+}
+
+/// Puts back into `f` the tiles of `prev` (the round before, same view and region) that
+/// `cast` does not mark, with their feedback and counters, so that `f`'s image, feedback
+/// and counters describe the whole frame again.
+fn keep_tiles(f: &mut Frame, mut prev: Frame, cast: &[bool]) -> Result<()> {
+    use crate::raycast::TILE;
+    let r = f.image.rect;
+    anyhow::ensure!(
+        prev.image.rect == r && prev.tiles.len() == f.tiles.len() && cast.len() == f.tiles.len(),
+        "internal: a feedback round changed the frame's tiles"
+    );
+    let tiles_x = r.w.div_ceil(TILE) as usize;
+    let w = r.w as usize;
+    for (ti, _) in cast.iter().enumerate().filter(|(_, &c)| !c) {
+        let (x0, y0) = ((ti % tiles_x) * TILE as usize, (ti / tiles_x) * TILE as usize);
+        let tw = (TILE as usize).min(w - x0);
+        let th = (TILE as usize).min(r.h as usize - y0);
+        for y in y0..y0 + th {
+            let row = y * w + x0..y * w + x0 + tw;
+            f.image.pixels[row.clone()].copy_from_slice(&prev.image.pixels[row]);
+        }
+        f.tiles[ti] = std::mem::take(&mut prev.tiles[ti]);
+    }
+    let mut stats = CastStats::default();
+    let mut feedback = Feedback::default();
+    for t in &f.tiles {
+        stats += t.stats;
+        feedback.add(&t.feedback);
+    }
+    f.stats = stats;
+    f.feedback = feedback;
+    Ok(())
 }

@@ -67,6 +67,9 @@ pub struct FrameSetup<'a> {
     pub volume_shading: bool,
     /// Volume-skipping enabled.
     pub skipping: bool,
+    /// Only the tiles marked here are cast (row-major over `rect`, [`TILE`]² pixels each);
+    /// the others' pixels stay transparent and they ask for nothing. `None`: every tile.
+    pub only_tiles: Option<&'a [bool]>,
     /// Depth of the lockstep chunks a tile's rays are marched in (camera-relative units).
     pub chunk: f32,
     /// March single-volume spans in SIMD packets ([`crate::packet`]); only set where the
@@ -149,9 +152,19 @@ impl std::ops::AddAssign for CastStats {
 pub struct CastOutput {
     /// The premultiplied image.
     pub image: PartialImage,
-    /// Raw feedback per tile (reduced).
+    /// Each tile's feedback (reduced) and counters, tiles in row-major order over the
+    /// rectangle; a tile left out by [`FrameSetup::only_tiles`] has none.
+    pub tiles: Vec<TileOut>,
+    /// Counters, summed over the tiles cast.
+    pub stats: CastStats,
+}
+
+/// What one tile of a cast gave besides its pixels.
+#[derive(Clone, Debug, Default)]
+pub struct TileOut {
+    /// The pages its rays asked for (reduced).
     pub feedback: Vec<crate::feedback::FeedbackEntry>,
-    /// Counters.
+    /// Its counters.
     pub stats: CastStats,
 }
 
@@ -1147,6 +1160,12 @@ impl<'a> FrameSetup<'a> {
         let results: Vec<(Vec<crate::feedback::FeedbackEntry>, CastStats)> = (0..tiles_x * tiles_y)
             .into_par_iter()
             .map(|ti| {
+                if self
+                    .only_tiles
+                    .is_some_and(|o| !o.get(ti as usize).copied().unwrap_or(true))
+                {
+                    return (Vec::new(), CastStats::default());
+                }
                 let tx = r.x + (ti % tiles_x) * TILE;
                 let ty = r.y + (ti / tiles_x) * TILE;
                 let w = TILE.min(r.x + r.w - tx);
@@ -1269,12 +1288,17 @@ impl<'a> FrameSetup<'a> {
                 (red, st)
             })
             .collect();
-        let mut feedback = Vec::new();
         let mut stats = CastStats::default();
-        for (fb, st) in results {
-            feedback.extend(fb);
-            stats += st;
-        }
+        let tiles = results
+            .into_iter()
+            .map(|(feedback, st)| {
+                stats += st;
+                TileOut {
+                    feedback,
+                    stats: st,
+                }
+            })
+            .collect();
         CastOutput {
             image: PartialImage {
                 width: self.width,
@@ -1282,7 +1306,7 @@ impl<'a> FrameSetup<'a> {
                 rect: r,
                 pixels,
             },
-            feedback,
+            tiles,
             stats,
         }
     }

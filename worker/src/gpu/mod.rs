@@ -189,14 +189,30 @@ const STORAGE_DST: wgpu::BufferUsages =
     wgpu::BufferUsages::STORAGE.union(wgpu::BufferUsages::COPY_DST);
 const STORAGE_SRC_DST: wgpu::BufferUsages = STORAGE_DST.union(wgpu::BufferUsages::COPY_SRC);
 
-/// The wgpu instance: Vulkan unless `WGPU_BACKEND` names others (`gl`, `vulkan,gl`).
+/// The process's one wgpu instance: Vulkan unless `WGPU_BACKEND` names others (`gl`,
+/// `vulkan,gl`).
+///
+/// One instance serves every engine of the process, rather than a Vulkan instance created
+/// and destroyed per engine, several at once on test threads: with one per engine the GPU
+/// test binary segfaulted on an H200 (twice, 2 test threads and `RUST_LOG=info`, a debug
+/// build; not with 8 threads and no `RUST_LOG`; the fault inside the driver was not
+/// pinned down). wgpu's debug flags (debug-utils messenger, validation) are opt-in through
+/// `WGPU_DEBUG` / `WGPU_VALIDATION` instead of following the build's debug assertions, so
+/// test builds drive the GPU as release builds do.
 fn instance() -> (wgpu::Instance, wgpu::Backends) {
-    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle_from_env();
-    if std::env::var_os("WGPU_BACKEND").is_none() {
-        desc.backends = wgpu::Backends::VULKAN;
-    }
-    let backends = desc.backends;
-    (wgpu::Instance::new(desc), backends)
+    static INSTANCE: std::sync::OnceLock<(wgpu::Instance, wgpu::Backends)> =
+        std::sync::OnceLock::new();
+    INSTANCE
+        .get_or_init(|| {
+            let mut desc = wgpu::InstanceDescriptor::new_without_display_handle_from_env();
+            desc.flags = wgpu::InstanceFlags::empty().with_env();
+            if std::env::var_os("WGPU_BACKEND").is_none() {
+                desc.backends = wgpu::Backends::VULKAN;
+            }
+            let backends = desc.backends;
+            (wgpu::Instance::new(desc), backends)
+        })
+        .clone()
 }
 
 /// The adapters wgpu sees, as `(index, name, backend, software)`.
