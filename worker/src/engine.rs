@@ -92,7 +92,9 @@ pub struct BatchResult {
     pub last: CastStats,
     /// Casting counters summed over all rounds.
     pub total: CastStats,
-    /// Time of the final frame's cast.
+    /// Time of the final frame's cast. Under selective rounds, where the last round cast
+    /// only some tiles, each tile counts its share of the round that last cast it: the
+    /// time a cast of the whole converged frame takes.
     pub last_seconds: f64,
     /// Time spent casting (all rounds).
     pub cast_seconds: f64,
@@ -835,17 +837,22 @@ impl Engine {
         let mut setup = self.setup(view, region, limits);
         setup.only_tiles = only;
         let (variant, lanes) = (setup.variant, if setup.packets { setup.lanes } else { 0 });
-        let out = setup.render();
+        let mut out = setup.render();
         drop(setup);
+        let seconds = t.elapsed().as_secs_f64();
         let mut feedback = Feedback::default();
-        for tile in &out.tiles {
+        let busy: f64 = out.tiles.iter().map(|t| t.seconds).sum();
+        for tile in &mut out.tiles {
             feedback.add(&tile.feedback);
+            if busy > 0.0 {
+                tile.wall = seconds * tile.seconds / busy;
+            }
         }
         Ok(Frame {
             image: out.image,
             feedback,
             stats: out.stats,
-            seconds: t.elapsed().as_secs_f64(),
+            seconds,
             gpu: GpuFrameStats::default(),
             variant,
             variant_name: self.variant_name(variant, lanes),
@@ -1054,7 +1061,13 @@ impl Engine {
                     outcome,
                     last: f.stats,
                     total,
-                    last_seconds: f.seconds,
+                    // Under selective rounds the last round cast only some tiles: the
+                    // frame's time is each tile's share of the round that last cast it.
+                    last_seconds: if f.tiles.is_empty() {
+                        f.seconds
+                    } else {
+                        f.tiles.iter().map(|t| t.wall).sum()
+                    },
                     cast_seconds: cast_s,
                     load_seconds: load_s,
                     reports,

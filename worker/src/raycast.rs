@@ -166,6 +166,11 @@ pub struct TileOut {
     pub feedback: Vec<crate::feedback::FeedbackEntry>,
     /// Its counters.
     pub stats: CastStats,
+    /// Seconds its thread spent casting it.
+    pub seconds: f64,
+    /// Its share of the cast's wall time: the cast's wall time split over the tiles cast in
+    /// proportion to `seconds`.
+    pub wall: f64,
 }
 
 /// The colour a ray accumulates front to back: `Rgba` (f32), as every frame, or `[f64; 4]`
@@ -1157,15 +1162,22 @@ impl<'a> FrameSetup<'a> {
         let tiles_y = r.h.div_ceil(TILE);
         let mut pixels = vec![[0.0f32; 4]; r.area()];
         let out = TileSink(pixels.as_mut_ptr());
-        let results: Vec<(Vec<crate::feedback::FeedbackEntry>, CastStats)> = (0..tiles_x * tiles_y)
+        let results: Vec<TileOut> = (0..tiles_x * tiles_y)
             .into_par_iter()
             .map(|ti| {
                 if self
                     .only_tiles
                     .is_some_and(|o| !o.get(ti as usize).copied().unwrap_or(true))
                 {
-                    return (Vec::new(), CastStats::default());
+                    return TileOut::default();
                 }
+                let t0 = std::time::Instant::now();
+                let done = |(feedback, stats)| TileOut {
+                    feedback,
+                    stats,
+                    seconds: t0.elapsed().as_secs_f64(),
+                    wall: 0.0,
+                };
                 let tx = r.x + (ti % tiles_x) * TILE;
                 let ty = r.y + (ti / tiles_x) * TILE;
                 let w = TILE.min(r.x + r.w - tx);
@@ -1174,7 +1186,7 @@ impl<'a> FrameSetup<'a> {
                 let mut st = CastStats::default();
                 let limits = self.limits;
                 if limits.is_some_and(|l| l.none_in(tx, ty, w, h)) {
-                    return (Vec::new(), st);
+                    return done((Vec::new(), st));
                 }
                 // The ray's own threshold, or None when it is not cast.
                 let ert = |x: u32, y: u32| match limits {
@@ -1199,7 +1211,7 @@ impl<'a> FrameSetup<'a> {
                             hits = std::mem::take(&mut ray.hits);
                         }
                     }
-                    return (crate::feedback::reduce_tile(&mut fb), st);
+                    return done((crate::feedback::reduce_tile(&mut fb), st));
                 }
                 let mut rays: Vec<RayState<'_, '_, A>> = Vec::with_capacity((w * h) as usize);
                 // Each ray's pixel (within the rectangle), as some may be skipped.
@@ -1284,21 +1296,14 @@ impl<'a> FrameSetup<'a> {
                     // the parallel loop.
                     unsafe { out.write(i as usize, sanitize(ray.ctx.acc.rgba())) };
                 }
-                let red = crate::feedback::reduce_tile(&mut fb);
-                (red, st)
+                done((crate::feedback::reduce_tile(&mut fb), st))
             })
             .collect();
         let mut stats = CastStats::default();
-        let tiles = results
-            .into_iter()
-            .map(|(feedback, st)| {
-                stats += st;
-                TileOut {
-                    feedback,
-                    stats: st,
-                }
-            })
-            .collect();
+        for t in &results {
+            stats += t.stats;
+        }
+        let tiles = results;
         CastOutput {
             image: PartialImage {
                 width: self.width,
