@@ -87,4 +87,35 @@ for mode in modes:
         t, s, occ, fix, imb, mv, rss = rows[p]
         sp = base[0] / t * ps[0]
         print(f"| {mode} | {p} | {t*1e3:.0f} ms | {sp:.2f} | {sp/p*100:.0f} % | {s/1e6:.1f} M | {(s/base_samples-1)*100:+.1f} % | {occ:.0f} / {fix:.0f} | {imb:.2f} | {mv/1e6:.1f} | {rss:.0f} |")
+
+# Where a frame's time goes: medians over frames 1.. of the slowest worker's phases and of
+# the mean worker's render (the gap between the two is the imbalance), in milliseconds.
+# `render` includes its feedback rounds and loads; `occlusion` is the exchange of the
+# transmittance maps, which waits for the slowest worker's render; `composite` is the
+# exchange and blend, which waits for the slowest re-cast; `rounds` the most feedback
+# rounds a worker needed.
+print()
+print("| occlusion | p | frame | render, slowest / mean | of it loads, slowest | occlusion maps | re-cast | composite | rounds |")
+print("|---|---|---|---|---|---|---|---|---|")
+for mode in modes:
+    for p in ps:
+        lines = [json.loads(l) for l in open(f"{out}/{mode}_p{p}.jsonl")]
+        frames = [l for l in lines if l["kind"] == "frame" and l["frame"] > 0]
+        workers = [l for l in lines if l["kind"] == "worker"]
+        cols = {k: [] for k in ("frame", "rmax", "rmean", "load", "occ", "fix", "comp", "rounds")}
+        for f in frames:
+            ws = [w for w in workers if w["frame"] == f["frame"]]
+            if not ws:
+                continue
+            mx = lambda k: max(w.get(k, 0) for w in ws)
+            cols["frame"].append(f["seconds"])
+            cols["rmax"].append(mx("render_s"))
+            cols["rmean"].append(sum(w["render_s"] for w in ws) / len(ws))
+            cols["load"].append(mx("load_s"))
+            cols["occ"].append(mx("occlusion_s"))
+            cols["fix"].append(mx("fixup_s"))
+            cols["comp"].append(mx("composite_s"))
+            cols["rounds"].append(mx("render_rounds"))
+        m = {k: statistics.median(v) if v else 0 for k, v in cols.items()}
+        print(f"| {mode} | {p} | {m['frame']*1e3:.0f} | {m['rmax']*1e3:.0f} / {m['rmean']*1e3:.0f} | {m['load']*1e3:.0f} | {m['occ']*1e3:.0f} | {m['fix']*1e3:.0f} | {m['comp']*1e3:.0f} | {m['rounds']:.0f} |")
 EOF
