@@ -6,7 +6,7 @@
 #   3. the engine's CPU and GPU backends on the same frames (`bench-render --only-backends`);
 #   4. issue 10: strong scaling over p = 1, 2, 4, 8 CPU workers of 2 threads
 #      (bench/strong-scaling.sh; `render.backend = cpu`, since the default takes the GPU there),
-#   then p = 8 with re-splitting off and with two leaves per worker,
+#   then p = 8 with re-splitting off, with two leaves per worker and without early loads,
 #   and a probe of the machine: one 2-thread caster alone against eight at once.
 # Each step has its own time limit, so one that hangs does not cost the others; SKIP="NAME ..."
 # leaves steps out (caster-scaling, contention, gpu-tests, backends, strong-scaling,
@@ -103,16 +103,17 @@ step strong-scaling "${LIMIT_STRONG:-190}" bash -c '
     bash bench/strong-scaling.sh configs/demo.toml --set volume.0.opacity=0.06 \
       --set render.backend=cpu 2>&1 |
     tee "$1/strong-scaling.md"' "$CARRY" "$RESULTS" "$PS"
-# The same orbit at p = 8 with occlusion on, re-splitting off, then two leaves per worker:
-# what re-splitting (and the loads it causes) and over-decomposition give.
-step strong-variants "${LIMIT_VARIANTS:-90}" bash -c '
+# The same orbit at p = 8 with occlusion on and one setting changed: re-splitting off, two
+# leaves per worker, no early loads: what each gives.
+step strong-variants "${LIMIT_VARIANTS:-100}" bash -c '
   set -o pipefail
-  for v in "rebalance_threshold=0" "leaves_per_worker=2"; do
-    echo "## cluster.$v"
+  for v in cluster.rebalance_threshold=0 cluster.leaves_per_worker=2 render.early_loads=false; do
+    echo "## $v"
+    k=${v%%=*}
     PS=8 MODES=on FRAMES=5 COORDINATOR="$0/coordinator" TIME_BIN="$0/time" \
-      OUT="/tmp/strong-scaling/variant-${v%%=*}" \
+      OUT="/tmp/strong-scaling/variant-${k#*.}" \
       bash bench/strong-scaling.sh configs/demo.toml --set volume.0.opacity=0.06 \
-      --set render.backend=cpu --set "cluster.$v" 2>&1 | grep "^|"
+      --set render.backend=cpu --set "$v" 2>&1 | grep "^|"
   done | tee "$1/strong-variants.md"' "$CARRY" "$RESULTS"
 tar czf "$RESULTS/strong-scaling-raw.tgz" -C /tmp --exclude '*.png' strong-scaling 2>/dev/null
 ls -la "$RESULTS"

@@ -513,6 +513,11 @@ pub struct RenderSettings {
     /// tile each round.
     #[serde(default = "yes")]
     pub selective_rounds: bool,
+    /// The CPU caster asks for the pages a tile lacked as soon as the tile is cast, so that
+    /// they load while the rest of the frame is cast (into free cache space only). The image
+    /// is the same.
+    #[serde(default = "yes")]
+    pub early_loads: bool,
     /// Gradient (Blinn-Phong headlight) shading of volumes.
     #[serde(default)]
     pub volume_shading: bool,
@@ -647,6 +652,7 @@ impl Default for RenderSettings {
             simd: true,
             simd_lanes: 0,
             selective_rounds: true,
+            early_loads: true,
             volume_shading: false,
             lighting: true,
             atlas_mb: default_atlas(),

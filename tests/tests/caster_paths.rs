@@ -621,7 +621,8 @@ fn transparent_brick_runs_change_no_pixel() {
     );
 }
 
-/// Selective feedback rounds (`render.selective_rounds`): after a round that loads pages,
+/// Selective feedback rounds (`render.selective_rounds`), with and without early loads
+/// (`render.early_loads`): after a round that loads pages,
 /// only the tiles whose rays asked for a missing page are cast again. With 4 uploads per
 /// round the batch takes many rounds, in which most tiles already had their pages: the
 /// converged image, its counters, the rounds and the outcome are those of casting every
@@ -640,16 +641,27 @@ fn selective_rounds_cast_less_and_change_no_pixel() {
             s.render.simd = simd;
             s.render.upload_pages_per_frame = 4;
             s.render.max_rounds = 400;
-            let run = |selective: bool| {
+            let run = |selective: bool, early: bool| {
                 let mut s = s.clone();
                 s.render.selective_rounds = selective;
+                s.render.early_loads = early;
                 let mut e = Engine::new(&s).unwrap();
                 let view = e.view(s.render.width, s.render.height).unwrap();
                 let region = e.scene_region();
                 e.render_batch(&view, &region).unwrap()
             };
-            let all = run(false);
-            let sel = run(true);
+            let all = run(false, false);
+            let sel = run(true, false);
+            // Loads started while the frame is cast (`render.early_loads`) change nothing
+            // either: the atlas changes only between rounds.
+            let early = run(true, true);
+            assert!(
+                identical(&early.image.to_full(), &sel.image.to_full())
+                    && early.last == sel.last
+                    && early.rounds == sel.rounds
+                    && early.outcome == sel.outcome,
+                "camera {i}, simd {simd}: early loads change the frame"
+            );
             assert_eq!(all.outcome, Outcome::Converged, "camera {i}");
             assert!(all.rounds >= 3, "camera {i}: {} rounds", all.rounds);
             eprintln!(

@@ -752,6 +752,7 @@ impl Engine {
             },
             limits,
             only_tiles: None,
+            on_tile: None,
             // f64 accumulation has one copy of the caster: the general one.
             variant: Variant::new(
                 effects,
@@ -834,8 +835,23 @@ impl Engine {
                 tiles: Vec::new(),
             });
         }
+        // Pages a tile lacks start loading (as prefetches: they fill only free cache space
+        // and evict nothing) while the other tiles are cast; the round's update then finds
+        // them loaded or in flight. The frame's pixels do not depend on it: the atlas
+        // changes only in `update`.
+        let early = |entries: &[crate::feedback::FeedbackEntry]| {
+            for e in entries {
+                let ds = strata_common::ids::PageId(e.page).dataset();
+                if self.pool(ds).slot_of(e.page).is_none() {
+                    self.cache.request(e.page, Class::Prefetch, 1.0);
+                }
+            }
+        };
         let mut setup = self.setup(view, region, limits);
         setup.only_tiles = only;
+        if self.settings.early_loads {
+            setup.on_tile = Some(&early);
+        }
         let (variant, lanes) = (setup.variant, if setup.packets { setup.lanes } else { 0 });
         let mut out = setup.render();
         drop(setup);

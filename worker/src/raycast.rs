@@ -70,6 +70,9 @@ pub struct FrameSetup<'a> {
     /// Only the tiles marked here are cast (row-major over `rect`, [`TILE`]² pixels each);
     /// the others' pixels stay transparent and they ask for nothing. `None`: every tile.
     pub only_tiles: Option<&'a [bool]>,
+    /// Called with each tile's requests as soon as the tile is cast, so that the pages it
+    /// lacks start loading while the other tiles are still being cast.
+    pub on_tile: Option<&'a (dyn Fn(&[crate::feedback::FeedbackEntry]) + Sync)>,
     /// Depth of the lockstep chunks a tile's rays are marched in (camera-relative units).
     pub chunk: f32,
     /// March single-volume spans in SIMD packets ([`crate::packet`]); only set where the
@@ -1172,11 +1175,17 @@ impl<'a> FrameSetup<'a> {
                     return TileOut::default();
                 }
                 let t0 = std::time::Instant::now();
-                let done = |(feedback, stats)| TileOut {
-                    feedback,
-                    stats,
-                    seconds: t0.elapsed().as_secs_f64(),
-                    wall: 0.0,
+                let done = |(feedback, stats): (Vec<crate::feedback::FeedbackEntry>, _)| {
+                    let seconds = t0.elapsed().as_secs_f64();
+                    if let Some(f) = self.on_tile {
+                        f(&feedback);
+                    }
+                    TileOut {
+                        feedback,
+                        stats,
+                        seconds,
+                        wall: 0.0,
+                    }
                 };
                 let tx = r.x + (ti % tiles_x) * TILE;
                 let ty = r.y + (ti / tiles_x) * TILE;
