@@ -3,7 +3,7 @@
 //! Both backends read the same atlas bookkeeping, page tables and transfer-function tables
 //! (`strata_common::gpu`); the WGSL caster interpolates trilinearly in the shader
 //! (`exact` filtering), so its images must match the CPU's to 1e-4 (2.5e-4 for pre-integrated
-//! spans with shading, measured at 1.05e-4 on an H200), and a region split on the GPU must
+//! spans with shading on a hardware GPU, measured at 1.05e-4 on an H200), and a region split on the GPU must
 //! composite to the whole GPU image within 1e-5. Lavapipe (CI) gives the CPU's images bit for
 //! bit; a hardware GPU differs in the last bits (fused multiply-adds, 2.5-ulp division).
 //!
@@ -111,12 +111,17 @@ fn gpu_equals_cpu_on_the_survey_with_lod_bands_shading_and_a_camera_inside() {
     assert_gpu_matches_cpu(&pre, 1e-4, "pre-integrated");
     let mut pre_shaded = shaded.clone();
     pre_shaded.render.preintegrated = true;
-    // Lavapipe gives this image bit for bit; an H200 (NVIDIA's Vulkan driver contracts
-    // a·b + c into fused multiply-adds and divides and takes square roots to the 2.5 ulp
-    // that Vulkan allows) differed by 1.05e-4 here, where every other case of this test stays
-    // within 1e-4: shading's central differences of pre-integrated spans are the most
-    // sensitive to the last bits of the sample values.
-    assert_gpu_matches_cpu(&pre_shaded, 2.5e-4, "pre-integrated and shaded");
+    // Lavapipe gives this image bit for bit, and is held to 1e-4 like every case; an H200
+    // (NVIDIA's Vulkan driver contracts a·b + c into fused multiply-adds and divides and
+    // takes square roots to the 2.5 ulp that Vulkan allows) differed by 1.05e-4 here, where
+    // every other case stays within 1e-4: shading's central differences of pre-integrated
+    // spans are the most sensitive to the last bits of the sample values. A hardware
+    // adapter (the engine's default pick when there is one) gets 2.5e-4.
+    let hardware = strata_worker::gpu::list_adapters()
+        .iter()
+        .any(|a| !a.3);
+    let tol = if hardware { 2.5e-4 } else { 1e-4 };
+    assert_gpu_matches_cpu(&pre_shaded, tol, "pre-integrated and shaded");
     // A camera inside the volume: rays start inside the box.
     let e = Engine::new(&s).unwrap();
     let b = e.bounds();

@@ -93,8 +93,8 @@ pub struct BatchResult {
     /// Casting counters summed over all rounds.
     pub total: CastStats,
     /// Time of the final frame's cast. Under selective rounds, where the last round cast
-    /// only some tiles, each tile counts its share of the round that last cast it: the
-    /// time a cast of the whole converged frame takes.
+    /// only some tiles, the time a cast of the whole converged frame takes: the last full
+    /// round's time, scaled by the converged tiles' thread time against that round's.
     pub last_seconds: f64,
     /// Time spent casting (all rounds).
     pub cast_seconds: f64,
@@ -804,17 +804,21 @@ impl Engine {
         region: &Region,
         limits: Option<RayLimits<'_>>,
     ) -> Result<Frame> {
-        self.render_frame_tiles(view, region, limits, None)
+        self.render_frame_tiles(view, region, limits, None, false)
     }
 
     /// [`Engine::render_frame_limited`], casting only the tiles `only` marks on the CPU
-    /// ([`FrameSetup::only_tiles`]; the GPU casts every pixel).
+    /// ([`FrameSetup::only_tiles`]; the GPU casts every pixel). With `early_loads`, the
+    /// pages a tile lacks are asked of the cache as soon as it is cast (batch rounds only:
+    /// a single frame, such as occlusion's first pass or an interactive frame, loads
+    /// nothing it was not asked to).
     fn render_frame_tiles(
         &mut self,
         view: &View,
         region: &Region,
         limits: Option<RayLimits<'_>>,
         only: Option<&[bool]>,
+        early_loads: bool,
     ) -> Result<Frame> {
         let t = Instant::now();
         if let Some(mut gpu) = self.gpu.take() {
@@ -849,20 +853,16 @@ impl Engine {
         };
         let mut setup = self.setup(view, region, limits);
         setup.only_tiles = only;
-        if self.settings.early_loads {
+        if early_loads {
             setup.on_tile = Some(&early);
         }
         let (variant, lanes) = (setup.variant, if setup.packets { setup.lanes } else { 0 });
-        let mut out = setup.render();
+        let out = setup.render();
         drop(setup);
         let seconds = t.elapsed().as_secs_f64();
         let mut feedback = Feedback::default();
-        let busy: f64 = out.tiles.iter().map(|t| t.seconds).sum();
-        for tile in &mut out.tiles {
+        for tile in &out.tiles {
             feedback.add(&tile.feedback);
-            if busy > 0.0 {
-                tile.wall = seconds * tile.seconds / busy;
-            }
         }
         Ok(Frame {
             image: out.image,
@@ -1027,10 +1027,17 @@ impl Engine {
         let mut uploaded_bytes = 0;
         // The last round's frame and the tiles to cast again (selective rounds).
         let mut last: Option<(Frame, Vec<bool>)> = None;
+        // The last round that cast every tile: its wall time and its tiles' thread time.
+        let mut full: Option<(f64, f64)> = None;
+        let early = self.settings.early_loads;
         loop {
             rounds += 1;
             let only = last.as_ref().map(|(_, m)| m.as_slice());
-            let mut f = self.render_frame_tiles(view, region, limits, only)?;
+            let cast_all = only.is_none();
+            let mut f = self.render_frame_tiles(view, region, limits, only, early)?;
+            if cast_all {
+                full = Some((f.seconds, f.tiles.iter().map(|t| t.seconds).sum()));
+            }
             cast_s += f.seconds;
             uploaded_bytes += f.gpu.uploaded_bytes;
             total += f.stats;
@@ -1077,12 +1084,15 @@ impl Engine {
                     outcome,
                     last: f.stats,
                     total,
-                    // Under selective rounds the last round cast only some tiles: the
-                    // frame's time is each tile's share of the round that last cast it.
-                    last_seconds: if f.tiles.is_empty() {
-                        f.seconds
-                    } else {
-                        f.tiles.iter().map(|t| t.wall).sum()
+                    last_seconds: match full {
+                        // The last round cast only some tiles: the time of a whole cast of
+                        // the converged tiles is the last full round's wall time scaled by
+                        // their thread time against that round's (which keeps its set-up,
+                        // its parallel efficiency and its threads).
+                        Some((wall, busy)) if !cast_all && busy > 0.0 => {
+                            wall * f.tiles.iter().map(|t| t.seconds).sum::<f64>() / busy
+                        }
+                        _ => f.seconds,
                     },
                     cast_seconds: cast_s,
                     load_seconds: load_s,

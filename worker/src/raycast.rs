@@ -171,9 +171,6 @@ pub struct TileOut {
     pub stats: CastStats,
     /// Seconds its thread spent casting it.
     pub seconds: f64,
-    /// Its share of the cast's wall time: the cast's wall time split over the tiles cast in
-    /// proportion to `seconds`.
-    pub wall: f64,
 }
 
 /// The colour a ray accumulates front to back: `Rgba` (f32), as every frame, or `[f64; 4]`
@@ -1184,7 +1181,6 @@ impl<'a> FrameSetup<'a> {
                         feedback,
                         stats,
                         seconds,
-                        wall: 0.0,
                     }
                 };
                 let tx = r.x + (ti % tiles_x) * TILE;
