@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Every check that needs the `device` machine (16 cores and an NVIDIA GPU, no Rust toolchain,
 # no ../shared), as one run that fits a 15-minute device lease:
-#   1. issue 14: the CPU caster on 1, 2, 4, 8 and 16 threads (bench/device-caster-scaling.sh);
+#   1. issue 14: the CPU caster on 1, 2, 4, 8 and 16 threads, the default path and the scalar
+#      path before issue 14 (bench/device-caster-scaling.sh runs all six paths instead);
 #   2. the engine's GPU tests (tests/tests/render_gpu.rs: GPU == CPU) on the hardware GPU;
 #   3. the engine's CPU and GPU backends on the same frames (`bench-render --only-backends`);
 #   4. issue 10: strong scaling over p = 1, 2, 4, 8 CPU workers of 2 threads
@@ -12,16 +13,8 @@
 # leaves steps out (caster-scaling, contention, gpu-tests, backends, strong-scaling,
 # strong-variants).
 #
-# Prepare on the project machine (release binaries, stripped and gzipped, 18 MB in all):
-#   printf '/.gl/\n/device-carry/\n' >> .git/info/exclude   # once
-#   (the Vulkan loader debs in .gl/: /work/.library/device/README.md)
-#   cargo build --release --locked -p strata-bench -p strata-coordinator
-#   cargo test --locked -p strata-tests --test render_gpu --no-run   # prints the binary's path
-#   mkdir -p device-carry; strip -o device-carry/bench-render target/release/bench-render
-#   strip -o device-carry/coordinator target/release/coordinator
-#   strip -o device-carry/render_gpu target/debug/deps/render_gpu-HASH
-#   cp /usr/bin/time ../shared/data/real/volumes/bonsai/bonsai_256x256x256_uint8.raw device-carry/
-#   gzip -6 device-carry/*
+# Prepare on the project machine: bench/device-prepare.sh (release binaries, the GPU test
+# binary, GNU time, the bonsai and the Vulkan loader's packages, 18 MB in all).
 # Run with the device tool: carry [".gl", "device-carry"], command `bash bench/device-all.sh`.
 # Results land in $OUT (or the first argument): caster-scaling.md, gpu-tests.log,
 # backends.md, strong-scaling.md, strong-scaling-raw.tgz (the stats, without the images),
