@@ -207,6 +207,35 @@ pub(crate) fn rmse(a: &[Rgba], b: &[Rgba]) -> (f64, f64) {
     ((s / (a.len() * 4) as f64).sqrt(), m)
 }
 
+/// The pixels of `a` and `b` (`w` wide) that differ by more than `tol` in some channel:
+/// how many, and the worst one's position and both values (for knife-edge outliers).
+fn outliers(a: &[Rgba], b: &[Rgba], w: u32, tol: f32) -> String {
+    let mut n = 0;
+    let mut worst: Option<(f32, usize)> = None;
+    for (i, (p, q)) in a.iter().zip(b).enumerate() {
+        let d = (0..4).map(|c| (p[c] - q[c]).abs()).fold(0.0f32, f32::max);
+        if d > tol {
+            n += 1;
+            if worst.is_none_or(|(m, _)| d > m) {
+                worst = Some((d, i));
+            }
+        }
+    }
+    match worst {
+        None => format!("0 px > {tol:e}"),
+        Some((_, i)) => {
+            let f = |p: &Rgba| format!("({:.4}, {:.4}, {:.4}, {:.4})", p[0], p[1], p[2], p[3]);
+            format!(
+                "{n} px > {tol:e}; worst at ({}, {}): {} against {}",
+                i as u32 % w,
+                i as u32 / w,
+                f(&a[i]),
+                f(&b[i])
+            )
+        }
+    }
+}
+
 fn peak_rss_mib() -> f64 {
     let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
     // SAFETY: getrusage writes into the struct we own.
@@ -324,6 +353,7 @@ fn cpu_vs_gpu(cli: &Cli) -> Result<()> {
     println!();
     println!("| scene | size | backend | cold batch | rounds | uploaded MiB | frame (median) | samples | hits | samples/s | feedback bytes/frame | max diff vs CPU | speed-up |");
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    let mut outlier_notes = Vec::new();
     for name in ["bonsai", "survey"] {
         for (w, h) in [(1920u32, 1080u32), (3840, 2160)] {
             let mut cpu_row: Option<(f64, Vec<Rgba>)> = None;
@@ -362,14 +392,21 @@ fn cpu_vs_gpu(cli: &Cli) -> Result<()> {
                 let f = last.unwrap();
                 let img = f.image.to_full();
                 let (diff, speed) = match &cpu_row {
-                    Some((cpu_t, cpu_img)) => (
-                        format!(
-                            "{:.2e} (RMSE {:.2e})",
-                            rmse(&img, cpu_img).1,
-                            rmse(&img, cpu_img).0
-                        ),
-                        format!("{:.2}×", cpu_t / med),
-                    ),
+                    Some((cpu_t, cpu_img)) => {
+                        outlier_notes.push(format!(
+                            "{name} {w}×{h} {}: {}",
+                            b.backend,
+                            outliers(&img, cpu_img, w, 1e-3)
+                        ));
+                        (
+                            format!(
+                                "{:.2e} (RMSE {:.2e})",
+                                rmse(&img, cpu_img).1,
+                                rmse(&img, cpu_img).0
+                            ),
+                            format!("{:.2}×", cpu_t / med),
+                        )
+                    }
                     None => ("–".into(), "1×".into()),
                 };
                 println!(
@@ -389,6 +426,12 @@ fn cpu_vs_gpu(cli: &Cli) -> Result<()> {
                 }
             }
         }
+    }
+    println!();
+    // Where the GPU image differs from the CPU image (GPU value first, then the CPU's;
+    // x, y from the top left).
+    for n in outlier_notes {
+        println!("* {n}");
     }
     println!();
     Ok(())
@@ -496,4 +539,23 @@ fn main() -> Result<()> {
     }
     println!("peak RSS {:.0} MiB", peak_rss_mib());
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn outliers_name_the_worst_pixel() {
+        let a = vec![[0.0f32; 4]; 6];
+        let mut b = a.clone();
+        assert_eq!(outliers(&a, &b, 3, 1e-3), "0 px > 1e-3");
+        b[4][2] = 0.5;
+        b[1][0] = 0.01;
+        assert_eq!(
+            outliers(&a, &b, 3, 1e-3),
+            "2 px > 1e-3; worst at (1, 1): (0.0000, 0.0000, 0.0000, 0.0000) against \
+             (0.0000, 0.0000, 0.5000, 0.0000)"
+        );
+    }
 }
