@@ -138,6 +138,7 @@ fn png_complete(png: &Path, width: u32, height: u32) -> bool {
 }
 
 /// One frame of a sequence: its number, camera and output paths.
+#[derive(Clone)]
 struct FramePlan {
     index: u32,
     camera: Camera,
@@ -554,6 +555,18 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
             let mut done = Vec::with_capacity(plan.len());
             let mut rebalances = Vec::new();
             let mut sequence = Vec::with_capacity(plan.len());
+            // A frame's files are written while the next frame renders: one write in
+            // flight, waited for before the next starts (and its error reported then).
+            let shared_scene = std::sync::Arc::new(scene.clone());
+            let mut writing: Option<(u32, tokio::task::JoinHandle<Result<()>>)> = None;
+            async fn finish(w: Option<(u32, tokio::task::JoinHandle<Result<()>>)>) -> Result<()> {
+                if let Some((i, h)) = w {
+                    h.await
+                        .map_err(|e| anyhow::anyhow!("writing frame {i}: {e}"))?
+                        .with_context(|| format!("writing frame {i}"))?;
+                }
+                Ok(())
+            }
             for f in &plan {
                 let i = f.index;
                 let t = Instant::now();
@@ -575,11 +588,22 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
                         fr
                     }
                     None => {
-                        let fr = cluster
+                        let mut fr = cluster
                             .frame(&f.camera, w, h, &choice, FrameSource::Render)
                             .await
                             .with_context(|| format!("frame {i}"))?;
-                        tokio::task::block_in_place(|| write_outputs(&scene, f, w, h, &fr.image))?;
+                        finish(writing.take()).await?;
+                        let image = std::mem::replace(
+                            &mut fr.image,
+                            crate::cluster::FrameImage::Owned(Vec::new()),
+                        );
+                        let (sc, plan_f) = (shared_scene.clone(), f.clone());
+                        writing = Some((
+                            i,
+                            tokio::task::spawn_blocking(move || {
+                                write_outputs(&sc, &plan_f, w, h, &image)
+                            }),
+                        ));
                         fr
                     }
                 };
@@ -607,6 +631,7 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
                 }
                 done.push(fr);
             }
+            finish(writing.take()).await?;
             let transport = cluster.transport().clone();
             cluster.shutdown().await;
             anyhow::Ok((done, sequence, rebalances, transport))
