@@ -744,33 +744,50 @@ pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result
     let (mut cast_seconds, mut load_seconds) = (0.0, 0.0);
     let mut sequence = Vec::with_capacity(plan.len());
     let mut last = None;
-    for f in &plan {
-        let i = f.index;
-        let t = Instant::now();
-        let view = frame_view(&scene, &f.camera, &engine.settings, w, h)?;
-        let result = engine
-            .render_batch(&view, &region)
-            .with_context(|| format!("frame {i}"))?;
-        let full = result.image.to_full();
-        write_outputs(&scene, f, w, h, &full)?;
-        cast_seconds += result.cast_seconds;
-        load_seconds += result.load_seconds;
-        sequence.push(FrameSummary {
-            frame: i,
-            output: display(&f.png),
-            seconds: t.elapsed().as_secs_f64(),
-            rounds: result.rounds,
-            outcome: result.outcome.clone().as_str().into(),
-            samples: result.last.samples,
-            occluded_blocks: 0,
-            fixup_blocks: 0,
-            effects: result.variant.effects.to_string(),
-            variant: result.variant_name.clone(),
-        });
-        log_frame(sequence.last().expect("just pushed"));
-        progress.inc(1);
-        last = Some(result);
-    }
+    // A frame's files are written on a thread while the next frame renders: one write in
+    // flight, waited for before the next starts (and its error reported then).
+    std::thread::scope(|threads| -> Result<()> {
+        type Writing<'s> = Option<(u32, std::thread::ScopedJoinHandle<'s, Result<()>>)>;
+        let finish = |w: Writing<'_>| -> Result<()> {
+            if let Some((i, h)) = w {
+                h.join()
+                    .map_err(|_| anyhow::anyhow!("writing frame {i}: the writer panicked"))?
+                    .with_context(|| format!("writing frame {i}"))?;
+            }
+            Ok(())
+        };
+        let mut writing: Writing<'_> = None;
+        for f in &plan {
+            let i = f.index;
+            let t = Instant::now();
+            let view = frame_view(&scene, &f.camera, &engine.settings, w, h)?;
+            let result = engine
+                .render_batch(&view, &region)
+                .with_context(|| format!("frame {i}"))?;
+            let full = result.image.to_full();
+            finish(writing.take())?;
+            let sc = &scene;
+            writing = Some((i, threads.spawn(move || write_outputs(sc, f, w, h, &full))));
+            cast_seconds += result.cast_seconds;
+            load_seconds += result.load_seconds;
+            sequence.push(FrameSummary {
+                frame: i,
+                output: display(&f.png),
+                seconds: t.elapsed().as_secs_f64(),
+                rounds: result.rounds,
+                outcome: result.outcome.clone().as_str().into(),
+                samples: result.last.samples,
+                occluded_blocks: 0,
+                fixup_blocks: 0,
+                effects: result.variant.effects.to_string(),
+                variant: result.variant_name.clone(),
+            });
+            log_frame(sequence.last().expect("just pushed"));
+            progress.inc(1);
+            last = Some(result);
+        }
+        finish(writing.take())
+    })?;
     let result = last.context("no frame rendered")?;
     let cs = engine.cache_stats();
     let lookups = (cs.hits + cs.misses).max(1);
