@@ -632,7 +632,15 @@ fn transparent_brick_runs_change_no_pixel() {
 #[test]
 fn selective_rounds_cast_less_and_change_no_pixel() {
     let dir = TempDir::new().unwrap();
-    let st = store_sized(dir.path(), "blobs32", SampleType::F32, None, N, 32, blobs(100.0));
+    let st = store_sized(
+        dir.path(),
+        "blobs32",
+        SampleType::F32,
+        None,
+        N,
+        32,
+        blobs(100.0),
+    );
     // A wavy opaque horizon through the blobs (its tiles are pages too).
     let n = N as usize;
     let heights: Vec<f32> = (0..n * n)
@@ -674,6 +682,7 @@ fn selective_rounds_cast_less_and_change_no_pixel() {
                 let region = e.scene_region();
                 e.render_batch(&view, &region).unwrap()
             };
+            let what = format!("camera {i}, simd {simd}, shading {shading}, horizon {horizon}");
             let all = run(false, false);
             let sel = run(true, false);
             // Loads started while the frame is cast (`render.early_loads`) change nothing
@@ -684,12 +693,12 @@ fn selective_rounds_cast_less_and_change_no_pixel() {
                     && early.last == sel.last
                     && early.rounds == sel.rounds
                     && early.outcome == sel.outcome,
-                "camera {i}, simd {simd}, shading {shading}, horizon {horizon}: early loads change the frame"
+                "{what}: early loads change the frame"
             );
             assert_eq!(all.outcome, Outcome::Converged, "camera {i}");
             assert!(all.rounds >= 3, "camera {i}: {} rounds", all.rounds);
             eprintln!(
-                "camera {i}, simd {simd}, shading {shading}, horizon {horizon}: {} rounds, {} samples cast against {}",
+                "{what}: {} rounds, {} samples cast against {}",
                 all.rounds, sel.total.samples, all.total.samples
             );
             let (a, b) = (all.image.to_full(), sel.image.to_full());
@@ -699,10 +708,10 @@ fn selective_rounds_cast_less_and_change_no_pixel() {
             );
             assert!(
                 identical(&a, &b),
-                "camera {i}, simd {simd}, shading {shading}, horizon {horizon}: selective rounds change the image by {}",
+                "{what}: selective rounds change the image by {}",
                 max_diff(&a, &b)
             );
-            assert_eq!(sel.last, all.last, "camera {i}, simd {simd}, shading {shading}, horizon {horizon}");
+            assert_eq!(sel.last, all.last, "{what}");
             assert_eq!(
                 (sel.rounds, sel.outcome),
                 (all.rounds, all.outcome),

@@ -117,9 +117,7 @@ fn gpu_equals_cpu_on_the_survey_with_lod_bands_shading_and_a_camera_inside() {
     // every other case stays within 1e-4: shading's central differences of pre-integrated
     // spans are the most sensitive to the last bits of the sample values. A hardware
     // adapter (the engine's default pick when there is one) gets 2.5e-4.
-    let hardware = strata_worker::gpu::list_adapters()
-        .iter()
-        .any(|a| !a.3);
+    let hardware = strata_worker::gpu::list_adapters().iter().any(|a| !a.3);
     let tol = if hardware { 2.5e-4 } else { 1e-4 };
     assert_gpu_matches_cpu(&pre_shaded, tol, "pre-integrated and shaded");
     // A camera inside the volume: rays start inside the box.

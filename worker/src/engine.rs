@@ -844,11 +844,8 @@ impl Engine {
         // them loaded or in flight. The frame's pixels do not depend on it: the atlas
         // changes only in `update`.
         let early = |entries: &[crate::feedback::FeedbackEntry]| {
-            for e in entries {
-                let ds = strata_common::ids::PageId(e.page).dataset();
-                if self.pool(ds).slot_of(e.page).is_none() {
-                    self.cache.request(e.page, Class::Prefetch, 1.0);
-                }
+            for e in entries.iter().filter(|e| !self.in_atlas(e.page)) {
+                self.cache.request(e.page, Class::Prefetch, 1.0);
             }
         };
         let mut setup = self.setup(view, region, limits);
@@ -859,16 +856,11 @@ impl Engine {
         let (variant, lanes) = (setup.variant, if setup.packets { setup.lanes } else { 0 });
         let out = setup.render();
         drop(setup);
-        let seconds = t.elapsed().as_secs_f64();
-        let mut feedback = Feedback::default();
-        for tile in &out.tiles {
-            feedback.add(&tile.feedback);
-        }
         Ok(Frame {
             image: out.image,
-            feedback,
+            feedback: feedback_of(&out.tiles),
             stats: out.stats,
-            seconds,
+            seconds: t.elapsed().as_secs_f64(),
             gpu: GpuFrameStats::default(),
             variant,
             variant_name: self.variant_name(variant, lanes),
@@ -887,14 +879,15 @@ impl Engine {
         Some(
             f.tiles
                 .iter()
-                .map(|t| {
-                    t.feedback.iter().any(|e| {
-                        let ds = strata_common::ids::PageId(e.page).dataset();
-                        self.pool(ds).slot_of(e.page).is_none()
-                    })
-                })
+                .map(|t| t.feedback.iter().any(|e| !self.in_atlas(e.page)))
                 .collect(),
         )
+    }
+
+    /// Whether page `key` has a slot in its pool's atlas now.
+    fn in_atlas(&self, key: u64) -> bool {
+        let ds = strata_common::ids::PageId(key).dataset();
+        self.pool(ds).slot_of(key).is_some()
     }
 
     fn parent_key(&self, key: u64) -> Option<u64> {
@@ -1256,7 +1249,10 @@ fn keep_tiles(f: &mut Frame, mut prev: Frame, cast: &[bool]) -> Result<()> {
     let tiles_x = r.w.div_ceil(TILE) as usize;
     let w = r.w as usize;
     for (ti, _) in cast.iter().enumerate().filter(|(_, &c)| !c) {
-        let (x0, y0) = ((ti % tiles_x) * TILE as usize, (ti / tiles_x) * TILE as usize);
+        let (x0, y0) = (
+            (ti % tiles_x) * TILE as usize,
+            (ti / tiles_x) * TILE as usize,
+        );
         let tw = (TILE as usize).min(w - x0);
         let th = (TILE as usize).min(r.h as usize - y0);
         for y in y0..y0 + th {
@@ -1265,13 +1261,19 @@ fn keep_tiles(f: &mut Frame, mut prev: Frame, cast: &[bool]) -> Result<()> {
         }
         f.tiles[ti] = std::mem::take(&mut prev.tiles[ti]);
     }
-    let mut stats = CastStats::default();
-    let mut feedback = Feedback::default();
+    f.stats = CastStats::default();
     for t in &f.tiles {
-        stats += t.stats;
+        f.stats += t.stats;
+    }
+    f.feedback = feedback_of(&f.tiles);
+    Ok(())
+}
+
+/// The requests of a frame's tiles, merged.
+fn feedback_of(tiles: &[crate::raycast::TileOut]) -> Feedback {
+    let mut feedback = Feedback::default();
+    for t in tiles {
         feedback.add(&t.feedback);
     }
-    f.stats = stats;
-    f.feedback = feedback;
-    Ok(())
+    feedback
 }

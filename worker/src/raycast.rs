@@ -1162,7 +1162,7 @@ impl<'a> FrameSetup<'a> {
         let tiles_y = r.h.div_ceil(TILE);
         let mut pixels = vec![[0.0f32; 4]; r.area()];
         let out = TileSink(pixels.as_mut_ptr());
-        let results: Vec<TileOut> = (0..tiles_x * tiles_y)
+        let tiles: Vec<TileOut> = (0..tiles_x * tiles_y)
             .into_par_iter()
             .map(|ti| {
                 if self
@@ -1172,7 +1172,7 @@ impl<'a> FrameSetup<'a> {
                     return TileOut::default();
                 }
                 let t0 = std::time::Instant::now();
-                let done = |(feedback, stats): (Vec<crate::feedback::FeedbackEntry>, _)| {
+                let done = |feedback: Vec<crate::feedback::FeedbackEntry>, stats| {
                     let seconds = t0.elapsed().as_secs_f64();
                     if let Some(f) = self.on_tile {
                         f(&feedback);
@@ -1191,7 +1191,7 @@ impl<'a> FrameSetup<'a> {
                 let mut st = CastStats::default();
                 let limits = self.limits;
                 if limits.is_some_and(|l| l.none_in(tx, ty, w, h)) {
-                    return done((Vec::new(), st));
+                    return done(Vec::new(), st);
                 }
                 // The ray's own threshold, or None when it is not cast.
                 let ert = |x: u32, y: u32| match limits {
@@ -1216,7 +1216,7 @@ impl<'a> FrameSetup<'a> {
                             hits = std::mem::take(&mut ray.hits);
                         }
                     }
-                    return done((crate::feedback::reduce_tile(&mut fb), st));
+                    return done(crate::feedback::reduce_tile(&mut fb), st);
                 }
                 let mut rays: Vec<RayState<'_, '_, A>> = Vec::with_capacity((w * h) as usize);
                 // Each ray's pixel (within the rectangle), as some may be skipped.
@@ -1301,14 +1301,13 @@ impl<'a> FrameSetup<'a> {
                     // the parallel loop.
                     unsafe { out.write(i as usize, sanitize(ray.ctx.acc.rgba())) };
                 }
-                done((crate::feedback::reduce_tile(&mut fb), st))
+                done(crate::feedback::reduce_tile(&mut fb), st)
             })
             .collect();
         let mut stats = CastStats::default();
-        for t in &results {
+        for t in &tiles {
             stats += t.stats;
         }
-        let tiles = results;
         CastOutput {
             image: PartialImage {
                 width: self.width,
