@@ -8,17 +8,18 @@
 #   4. issue 10: strong scaling over p = 1, 2, 4, 8 CPU workers of 2 threads
 #      (bench/strong-scaling.sh; `render.backend = cpu`, since the default takes the GPU there),
 #   then p = 8 with re-splitting off, with two leaves per worker and without early loads,
-#   and a probe of the machine: one 2-thread caster alone against eight at once.
+#   and probes of the machine: one 2-thread caster alone against eight at once, on the
+#   bonsai and on the demo survey.
 # Each step has its own time limit, so one that hangs does not cost the others; SKIP="NAME ..."
-# leaves steps out (caster-scaling, contention, gpu-tests, backends, strong-scaling,
-# strong-variants).
+# leaves steps out (caster-scaling, contention, survey-contention, gpu-tests, backends,
+# strong-scaling, strong-variants).
 #
 # Prepare on the project machine: bench/device-prepare.sh (release binaries, the GPU test
 # binary, GNU time, the bonsai and the Vulkan loader's packages, 18 MB in all).
 # Run with the device tool: carry [".gl", "device-carry"], command `bash bench/device-all.sh`.
 # Results land in $OUT (or the first argument): caster-scaling.md, gpu-tests.log,
 # backends.md, strong-scaling.md, strong-scaling-raw.tgz (the stats, without the images),
-# strong-variants.md, contention.md, machine.txt.
+# strong-variants.md, contention.md, survey-contention.md, machine.txt.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 RESULTS=${1:-${OUT:?set OUT or pass a results folder}}
@@ -79,6 +80,21 @@ step contention "${LIMIT_CONTENTION:-90}" bash -c '
     echo "## eight 2-thread casters at once"
     for i in 1 2 3 4 5 6 7 8; do run > /tmp/contention-$i.txt & done; wait
     cat /tmp/contention-*.txt; } | tee "$1/contention.md"' "$CARRY" "$RESULTS"
+
+# The same question for the strong-scaling scene: the demo survey with its translucent volume
+# (1280×720, the whole survey in one region), one 2-thread caster alone, eight at once, and
+# one 16-thread caster. Eight regions' workers at p = 8 cast 30-40 % fewer samples per second
+# each than the single worker at p = 1; this tells the machine's share from the cluster's.
+step survey-contention "${LIMIT_SURVEY_CONTENTION:-150}" bash -c '
+  set -o pipefail
+  run() { "$0/bench-render" --only-caster --case translucent --threads "$1" --frames 3 \
+    --bonsai "$0/bonsai_256x256x256_uint8.raw" \
+    --path-filter "(default)" --dir /tmp/strata-bench 2>&1 | grep "^| $1 "; }
+  { echo "## one 2-thread caster alone"; run 2
+    echo "## eight 2-thread casters at once"
+    for i in 1 2 3 4 5 6 7 8; do run 2 > /tmp/survey-contention-$i.txt & done; wait
+    cat /tmp/survey-contention-*.txt
+    echo "## one 16-thread caster"; run 16; } | tee "$1/survey-contention.md"' "$CARRY" "$RESULTS"
 
 step gpu-tests "${LIMIT_GPU_TESTS:-90}" bash -c '
   set -o pipefail

@@ -101,8 +101,15 @@ fn table(name: &str, base: impl Fn() -> Result<Scene>, args: &CasterArgs) -> Res
 }
 
 /// The demo scene (configs/demo.toml, generated on first use), with the volume's opacity.
+/// The working directory's `configs/demo.toml` when there is one (a carried binary on
+/// another machine, run from a copy of the repository), else the one beside the sources.
 pub(crate) fn demo(opacity: f64) -> Result<Scene> {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/demo.toml");
+    let here = Path::new("configs/demo.toml");
+    let path = if here.is_file() {
+        here.to_path_buf()
+    } else {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/demo.toml")
+    };
     let mut scene = strata_coordinator::overrides::load_scene(&path, &[], None)?;
     if let Some(spec) = &scene.synthetic {
         strata_coordinator::demo::ensure_synthetic(spec, &ProgressBar::hidden())?;

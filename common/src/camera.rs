@@ -209,6 +209,62 @@ impl View {
     }
 }
 
+impl View {
+    /// Where a world point lands on the frustum's image plane, in plane pixels (the centre
+    /// of pixel (x, y) is `(x + 0.5, y + 0.5)`), or `None` when it lies behind the eye.
+    /// The inverse of [`View::ray_dir`] for plain images.
+    pub fn project(&self, world: [f64; 3]) -> Option<(f64, f64)> {
+        let p = self.display.apply(world);
+        let d = [0, 1, 2].map(|a| p[a] - self.eye[a]);
+        let dot =
+            |a: [f64; 3], b: [f32; 3]| a[0] * b[0] as f64 + a[1] * b[1] as f64 + a[2] * b[2] as f64;
+        let f64s = |v: [f32; 3]| v.map(|c| c as f64);
+        let depth = dot(d, self.forward);
+        let scale = dot(f64s(self.dir00), self.forward);
+        if !(depth > 0.0 && scale > 0.0) {
+            return None;
+        }
+        // `du` and `dv` are perpendicular to each other and to `forward`, so the plane
+        // point `d · scale/depth` is `dir00 + fx·du + fy·dv` in that basis.
+        let s = scale / depth;
+        let w = [0, 1, 2].map(|a| d[a] * s - self.dir00[a] as f64);
+        let fx = dot(w, self.du) / dot(f64s(self.du), self.du);
+        let fy = dot(w, self.dv) / dot(f64s(self.dv), self.dv);
+        Some((fx, fy))
+    }
+}
+
+/// How far, in plane pixels, content inside `bounds` moves on screen from view `a` to
+/// view `b`: the `quantile` (0: least, 0.5: median, 1: largest) of the displacements of a
+/// 9 × 9 × 9 lattice of the box (corners and faces included), over the points in front of
+/// both eyes (0 when there are none). A measure for predictions that are checked
+/// afterwards (cross-worker occlusion dilates the last frame's map by it), not a bound: a
+/// point between lattice points may move somewhat further.
+pub fn screen_motion(a: &View, b: &View, bounds: &Region, quantile: f64) -> f64 {
+    const N: usize = 9;
+    let mut moves = Vec::with_capacity(N * N * N);
+    for i in 0..N {
+        for j in 0..N {
+            for k in 0..N {
+                let t = [i, j, k].map(|v| v as f64 / (N - 1) as f64);
+                let p = [0, 1, 2].map(|c| bounds.lo[c] + t[c] * (bounds.hi[c] - bounds.lo[c]));
+                if let (Some((ax, ay)), Some((bx, by))) = (a.project(p), b.project(p)) {
+                    let m = (bx - ax).hypot(by - ay);
+                    if m.is_finite() {
+                        moves.push(m);
+                    }
+                }
+            }
+        }
+    }
+    if moves.is_empty() {
+        return 0.0;
+    }
+    moves.sort_by(f64::total_cmp);
+    let i = (quantile.clamp(0.0, 1.0) * (moves.len() - 1) as f64).round() as usize;
+    moves[i]
+}
+
 /// A camera that frames a world box: from the south-west, above, at 35°.
 pub fn default_camera(bounds: &Region, render: &RenderSettings) -> Camera {
     let d = DisplayMap::new(render);
@@ -248,6 +304,82 @@ pub fn orbit(camera: &Camera, frames: u32, i: u32) -> Camera {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn demo_view(cam: &Camera) -> View {
+        let render = RenderSettings {
+            z_scale: 4.0,
+            z_down: true,
+            ..RenderSettings::default()
+        };
+        View::new(cam, &render, 320, 180).unwrap()
+    }
+
+    #[test]
+    fn project_inverts_ray_dir() {
+        let cam = Camera {
+            eye: [605_100.0, 6_075_000.0, -900.0],
+            target: [605_000.0, 6_076_000.0, 1500.0],
+            up: [0.0, 0.0, -1.0],
+            fov_deg: 35.0,
+        };
+        let v = demo_view(&cam);
+        for (x, y) in [(0, 0), (319, 179), (17, 101), (160, 90)] {
+            let d = v.ray_dir(x, y);
+            for dist in [10.0, 2500.0] {
+                // A display-space point along the ray, back in world coordinates.
+                let p = [0, 1, 2].map(|a| v.eye[a] + dist * d[a] as f64);
+                let world = [p[0], p[1], p[2] / v.display.zmul];
+                let (fx, fy) = v.project(world).unwrap();
+                assert!(
+                    (fx - (x as f64 + 0.5)).abs() < 1e-3 && (fy - (y as f64 + 0.5)).abs() < 1e-3,
+                    "pixel ({x}, {y}) at {dist}: projected to ({fx}, {fy})"
+                );
+            }
+        }
+        // Behind the eye.
+        let d = v.forward;
+        let p = [0, 1, 2].map(|a| v.eye[a] - 100.0 * d[a] as f64);
+        assert_eq!(v.project([p[0], p[1], p[2] / v.display.zmul]), None);
+    }
+
+    #[test]
+    fn screen_motion_grows_with_the_turn_and_is_zero_without_one() {
+        let cam = Camera {
+            eye: [590_000.0, 6_060_000.0, -3000.0],
+            target: [605_000.0, 6_075_000.0, 600.0],
+            up: [0.0, 0.0, -1.0],
+            fov_deg: 35.0,
+        };
+        let bounds = Region {
+            lo: [600_000.0, 6_070_000.0, 0.0],
+            hi: [610_000.0, 6_080_000.0, 1200.0],
+        };
+        let a = demo_view(&cam);
+        assert_eq!(screen_motion(&a, &a, &bounds, 1.0), 0.0);
+        let one = screen_motion(&a, &demo_view(&orbit(&cam, 120, 1)), &bounds, 1.0);
+        let two = screen_motion(&a, &demo_view(&orbit(&cam, 120, 2)), &bounds, 1.0);
+        assert!(
+            one > 1.0 && two > 1.8 * one && two < 2.2 * one,
+            "{one} {two}"
+        );
+        let median = screen_motion(&a, &demo_view(&orbit(&cam, 120, 1)), &bounds, 0.5);
+        let least = screen_motion(&a, &demo_view(&orbit(&cam, 120, 1)), &bounds, 0.0);
+        assert!(least <= median && median < one, "{least} {median} {one}");
+        // No box corner moves further than the measure says.
+        let b = demo_view(&orbit(&cam, 120, 1));
+        for c in 0..8 {
+            let p = [0, 1, 2].map(|a| {
+                if c >> a & 1 == 0 {
+                    bounds.lo[a]
+                } else {
+                    bounds.hi[a]
+                }
+            });
+            let (ax, ay) = a.project(p).unwrap();
+            let (bx, by) = b.project(p).unwrap();
+            assert!((bx - ax).hypot(by - ay) <= one + 1e-9);
+        }
+    }
 
     #[test]
     fn orbit_turns_the_eye_about_the_target() {

@@ -480,9 +480,60 @@ impl FrontTransmittance {
         FrontTransmittance { grid, q }
     }
 
+    /// This map with each block raised to the largest level within `radius` blocks (a
+    /// square window, clipped at the edges): a prediction for a camera that has moved
+    /// content by up to `radius` blocks on screen. Raising a level only lets more light
+    /// through, so rays are cast further and fewer blocks turn out [`stale`](Self::stale);
+    /// what is left out still obeys the same bound. Linear in the blocks whatever the
+    /// radius (a sliding maximum along rows, then columns).
+    pub fn dilated(&self, radius: u32) -> FrontTransmittance {
+        let (cols, rows) = (self.grid.cols() as usize, self.grid.rows() as usize);
+        if radius == 0 || self.q.is_empty() {
+            return self.clone();
+        }
+        let r = radius as usize;
+        let mut rows_done = vec![CLEAR; self.q.len()];
+        for y in 0..rows {
+            sliding_max(&self.q[y * cols..(y + 1) * cols], r, |i, v| {
+                rows_done[y * cols + i] = v
+            });
+        }
+        let mut q = vec![CLEAR; self.q.len()];
+        let mut column = vec![CLEAR; rows];
+        for x in 0..cols {
+            for (y, c) in column.iter_mut().enumerate() {
+                *c = rows_done[y * cols + x];
+            }
+            sliding_max(&column, r, |i, v| q[i * cols + x] = v);
+        }
+        FrontTransmittance { grid: self.grid, q }
+    }
+
     /// Whether some block has anything in front.
     pub fn any(&self) -> bool {
         self.q.iter().any(|&q| q < CLEAR)
+    }
+}
+
+/// `put(i, max(line[i − r ..= i + r]))` for every `i` (the window clipped to the line), with
+/// a queue of candidate maxima: each element enters and leaves it once.
+fn sliding_max(line: &[Level], r: usize, mut put: impl FnMut(usize, Level)) {
+    let n = line.len();
+    let mut queue = std::collections::VecDeque::with_capacity(2 * r + 1);
+    // Element j enters when the window of i = j − r first holds it.
+    let mut next = 0;
+    for i in 0..n {
+        while next < n && next <= i + r {
+            while queue.back().is_some_and(|&b: &usize| line[b] <= line[next]) {
+                queue.pop_back();
+            }
+            queue.push_back(next);
+            next += 1;
+        }
+        while queue.front().is_some_and(|&f| f + r < i) {
+            queue.pop_front();
+        }
+        put(i, line[*queue.front().expect("the window holds i")]);
     }
 }
 
@@ -876,6 +927,44 @@ mod tests {
                             prop_assert!(limits.ray(x, y).is_none_or(|e| e == 1.0));
                         }
                     }
+                }
+            }
+        }
+    }
+
+    proptest! {
+        /// The sliding maximum equals the window maximum computed directly, on grids that
+        /// are wider, taller or smaller than the window.
+        #[test]
+        fn dilated_takes_the_largest_level_within_the_radius(
+            cols in 1u32..12,
+            rows in 1u32..12,
+            radius in 0u32..7,
+            seed in any::<u64>(),
+        ) {
+            let grid = BlockGrid::new(cols * 2, rows * 2, 2);
+            let mut x = seed | 1;
+            let q: Vec<Level> = (0..grid.len())
+                .map(|_| {
+                    x ^= x << 13;
+                    x ^= x >> 7;
+                    x ^= x << 17;
+                    // Few distinct levels, so ties are common.
+                    [0, 7, 7, 300, CLEAR][(x % 5) as usize]
+                })
+                .collect();
+            let map = FrontTransmittance::checked(grid, q).unwrap();
+            let d = map.dilated(radius);
+            let r = radius as i64;
+            for by in 0..rows as i64 {
+                for bx in 0..cols as i64 {
+                    let mut want = 0;
+                    for y in (by - r).max(0)..=(by + r).min(rows as i64 - 1) {
+                        for x in (bx - r).max(0)..=(bx + r).min(cols as i64 - 1) {
+                            want = want.max(map.q[(y * cols as i64 + x) as usize]);
+                        }
+                    }
+                    prop_assert_eq!(d.q[(by * cols as i64 + bx) as usize], want, "block ({}, {})", bx, by);
                 }
             }
         }

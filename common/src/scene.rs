@@ -248,6 +248,12 @@ pub struct ClusterSettings {
     /// of the resolution, so single frames leave hidden rays uncast too.
     #[serde(default = "yes")]
     pub occlusion_prepass: bool,
+    /// Between frames of a sequence, widen the last frame's occlusion map by how far the
+    /// scene moved on screen (each block takes the most light passed within that many
+    /// pixels), so a moving camera leaves fewer blocks to cast again afterwards, at the cost
+    /// of casting more behind the edges of what is in front.
+    #[serde(default = "yes")]
+    pub occlusion_motion: bool,
 }
 
 /// `cluster.on_worker_loss`.
@@ -307,6 +313,7 @@ impl Default for ClusterSettings {
             occlusion: true,
             occlusion_block: default_occlusion_block(),
             occlusion_prepass: true,
+            occlusion_motion: true,
         }
     }
 }

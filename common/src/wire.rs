@@ -28,7 +28,7 @@ use serde::{de::DeserializeOwned, Deserialize, Serialize};
 /// Frame magic.
 pub const MAGIC: [u8; 4] = *b"STRF";
 /// Protocol version; bumped on any incompatible change of the header or the messages.
-pub const PROTOCOL_VERSION: u16 = 8;
+pub const PROTOCOL_VERSION: u16 = 9;
 /// Size of the frame header.
 pub const HEADER_LEN: usize = 24;
 /// Largest meta message any endpoint accepts (control messages are small; the scene text
@@ -451,6 +451,11 @@ pub struct FrameRequest {
     /// ([`WorkerMsg::Coverage`] and [`CoordMsg::Occlusion`] with `prepass`) as the
     /// prediction; 0: no first pass.
     pub occlusion_prepass: u32,
+    /// Cross-worker occlusion (`cluster.occlusion_motion`): how far, in pixels, the scene
+    /// moved on screen since the frame whose map this worker predicts from; the worker
+    /// raises each block of that map to the largest level within this distance
+    /// ([`crate::occlusion::FrontTransmittance::dilated`]). 0: the map as it is.
+    pub occlusion_motion: u32,
     /// A powerwall frame: `width × height` is the wall's stacked image, rays follow its
     /// tiles, compositing delivers each tile to its driver, which writes the tile's files;
     /// the final pieces sent to the coordinator are empty.

@@ -22,6 +22,7 @@ use std::path::PathBuf;
 use std::process::Stdio;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
+use strata_common::camera::{screen_motion, View};
 use strata_common::composite::canvas as composite_canvas;
 use strata_common::composite::{assemble, Interlace, Span, SparsePiece};
 use strata_common::image::Rgba;
@@ -89,11 +90,21 @@ pub struct ClusterOptions {
     pub occlusion_block: u32,
     /// `cluster.occlusion_prepass`: a low-resolution first pass when there is no prediction.
     pub occlusion_prepass: bool,
+    /// `cluster.occlusion_motion`: widen predictions by the scene's motion on screen.
+    pub occlusion_motion: bool,
 }
 
 /// The first pass of cross-worker occlusion renders at 1/PREPASS_SCALE of the resolution
 /// (1/16 of the rays).
 pub const PREPASS_SCALE: u32 = 4;
+
+/// Which displacement of the scene's points on screen between two frames widens the
+/// occlusion prediction (`cluster.occlusion_motion`): the median. On the demo orbit (3° a
+/// frame, 1280×720) the largest is about 48 pixels, dominated by the box's near corners,
+/// and widening by it left 2.5 times fewer blocks out for 24 % more samples; the median
+/// (13 pixels) removed most re-cast blocks (30-60 k → 1-12 k per frame at p = 8) for
+/// 5-7 % more samples.
+const MOTION_QUANTILE: f64 = 0.5;
 
 /// Whether every rank of `b` has the same ranks in front of it as in `a` (their order among
 /// themselves does not matter to opacity).
@@ -225,6 +236,7 @@ impl ClusterOptions {
             occlusion: c.occlusion,
             occlusion_block: c.occlusion_block,
             occlusion_prepass: c.occlusion_prepass,
+            occlusion_motion: c.occlusion_motion,
             worker_exe: std::env::var_os("STRATA_WORKER_BIN").map(PathBuf::from),
         })
     }
@@ -467,7 +479,9 @@ pub struct Cluster {
     frame_no: u64,
     /// The image size and visibility order of the last frame whose occlusion maps went
     /// out: the workers' predictions hold while both (the workers in front of each) stay.
-    occlusion_last: Option<(u32, u32, Vec<u32>)>,
+    occlusion_last: Option<(u32, u32, Vec<u32>, Camera)>,
+    /// The scene's render settings (the display map of [`View`]s made here).
+    render: strata_common::scene::RenderSettings,
     /// Frame canvases in shared memory (`strata_net::canvas`) that workers on this host
     /// write their final spans into; one whose image a caller still holds is not reused.
     canvases: Vec<Arc<Canvas>>,
@@ -650,6 +664,7 @@ impl Cluster {
             opts,
             frame_no: 0,
             occlusion_last: None,
+            render: scene.render.clone(),
             canvases: Vec::new(),
             wall: None,
             child_pids,
@@ -1528,9 +1543,26 @@ impl Cluster {
         let prepass = occlusion
             && wall.is_none()
             && self.opts.occlusion_prepass
-            && !self.occlusion_last.as_ref().is_some_and(|(w, h, last)| {
+            && !self.occlusion_last.as_ref().is_some_and(|(w, h, last, _)| {
                 (*w, *h) == (width, height) && same_fronts(last, &order)
             });
+        // How far the scene moved on screen since the frame the workers predict from.
+        let motion = match &self.occlusion_last {
+            Some((.., last)) if occlusion && !prepass && self.opts.occlusion_motion => {
+                let view = |c: &Camera| View::new(c, &self.render, width, height).ok();
+                match (view(last), view(camera)) {
+                    (Some(a), Some(b)) => {
+                        let m = screen_motion(&a, &b, &self.costs.root, MOTION_QUANTILE);
+                        m.ceil().min(width.max(height) as f64) as u32
+                    }
+                    _ => 0,
+                }
+            }
+            _ => 0,
+        };
+        if motion > 0 {
+            debug!(frame, motion_px = motion, "occlusion prediction widened");
+        }
         let pre_grid = BlockGrid::new(
             width.div_ceil(PREPASS_SCALE),
             height.div_ceil(PREPASS_SCALE),
@@ -1581,6 +1613,7 @@ impl Cluster {
                 leaves: self.new_leaves[rank as usize].take(),
                 occlusion_block: if occlusion { block } else { 0 },
                 occlusion_prepass: if prepass { PREPASS_SCALE } else { 0 },
+                occlusion_motion: motion,
                 wall: wall.clone(),
                 canvas: canvas_ref
                     .clone()
@@ -1780,7 +1813,8 @@ impl Cluster {
                                     pre_sent = true;
                                 } else {
                                     maps_sent = true;
-                                    self.occlusion_last = Some((width, height, order.clone()));
+                                    self.occlusion_last =
+                                        Some((width, height, order.clone(), camera.clone()));
                                 }
                             }
                             occlusion_s += t.elapsed().as_secs_f64();

@@ -1767,7 +1767,16 @@ fn cross_worker_occlusion_casts_less_and_stays_within_the_termination_bound() {
         "cluster.rebalance_threshold=0",
     ];
     let (inp, _) = go("in", &[&ert[..], &["--in-process"]].concat());
-    let (on, on_n) = go("on", &[&ert[..], &["--workers", "3"]].concat());
+    // The map of the last frame as it is (the re-casts are exercised), and widened by the
+    // camera's motion (the default) below.
+    let (on, on_n) = go(
+        "on",
+        &[
+            &ert[..],
+            &["--workers", "3", "--set", "cluster.occlusion_motion=false"],
+        ]
+        .concat(),
+    );
     let (off, off_n) = go(
         "off",
         &[
@@ -1821,6 +1830,20 @@ fn cross_worker_occlusion_casts_less_and_stays_within_the_termination_bound() {
     assert!(
         on_n.iter().map(|f| f.2).sum::<u64>() > 0,
         "the moving camera made no prediction fail, so no re-cast was exercised: {on_n:?}"
+    );
+    // Widened by the camera's motion: fewer blocks turn out stale, and the bound holds.
+    let (moving, moving_n) = go("moving", &[&ert[..], &["--workers", "3"]].concat());
+    for i in 0..4 {
+        let d = max_diff(&moving[i], &inp[i]);
+        assert!(d <= 0.01 + 1e-5, "frame {i}, widened by the motion: {d}");
+    }
+    assert!(moving_n[1..].iter().all(|f| f.1 > 0), "{moving_n:?}");
+    let recast = |n: &[(u64, u64, u64)]| n[1..].iter().map(|f| f.2).sum::<u64>();
+    assert!(
+        recast(&moving_n) < recast(&on_n),
+        "widening by the motion re-cast {} blocks, the map as it is {}: {moving_n:?} {on_n:?}",
+        recast(&moving_n),
+        recast(&on_n)
     );
     // Several leaves per worker: each leaf's own rays decide what is re-cast (a leaf that
     // stopped short can hide behind the next one's opacity in their composite).

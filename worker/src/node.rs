@@ -1516,7 +1516,10 @@ impl Node {
             && front(&last.order).is_some()
             && front(&last.order) == front(&req.order)
             && last.front.grid == grid;
-        (same && last.front.any()).then(|| last.front.clone())
+        // A moved camera moves what is in front: widen the map by the motion the coordinator
+        // measured (in blocks, rounded up).
+        let radius = req.occlusion_motion.div_ceil(grid.block.max(1));
+        (same && last.front.any()).then(|| last.front.dilated(radius))
     }
 
     /// Sends this worker's block transmittance to the coordinator and waits for the
