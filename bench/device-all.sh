@@ -7,7 +7,7 @@
 #   3. the engine's CPU and GPU backends on the same frames (`bench-render --only-backends`);
 #   4. issue 10: strong scaling over p = 1, 2, 4, 8 CPU workers of 2 threads
 #      (bench/strong-scaling.sh; `render.backend = cpu`, since the default takes the GPU there),
-#   then p = 8 with re-splitting off, with two leaves per worker and without early loads,
+#   then p = 8 with one setting changed each (VARIANTS),
 #   and probes of the machine: one 2-thread caster alone against eight at once, on the
 #   bonsai and on the demo survey.
 # Each step has its own time limit, so one that hangs does not cost the others; SKIP="NAME ..."
@@ -112,17 +112,18 @@ step strong-scaling "${LIMIT_STRONG:-190}" bash -c '
     bash bench/strong-scaling.sh configs/demo.toml --set volume.0.opacity=0.06 \
       --set render.backend=cpu 2>&1 |
     tee "$1/strong-scaling.md"' "$CARRY" "$RESULTS" "$PS"
-# The same orbit at p = 8 with occlusion on and one setting changed: re-splitting off, two
-# leaves per worker, no early loads: what each gives.
-step strong-variants "${LIMIT_VARIANTS:-100}" bash -c '
+# The same orbit at p = 8 with occlusion on and one setting changed (VARIANTS, default:
+# the map not widened by the motion, re-splitting off, re-splitting at a lower threshold
+# and undamped): what each gives.
+VARIANTS=${VARIANTS:-cluster.occlusion_motion=false cluster.rebalance_threshold=0 cluster.rebalance_threshold=1.1 cluster.rebalance_damping=1}
+step strong-variants "${LIMIT_VARIANTS:-150}" bash -c '
   set -o pipefail
-  for v in cluster.rebalance_threshold=0 cluster.leaves_per_worker=2 render.early_loads=false; do
+  for v in $1; do
     echo "## $v"
-    k=${v%%=*}
     PS=8 MODES=on FRAMES=5 COORDINATOR="$0/coordinator" TIME_BIN="$0/time" \
-      OUT="/tmp/strong-scaling/variant-${k#*.}" \
+      OUT="/tmp/strong-scaling/variant-${v#*.}" \
       bash bench/strong-scaling.sh configs/demo.toml --set volume.0.opacity=0.06 \
       --set render.backend=cpu --set "$v" 2>&1 | grep "^|"
-  done | tee "$1/strong-variants.md"' "$CARRY" "$RESULTS"
+  done | tee "$2/strong-variants.md"' "$CARRY" "$VARIANTS" "$RESULTS"
 tar czf "$RESULTS/strong-scaling-raw.tgz" -C /tmp --exclude '*.png' strong-scaling 2>/dev/null
 ls -la "$RESULTS"

@@ -148,6 +148,14 @@ pub enum OcclusionError {
         /// Grid rows.
         rows: u32,
     },
+    /// The bytes are not an LZ4 block of levels ([`encode_levels`]).
+    #[error("{what}: not an LZ4 block of levels ({why})")]
+    Encoding {
+        /// What was being read.
+        what: &'static str,
+        /// The decoder's complaint.
+        why: String,
+    },
     /// The number of values does not match.
     #[error("{what}: {got} values where {expected} were expected")]
     Length {
@@ -186,21 +194,42 @@ pub fn quantize(alpha: f32) -> Level {
     (t * SCALE).ceil().clamp(1.0, SCALE) as Level
 }
 
-/// Levels as little-endian bytes (how they travel).
-pub fn levels_to_bytes(q: &[Level]) -> Vec<u8> {
-    q.iter().flat_map(|v| v.to_le_bytes()).collect()
+/// Levels as they travel: little endian, the bytes shuffled (every low byte, then every
+/// high byte) and LZ4-compressed. A map is mostly runs of [`CLEAR`] and of 0 (outside a
+/// worker's footprint, behind opaque horizons), so a 1280×720 frame's 230 400 blocks,
+/// 460 800 bytes raw, shrink to a few kilobytes: eight workers' maps each way took about
+/// 15 ms over one coordinator's QUIC connections on 16 cores when they went raw.
+pub fn encode_levels(q: &[Level]) -> Vec<u8> {
+    let raw: Vec<u8> = q.iter().flat_map(|v| v.to_le_bytes()).collect();
+    lz4_flex::block::compress(&crate::store::shuffle(&raw, 2))
 }
 
-/// Levels from little-endian bytes.
-pub fn levels_from_bytes(b: &[u8]) -> Result<Vec<Level>, OcclusionError> {
-    if !b.len().is_multiple_of(2) {
+/// The largest [`encode_levels`] of `count` levels.
+pub fn max_encoded_len(count: usize) -> usize {
+    lz4_flex::block::get_maximum_output_size(count * 2)
+}
+
+/// Exactly `count` levels from [`encode_levels`]'s bytes. The caller bounds `count` (it
+/// sizes the buffer): data that would decompress to more is refused before it is written.
+pub fn decode_levels(
+    bytes: &[u8],
+    count: usize,
+    what: &'static str,
+) -> Result<Vec<Level>, OcclusionError> {
+    let raw =
+        lz4_flex::block::decompress(bytes, count * 2).map_err(|e| OcclusionError::Encoding {
+            what,
+            why: e.to_string(),
+        })?;
+    if raw.len() != count * 2 {
         return Err(OcclusionError::Length {
-            what: "transmittance bytes (two per level)",
-            got: b.len(),
-            expected: b.len() + 1,
+            what,
+            got: raw.len() / 2,
+            expected: count,
         });
     }
-    Ok(b.chunks_exact(2)
+    Ok(crate::store::unshuffle(&raw, 2)
+        .chunks_exact(2)
         .map(|c| Level::from_le_bytes([c[0], c[1]]))
         .collect())
 }
@@ -260,6 +289,18 @@ impl Transmittance {
         rect: BlockRect,
         q: Vec<Level>,
     ) -> Result<Self, OcclusionError> {
+        Self::check_rect(grid, rect)?;
+        if q.len() != rect.area() {
+            return Err(OcclusionError::Length {
+                what: "block transmittance",
+                got: q.len(),
+                expected: rect.area(),
+            });
+        }
+        Ok(Transmittance { grid, rect, q })
+    }
+
+    fn check_rect(grid: BlockGrid, rect: BlockRect) -> Result<(), OcclusionError> {
         let inside = rect.x.checked_add(rect.w).is_some_and(|e| e <= grid.cols())
             && rect.y.checked_add(rect.h).is_some_and(|e| e <= grid.rows());
         if !inside {
@@ -269,14 +310,15 @@ impl Transmittance {
                 rows: grid.rows(),
             });
         }
-        if q.len() != rect.area() {
-            return Err(OcclusionError::Length {
-                what: "block transmittance",
-                got: q.len(),
-                expected: rect.area(),
-            });
-        }
-        Ok(Transmittance { grid, rect, q })
+        Ok(())
+    }
+
+    /// A map received from elsewhere as [`encode_levels`] bytes: the rectangle is checked
+    /// against the grid before its area sizes anything.
+    pub fn decoded(grid: BlockGrid, rect: BlockRect, bytes: &[u8]) -> Result<Self, OcclusionError> {
+        Self::check_rect(grid, rect)?;
+        let q = decode_levels(bytes, rect.area(), "block transmittance")?;
+        Self::checked(grid, rect, q)
     }
 
     /// The value of block `(bx, by)`.
@@ -367,6 +409,12 @@ impl FrontTransmittance {
             });
         }
         Ok(FrontTransmittance { grid, q })
+    }
+
+    /// A map received from elsewhere as [`encode_levels`] bytes, one level per block.
+    pub fn decoded(grid: BlockGrid, bytes: &[u8]) -> Result<Self, OcclusionError> {
+        let q = decode_levels(bytes, grid.len(), "front transmittance")?;
+        Self::checked(grid, q)
     }
 
     /// The termination threshold of a ray in `block` for the whole-ray threshold
@@ -666,8 +714,26 @@ mod tests {
             assert!(quantize(a) as f64 / SCALE >= 1.0 - a as f64, "{a}");
         }
         let q = vec![0, 1, 258, CLEAR];
-        assert_eq!(levels_from_bytes(&levels_to_bytes(&q)).unwrap(), q);
-        assert!(levels_from_bytes(&[1, 2, 3]).is_err());
+        assert_eq!(
+            decode_levels(&encode_levels(&q), q.len(), "test").unwrap(),
+            q
+        );
+        // Too few, too many, not LZ4.
+        let e = encode_levels(&q);
+        assert!(matches!(
+            decode_levels(&e, q.len() + 1, "test"),
+            Err(OcclusionError::Length { .. })
+        ));
+        assert!(decode_levels(&e, q.len() - 1, "test").is_err());
+        assert!(decode_levels(&[0xF0, 1, 2, 3], q.len(), "test").is_err());
+        // A large map of runs compresses well, and within its bound.
+        let runs: Vec<Level> = (0..230_400u32)
+            .map(|i| if (i / 640) % 3 == 0 { 0 } else { CLEAR })
+            .collect();
+        let e = encode_levels(&runs);
+        assert!(e.len() < runs.len() / 50, "{} bytes", e.len());
+        assert!(e.len() <= max_encoded_len(runs.len()));
+        assert_eq!(decode_levels(&e, runs.len(), "test").unwrap(), runs);
     }
 
     #[test]

@@ -1525,7 +1525,8 @@ impl Cluster {
         // maps (two bytes a block, sent as control messages) would not fit one.
         let mut block = self.opts.occlusion_block.max(1);
         while block <= occlusion::MAX_BLOCK
-            && BlockGrid::new(width, height, block).len() * 2 + 1024 > wire::MAX_META as usize
+            && occlusion::max_encoded_len(BlockGrid::new(width, height, block).len()) + 1024
+                > wire::MAX_META as usize
         {
             block += 1;
         }
@@ -1800,8 +1801,7 @@ impl Cluster {
                             } else {
                                 (grid, &mut coverage, "occlusion coverage")
                             };
-                            let map = occlusion::levels_from_bytes(&f.bulk)
-                                .and_then(|q| Transmittance::checked(g, rect, q))
+                            let map = Transmittance::decoded(g, rect, &f.bulk)
                                 .with_context(|| format!("{what} from {who}"))
                                 .map_err(blame)?;
                             cov[rank as usize] = Some(map);
@@ -1971,7 +1971,7 @@ impl Cluster {
             let what = w.describe();
             let msg = wire::encode_meta(&CoordMsg::Occlusion {
                 frame,
-                front: occlusion::levels_to_bytes(&front.q),
+                front: occlusion::encode_levels(&front.q),
                 prepass,
             });
             with_timeout(

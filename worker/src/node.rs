@@ -31,8 +31,8 @@ use strata_common::composite::{
 };
 use strata_common::image::{composite_front_to_back, PartialImage, Rect, Rgba};
 use strata_common::occlusion::{
-    levels_from_bytes, levels_to_bytes, BlockGrid, BlockMask, FrontTransmittance, RayLimits,
-    Transmittance, CLEAR, MAX_BLOCK,
+    encode_levels, BlockGrid, BlockMask, FrontTransmittance, RayLimits, Transmittance, CLEAR,
+    MAX_BLOCK,
 };
 use strata_common::scene::Scene;
 use strata_common::wire::{
@@ -1545,7 +1545,7 @@ impl Node {
         with_timeout(
             left,
             "sending the occlusion coverage to the coordinator",
-            write_frame(csend, &wire::encode_meta(&msg), &levels_to_bytes(&map.q)),
+            write_frame(csend, &wire::encode_meta(&msg), &encode_levels(&map.q)),
         )
         .await?;
         loop {
@@ -1566,11 +1566,9 @@ impl Node {
                     front,
                     prepass: p,
                 } if frame == req.frame && p == prepass => {
-                    return levels_from_bytes(&front)
-                        .and_then(|q| FrontTransmittance::checked(grid, q))
-                        .with_context(|| {
-                            format!("the coordinator's occlusion map for frame {frame}")
-                        });
+                    return FrontTransmittance::decoded(grid, &front).with_context(|| {
+                        format!("the coordinator's occlusion map for frame {frame}")
+                    });
                 }
                 // The map of an abandoned attempt at an earlier frame.
                 CoordMsg::Occlusion { frame, .. } if frame < req.frame => {
