@@ -1218,10 +1218,14 @@ impl Node {
                         only: Some(&stale),
                         threshold,
                     });
-                    let again =
+                    let mut again =
                         tokio::task::block_in_place(|| self.image(req, size, limits, &mut stats))?;
-                    let again = composite_leaves(req.width, req.height, &again);
-                    image = replace_blocks(&image, &again, &stale);
+                    // (One leaf, the usual case: its image as it is, not a copy.)
+                    let again = match again.len() {
+                        1 => again.pop().expect("one leaf"),
+                        _ => composite_leaves(req.width, req.height, &again),
+                    };
+                    image = replace_blocks(image, &again, &stale);
                     stats.fixup_s = t.elapsed().as_secs_f64();
                 }
                 debug!(
@@ -1708,11 +1712,35 @@ fn composite_leaves(width: u32, height: u32, leaves: &[PartialImage]) -> Partial
 }
 
 /// `base` with the pixels of the blocks set in `blocks` taken from `again` (a re-cast of
-/// those blocks).
-fn replace_blocks(base: &PartialImage, again: &PartialImage, blocks: &BlockMask) -> PartialImage {
+/// those blocks). In place when every such block lies inside `base`'s rectangle (a few
+/// hundred blocks of a frame: rewriting the whole frame around them took longer than
+/// casting them), else through a full frame.
+fn replace_blocks(
+    mut base: PartialImage,
+    again: &PartialImage,
+    blocks: &BlockMask,
+) -> PartialImage {
+    let set: Vec<usize> = (0..blocks.grid.len()).filter(|&b| blocks.get(b)).collect();
+    let r = base.rect;
+    let inside = set.iter().all(|&b| {
+        let (x0, y0, x1, y1) = blocks.grid.pixels_of(b);
+        x0 >= r.x && y0 >= r.y && x1 <= r.x + r.w && y1 <= r.y + r.h
+    });
+    if inside {
+        for &b in &set {
+            let (x0, y0, x1, y1) = blocks.grid.pixels_of(b);
+            for y in y0..y1 {
+                let row = ((y - r.y) * r.w) as usize;
+                for x in x0..x1 {
+                    base.pixels[row + (x - r.x) as usize] = again.get(x, y);
+                }
+            }
+        }
+        return base;
+    }
     let (w, h) = (base.width, base.height);
     let mut full = base.to_full();
-    for b in (0..blocks.grid.len()).filter(|&b| blocks.get(b)) {
+    for &b in &set {
         let (x0, y0, x1, y1) = blocks.grid.pixels_of(b);
         for y in y0..y1 {
             for x in x0..x1 {
@@ -1797,5 +1825,78 @@ pub fn synthetic_image(
         height,
         rect: Rect { x, y, w, h },
         pixels,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use strata_common::image::Rect;
+
+    fn image(w: u32, h: u32, rect: Rect, seed: f32) -> PartialImage {
+        let pixels = (0..rect.area())
+            .map(|i| {
+                let v = (i as f32 * 0.37 + seed).fract();
+                [v * 0.5, v * 0.25, v * 0.125, v]
+            })
+            .collect();
+        PartialImage {
+            width: w,
+            height: h,
+            rect,
+            pixels,
+        }
+    }
+
+    /// Blocks inside the base's rectangle are replaced in place, others through a full
+    /// frame; either way the frame is the base with exactly those blocks' pixels taken
+    /// from the re-cast.
+    #[test]
+    fn replace_blocks_takes_exactly_the_blocks() {
+        let (w, h) = (24, 16);
+        let grid = BlockGrid::new(w, h, 4);
+        let base = image(
+            w,
+            h,
+            Rect {
+                x: 4,
+                y: 2,
+                w: 14,
+                h: 12,
+            },
+            0.1,
+        );
+        let again = image(
+            w,
+            h,
+            Rect {
+                x: 0,
+                y: 0,
+                w: 20,
+                h: 16,
+            },
+            0.7,
+        );
+        for blocks in [vec![7usize, 8, 14], vec![7, 0], vec![]] {
+            let mut mask = BlockMask::empty(grid);
+            for &b in &blocks {
+                mask.set(b);
+            }
+            let got = replace_blocks(base.clone(), &again, &mask).to_full();
+            for y in 0..h {
+                for x in 0..w {
+                    let want = if mask.pixel(x, y) {
+                        again.get(x, y)
+                    } else {
+                        base.get(x, y)
+                    };
+                    assert_eq!(
+                        got[(y * w + x) as usize],
+                        want,
+                        "blocks {blocks:?} ({x}, {y})"
+                    );
+                }
+            }
+        }
     }
 }
