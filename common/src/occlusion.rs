@@ -254,16 +254,19 @@ impl Transmittance {
             w: (r.x + r.w).div_ceil(b) - r.x / b,
             h: (r.y + r.h).div_ceil(b) - r.y / b,
         };
-        // Blocks the pixel rectangle covers only partly hold transparent pixels outside
-        // it: they start fully transmissive unless the rectangle covers them whole.
-        let mut q = vec![0 as Level; rect.area()];
+        // The level of a block is the largest of its pixels', and `quantize` never rises
+        // with alpha, so it is the level of the block's least alpha: one quantization per
+        // block, not per pixel. Blocks the pixel rectangle covers only partly hold
+        // transparent pixels outside it (alpha 0). A NaN alpha counts as 0, whose level,
+        // CLEAR, is also NaN's.
+        let mut least = vec![f32::INFINITY; rect.area()];
         for by in 0..rect.h {
             for bx in 0..rect.w {
                 let (x0, y0) = ((rect.x + bx) * b, (rect.y + by) * b);
                 let (x1, y1) = ((x0 + b).min(img.width), (y0 + b).min(img.height));
                 let whole = x0 >= r.x && y0 >= r.y && x1 <= r.x + r.w && y1 <= r.y + r.h;
                 if !whole {
-                    q[(by * rect.w + bx) as usize] = CLEAR;
+                    least[(by * rect.w + bx) as usize] = 0.0;
                 }
             }
         }
@@ -271,15 +274,16 @@ impl Transmittance {
             let y = r.y + row;
             let by = y / b - rect.y;
             let line = &img.pixels[(row * r.w) as usize..((row + 1) * r.w) as usize];
+            let blocks = &mut least[(by * rect.w) as usize..((by + 1) * rect.w) as usize];
             for (col, p) in line.iter().enumerate() {
-                let x = r.x + col as u32;
-                let i = (by * rect.w + x / b - rect.x) as usize;
-                let v = quantize(p[3]);
-                if v > q[i] {
-                    q[i] = v;
+                let i = ((r.x + col as u32) / b - rect.x) as usize;
+                let a = if p[3].is_nan() { 0.0 } else { p[3] };
+                if a < blocks[i] {
+                    blocks[i] = a;
                 }
             }
         }
+        let q = least.into_iter().map(quantize).collect();
         Transmittance { grid, rect, q }
     }
 
@@ -597,41 +601,45 @@ pub fn front_of(layers: &[&Transmittance]) -> Vec<FrontTransmittance> {
         layers.iter().all(|l| l.grid == grid),
         "layers on different grids"
     );
-    let cols = grid.cols();
+    let cols = grid.cols() as usize;
     let mut out = Vec::with_capacity(layers.len());
     out.push(FrontTransmittance::clear(grid));
-    // The exact product (in f64) of the rounded-up factors so far, per block.
+    // The exact product (in f64) of the rounded-up factors so far, per block, and its
+    // level. A layer changes only the blocks of its rectangle where it is not CLEAR, so
+    // each map starts as a copy of the last and only those blocks are worked out again.
     let mut front = vec![1.0f64; grid.len()];
+    let mut level = vec![CLEAR; grid.len()];
     for layer in &layers[..layers.len() - 1] {
         let r = layer.rect;
-        for by in r.y..r.y + r.h {
-            for bx in r.x..r.x + r.w {
-                let i = (by * cols + bx) as usize;
-                let q = layer.at(bx, by);
+        for (row, by) in (r.y..r.y + r.h).enumerate() {
+            let start = by as usize * cols + r.x as usize;
+            let own = &layer.q[row * r.w as usize..(row + 1) * r.w as usize];
+            let front = &mut front[start..start + r.w as usize];
+            let level = &mut level[start..start + r.w as usize];
+            for ((&q, f), l) in own.iter().zip(front).zip(level) {
+                if q == CLEAR {
+                    continue; // a factor of exactly 1
+                }
                 // (A floor far below 1/255 keeps a positive product from underflowing to
                 // an exact zero.)
-                front[i] = if q == 0 || front[i] == 0.0 {
+                *f = if q == 0 || *f == 0.0 {
                     0.0
                 } else {
-                    (front[i] * (q as f64 / SCALE)).max(1e-300)
+                    (*f * (q as f64 / SCALE)).max(1e-300)
+                };
+                // Up; only an exact zero maps to 0. (The 1e-6 keeps a product that is a
+                // whole number of levels but came out an ulp above it from rounding up a
+                // whole level; it can understate a transmittance by at most 2e-11.)
+                *l = if *f == 0.0 {
+                    0
+                } else {
+                    (*f * SCALE - 1e-6).ceil().clamp(1.0, SCALE) as Level
                 };
             }
         }
         out.push(FrontTransmittance {
             grid,
-            // Up; only an exact zero maps to 0. (The 1e-6 keeps a product that is a whole
-            // number of levels but came out an ulp above it from rounding up a whole
-            // level; it can understate a transmittance by at most 2e-11.)
-            q: front
-                .iter()
-                .map(|&t| {
-                    if t == 0.0 {
-                        0
-                    } else {
-                        (t * SCALE - 1e-6).ceil().clamp(1.0, SCALE) as Level
-                    }
-                })
-                .collect(),
+            q: level.clone(),
         });
     }
     out
@@ -1031,6 +1039,76 @@ mod tests {
                         }
                     }
                     prop_assert_eq!(d.q[(by * cols as i64 + bx) as usize], want, "block ({}, {})", bx, by);
+                }
+            }
+        }
+    }
+
+    proptest! {
+        /// The block maps equal their definitions worked out pixel by pixel and block by
+        /// block: a block's level is the largest `quantize` of its pixels' alphas (CLEAR for
+        /// a pixel outside the image's rectangle), and the front of a position is the f64
+        /// product of the levels in front, rounded up.
+        #[test]
+        fn block_maps_equal_their_definitions(
+            layers in layer_strategy(13),
+            block in 1u32..6,
+            nan in any::<bool>(),
+        ) {
+            let g = 13;
+            let imgs: Vec<PartialImage> = layers
+                .iter()
+                .map(|(rect, alphas)| PartialImage {
+                    width: g,
+                    height: g,
+                    rect: *rect,
+                    pixels: alphas
+                        .iter()
+                        .enumerate()
+                        .map(|(i, &a)| {
+                            let a = if nan && i == 1 { f32::NAN } else { a };
+                            [a, a, a, a] as Rgba
+                        })
+                        .collect(),
+                })
+                .collect();
+            let maps: Vec<Transmittance> =
+                imgs.iter().map(|i| Transmittance::of_image(i, block)).collect();
+            let grid = BlockGrid::new(g, g, block);
+            let level_of = |img: &PartialImage, b: usize| {
+                let (x0, y0, x1, y1) = grid.pixels_of(b);
+                (y0..y1)
+                    .flat_map(|y| (x0..x1).map(move |x| (x, y)))
+                    .map(|(x, y)| {
+                        let r = img.rect;
+                        if x < r.x || y < r.y || x >= r.x + r.w || y >= r.y + r.h {
+                            CLEAR
+                        } else {
+                            quantize(img.pixels[((y - r.y) * r.w + x - r.x) as usize][3])
+                        }
+                    })
+                    .max()
+                    .unwrap()
+            };
+            for (img, map) in imgs.iter().zip(&maps) {
+                for b in 0..grid.len() {
+                    let (bx, by) = (b as u32 % grid.cols(), b as u32 / grid.cols());
+                    prop_assert_eq!(map.at(bx, by), level_of(img, b), "block {}", b);
+                }
+            }
+            let refs: Vec<&Transmittance> = maps.iter().collect();
+            let fronts = front_of(&refs);
+            prop_assert_eq!(fronts.len(), maps.len());
+            for (pos, front) in fronts.iter().enumerate() {
+                for b in 0..grid.len() {
+                    let (bx, by) = (b as u32 % grid.cols(), b as u32 / grid.cols());
+                    let mut t = 1.0f64;
+                    for m in &maps[..pos] {
+                        let q = m.at(bx, by);
+                        t = if q == 0 || t == 0.0 { 0.0 } else { (t * (q as f64 / SCALE)).max(1e-300) };
+                    }
+                    let want = if t == 0.0 { 0 } else { (t * SCALE - 1e-6).ceil().clamp(1.0, SCALE) as Level };
+                    prop_assert_eq!(front.q[b], want, "position {} block {}", pos, b);
                 }
             }
         }

@@ -1965,13 +1965,20 @@ impl Cluster {
             .iter()
             .map(|&r| coverage[r as usize].as_ref().expect("every coverage is in"))
             .collect();
-        let fronts = tokio::task::block_in_place(|| occlusion::front_of(&layers));
+        // (The workers wait on this: the maps are compressed in parallel.)
+        let fronts = tokio::task::block_in_place(|| {
+            use rayon::prelude::*;
+            occlusion::front_of(&layers)
+                .par_iter()
+                .map(|front| occlusion::encode_levels(&front.q))
+                .collect::<Vec<_>>()
+        });
         for (&rank, front) in order.iter().zip(fronts) {
             let w = &mut self.workers[rank as usize];
             let what = w.describe();
             let msg = wire::encode_meta(&CoordMsg::Occlusion {
                 frame,
-                front: occlusion::encode_levels(&front.q),
+                front,
                 prepass,
             });
             with_timeout(
