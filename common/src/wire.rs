@@ -265,7 +265,7 @@ pub enum WorkerMsg {
     /// Cross-worker occlusion (`FrameRequest::occlusion`): this worker's partial image of
     /// the frame reduced to per-block transmittance over `rect`
     /// ([`crate::occlusion::Transmittance`]); the `rect.w · rect.h` levels follow as bulk,
-    /// two little-endian bytes each.
+    /// as [`crate::occlusion::encode_levels`] writes them.
     Coverage {
         /// Frame number.
         frame: u64,
@@ -299,11 +299,13 @@ pub enum CoordMsg {
         rank: u32,
     },
     /// Cross-worker occlusion: per block of the frame's block grid, the transmittance of
-    /// what lies in front of this worker ([`crate::occlusion::front_of`]).
+    /// what lies in front of this worker ([`crate::occlusion::front_of`]). Not sent to the
+    /// first worker of the frame's order, which has nothing in front.
     Occlusion {
         /// Frame number.
         frame: u64,
-        /// [`crate::occlusion::FrontTransmittance::q`], two little-endian bytes per level.
+        /// [`crate::occlusion::FrontTransmittance::q`] as [`crate::occlusion::encode_levels`]
+        /// writes it (LZ4 of the shuffled little-endian levels).
         front: Vec<u8>,
         /// Of the low-resolution first pass.
         prepass: bool,
@@ -443,8 +445,8 @@ pub struct FrameRequest {
     /// indexes the leaves in force for the frame.
     pub leaves: Option<Vec<Region>>,
     /// Cross-worker occlusion (`cluster.occlusion`): the side of its screen blocks in pixels
-    /// (0: off). After rendering, send [`WorkerMsg::Coverage`] and wait for
-    /// [`CoordMsg::Occlusion`] before compositing.
+    /// (0: off). After rendering, send [`WorkerMsg::Coverage`] and, unless first in `order`,
+    /// wait for [`CoordMsg::Occlusion`] before compositing.
     pub occlusion_block: u32,
     /// Cross-worker occlusion with no prediction from the previous frame (`cluster.occlusion_prepass`):
     /// first render at `1/occlusion_prepass` of the resolution and exchange its coverage

@@ -1531,7 +1531,9 @@ impl Cluster {
             block += 1;
         }
         let grid = BlockGrid::new(width, height, block);
+        // (One worker has nothing in front of it.)
         let occlusion = self.opts.occlusion
+            && slots.len() > 1
             && matches!(source, FrameSource::Render)
             && block <= occlusion::MAX_BLOCK;
         // Without a prediction from the last frame for some worker, all take one from a
@@ -1792,7 +1794,9 @@ impl Cluster {
                             && if prepass {
                                 !pre_sent
                             } else {
-                                pre_sent && !maps_sent
+                                // The first worker waits for no first-pass map, so its
+                                // frame coverage may come before the first pass is done.
+                                !maps_sent && (pre_sent || order.first() == Some(&rank))
                             } =>
                         {
                             let t = Instant::now();
@@ -1805,17 +1809,22 @@ impl Cluster {
                                 .with_context(|| format!("{what} from {who}"))
                                 .map_err(blame)?;
                             cov[rank as usize] = Some(map);
-                            if slots.iter().all(|&r| cov[r as usize].is_some()) {
-                                self.send_occlusion(frame, &order, cov, deadline, prepass)
+                            let all_in = |cov: &[Option<Transmittance>]| {
+                                slots.iter().all(|&r| cov[r as usize].is_some())
+                            };
+                            if !pre_sent && all_in(&pre_coverage) {
+                                self.send_occlusion(frame, &order, &pre_coverage, deadline, true)
                                     .await
                                     .map_err(|(e, r)| Failure::blaming(e, r))?;
-                                if prepass {
-                                    pre_sent = true;
-                                } else {
-                                    maps_sent = true;
-                                    self.occlusion_last =
-                                        Some((width, height, order.clone(), camera.clone()));
-                                }
+                                pre_sent = true;
+                            }
+                            if pre_sent && !maps_sent && all_in(&coverage) {
+                                self.send_occlusion(frame, &order, &coverage, deadline, false)
+                                    .await
+                                    .map_err(|(e, r)| Failure::blaming(e, r))?;
+                                maps_sent = true;
+                                self.occlusion_last =
+                                    Some((width, height, order.clone(), camera.clone()));
                             }
                             occlusion_s += t.elapsed().as_secs_f64();
                         }
@@ -1951,8 +1960,9 @@ impl Cluster {
         })
     }
 
-    /// Sends every worker of the frame the transmittance of what the workers in front of it
-    /// hold, per block (`order` front first, `coverage` by rank, all present).
+    /// Sends every worker of the frame but the first the transmittance of what the workers
+    /// in front of it hold, per block (`order` front first, `coverage` by rank, all
+    /// present).
     async fn send_occlusion(
         &mut self,
         frame: u64,
@@ -1973,7 +1983,8 @@ impl Cluster {
                 .map(|front| occlusion::encode_levels(&front.q))
                 .collect::<Vec<_>>()
         });
-        for (&rank, front) in order.iter().zip(fronts) {
+        // The first worker has nothing in front and waits for no map.
+        for (&rank, front) in order.iter().zip(fronts).skip(1) {
             let w = &mut self.workers[rank as usize];
             let what = w.describe();
             let msg = wire::encode_meta(&CoordMsg::Occlusion {

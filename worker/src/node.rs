@@ -1527,7 +1527,10 @@ impl Node {
     }
 
     /// Sends this worker's block transmittance to the coordinator and waits for the
-    /// transmittance of what the workers in front of it hold this frame.
+    /// transmittance of what the workers in front of it hold this frame. The first worker
+    /// of the visibility order has nothing in front: it does not wait (the coordinator
+    /// sends it no map), which matters because, casting every ray in full, it is often
+    /// the slowest.
     async fn occlusion_front(
         &mut self,
         req: &FrameRequest,
@@ -1552,6 +1555,9 @@ impl Node {
             write_frame(csend, &wire::encode_meta(&msg), &encode_levels(&map.q)),
         )
         .await?;
+        if req.order.first() == Some(&self.rank) {
+            return Ok(FrontTransmittance::clear(grid));
+        }
         loop {
             let left = deadline.saturating_duration_since(Instant::now());
             let msg = match tokio::time::timeout(left, control.recv()).await {
