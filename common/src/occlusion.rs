@@ -596,26 +596,59 @@ pub fn front_of(layers: &[&Transmittance]) -> Vec<FrontTransmittance> {
     let Some(first) = layers.first() else {
         return Vec::new();
     };
-    let grid = first.grid;
-    assert!(
-        layers.iter().all(|l| l.grid == grid),
-        "layers on different grids"
-    );
-    let cols = grid.cols() as usize;
+    let mut acc = FrontAccumulator::new(first.grid);
     let mut out = Vec::with_capacity(layers.len());
-    out.push(FrontTransmittance::clear(grid));
-    // The exact product (in f64) of the rounded-up factors so far, per block, and its
-    // level. A layer changes only the blocks of its rectangle where it is not CLEAR, so
-    // each map starts as a copy of the last and only those blocks are worked out again.
-    let mut front = vec![1.0f64; grid.len()];
-    let mut level = vec![CLEAR; grid.len()];
+    out.push(FrontTransmittance::clear(first.grid));
     for layer in &layers[..layers.len() - 1] {
+        out.push(acc.fold(layer));
+    }
+    out
+}
+
+/// [`front_of`] one layer at a time, front to back: after folding in the layers of
+/// positions `0..k`, [`fold`](Self::fold) returns the map of position `k`. A cluster sends
+/// each position its map as soon as the workers in front of it have reported, instead of
+/// waiting for the slowest worker of the frame.
+#[derive(Clone, Debug)]
+pub struct FrontAccumulator {
+    grid: BlockGrid,
+    /// The exact product (in f64) of the rounded-up factors so far, per block.
+    front: Vec<f64>,
+    /// Its level.
+    level: Vec<Level>,
+    folded: usize,
+}
+
+impl FrontAccumulator {
+    /// Nothing folded in: the map of position 0 (clear).
+    pub fn new(grid: BlockGrid) -> Self {
+        FrontAccumulator {
+            grid,
+            front: vec![1.0; grid.len()],
+            level: vec![CLEAR; grid.len()],
+            folded: 0,
+        }
+    }
+
+    /// Layers folded in so far (the position whose map [`fold`](Self::fold) returned last,
+    /// or 0).
+    pub fn folded(&self) -> usize {
+        self.folded
+    }
+
+    /// Folds in the next layer of the visibility order and returns the transmittance of
+    /// everything folded so far (the map of the position behind it). A zero factor stays
+    /// exactly zero; every other product is rounded up. A layer changes only the blocks of
+    /// its rectangle where it is not CLEAR, so only those are worked out again.
+    pub fn fold(&mut self, layer: &Transmittance) -> FrontTransmittance {
+        assert_eq!(layer.grid, self.grid, "layers on different grids");
+        let cols = self.grid.cols() as usize;
         let r = layer.rect;
         for (row, by) in (r.y..r.y + r.h).enumerate() {
             let start = by as usize * cols + r.x as usize;
             let own = &layer.q[row * r.w as usize..(row + 1) * r.w as usize];
-            let front = &mut front[start..start + r.w as usize];
-            let level = &mut level[start..start + r.w as usize];
+            let front = &mut self.front[start..start + r.w as usize];
+            let level = &mut self.level[start..start + r.w as usize];
             for ((&q, f), l) in own.iter().zip(front).zip(level) {
                 if q == CLEAR {
                     continue; // a factor of exactly 1
@@ -637,12 +670,12 @@ pub fn front_of(layers: &[&Transmittance]) -> Vec<FrontTransmittance> {
                 };
             }
         }
-        out.push(FrontTransmittance {
-            grid,
-            q: level.clone(),
-        });
+        self.folded += 1;
+        FrontTransmittance {
+            grid: self.grid,
+            q: self.level.clone(),
+        }
     }
-    out
 }
 
 /// How a worker casts its rays under cross-worker occlusion: each ray's termination

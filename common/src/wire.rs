@@ -445,8 +445,8 @@ pub struct FrameRequest {
     /// indexes the leaves in force for the frame.
     pub leaves: Option<Vec<Region>>,
     /// Cross-worker occlusion (`cluster.occlusion`): the side of its screen blocks in pixels
-    /// (0: off). After rendering, send [`WorkerMsg::Coverage`] and, unless first in `order`,
-    /// wait for [`CoordMsg::Occlusion`] before compositing.
+    /// (0: off). After rendering, send [`WorkerMsg::Coverage`] unless last in `order`, and
+    /// wait for [`CoordMsg::Occlusion`] unless first, before compositing.
     pub occlusion_block: u32,
     /// Cross-worker occlusion with no prediction from the previous frame (`cluster.occlusion_prepass`):
     /// first render at `1/occlusion_prepass` of the resolution and exchange its coverage

@@ -27,7 +27,7 @@ use strata_common::composite::canvas as composite_canvas;
 use strata_common::composite::{assemble, Interlace, Span, SparsePiece};
 use strata_common::image::Rgba;
 use strata_common::kd::Decomposition;
-use strata_common::occlusion::{self, BlockGrid, Transmittance};
+use strata_common::occlusion::{self, BlockGrid, FrontAccumulator, Transmittance};
 use strata_common::scene::Transport;
 use strata_common::scene::{Camera, Scene, WallSettings};
 use strata_common::wall::TileFiles;
@@ -1572,10 +1572,13 @@ impl Cluster {
             1,
         );
         let mut pre_coverage: Vec<Option<Transmittance>> = vec![None; self.workers.len()];
+        let mut pre_front = FrontAccumulator::new(pre_grid);
+        let has_prepass = prepass;
         let mut pre_sent = !prepass;
-        // Cross-worker occlusion: each worker's block transmittance, by rank, until all
-        // are in and the maps have gone out.
+        // Cross-worker occlusion: each worker's block transmittance, by rank. Each position
+        // of the order gets its map as soon as the workers in front of it have reported.
         let mut coverage: Vec<Option<Transmittance>> = vec![None; self.workers.len()];
+        let mut front = FrontAccumulator::new(grid);
         let mut maps_sent = !occlusion;
         let mut occlusion_s = 0.0;
         // Workers on this host write their final spans into a canvas, in place.
@@ -1792,39 +1795,52 @@ impl Cluster {
                             prepass,
                         }) if fno == frame
                             && if prepass {
-                                !pre_sent
+                                // (The last worker's coverage may come after every map
+                                // went out: nothing is behind it.)
+                                has_prepass && pre_coverage[rank as usize].is_none()
                             } else {
-                                // The first worker waits for no first-pass map, so its
-                                // frame coverage may come before the first pass is done.
-                                !maps_sent && (pre_sent || order.first() == Some(&rank))
+                                // (A worker whose first-pass map came may send this before
+                                // the first pass of the workers behind it is done.)
+                                occlusion && coverage[rank as usize].is_none()
                             } =>
                         {
                             let t = Instant::now();
-                            let (g, cov, what) = if prepass {
-                                (pre_grid, &mut pre_coverage, "first-pass coverage")
+                            let (g, cov, acc, what) = if prepass {
+                                (
+                                    pre_grid,
+                                    &mut pre_coverage,
+                                    &mut pre_front,
+                                    "first-pass coverage",
+                                )
                             } else {
-                                (grid, &mut coverage, "occlusion coverage")
+                                (grid, &mut coverage, &mut front, "occlusion coverage")
                             };
                             let map = Transmittance::decoded(g, rect, &f.bulk)
                                 .with_context(|| format!("{what} from {who}"))
                                 .map_err(blame)?;
                             cov[rank as usize] = Some(map);
-                            let all_in = |cov: &[Option<Transmittance>]| {
-                                slots.iter().all(|&r| cov[r as usize].is_some())
-                            };
-                            if !pre_sent && all_in(&pre_coverage) {
-                                self.send_occlusion(frame, &order, &pre_coverage, deadline, true)
+                            // Every position whose front has now reported gets its map (the
+                            // first has nothing in front and gets none).
+                            while acc.folded() + 1 < order.len() {
+                                let Some(layer) = cov[order[acc.folded()] as usize].as_ref() else {
+                                    break;
+                                };
+                                let bytes = tokio::task::block_in_place(|| {
+                                    occlusion::encode_levels(&acc.fold(layer).q)
+                                });
+                                let to = order[acc.folded()];
+                                self.send_occlusion(frame, to, bytes, deadline, prepass)
                                     .await
                                     .map_err(|(e, r)| Failure::blaming(e, r))?;
-                                pre_sent = true;
                             }
-                            if pre_sent && !maps_sent && all_in(&coverage) {
-                                self.send_occlusion(frame, &order, &coverage, deadline, false)
-                                    .await
-                                    .map_err(|(e, r)| Failure::blaming(e, r))?;
-                                maps_sent = true;
-                                self.occlusion_last =
-                                    Some((width, height, order.clone(), camera.clone()));
+                            if acc.folded() + 1 >= order.len() {
+                                if prepass {
+                                    pre_sent = true;
+                                } else if !maps_sent {
+                                    maps_sent = true;
+                                    self.occlusion_last =
+                                        Some((width, height, order.clone(), camera.clone()));
+                                }
                             }
                             occlusion_s += t.elapsed().as_secs_f64();
                         }
@@ -1960,47 +1976,31 @@ impl Cluster {
         })
     }
 
-    /// Sends every worker of the frame but the first the transmittance of what the workers
-    /// in front of it hold, per block (`order` front first, `coverage` by rank, all
-    /// present).
+    /// Sends worker `rank` its occlusion map of the frame (the transmittance of what the
+    /// workers in front of it hold, per block, as `occlusion::encode_levels` bytes).
     async fn send_occlusion(
         &mut self,
         frame: u64,
-        order: &[u32],
-        coverage: &[Option<Transmittance>],
+        rank: u32,
+        front: Vec<u8>,
         deadline: Instant,
         prepass: bool,
     ) -> Result<(), (anyhow::Error, u32)> {
-        let layers: Vec<&Transmittance> = order
-            .iter()
-            .map(|&r| coverage[r as usize].as_ref().expect("every coverage is in"))
-            .collect();
-        // (The workers wait on this: the maps are compressed in parallel.)
-        let fronts = tokio::task::block_in_place(|| {
-            use rayon::prelude::*;
-            occlusion::front_of(&layers)
-                .par_iter()
-                .map(|front| occlusion::encode_levels(&front.q))
-                .collect::<Vec<_>>()
+        let w = &mut self.workers[rank as usize];
+        let what = w.describe();
+        let msg = wire::encode_meta(&CoordMsg::Occlusion {
+            frame,
+            front,
+            prepass,
         });
-        // The first worker has nothing in front and waits for no map.
-        for (&rank, front) in order.iter().zip(fronts).skip(1) {
-            let w = &mut self.workers[rank as usize];
-            let what = w.describe();
-            let msg = wire::encode_meta(&CoordMsg::Occlusion {
-                frame,
-                front,
-                prepass,
-            });
-            with_timeout(
-                deadline.saturating_duration_since(Instant::now()),
-                format!("sending the occlusion map of frame {frame} to {what}"),
-                write_frame(&mut w.send, &msg, &[]),
-            )
-            .await
-            .map_err(|e| (anyhow!(e), rank))?;
-        }
-        Ok(())
+        with_timeout(
+            deadline.saturating_duration_since(Instant::now()),
+            format!("sending the occlusion map of frame {frame} to {what}"),
+            write_frame(&mut w.send, &msg, &[]),
+        )
+        .await
+        .map(drop)
+        .map_err(|e| (anyhow!(e), rank))
     }
 
     /// The rank of local worker process `child`, if it joined.

@@ -1530,7 +1530,7 @@ impl Node {
     /// transmittance of what the workers in front of it hold this frame. The first worker
     /// of the visibility order has nothing in front: it does not wait (the coordinator
     /// sends it no map), which matters because, casting every ray in full, it is often
-    /// the slowest.
+    /// the slowest. The last has no one behind it and sends nothing.
     async fn occlusion_front(
         &mut self,
         req: &FrameRequest,
@@ -1541,20 +1541,23 @@ impl Node {
         csend: &mut quinn::SendStream,
         frame_start: Instant,
     ) -> Result<FrontTransmittance> {
-        let map = tokio::task::block_in_place(|| Transmittance::of_image(image, grid.block));
-        let msg = WorkerMsg::Coverage {
-            frame: req.frame,
-            rect: map.rect,
-            prepass,
-        };
         let deadline = frame_start + self.timeout;
-        let left = deadline.saturating_duration_since(Instant::now());
-        with_timeout(
-            left,
-            "sending the occlusion coverage to the coordinator",
-            write_frame(csend, &wire::encode_meta(&msg), &encode_levels(&map.q)),
-        )
-        .await?;
+        // Nothing lies behind the last worker of the order: no one needs its coverage.
+        if req.order.last() != Some(&self.rank) {
+            let map = tokio::task::block_in_place(|| Transmittance::of_image(image, grid.block));
+            let msg = WorkerMsg::Coverage {
+                frame: req.frame,
+                rect: map.rect,
+                prepass,
+            };
+            let left = deadline.saturating_duration_since(Instant::now());
+            with_timeout(
+                left,
+                "sending the occlusion coverage to the coordinator",
+                write_frame(csend, &wire::encode_meta(&msg), &encode_levels(&map.q)),
+            )
+            .await?;
+        }
         if req.order.first() == Some(&self.rank) {
             return Ok(FrontTransmittance::clear(grid));
         }
