@@ -7,7 +7,7 @@
 #   3. the engine's CPU and GPU backends on the same frames (`bench-render --only-backends`);
 #   4. issue 10: strong scaling over p = 1, 2, 4, 8 CPU workers of 2 threads
 #      (bench/strong-scaling.sh; `render.backend = cpu`, since the default takes the GPU there),
-#   then p = 8 with one setting changed each (VARIANTS),
+#   then p = 8 with one setting changed each (VARIANTS); FRAMES frames of the orbit (5),
 #   and probes of the machine: one 2-thread caster alone against eight at once, on the
 #   bonsai and on the demo survey.
 # Each step has its own time limit, so one that hangs does not cost the others; SKIP="NAME ..."
@@ -108,7 +108,7 @@ step backends "${LIMIT_BACKENDS:-120}" bash -c '
 
 step strong-scaling "${LIMIT_STRONG:-190}" bash -c '
   set -o pipefail
-  PS="$2" FRAMES=5 COORDINATOR="$0/coordinator" TIME_BIN="$0/time" OUT=/tmp/strong-scaling \
+  PS="$2" FRAMES=${FRAMES:-5} COORDINATOR="$0/coordinator" TIME_BIN="$0/time" OUT=/tmp/strong-scaling \
     bash bench/strong-scaling.sh configs/demo.toml --set volume.0.opacity=0.06 \
       --set render.backend=cpu 2>&1 |
     tee "$1/strong-scaling.md"' "$CARRY" "$RESULTS" "$PS"
@@ -120,7 +120,7 @@ step strong-variants "${LIMIT_VARIANTS:-150}" bash -c '
   set -o pipefail
   for v in $1; do
     echo "## $v"
-    PS=8 MODES=on FRAMES=5 COORDINATOR="$0/coordinator" TIME_BIN="$0/time" \
+    PS=8 MODES=on FRAMES=${FRAMES:-5} COORDINATOR="$0/coordinator" TIME_BIN="$0/time" \
       OUT="/tmp/strong-scaling/variant-${v#*.}" \
       bash bench/strong-scaling.sh configs/demo.toml --set volume.0.opacity=0.06 \
       --set render.backend=cpu --set "$v" 2>&1 | grep "^|"

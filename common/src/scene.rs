@@ -251,8 +251,10 @@ pub struct ClusterSettings {
     /// Between frames of a sequence, widen the last frame's occlusion map by how far the
     /// scene moved on screen (each block takes the most light passed within that many
     /// pixels), so a moving camera leaves fewer blocks to cast again afterwards, at the cost
-    /// of casting more behind the edges of what is in front.
-    #[serde(default = "yes")]
+    /// of casting more behind the edges of what is in front. Off by default: on the demo
+    /// orbit at 8 workers it cast 7 % more samples and the frame took 6 % longer once
+    /// re-casts had become cheap (docs/BENCHMARKS.md).
+    #[serde(default)]
     pub occlusion_motion: bool,
 }
 
@@ -313,7 +315,7 @@ impl Default for ClusterSettings {
             occlusion: true,
             occlusion_block: default_occlusion_block(),
             occlusion_prepass: true,
-            occlusion_motion: true,
+            occlusion_motion: false,
         }
     }
 }

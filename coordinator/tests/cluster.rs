@@ -1767,8 +1767,8 @@ fn cross_worker_occlusion_casts_less_and_stays_within_the_termination_bound() {
         "cluster.rebalance_threshold=0",
     ];
     let (inp, _) = go("in", &[&ert[..], &["--in-process"]].concat());
-    // The map of the last frame as it is (the re-casts are exercised), and widened by the
-    // camera's motion (the default) below.
+    // The map of the last frame as it is (the default; the re-casts are exercised), and
+    // widened by the camera's motion below.
     let (on, on_n) = go(
         "on",
         &[
@@ -1832,7 +1832,14 @@ fn cross_worker_occlusion_casts_less_and_stays_within_the_termination_bound() {
         "the moving camera made no prediction fail, so no re-cast was exercised: {on_n:?}"
     );
     // Widened by the camera's motion: fewer blocks turn out stale, and the bound holds.
-    let (moving, moving_n) = go("moving", &[&ert[..], &["--workers", "3"]].concat());
+    let (moving, moving_n) = go(
+        "moving",
+        &[
+            &ert[..],
+            &["--workers", "3", "--set", "cluster.occlusion_motion=true"],
+        ]
+        .concat(),
+    );
     for i in 0..4 {
         let d = max_diff(&moving[i], &inp[i]);
         assert!(d <= 0.01 + 1e-5, "frame {i}, widened by the motion: {d}");
