@@ -571,7 +571,7 @@ impl FrontTransmittance {
 /// a queue of candidate maxima: each element enters and leaves it once.
 fn sliding_max(line: &[Level], r: usize, mut put: impl FnMut(usize, Level)) {
     let n = line.len();
-    let mut queue = std::collections::VecDeque::with_capacity(2 * r + 1);
+    let mut queue = std::collections::VecDeque::with_capacity(n.min(2 * r + 1));
     // Element j enters when the window of i = j − r first holds it.
     let mut next = 0;
     for i in 0..n {

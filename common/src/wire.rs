@@ -262,7 +262,8 @@ pub enum WorkerMsg {
         /// `None`.
         canvas: Option<crate::composite::Span>,
     },
-    /// Cross-worker occlusion (`FrameRequest::occlusion`): this worker's partial image of
+    /// Cross-worker occlusion (`FrameRequest::occlusion`; not sent by the last worker of the
+    /// order, which has no one behind it): this worker's partial image of
     /// the frame reduced to per-block transmittance over `rect`
     /// ([`crate::occlusion::Transmittance`]); the `rect.w · rect.h` levels follow as bulk,
     /// as [`crate::occlusion::encode_levels`] writes them.

@@ -106,6 +106,32 @@ pub const PREPASS_SCALE: u32 = 4;
 /// 7 % more samples, and the lower quartile to 3 000 for 4 %.
 const MOTION_QUANTILE: f64 = 0.5;
 
+/// The ranks a frame that ran out of time is blamed on (`missing`: those without a
+/// result). While occlusion maps are still going out (`waiting_on`: the coverage by rank of
+/// the phase under way), the workers behind one whose coverage is missing wait on it: those
+/// are late, not the rest; the last worker of `order` sends no coverage and is not blamed
+/// for it.
+fn late_ranks(
+    slots: &[u32],
+    order: &[u32],
+    waiting_on: Option<&[Option<Transmittance>]>,
+    missing: Vec<u32>,
+) -> Vec<u32> {
+    let Some(cov) = waiting_on else {
+        return missing;
+    };
+    let no_coverage: Vec<u32> = slots
+        .iter()
+        .copied()
+        .filter(|&r| cov[r as usize].is_none() && order.last() != Some(&r))
+        .collect();
+    if no_coverage.is_empty() {
+        missing
+    } else {
+        no_coverage
+    }
+}
+
 /// Whether every rank of `b` has the same ranks in front of it as in `a` (their order among
 /// themselves does not matter to opacity).
 fn same_fronts(a: &[u32], b: &[u32]) -> bool {
@@ -1522,7 +1548,7 @@ impl Cluster {
             .collect();
         debug!(frame, ?order, "visibility order");
         // Cross-worker occlusion in blocks of `occlusion_block` pixels, coarser where the
-        // maps (two bytes a block, sent as control messages) would not fit one.
+        // maps (two bytes a block before LZ4, sent as control messages) might not fit one.
         let mut block = self.opts.occlusion_block.max(1);
         while block <= occlusion::MAX_BLOCK
             && occlusion::max_encoded_len(BlockGrid::new(width, height, block).len()) + 1024
@@ -1651,26 +1677,14 @@ impl Cluster {
         };
         while !missing(&stats).is_empty() {
             let Ok(ev) = self.next_event(deadline).await else {
-                // Before the occlusion maps went out, every worker waits on the ones whose
-                // coverage is missing: those are late, not the rest.
-                let mut late = missing(&stats);
                 let waiting_on = if !pre_sent {
-                    Some(&pre_coverage)
+                    Some(&pre_coverage[..])
                 } else if !maps_sent {
-                    Some(&coverage)
+                    Some(&coverage[..])
                 } else {
                     None
                 };
-                if let Some(cov) = waiting_on {
-                    let no_coverage: Vec<u32> = slots
-                        .iter()
-                        .copied()
-                        .filter(|&r| cov[r as usize].is_none())
-                        .collect();
-                    if !no_coverage.is_empty() {
-                        late = no_coverage;
-                    }
-                }
+                let late = late_ranks(&slots, &order, waiting_on, missing(&stats));
                 return Err(Failure {
                     error: anyhow!(
                         "frame {frame}: no result from {} within {:.0} s (cluster.frame_timeout_s)",
@@ -1787,16 +1801,14 @@ impl Cluster {
                             stats[rank as usize] = Some(s);
                             collect_s += t.elapsed().as_secs_f64();
                         }
-                        // Coverage of the first pass (while its maps are out) or of the frame
-                        // (after them): once every worker's is in, the maps go out.
+                        // Coverage of the first pass or of the frame: each position's map goes
+                        // out once the workers in front of it have sent theirs.
                         Ok(WorkerMsg::Coverage {
                             frame: fno,
                             rect,
                             prepass,
                         }) if fno == frame
                             && if prepass {
-                                // (The last worker's coverage may come after every map
-                                // went out: nothing is behind it.)
                                 has_prepass && pre_coverage[rank as usize].is_none()
                             } else {
                                 // (A worker whose first-pass map came may send this before
@@ -2440,5 +2452,40 @@ mod watchdog_tests {
             "closed after {at:?}"
         );
         peer.join().unwrap();
+    }
+}
+
+#[cfg(test)]
+mod blame_tests {
+    use super::*;
+
+    fn cov(present: &[bool]) -> Vec<Option<Transmittance>> {
+        let grid = BlockGrid::new(4, 4, 2);
+        present
+            .iter()
+            .map(|&p| {
+                p.then(|| Transmittance {
+                    grid,
+                    rect: Default::default(),
+                    q: Vec::new(),
+                })
+            })
+            .collect()
+    }
+
+    /// A timed-out occlusion phase blames the workers whose coverage is missing, and never
+    /// the last of the order, which sends none.
+    #[test]
+    fn a_timed_out_occlusion_phase_blames_the_missing_coverage_but_not_the_last_worker() {
+        let slots = [0, 1, 2];
+        let order = [2, 0, 1];
+        // Rank 0 (second) has not reported; rank 1, last, never does.
+        let c = cov(&[false, false, true]);
+        assert_eq!(late_ranks(&slots, &order, Some(&c), vec![0, 1, 2]), vec![0]);
+        // Everyone who reports has: the workers without a result are late.
+        let c = cov(&[true, false, true]);
+        assert_eq!(late_ranks(&slots, &order, Some(&c), vec![1]), vec![1]);
+        // After the maps: the workers without a result.
+        assert_eq!(late_ranks(&slots, &order, None, vec![2]), vec![2]);
     }
 }

@@ -1156,18 +1156,24 @@ impl Node {
         if occlusion && req.occlusion_prepass > 0 && req.wall.is_none() {
             // 0. No prediction for some worker: all take one from a first pass at
             //    1/scale of the resolution (its own map exchange).
+            //    The last worker's pass would hide nothing behind it: it only waits for its
+            //    map. The first has nothing in front: its pass only serves the others.
             let tp = Instant::now();
             let scale = req.occlusion_prepass.clamp(1, MAX_BLOCK);
             let (pw, ph) = (req.width.div_ceil(scale), req.height.div_ceil(scale));
-            let low = tokio::task::block_in_place(|| {
-                self.first_pass(req, (pw, ph), &mut stats)
-                    .map(|l| composite_leaves(pw, ph, &l))
-            })?;
+            let low = if req.order.last() == Some(&self.rank) {
+                PartialImage::empty(pw, ph)
+            } else {
+                tokio::task::block_in_place(|| {
+                    self.first_pass(req, (pw, ph), &mut stats)
+                        .map(|l| composite_leaves(pw, ph, &l))
+                })?
+            };
             let pre_grid = BlockGrid::new(pw, ph, 1);
             let pre = self
                 .occlusion_front(req, pre_grid, &low, true, control, csend, frame_start)
                 .await?;
-            predicted = Some(pre.upsampled(grid, scale));
+            predicted = (req.order.first() != Some(&self.rank)).then(|| pre.upsampled(grid, scale));
             stats.prepass_s = tp.elapsed().as_secs_f64();
         }
         let t = Instant::now();
@@ -1522,7 +1528,10 @@ impl Node {
             && last.front.grid == grid;
         // A moved camera moves what is in front: widen the map by the motion the coordinator
         // measured (in blocks, rounded up).
-        let radius = req.occlusion_motion.div_ceil(grid.block.max(1));
+        let radius = req
+            .occlusion_motion
+            .min(req.width.max(req.height))
+            .div_ceil(grid.block.max(1));
         (same && last.front.any()).then(|| last.front.dilated(radius))
     }
 
