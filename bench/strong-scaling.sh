@@ -92,17 +92,20 @@ for mode in modes:
 # the mean worker's render (the gap between the two is the imbalance), in milliseconds.
 # `render` includes its feedback rounds and loads; `occlusion` is the exchange of the
 # transmittance maps, which waits for the slowest worker's render; `composite` is the
-# exchange and blend, which waits for the slowest re-cast; `rounds` the most feedback
-# rounds a worker needed.
+# exchange and blend, which waits for the slowest re-cast; `after the last render` is the
+# frame minus the slowest render (the maps of the workers behind it, their re-casts and the
+# exchange: what occlusion adds to the frame's critical path); the slowest render's worker's
+# own wait for its map and re-cast follow; `rounds` the most feedback rounds a worker
+# needed.
 print()
-print("| occlusion | p | frame | render, slowest / mean | of it loads, slowest | occlusion maps | re-cast | composite | rounds |")
-print("|---|---|---|---|---|---|---|---|---|")
+print("| occlusion | p | frame | render, slowest / mean | of it loads, slowest | occlusion maps | re-cast | composite | after the last render | its worker's map wait / re-cast | rounds |")
+print("|---|---|---|---|---|---|---|---|---|---|---|")
 for mode in modes:
     for p in ps:
         lines = [json.loads(l) for l in open(f"{out}/{mode}_p{p}.jsonl")]
         frames = [l for l in lines if l["kind"] == "frame" and l["frame"] > 0]
         workers = [l for l in lines if l["kind"] == "worker"]
-        cols = {k: [] for k in ("frame", "rmax", "rmean", "load", "occ", "fix", "comp", "rounds")}
+        cols = {k: [] for k in ("frame", "rmax", "rmean", "load", "occ", "fix", "comp", "post", "sw", "sf", "rounds")}
         for f in frames:
             ws = [w for w in workers if w["frame"] == f["frame"]]
             if not ws:
@@ -116,6 +119,10 @@ for mode in modes:
             cols["fix"].append(mx("fixup_s"))
             cols["comp"].append(mx("composite_s"))
             cols["rounds"].append(mx("render_rounds"))
+            slowest = max(ws, key=lambda w: w["render_s"])
+            cols["post"].append(f["seconds"] - slowest["render_s"])
+            cols["sw"].append(slowest.get("occlusion_s", 0))
+            cols["sf"].append(slowest.get("fixup_s", 0))
         m = {k: statistics.median(v) if v else 0 for k, v in cols.items()}
-        print(f"| {mode} | {p} | {m['frame']*1e3:.0f} | {m['rmax']*1e3:.0f} / {m['rmean']*1e3:.0f} | {m['load']*1e3:.0f} | {m['occ']*1e3:.0f} | {m['fix']*1e3:.0f} | {m['comp']*1e3:.0f} | {m['rounds']:.0f} |")
+        print(f"| {mode} | {p} | {m['frame']*1e3:.0f} | {m['rmax']*1e3:.0f} / {m['rmean']*1e3:.0f} | {m['load']*1e3:.0f} | {m['occ']*1e3:.0f} | {m['fix']*1e3:.0f} | {m['comp']*1e3:.0f} | {m['post']*1e3:.0f} | {m['sw']*1e3:.0f} / {m['sf']*1e3:.0f} | {m['rounds']:.0f} |")
 EOF
