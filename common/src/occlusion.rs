@@ -322,7 +322,7 @@ impl Transmittance {
     pub fn decoded(grid: BlockGrid, rect: BlockRect, bytes: &[u8]) -> Result<Self, OcclusionError> {
         Self::check_rect(grid, rect)?;
         let q = decode_levels(bytes, rect.area(), "block transmittance")?;
-        Self::checked(grid, rect, q)
+        Ok(Transmittance { grid, rect, q })
     }
 
     /// The value of block `(bx, by)`.
@@ -418,7 +418,7 @@ impl FrontTransmittance {
     /// A map received from elsewhere as [`encode_levels`] bytes, one level per block.
     pub fn decoded(grid: BlockGrid, bytes: &[u8]) -> Result<Self, OcclusionError> {
         let q = decode_levels(bytes, grid.len(), "front transmittance")?;
-        Self::checked(grid, q)
+        Ok(FrontTransmittance { grid, q })
     }
 
     /// The termination threshold of a ray in `block` for the whole-ray threshold
@@ -974,6 +974,31 @@ mod tests {
         assert!(Transmittance::checked(grid, huge, vec![0; 4]).is_err());
     }
 
+    /// The `g × g` images of `layers`, grey with each pixel's alpha, pixel `nan_at` of
+    /// each (if any) NaN.
+    fn layer_images(
+        g: u32,
+        layers: &[(Rect, Vec<f32>)],
+        nan_at: Option<usize>,
+    ) -> Vec<PartialImage> {
+        layers
+            .iter()
+            .map(|(rect, alphas)| PartialImage {
+                width: g,
+                height: g,
+                rect: *rect,
+                pixels: alphas
+                    .iter()
+                    .enumerate()
+                    .map(|(i, &a)| {
+                        let a = if nan_at == Some(i) { f32::NAN } else { a };
+                        [a, a, a, a] as Rgba
+                    })
+                    .collect(),
+            })
+            .collect()
+    }
+
     fn layer_strategy(g: u32) -> impl Strategy<Value = Vec<(Rect, Vec<f32>)>> {
         let one = (0..g, 0..g, 1..=g, 1..=g).prop_flat_map(move |(x, y, w, h)| {
             let (w, h) = (w.min(g - x), h.min(g - y));
@@ -999,15 +1024,7 @@ mod tests {
             block in 1u32..6,
         ) {
             let g = 13;
-            let imgs: Vec<PartialImage> = layers
-                .iter()
-                .map(|(rect, alphas)| PartialImage {
-                    width: g,
-                    height: g,
-                    rect: *rect,
-                    pixels: alphas.iter().map(|&a| [a, a, a, a] as Rgba).collect(),
-                })
-                .collect();
+            let imgs = layer_images(g, &layers, None);
             let maps: Vec<Transmittance> =
                 imgs.iter().map(|i| Transmittance::of_image(i, block)).collect();
             let refs: Vec<&Transmittance> = maps.iter().collect();
@@ -1089,22 +1106,7 @@ mod tests {
             nan in any::<bool>(),
         ) {
             let g = 13;
-            let imgs: Vec<PartialImage> = layers
-                .iter()
-                .map(|(rect, alphas)| PartialImage {
-                    width: g,
-                    height: g,
-                    rect: *rect,
-                    pixels: alphas
-                        .iter()
-                        .enumerate()
-                        .map(|(i, &a)| {
-                            let a = if nan && i == 1 { f32::NAN } else { a };
-                            [a, a, a, a] as Rgba
-                        })
-                        .collect(),
-                })
-                .collect();
+            let imgs = layer_images(g, &layers, nan.then_some(1));
             let maps: Vec<Transmittance> =
                 imgs.iter().map(|i| Transmittance::of_image(i, block)).collect();
             let grid = BlockGrid::new(g, g, block);
