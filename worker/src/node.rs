@@ -9,7 +9,8 @@
 //! QUIC; others travel inline on QUIC streams. The exchange itself is the sans-IO
 //! `strata_common::composite::Exchange`; this module only moves its pieces and the time.
 //! Before the exchange, under cross-worker occlusion, the worker sends the coordinator its
-//! image's block transmittance and receives what lies in front of it, which limits its rays
+//! image's block transmittance (unless it is last in the visibility order) and receives
+//! what lies in front of it (unless it is first), which limits its rays
 //! in the next frame (or after a low-resolution first pass) and re-casts the blocks this
 //! frame's map does not confirm (`strata_common::occlusion`).
 //! Every wait has a deadline; a peer or coordinator that vanishes is detected by the QUIC
