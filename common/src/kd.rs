@@ -169,6 +169,18 @@ pub struct CostBox {
     pub cost: f64,
 }
 
+impl CostBox {
+    /// The fraction of the box (of its cost) that lies in `r`, by the same rule the splits
+    /// follow: its volume fraction, a zero-extent axis wholly on the side that holds it.
+    pub fn fraction_in(&self, r: &Region) -> f64 {
+        let unit = CostBox {
+            region: self.region,
+            cost: 1.0,
+        };
+        clip_box(&unit, r).map_or(0.0, |c| c.cost)
+    }
+}
+
 /// A k-d tree whose leaves are assigned to workers. Every worker owns one whole subtree, so
 /// its leaves are contiguous in every visibility order and the workers themselves have a
 /// well-defined front-to-back order for any eye (what sort-last compositing needs).

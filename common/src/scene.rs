@@ -208,6 +208,13 @@ pub struct ClusterSettings {
     /// estimate is raised to this power (1: all the way; smaller: damped).
     #[serde(default = "default_rebalance_damping")]
     pub rebalance_damping: f64,
+    /// What a re-split distributes each leaf's measured time by: `leaves` (the default:
+    /// the leaf's estimated cost boxes, all scaled by one factor per leaf) or `pages` (the
+    /// pages its rays entered, tile by tile, so cost moves within a leaf to where the
+    /// view's work is). `pages` needs the CPU backend's per-tile times; without any page
+    /// work reported, a re-split uses `leaves`.
+    #[serde(default)]
+    pub rebalance_model: RebalanceModel,
     /// How image pieces travel between processes: `auto` (shared memory between processes
     /// on one host, QUIC between hosts), `quic` (QUIC everywhere) or `shm` (shared memory
     /// everywhere; an error when the processes are not all on one host).
@@ -269,6 +276,17 @@ pub enum OnWorkerLoss {
     Fail,
 }
 
+/// `cluster.rebalance_model`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RebalanceModel {
+    /// Each leaf's measured time over its estimated cost, one factor per leaf.
+    #[default]
+    Leaves,
+    /// Each leaf's measured time, divided among the pages its rays entered.
+    Pages,
+}
+
 /// `cluster.transport`.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -308,6 +326,7 @@ impl Default for ClusterSettings {
             fingerprint_file: None,
             rebalance_threshold: default_rebalance_threshold(),
             rebalance_damping: default_rebalance_damping(),
+            rebalance_model: RebalanceModel::Leaves,
             transport: Transport::Auto,
             on_worker_loss: OnWorkerLoss::Reassign,
             replacement_wait_s: 0.0,

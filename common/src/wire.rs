@@ -28,7 +28,7 @@ use serde::{de::DeserializeOwned, Deserialize, Serialize};
 /// Frame magic.
 pub const MAGIC: [u8; 4] = *b"STRF";
 /// Protocol version; bumped on any incompatible change of the header or the messages.
-pub const PROTOCOL_VERSION: u16 = 9;
+pub const PROTOCOL_VERSION: u16 = 10;
 /// Size of the frame header.
 pub const HEADER_LEN: usize = 24;
 /// Largest meta message any endpoint accepts (control messages are small; the scene text
@@ -459,6 +459,10 @@ pub struct FrameRequest {
     /// raises each block of that map to the largest level within this distance
     /// ([`crate::occlusion::FrontTransmittance::dilated`]). 0: the map as it is.
     pub occlusion_motion: u32,
+    /// Report where the frame's render time went, page by page
+    /// ([`WorkerFrameStats::page_work`]), for a re-split by the view's measured work
+    /// (`cluster.rebalance_model = "pages"`).
+    pub page_work: bool,
     /// A powerwall frame: `width × height` is the wall's stacked image, rays follow its
     /// tiles, compositing delivers each tile to its driver, which writes the tile's files;
     /// the final pieces sent to the coordinator are empty.
@@ -527,6 +531,25 @@ impl WallFrame {
 
 /// Leaves one worker may be given.
 pub const MAX_LEAVES_PER_WORKER: usize = 64;
+
+/// Largest number of [`PageWork`] records one worker reports per frame (about 1 MB on the
+/// wire, a quarter of [`MAX_META`]); a worker that touched more pages reports its largest
+/// shares and leaves the rest unattributed.
+pub const MAX_PAGE_WORK: usize = 65_536;
+
+/// The share of one leaf's final cast that went into one page: the thread time of each
+/// tile, divided among the pages its rays entered in proportion to how many rays entered
+/// each, over the thread time of all the leaf's tiles. A leaf's shares add up to at most 1;
+/// the rest is time in tiles whose rays entered no page.
+#[derive(Copy, Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PageWork {
+    /// The leaf (index into `Setup::leaves` or the last `FrameRequest::leaves`).
+    pub leaf: u32,
+    /// The page's feedback key (data set, level, Morton index; `strata_common::ids::PageId`).
+    pub key: u64,
+    /// Its share of the leaf's cast, in `(0, 1]`.
+    pub share: f32,
+}
 
 /// What a worker composites.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -626,6 +649,10 @@ pub struct WorkerFrameStats {
     /// Seconds of each leaf's final-round cast, in the order of this worker's leaves (for
     /// re-splitting by measured cost).
     pub leaf_cast_s: Vec<f64>,
+    /// Where each leaf's final cast went, page by page (only when the frame request asked
+    /// for `page_work`; at most [`MAX_PAGE_WORK`] records; empty on the GPU backend, which
+    /// times no tiles).
+    pub page_work: Vec<PageWork>,
     /// Seconds encoding pieces, the outgoing ones and the final one (active-pixel runs,
     /// f16 conversion).
     pub encode_s: f64,

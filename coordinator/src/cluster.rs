@@ -28,8 +28,8 @@ use strata_common::composite::{assemble, Interlace, Span, SparsePiece};
 use strata_common::image::Rgba;
 use strata_common::kd::Decomposition;
 use strata_common::occlusion::{self, BlockGrid, FrontAccumulator, Transmittance};
-use strata_common::scene::Transport;
 use strata_common::scene::{Camera, Scene, WallSettings};
+use strata_common::scene::{RebalanceModel, Transport};
 use strata_common::wall::TileFiles;
 use strata_common::wire::{
     self, CompositeChoice, CoordMsg, FrameRequest, FrameSource, Limits, PeerInfo, Setup, WallFrame,
@@ -76,6 +76,9 @@ pub struct ClusterOptions {
     pub rebalance_threshold: f64,
     /// How far a re-split follows the measurement, in (0, 1].
     pub rebalance_damping: f64,
+    /// `cluster.rebalance_model`: divide each leaf's measured time by the pages its rays
+    /// entered, or by its estimated boxes.
+    pub rebalance_model: strata_common::scene::RebalanceModel,
     /// `cluster.transport`: shared memory between processes on one host, or QUIC.
     pub transport: Transport,
     /// `cluster.on_worker_loss`: re-render a frame without a worker that was lost, or fail.
@@ -159,6 +162,9 @@ pub struct Rebalance {
     pub measured_imbalance: f64,
     /// The same measurement re-weighted onto the new split (what the cost model expects).
     pub expected_imbalance: f64,
+    /// What the measured time was divided by: `"pages"` (the pages the rays entered) or
+    /// `"leaves"` (each leaf's estimated boxes, one factor per leaf).
+    pub model: &'static str,
     /// Leaf regions before and after.
     pub old_leaves: Vec<strata_common::kd::Region>,
     /// After.
@@ -255,6 +261,7 @@ impl ClusterOptions {
             },
             rebalance_threshold: c.rebalance_threshold,
             rebalance_damping: c.rebalance_damping,
+            rebalance_model: c.rebalance_model,
             transport: c.transport,
             on_worker_loss: c.on_worker_loss,
             replacement_wait: Duration::from_secs_f64(c.replacement_wait_s),
@@ -514,6 +521,9 @@ pub struct Cluster {
     child_pids: Vec<u32>,
     /// The cost boxes the decomposition balances (re-weighted by each re-split).
     costs: decompose::SceneCosts,
+    /// The scene's estimated costs, as set-up computed them (what a re-split by measured
+    /// pages divides a page's time by).
+    estimate: decompose::SceneCosts,
     /// New leaves to hand each worker with its next frame request.
     new_leaves: Vec<Option<Vec<strata_common::kd::Region>>>,
     /// The transports chosen at set-up.
@@ -694,6 +704,7 @@ impl Cluster {
             canvases: Vec::new(),
             wall: None,
             child_pids,
+            estimate: costs.clone(),
             costs,
             new_leaves: vec![None; n],
             transport: TransportReport::default(),
@@ -1646,6 +1657,7 @@ impl Cluster {
                 occlusion_block: if occlusion { block } else { 0 },
                 occlusion_prepass: if prepass { PREPASS_SCALE } else { 0 },
                 occlusion_motion: motion,
+                page_work: self.wants_page_work(),
                 wall: wall.clone(),
                 canvas: canvas_ref
                     .clone()
@@ -2021,10 +2033,20 @@ impl Cluster {
         self.workers.iter().find(|w| w.pid == pid).map(|w| w.rank)
     }
 
+    /// Whether frame requests ask the workers where their time went, page by page: a
+    /// re-split by measured pages may follow.
+    fn wants_page_work(&self) -> bool {
+        self.opts.rebalance_threshold > 0.0
+            && self.opts.rebalance_model == RebalanceModel::Pages
+            && self.slots.len() >= 2
+    }
+
     /// After a frame of a sequence: when the workers' measured imbalance exceeds
     /// `cluster.rebalance_threshold`, re-splits the tree from the measured per-leaf times
-    /// (damped by `cluster.rebalance_damping`) and hands each worker its new leaves with the
-    /// next frame. The workers keep their engines and resident pages.
+    /// (damped by `cluster.rebalance_damping`; with `cluster.rebalance_model = "pages"`,
+    /// each leaf's time divided among the pages its rays entered, when the workers reported
+    /// any) and hands each worker its new leaves with the next frame. The workers keep their
+    /// engines and resident pages.
     pub fn rebalance(&mut self, done: &FrameResult, frame: u64) -> Option<Rebalance> {
         let t = self.opts.rebalance_threshold;
         if t <= 0.0 || self.slots.len() < 2 || !done.lost.is_empty() {
@@ -2042,7 +2064,30 @@ impl Cluster {
         if !(imbalance > t) {
             return None;
         }
-        self.costs.boxes = d.reweighted(&self.costs.boxes, &measured, self.opts.rebalance_damping);
+        // Where each leaf's time went, page by page (`(leaf, key, share)`).
+        let mut work = Vec::new();
+        for (slot, s) in done.stats.iter().enumerate() {
+            let mine = d.worker_leaves(slot);
+            for w in &s.page_work {
+                if let Some(&l) = mine.get(w.leaf as usize) {
+                    work.push((l, w.key, w.share));
+                }
+            }
+        }
+        let damping = self.opts.rebalance_damping;
+        let by_pages = self.opts.rebalance_model == RebalanceModel::Pages && !work.is_empty();
+        self.costs.boxes = if by_pages {
+            decompose::reweighted_by_pages(
+                &self.estimate,
+                &self.costs.boxes,
+                d,
+                &measured,
+                &work,
+                damping,
+            )
+        } else {
+            d.reweighted(&self.costs.boxes, &measured, damping)
+        };
         let new = Decomposition::balanced(
             self.costs.root,
             &self.costs.boxes,
@@ -2059,6 +2104,7 @@ impl Cluster {
             after_frame: frame,
             measured_imbalance: imbalance,
             expected_imbalance: new.imbalance(),
+            model: if by_pages { "pages" } else { "leaves" },
             old_leaves: d.tree.leaves.clone(),
             new_leaves: new.tree.leaves.clone(),
         };
@@ -2066,6 +2112,7 @@ impl Cluster {
             frame,
             measured = format!("{imbalance:.3}"),
             expected = format!("{:.3}", r.expected_imbalance),
+            model = r.model,
             "re-split the k-d tree from measured render times"
         );
         for (slot, &rank) in self.slots.iter().enumerate() {

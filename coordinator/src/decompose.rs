@@ -31,7 +31,10 @@
 //!
 //! The cost ignores the view: the level of detail (far regions sample coarser levels) and
 //! early ray termination both make real costs view-dependent. It balances the sample work
-//! of a view that sees everything at full detail.
+//! of a view that sees everything at full detail. Across a sequence the workers measure
+//! the view's real work and the cluster re-weights the boxes with it: one factor per leaf
+//! (`Decomposition::reweighted`), or page by page ([`reweighted_by_pages`], which needs
+//! [`SceneCosts::page_boxes`] to find the boxes under a page key).
 //!
 //! Split planes snap to level-0 brick boundaries of axis-aligned volumes when that costs
 //! little balance (see [`Decomposition::balanced`]), so fewer bricks are loaded by two
@@ -40,7 +43,9 @@
 use anyhow::Result;
 use std::cmp::Ordering;
 use strata_common::geo::Affine3;
+use strata_common::ids::PageId;
 use strata_common::kd::{CostBox, Decomposition, Region};
+use strata_common::pyramid::Pyramid;
 use strata_common::scene::Scene;
 use strata_worker::dataset::{Horizon, SceneData, Volume};
 
@@ -49,6 +54,24 @@ pub const TRANSPARENT_FACTOR: f64 = 0.05;
 
 /// Cost of one horizon cell, in volume samples.
 pub const HORIZON_CELL_COST: f64 = 1.0;
+
+/// A re-split by measured page work keeps this fraction of each box's estimated share as a
+/// floor under its measured cost: a box the view did not reach (hidden, or outside the
+/// frame) still costs a little, so the split does not hand one worker all of it at once.
+pub const MEASURED_FLOOR: f64 = 0.05;
+
+/// [`DatasetBoxes::level0`] of a level-0 page with no box (a horizon tile without a valid
+/// height).
+pub const NO_BOX: u32 = u32::MAX;
+
+/// How one data set's pages map onto [`SceneCosts::boxes`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct DatasetBoxes {
+    /// Its page tree (to decode page keys).
+    pub pyramid: Pyramid,
+    /// The box of each level-0 page, in page-table order (x fastest), or [`NO_BOX`].
+    pub level0: Vec<u32>,
+}
 
 /// Boxes of work of a scene, candidate split planes and the scene region.
 #[derive(Clone, Debug, PartialEq)]
@@ -60,6 +83,9 @@ pub struct SceneCosts {
     pub planes: [Vec<f64>; 3],
     /// The scene region (the data bounds padded as `Engine::scene_region` pads them).
     pub root: Region,
+    /// Per data-set number (the workers' numbering: volumes, then horizons), how its page
+    /// keys map onto `boxes`.
+    pub datasets: Vec<DatasetBoxes>,
 }
 
 impl SceneCosts {
@@ -67,6 +93,152 @@ impl SceneCosts {
     pub fn total(&self) -> f64 {
         self.boxes.iter().map(|b| b.cost).sum()
     }
+
+    /// Into `out`: the boxes of the level-0 pages under page `key` (a level-0 page's own
+    /// box; a level-k page covers 2^k level-0 pages per axis, clipped to the grid). Empty
+    /// for a key that names no page of the scene.
+    pub fn page_boxes(&self, key: u64, out: &mut Vec<usize>) {
+        out.clear();
+        let id = PageId(key);
+        let Some(d) = self.datasets.get(id.dataset() as usize) else {
+            return;
+        };
+        let (p, level) = (&d.pyramid, id.level() as usize);
+        let b = p.brick_of(id.morton());
+        if !p.contains(level, b) {
+            return;
+        }
+        let n0 = p.level(0).bricks;
+        let lo = [0, 1, 2].map(|a| ((b[a] as u64) << level).min(n0[a] as u64));
+        let hi = [0, 1, 2].map(|a| ((b[a] as u64 + 1) << level).min(n0[a] as u64));
+        for z in lo[2]..hi[2] {
+            for y in lo[1]..hi[1] {
+                for x in lo[0]..hi[0] {
+                    let i = level0_index(n0, [x as u32, y as u32, z as u32]);
+                    match d.level0.get(i) {
+                        Some(&bx) if bx != NO_BOX => out.push(bx as usize),
+                        _ => {}
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// `boxes` (the cost field in force, on the regions of `costs.boxes`) re-weighted by where
+/// the view's work went (`cluster.rebalance_model = "pages"`).
+///
+/// `measured` is each leaf's final cast in seconds; `work` holds `(leaf, page key, share)`,
+/// the share of that leaf's time its tiles spent in the page (the worker's
+/// `feedback::page_shares`). A page's seconds go to the level-0 boxes under it that lie in
+/// the leaf, in proportion to their estimated cost there (a coarse page's time falls where
+/// the estimate says its samples are); what a leaf's shares leave over (tiles whose rays
+/// entered no page) is spread the same way over the whole leaf. Each box then costs its
+/// measured seconds, converted to the field's units over the measured leaves, plus
+/// [`MEASURED_FLOOR`] of its estimated share; boxes in leaves without a measurement keep
+/// their cost. The result is `(1 − damping)` of the field in force plus `damping` of that.
+///
+/// Unlike [`Decomposition::reweighted`], which scales all of a leaf's boxes by one factor,
+/// this moves cost *within* a leaf: the part of a leaf where rays terminate early, or that
+/// lies behind opaque content, costs less than the part they cross in full, and the next
+/// split planes go where the work is. Returns `boxes` unchanged when nothing usable was
+/// measured.
+pub fn reweighted_by_pages(
+    costs: &SceneCosts,
+    boxes: &[CostBox],
+    d: &Decomposition,
+    measured: &[f64],
+    work: &[(usize, u64, f32)],
+    damping: f64,
+) -> Vec<CostBox> {
+    let ok = |v: f64| v.is_finite() && v > 0.0;
+    let (nb, leaves) = (costs.boxes.len(), &d.tree.leaves);
+    let timed = |l: usize| measured.get(l).copied().is_some_and(ok);
+    if boxes.len() != nb || !(0..leaves.len()).any(timed) {
+        return boxes.to_vec();
+    }
+    let estimate = |b: usize| {
+        let c = costs.boxes[b].cost;
+        if ok(c) {
+            c
+        } else {
+            0.0
+        }
+    };
+    // Seconds per box, and the share of each leaf's time given to pages.
+    let mut secs = vec![0.0; nb];
+    let mut attributed = vec![0.0f64; leaves.len()];
+    let mut under = Vec::new();
+    let mut weights = Vec::new();
+    for &(leaf, key, share) in work {
+        let share = share as f64;
+        if !timed(leaf) || !ok(share) {
+            continue;
+        }
+        costs.page_boxes(key, &mut under);
+        weights.clear();
+        weights.extend(
+            under
+                .iter()
+                .map(|&b| estimate(b) * costs.boxes[b].fraction_in(&leaves[leaf])),
+        );
+        let total: f64 = weights.iter().sum();
+        if !ok(total) {
+            continue;
+        }
+        let s = share.min(1.0) * measured[leaf];
+        for (&b, &w) in under.iter().zip(&weights) {
+            secs[b] += s * w / total;
+        }
+        attributed[leaf] += share;
+    }
+    // Each box's fraction in the measured leaves, and the leaves' unattributed time.
+    let mut in_timed = vec![0.0; nb];
+    for (l, r) in leaves.iter().enumerate().filter(|&(l, _)| timed(l)) {
+        let fr: Vec<f64> = costs.boxes.iter().map(|b| b.fraction_in(r)).collect();
+        let rest = (1.0 - attributed[l]).max(0.0) * measured[l];
+        let total: f64 = (0..nb).map(|b| estimate(b) * fr[b]).sum();
+        for b in 0..nb {
+            in_timed[b] += fr[b];
+            if rest > 0.0 && ok(total) {
+                secs[b] += rest * estimate(b) * fr[b] / total;
+            }
+        }
+    }
+    let current = |b: usize| {
+        let c = boxes[b].cost;
+        if ok(c) {
+            c
+        } else {
+            0.0
+        }
+    };
+    let field_timed: f64 = (0..nb).map(|b| current(b) * in_timed[b].min(1.0)).sum();
+    let secs_total: f64 = secs.iter().sum();
+    let est_total: f64 = (0..nb).map(estimate).sum();
+    let field_total: f64 = (0..nb).map(current).sum();
+    if !ok(field_timed) || !ok(secs_total) || !ok(est_total) {
+        return boxes.to_vec();
+    }
+    let to_field = field_timed / secs_total;
+    let est_to_field = field_total / est_total;
+    let dmp = if damping.is_finite() {
+        damping.clamp(0.0, 1.0)
+    } else {
+        1.0
+    };
+    (0..nb)
+        .map(|b| {
+            let t = in_timed[b].min(1.0);
+            let target = to_field * secs[b]
+                + MEASURED_FLOOR * est_to_field * estimate(b) * t
+                + current(b) * (1.0 - t);
+            CostBox {
+                region: boxes[b].region,
+                cost: (1.0 - dmp) * current(b) + dmp * target,
+            }
+        })
+        .collect()
 }
 
 /// Opens the scene's stores (headers and indexes only) and estimates its work.
@@ -81,13 +253,22 @@ pub fn costs_of(data: &SceneData, skipping: bool) -> SceneCosts {
     let root = data.region();
     let mut boxes = Vec::new();
     let mut planes: [Vec<f64>; 3] = [vec![], vec![], vec![]];
+    let mut datasets = Vec::new();
     for v in &data.volumes {
-        volume_boxes(v, skipping, &mut boxes);
+        let level0 = volume_boxes(v, skipping, &mut boxes);
+        datasets.push((v.ds, v.pyramid.clone(), level0));
         volume_planes(v, &mut planes);
     }
     for h in &data.horizons {
-        horizon_boxes(h, &mut boxes);
+        let level0 = horizon_boxes(h, &mut boxes);
+        datasets.push((h.ds, h.pyramid.clone(), level0));
     }
+    datasets.sort_by_key(|d| d.0);
+    debug_assert!(datasets.iter().enumerate().all(|(i, d)| d.0 as usize == i));
+    let datasets = datasets
+        .into_iter()
+        .map(|(_, pyramid, level0)| DatasetBoxes { pyramid, level0 })
+        .collect();
     for b in &mut boxes {
         for a in 0..3 {
             b.region.lo[a] = b.region.lo[a].clamp(root.lo[a], root.hi[a]);
@@ -103,6 +284,7 @@ pub fn costs_of(data: &SceneData, skipping: bool) -> SceneCosts {
         boxes,
         planes,
         root,
+        datasets,
     }
 }
 
@@ -145,9 +327,11 @@ fn level0_index(bricks: [u32; 3], b: [u32; 3]) -> usize {
     ((b[2] as usize * bricks[1] as usize) + b[1] as usize) * bricks[0] as usize + b[0] as usize
 }
 
-fn volume_boxes(v: &Volume, skipping: bool, out: &mut Vec<CostBox>) {
+/// Appends one box per level-0 brick; returns each brick's box index (page-table order).
+fn volume_boxes(v: &Volume, skipping: bool, out: &mut Vec<CostBox>) -> Vec<u32> {
     let p = &v.pyramid;
     let bricks = p.level(0).bricks;
+    let first = out.len();
     for z in 0..bricks[2] {
         for y in 0..bricks[1] {
             for x in 0..bricks[0] {
@@ -169,12 +353,16 @@ fn volume_boxes(v: &Volume, skipping: bool, out: &mut Vec<CostBox>) {
             }
         }
     }
+    (first..out.len()).map(|i| i as u32).collect()
 }
 
-fn horizon_boxes(h: &Horizon, out: &mut Vec<CostBox>) {
+/// Appends one box per level-0 tile with a valid height; returns each tile's box index, or
+/// [`NO_BOX`] (page-table order).
+fn horizon_boxes(h: &Horizon, out: &mut Vec<CostBox>) -> Vec<u32> {
     let p = &h.pyramid;
     let lev = p.level(0);
     let (bricks, dims) = (lev.bricks, lev.dims);
+    let mut level0 = vec![NO_BOX; bricks[0] as usize * bricks[1] as usize];
     for y in 0..bricks[1] {
         for x in 0..bricks[0] {
             let b = [x, y, 0];
@@ -190,6 +378,7 @@ fn horizon_boxes(h: &Horizon, out: &mut Vec<CostBox>) {
             if cells == 0 {
                 continue;
             }
+            level0[level0_index(bricks, b)] = out.len() as u32;
             out.push(CostBox {
                 region: world_box(
                     &h.to_world,
@@ -200,6 +389,7 @@ fn horizon_boxes(h: &Horizon, out: &mut Vec<CostBox>) {
             });
         }
     }
+    level0
 }
 
 /// World axis → index axis when the transform's linear part is a scaled permutation.
@@ -358,6 +548,166 @@ mod tests {
         for b in &c.boxes {
             assert!(
                 (0..3).all(|a| c.root.lo[a] <= b.region.lo[a] && b.region.hi[a] <= c.root.hi[a])
+            );
+        }
+    }
+
+    fn key(c: &SceneCosts, ds: u16, level: usize, brick: [u32; 3]) -> u64 {
+        strata_worker::atlas::page_key(ds, &c.datasets[ds as usize].pyramid, level, brick)
+    }
+
+    #[test]
+    fn page_keys_map_onto_the_level0_boxes_under_them() {
+        let dir = tempfile::tempdir().unwrap();
+        let dims = [70, 40, 20]; // level 0: 3×2×1 bricks of core 30; level 1: 2×1×1
+        let v = volume_store(
+            dir.path(),
+            "o",
+            dims,
+            field(dims, |_, _, _| 1.0),
+            Affine3::IDENTITY,
+        );
+        // 3×2 tiles of core 28 (border 2), the middle column without a valid height.
+        let hdims = [60u64, 30];
+        let heights = (0..hdims[0] * hdims[1])
+            .map(|i| {
+                if (25..59).contains(&(i % hdims[0])) {
+                    f32::NAN
+                } else {
+                    5.0
+                }
+            })
+            .collect();
+        let h = horizon_store(dir.path(), hdims, heights);
+        let c = scene_costs(&scene(dir.path(), &[v], &[h], "")).unwrap();
+        assert_eq!(c.datasets.len(), 2);
+        let mut out = Vec::new();
+        let mut boxes = |k: u64| {
+            c.page_boxes(k, &mut out);
+            out.sort_unstable();
+            out.clone()
+        };
+        // Level 0: the brick's own box (x fastest).
+        assert_eq!(boxes(key(&c, 0, 0, [1, 1, 0])), [4]);
+        // Level 1: 2×2 level-0 bricks, clipped to the grid at the high edge.
+        assert_eq!(boxes(key(&c, 0, 1, [0, 0, 0])), [0, 1, 3, 4]);
+        assert_eq!(boxes(key(&c, 0, 1, [1, 0, 0])), [2, 5]);
+        assert_eq!(boxes(key(&c, 0, 2, [0, 0, 0])), [0, 1, 2, 3, 4, 5]);
+        // The horizon's boxes follow the volume's; tiles with no height have none.
+        let tiles: Vec<usize> = (0..2)
+            .flat_map(|y| (0..3).map(move |x| [x, y, 0]))
+            .flat_map(|b| boxes(key(&c, 1, 0, b)))
+            .collect();
+        assert_eq!(tiles, [6, 7, 8, 9]);
+        assert_eq!(boxes(key(&c, 1, 0, [1, 0, 0])), Vec::<usize>::new());
+        // Keys of no page: another data set, a brick outside the level, a level too deep.
+        assert!(boxes(key(&c, 0, 0, [0, 0, 0]) | (7u64 << 48)).is_empty());
+        assert!(boxes(strata_common::ids::PageId::new(0, 0, 63).0).is_empty());
+        assert!(boxes(strata_common::ids::PageId::new(0, 9, 0).0).is_empty());
+    }
+
+    /// A view whose work sits in one brick: re-splitting by the pages the rays entered
+    /// puts the plane next to that brick; scaling each leaf by one factor cannot, and
+    /// leaves the workers further apart on the real costs.
+    #[test]
+    fn a_re_split_by_pages_moves_cost_within_a_leaf() {
+        let dir = tempfile::tempdir().unwrap();
+        let dims = [240, 30, 30]; // 8 bricks of core 30 along x, all opaque
+        let v = volume_store(
+            dir.path(),
+            "o",
+            dims,
+            field(dims, |_, _, _| 1.0),
+            Affine3::IDENTITY,
+        );
+        let c = scene_costs(&scene(dir.path(), &[v], &[], "")).unwrap();
+        assert_eq!(c.boxes.len(), 8);
+        let d = Decomposition::balanced(c.root, &c.boxes, 2, 1, &c.planes);
+        assert_eq!(root_split(&d), (0, 119.5));
+        // The view's real work per brick: brick 0 ten times any other.
+        let truth: Vec<f64> = (0..8).map(|b| if b == 0 { 10.0 } else { 1.0 }).collect();
+        let leaf_of = |b: usize| {
+            d.tree
+                .leaves
+                .iter()
+                .position(|r| r.lo[0] < 30.0 * b as f64 + 15.0 && 30.0 * b as f64 + 15.0 < r.hi[0])
+                .unwrap()
+        };
+        let mut measured = vec![0.0; 2];
+        for b in 0..8 {
+            measured[leaf_of(b)] += truth[b];
+        }
+        // What the workers report: each brick's share of its leaf's time.
+        let work: Vec<(usize, u64, f32)> = (0..8u32)
+            .map(|b| {
+                let l = leaf_of(b as usize);
+                (
+                    l,
+                    key(&c, 0, 0, [b, 0, 0]),
+                    (truth[b as usize] / measured[l]) as f32,
+                )
+            })
+            .collect();
+        let real = |n: &Decomposition| {
+            let mut w = [0.0; 2];
+            for (l, r) in n.tree.leaves.iter().enumerate() {
+                for (b, t) in truth.iter().enumerate() {
+                    w[n.owner[l]] += t * c.boxes[b].fraction_in(r);
+                }
+            }
+            w[0].max(w[1]) / (0.5 * (w[0] + w[1]))
+        };
+        let split = |boxes: &[CostBox]| Decomposition::balanced(c.root, boxes, 2, 1, &c.planes);
+        let by_leaves = split(&d.reweighted(&c.boxes, &measured, 1.0));
+        let by_pages = split(&reweighted_by_pages(
+            &c, &c.boxes, &d, &measured, &work, 1.0,
+        ));
+        let (il, ip) = (real(&by_leaves), real(&by_pages));
+        // Pages: the plane after brick 0 (10 against 7); leaves: after brick 2 (12 against 5).
+        assert_eq!(root_split(&by_pages), (0, 29.5), "{il} {ip}");
+        assert!(ip < 1.2 && ip < il - 0.2, "by pages {ip}, by leaves {il}");
+        // The boxes' costs follow the truth, plus the floor, in the field's units.
+        let rw = reweighted_by_pages(&c, &c.boxes, &d, &measured, &work, 1.0);
+        let unit = rw[1].cost - MEASURED_FLOOR * c.boxes[1].cost;
+        for b in 0..8 {
+            let want = truth[b] * unit + MEASURED_FLOOR * c.boxes[b].cost;
+            assert!(
+                (rw[b].cost - want).abs() < 1e-6 * want,
+                "box {b}: {} against {want}",
+                rw[b].cost
+            );
+        }
+        // Damping 0, nothing measured, or only unusable records: the field as it is. A
+        // record of a page in the other leaf, or of an unknown page, gives nothing.
+        assert_eq!(
+            reweighted_by_pages(&c, &c.boxes, &d, &measured, &work, 0.0),
+            c.boxes
+        );
+        assert_eq!(
+            reweighted_by_pages(&c, &c.boxes, &d, &[0.0, 0.0], &work, 1.0),
+            c.boxes
+        );
+        let junk = [
+            (0, key(&c, 0, 0, [0, 0, 0]), f32::NAN),
+            (0, key(&c, 0, 0, [0, 0, 0]), -1.0),
+            (5, key(&c, 0, 0, [0, 0, 0]), 0.5),
+            (leaf_of(7), key(&c, 0, 0, [0, 0, 0]), 0.5),
+            (0, u64::MAX, 0.5),
+        ];
+        let plain = reweighted_by_pages(&c, &c.boxes, &d, &measured, &[], 1.0);
+        assert_eq!(
+            reweighted_by_pages(&c, &c.boxes, &d, &measured, &junk, 1.0),
+            plain
+        );
+        // A coarse page's time goes to the level-0 boxes under it in its leaf: all of
+        // leaf 0's time in the level-2 page over bricks 0–3 gives those four boxes equal
+        // costs, like no page record at all.
+        let coarse = [(leaf_of(0), key(&c, 0, 2, [0, 0, 0]), 1.0)];
+        let rc = reweighted_by_pages(&c, &c.boxes, &d, &measured, &coarse, 1.0);
+        for b in 0..8 {
+            assert!(
+                (rc[b].cost - plain[b].cost).abs() < 1e-9 * plain[b].cost,
+                "box {b}"
             );
         }
     }

@@ -412,6 +412,11 @@ impl RenderSummary {
         for (frame, workers) in self.frames.iter().enumerate() {
             for w in workers {
                 let mut v = serde_json::to_value(w)?;
+                // The per-page shares feed re-splits; a line per worker and frame keeps
+                // only their count.
+                if let Some(o) = v.as_object_mut() {
+                    o.insert("page_work".into(), w.page_work.len().into());
+                }
                 v["kind"] = "worker".into();
                 v["frame"] = frame.into();
                 out += &serde_json::to_string(&v)?;

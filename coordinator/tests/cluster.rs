@@ -1192,6 +1192,8 @@ fn a_sequence_that_re_splits_the_tree_still_equals_in_process_frame_by_frame() {
     for r in &rebalances {
         assert!(r["measured_imbalance"].as_f64().unwrap() > 1.0, "{r}");
         assert_ne!(r["old_leaves"], r["new_leaves"], "{r}");
+        // The default scales each leaf's boxes by one factor.
+        assert_eq!(r["model"], "leaves", "{r}");
     }
     assert!(log.contains("new regions after a re-split"), "{log}");
     for i in 0..4 {
@@ -1199,6 +1201,43 @@ fn a_sequence_that_re_splits_the_tree_still_equals_in_process_frame_by_frame() {
         let b = read_exr(&dir.path().join(format!("re_{i:03}.exr")));
         let d = max_diff(&a, &b);
         assert!(d <= 1e-5, "frame {i} after re-splits differs by {d}");
+    }
+    // By the pages the rays entered (`rebalance_model = "pages"`): re-splits too, same
+    // frames, and every worker said where its time went (a count in the stats file).
+    let (stats, _) = go(
+        "pg",
+        &[
+            "--workers",
+            "3",
+            "--set",
+            "cluster.rebalance_threshold=1.0",
+            "--set",
+            "cluster.rebalance_damping=1.0",
+            "--set",
+            "cluster.leaves_per_worker=2",
+            "--set",
+            "cluster.rebalance_model=pages",
+        ],
+    );
+    assert!(stats.contains("\"model\":\"pages\""), "{stats}");
+    assert!(!stats.contains("\"model\":\"leaves\""), "{stats}");
+    let workers: Vec<serde_json::Value> = stats
+        .lines()
+        .filter(|l| l.contains("\"kind\":\"worker\""))
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert!(!workers.is_empty(), "{stats}");
+    for w in &workers {
+        assert!(w["page_work"].as_u64().unwrap() > 0, "{w}");
+    }
+    for i in 0..4 {
+        let a = read_exr(&dir.path().join(format!("in_{i:03}.exr")));
+        let b = read_exr(&dir.path().join(format!("pg_{i:03}.exr")));
+        let d = max_diff(&a, &b);
+        assert!(
+            d <= 1e-5,
+            "frame {i} after re-splits by pages differs by {d}"
+        );
     }
     // Off: no re-split.
     let (stats, _) = go(

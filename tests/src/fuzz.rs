@@ -484,6 +484,7 @@ pub fn seeds() -> Vec<(&'static str, String, Vec<u8>)> {
             occlusion_block: 16,
             occlusion_prepass: 4,
             occlusion_motion: 12,
+            page_work: true,
             wall: None,
             canvas: Some(strata_common::wire::CanvasRef {
                 name: format!("strata-shm-{}", "0f".repeat(16)),

@@ -108,6 +108,9 @@ pub struct BatchResult {
     pub last_gpu: GpuFrameStats,
     /// Bytes written to the GPU over the batch (pages and tables).
     pub uploaded_bytes: u64,
+    /// The final frame's tiles (their feedback, counters and thread time; under selective
+    /// rounds, each tile as its last cast left it); empty on the GPU backend.
+    pub tiles: Vec<crate::raycast::TileOut>,
     /// The final frame's effects and code path.
     pub variant: Variant,
     /// The final frame's code path in words.
@@ -1095,6 +1098,7 @@ impl Engine {
                     uploaded_bytes,
                     variant: f.variant,
                     variant_name: f.variant_name,
+                    tiles: f.tiles,
                 });
             }
         }

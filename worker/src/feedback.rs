@@ -143,9 +143,76 @@ impl Feedback {
     }
 }
 
+/// Where a cast's time went, page by page: each tile's `seconds` divided among the pages
+/// its rays entered, in proportion to the rays that entered each (its `coverage`), summed
+/// over the tiles and divided by all the tiles' seconds. Returns `(page, share)` sorted by
+/// page; the shares add up to at most 1 (tiles whose rays entered no page, and tiles of no
+/// measurable time, give theirs to no page). Empty when no tile took any time.
+///
+/// A ray that enters a brick samples it from entry to exit or to where it terminates, so
+/// rays entered is the page's share of the tile's samples up to the brick lengths; what
+/// the tile's rays spend outside pages (set-up, skipping transparent bricks, horizons
+/// without a page) is spread in the same proportion.
+pub fn page_shares<'a>(
+    tiles: impl IntoIterator<Item = (&'a [FeedbackEntry], f64)>,
+) -> Vec<(u64, f32)> {
+    let mut by_page: HashMap<u64, f64> = HashMap::new();
+    let mut total = 0.0;
+    for (entries, seconds) in tiles {
+        if !(seconds.is_finite() && seconds > 0.0) {
+            continue;
+        }
+        total += seconds;
+        let rays: u64 = entries.iter().map(|e| e.coverage as u64).sum();
+        if rays == 0 {
+            continue;
+        }
+        let per_ray = seconds / rays as f64;
+        for e in entries.iter().filter(|e| e.coverage > 0) {
+            *by_page.entry(e.page).or_default() += per_ray * e.coverage as f64;
+        }
+    }
+    if !(total > 0.0) {
+        return Vec::new();
+    }
+    let mut out: Vec<(u64, f32)> = by_page
+        .into_iter()
+        .map(|(k, s)| (k, (s / total) as f32))
+        .filter(|&(_, s)| s > 0.0)
+        .collect();
+    out.sort_unstable_by_key(|r| r.0);
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn entry(page: u64, coverage: u32) -> FeedbackEntry {
+        FeedbackEntry {
+            page,
+            coverage,
+            _pad: 0,
+        }
+    }
+
+    #[test]
+    fn page_shares_divide_each_tiles_time_by_rays() {
+        // Tile A: 3 s, page 1 entered by 1 ray and page 2 by 2; tile B: 1 s, page 2 only;
+        // tile C: 4 s and no page (its rays met only transparent bricks); tile D: no time.
+        let a = [entry(1, 1), entry(2, 2)];
+        let b = [entry(2, 5)];
+        let d = [entry(9, 4)];
+        let s = page_shares([(&a[..], 3.0), (&b[..], 1.0), (&[][..], 4.0), (&d[..], 0.0)]);
+        assert_eq!(s.len(), 2);
+        assert_eq!(s[0].0, 1);
+        assert_eq!(s[1].0, 2);
+        // Page 1: 1 s of 8; page 2: 2 + 1 s of 8; the 4 s of tile C go to no page.
+        assert!((s[0].1 - 1.0 / 8.0).abs() < 1e-7, "{s:?}");
+        assert!((s[1].1 - 3.0 / 8.0).abs() < 1e-7, "{s:?}");
+        assert!(page_shares([(&b[..], 0.0)]).is_empty());
+        assert!(page_shares([(&b[..], f64::NAN), (&a[..], f64::INFINITY)]).is_empty());
+    }
 
     #[test]
     fn tiles_reduce_to_counts() {

@@ -37,8 +37,8 @@ use strata_common::occlusion::{
 };
 use strata_common::scene::Scene;
 use strata_common::wire::{
-    self, CompositeChoice, CoordMsg, Fingerprint, FrameRequest, FrameSource, Limits, PeerInfo,
-    PeerMsg, Setup, WorkerFrameStats, WorkerMsg,
+    self, CompositeChoice, CoordMsg, Fingerprint, FrameRequest, FrameSource, Limits, PageWork,
+    PeerInfo, PeerMsg, Setup, WorkerFrameStats, WorkerMsg, MAX_PAGE_WORK,
 };
 use strata_net::canvas::{self, CanvasWriter};
 use strata_net::frame::{
@@ -1250,6 +1250,7 @@ impl Node {
                 front,
             });
         }
+        page_work_shares(&mut stats.page_work, &stats.leaf_cast_s);
         stats.render_end_us = strata_net::unix_us();
         let cache = self.engine.cache_stats();
         stats.pages_read = cache.pages_read;
@@ -1688,6 +1689,21 @@ impl Node {
                     stats.load_s += r.load_seconds;
                     stats.last_round_s += r.last_seconds;
                     stats.leaf_cast_s[leaf as usize] += r.last_seconds;
+                    if req.page_work {
+                        // Seconds of this cast per page, for now (a re-cast adds its own);
+                        // `page_work_shares` turns them into shares of the leaf's time.
+                        let tiles = r.tiles.iter().map(|t| (&t.feedback[..], t.seconds));
+                        let s = r.last_seconds as f32;
+                        stats.page_work.extend(
+                            crate::feedback::page_shares(tiles)
+                                .into_iter()
+                                .map(|(key, share)| PageWork {
+                                    leaf,
+                                    key,
+                                    share: share * s,
+                                }),
+                        );
+                    }
                     stats.backend = r.backend.clone();
                     push_distinct(&mut stats.effects, &r.variant.effects.to_string());
                     push_distinct(&mut stats.variant, &r.variant_name);
@@ -1707,7 +1723,34 @@ impl Node {
     }
 }
 
-/// Leaf images, front to back, composited into one.
+/// Turns page records holding seconds (one per leaf, page and cast: a re-cast adds its
+/// own) into [`PageWork`] shares of each leaf's measured time `leaf_s`: merged per leaf and
+/// page, divided by the leaf's time, without records of no time or of an unknown or untimed
+/// leaf, and at most [`MAX_PAGE_WORK`] of them (the largest; the rest of a leaf's time goes
+/// unattributed).
+fn page_work_shares(work: &mut Vec<PageWork>, leaf_s: &[f64]) {
+    work.sort_unstable_by_key(|w| (w.leaf, w.key));
+    let mut out: Vec<PageWork> = Vec::with_capacity(work.len());
+    for w in work.drain(..) {
+        match out.last_mut() {
+            Some(o) if (o.leaf, o.key) == (w.leaf, w.key) => o.share += w.share,
+            _ => out.push(w),
+        }
+    }
+    out.retain_mut(|w| match leaf_s.get(w.leaf as usize) {
+        Some(&t) if t > 0.0 && t.is_finite() => {
+            w.share = (w.share as f64 / t) as f32;
+            w.share > 0.0 && w.share.is_finite()
+        }
+        _ => false,
+    });
+    if out.len() > MAX_PAGE_WORK {
+        out.sort_unstable_by(|a, b| b.share.total_cmp(&a.share));
+        out.truncate(MAX_PAGE_WORK);
+    }
+    *work = out;
+}
+
 /// Appends `item` to the `; `-joined list `list` unless it is there already.
 fn push_distinct(list: &mut String, item: &str) {
     if !list.split("; ").any(|x| x == item) {
@@ -1718,6 +1761,7 @@ fn push_distinct(list: &mut String, item: &str) {
     }
 }
 
+/// Leaf images, front to back, composited into one.
 fn composite_leaves(width: u32, height: u32, leaves: &[PartialImage]) -> PartialImage {
     match leaves {
         [] => PartialImage::empty(width, height),
@@ -1865,6 +1909,32 @@ mod tests {
             rect,
             pixels,
         }
+    }
+
+    /// Seconds per leaf, page and cast become shares of each leaf's time: a re-cast's
+    /// seconds add to the first cast's, untimed and unknown leaves drop out.
+    #[test]
+    fn page_work_becomes_shares_of_each_leafs_time() {
+        let w = |leaf, key, share| PageWork { leaf, key, share };
+        // Leaf 0 took 4 s: page 7 had 1 s in the first cast and 1 s in the re-cast, page 3
+        // had 1 s; leaf 1 was not timed; leaf 5 does not exist; a record of no time.
+        let mut work = vec![
+            w(0, 7, 1.0),
+            w(1, 7, 2.0),
+            w(0, 3, 1.0),
+            w(5, 1, 1.0),
+            w(0, 7, 1.0),
+            w(0, 9, 0.0),
+        ];
+        page_work_shares(&mut work, &[4.0, 0.0]);
+        assert_eq!(work, [w(0, 3, 0.25), w(0, 7, 0.5)]);
+        // Over the cap, the largest shares stay.
+        let mut many: Vec<PageWork> = (0..MAX_PAGE_WORK as u64 + 2)
+            .map(|k| w(0, k, if k == 0 { 1.0 } else { 1e-6 }))
+            .collect();
+        page_work_shares(&mut many, &[1.0]);
+        assert_eq!(many.len(), MAX_PAGE_WORK);
+        assert!(many.iter().any(|p| p.key == 0 && p.share == 1.0));
     }
 
     /// Blocks inside the base's rectangle are replaced in place, others through a full
