@@ -113,9 +113,9 @@ step strong-scaling "${LIMIT_STRONG:-190}" bash -c '
       --set render.backend=cpu 2>&1 |
     tee "$1/strong-scaling.md"' "$CARRY" "$RESULTS" "$PS"
 # The same orbit at p = 8 with occlusion on and one setting changed (VARIANTS, default:
-# the map not widened by the motion, re-splitting off, re-splitting at a lower threshold
-# and undamped): what each gives.
-VARIANTS=${VARIANTS:-cluster.occlusion_motion=false cluster.rebalance_threshold=0 cluster.rebalance_threshold=1.1 cluster.rebalance_damping=1}
+# re-splits by one factor per leaf (the default, as a baseline in the same step) and by
+# measured page work, re-splitting off, re-splitting at a lower threshold): what each gives.
+VARIANTS=${VARIANTS:-cluster.rebalance_model=leaves cluster.rebalance_model=pages cluster.rebalance_threshold=0 cluster.rebalance_threshold=1.1}
 step strong-variants "${LIMIT_VARIANTS:-150}" bash -c '
   set -o pipefail
   for v in $1; do
