@@ -97,21 +97,55 @@ fn flatten_srgb8(rgba: &[[f32; 4]], background: [f32; 3]) -> Vec<u8> {
 }
 
 /// The 8-bit sRGB code of `linear`, from the table of [`srgb8_thresholds`]: the number of
-/// thresholds at or below it. The same code as [`srgb8`] for every `f32`, without a `powf`.
-fn srgb8_from(table: &[f32; 255], linear: f32) -> u8 {
+/// thresholds at or below it. The same code as [`srgb8`] for every `f32`, without a `powf`
+/// and without a search: the code where `linear`'s bucket starts, then one step per
+/// threshold up to it (at most three).
+fn srgb8_from(table: &Srgb8Table, linear: f32) -> u8 {
     let x = linear.clamp(0.0, 1.0);
     if x.is_nan() {
         return 0;
     }
-    table.partition_point(|&t| t <= x) as u8
+    let mut code = table.start[bucket(x)] as usize;
+    while code < 255 && table.thresholds[code] <= x {
+        code += 1;
+    }
+    code as u8
 }
 
-/// `t[k − 1]` is the smallest `f32` whose [`srgb8`] code is at least `k` (k = 1 … 255).
-/// [`srgb8`] is non-decreasing in its argument and non-negative finite `f32`s are ordered
-/// like their bit patterns, so each threshold is found by bisection over the bits; the
-/// table then reproduces the exact curve bit for bit.
-fn srgb8_thresholds() -> &'static [f32; 255] {
-    static TABLE: std::sync::OnceLock<[f32; 255]> = std::sync::OnceLock::new();
+/// Mantissa bits of a bucket of [`Srgb8Table::start`]: 32 buckets per octave.
+const BUCKET_BITS: u32 = 5;
+/// The exponent field of 2^-14: every `f32` below it has code 0 (the first threshold is
+/// about 1.5e-4, 2^-12.7).
+const FIRST_EXPONENT: u32 = 113;
+/// Buckets: one below 2^-14, then 32 per octave up to 1.0, which has one of its own.
+const BUCKETS: usize = 2 + ((127 - FIRST_EXPONENT as usize) << BUCKET_BITS);
+
+/// The bucket of `x` in [0, 1]: 0 below 2^-14, else by exponent and the top mantissa bits
+/// (−0 is 0).
+fn bucket(x: f32) -> usize {
+    let b = (x.to_bits() & 0x7fff_ffff) >> (23 - BUCKET_BITS);
+    (b + 1).saturating_sub(FIRST_EXPONENT << BUCKET_BITS) as usize
+}
+
+/// The smallest `f32` of bucket `i` ≥ 1.
+fn bucket_start(i: usize) -> f32 {
+    f32::from_bits((i as u32 - 1 + (FIRST_EXPONENT << BUCKET_BITS)) << (23 - BUCKET_BITS))
+}
+
+/// The thresholds of the 255 codes above 0, and the code at the start of each bucket.
+struct Srgb8Table {
+    /// `thresholds[k − 1]` is the smallest `f32` whose [`srgb8`] code is at least `k`.
+    thresholds: [f32; 255],
+    /// The code of each bucket's smallest `f32` ([`bucket`]).
+    start: [u8; BUCKETS],
+}
+
+/// The table of [`srgb8_from`]. `thresholds[k − 1]` is the smallest `f32` whose [`srgb8`]
+/// code is at least `k` (k = 1 … 255). [`srgb8`] is non-decreasing in its argument and
+/// non-negative finite `f32`s are ordered like their bit patterns, so each threshold is
+/// found by bisection over the bits; the table then reproduces the exact curve bit for bit.
+fn srgb8_thresholds() -> &'static Srgb8Table {
+    static TABLE: std::sync::OnceLock<Srgb8Table> = std::sync::OnceLock::new();
     TABLE.get_or_init(|| {
         let mut t = [0f32; 255];
         for (i, t) in t.iter_mut().enumerate() {
@@ -128,7 +162,14 @@ fn srgb8_thresholds() -> &'static [f32; 255] {
             }
             *t = f32::from_bits(hi);
         }
-        t
+        let mut start = [0u8; BUCKETS];
+        for (i, s) in start.iter_mut().enumerate().skip(1) {
+            *s = t.partition_point(|&th| th <= bucket_start(i)) as u8;
+        }
+        Srgb8Table {
+            thresholds: t,
+            start,
+        }
     })
 }
 
@@ -344,7 +385,7 @@ mod tests {
         let t = srgb8_thresholds();
         let one = 1f32.to_bits();
         let mut bits: Vec<u32> = (0..=one).step_by(61).collect();
-        for th in t {
+        for th in &t.thresholds {
             let b = th.to_bits();
             bits.extend(b.saturating_sub(16)..=(b + 16).min(one));
         }
@@ -356,7 +397,26 @@ mod tests {
             assert_eq!(srgb8_from(t, x), srgb8(x), "at {x:e}");
         }
         assert_eq!(srgb8_from(t, f32::NAN), 0);
-        assert!(t.windows(2).all(|w| w[0] < w[1]), "thresholds increase");
+        assert!(
+            t.thresholds.windows(2).all(|w| w[0] < w[1]),
+            "thresholds increase"
+        );
+        // Each bucket starts at the code of its smallest float and spans at most three.
+        for i in 1..BUCKETS {
+            let lowest = bucket_start(i);
+            assert_eq!(bucket(lowest), i);
+            assert_eq!(bucket(lowest.next_down()), i - 1);
+            assert_eq!(t.start[i], srgb8(lowest), "bucket {i}");
+            let top = if i + 1 < BUCKETS {
+                bucket_start(i + 1).next_down()
+            } else {
+                1.0
+            };
+            assert!(srgb8(top) - srgb8(lowest) <= 3, "bucket {i}");
+        }
+        assert_eq!(bucket(0.0), 0);
+        assert_eq!(bucket(1.0), BUCKETS - 1);
+        assert_eq!(srgb8(bucket_start(1).next_down()), 0);
     }
 
     #[test]

@@ -1777,7 +1777,7 @@ fn composite_leaves(width: u32, height: u32, leaves: &[PartialImage]) -> Partial
 /// `base` with the pixels of the blocks set in `blocks` taken from `again` (a re-cast of
 /// those blocks). In place when every such block lies inside `base`'s rectangle (a few
 /// hundred blocks of a frame: rewriting the whole frame around them took longer than
-/// casting them), else through a full frame.
+/// casting them), else into a rectangle grown to hold the blocks' new content.
 fn replace_blocks(
     mut base: PartialImage,
     again: &PartialImage,
@@ -1801,17 +1801,48 @@ fn replace_blocks(
         }
         return base;
     }
-    let (w, h) = (base.width, base.height);
-    let mut full = base.to_full();
+    // Some blocks lie outside the base's rectangle: grow it to hold the re-cast's content
+    // in them (not to the whole frame: a full-frame copy and its scan cost more than the
+    // re-cast at p = 8). Pixels the rectangle gains outside the blocks stay transparent.
+    let ar = again.rect;
+    let mut grown = r;
     for &b in &set {
         let (x0, y0, x1, y1) = blocks.grid.pixels_of(b);
-        for y in y0..y1 {
-            for x in x0..x1 {
-                full[(y * w + x) as usize] = again.get(x, y);
+        let (cx0, cy0) = (x0.max(ar.x), y0.max(ar.y));
+        let (cx1, cy1) = (x1.min(ar.x + ar.w), y1.min(ar.y + ar.h));
+        if cx0 < cx1 && cy0 < cy1 {
+            grown = grown.union(&Rect {
+                x: cx0,
+                y: cy0,
+                w: cx1 - cx0,
+                h: cy1 - cy0,
+            });
+        }
+    }
+    let gw = grown.w as usize;
+    let mut pixels = vec![[0.0f32; 4]; grown.area()];
+    for y in 0..r.h {
+        let at = (r.y + y - grown.y) as usize * gw + (r.x - grown.x) as usize;
+        let row = (y * r.w) as usize;
+        pixels[at..at + r.w as usize].copy_from_slice(&base.pixels[row..row + r.w as usize]);
+    }
+    for &b in &set {
+        let (x0, y0, x1, y1) = blocks.grid.pixels_of(b);
+        let (cx0, cy0) = (x0.max(grown.x), y0.max(grown.y));
+        let (cx1, cy1) = (x1.min(grown.x + grown.w), y1.min(grown.y + grown.h));
+        for y in cy0..cy1 {
+            let row = (y - grown.y) as usize * gw;
+            for x in cx0..cx1 {
+                pixels[row + (x - grown.x) as usize] = again.get(x, y);
             }
         }
     }
-    PartialImage::from_full(w, h, &full)
+    PartialImage {
+        width: base.width,
+        height: base.height,
+        rect: grown,
+        pixels,
+    }
 }
 
 /// The row interlacing of `req`'s frame: one group per rank in the frame's order, none for
@@ -1937,9 +1968,9 @@ mod tests {
         assert!(many.iter().any(|p| p.key == 0 && p.share == 1.0));
     }
 
-    /// Blocks inside the base's rectangle are replaced in place, others through a full
-    /// frame; either way the frame is the base with exactly those blocks' pixels taken
-    /// from the re-cast.
+    /// Blocks inside the base's rectangle are replaced in place, others by growing the
+    /// rectangle; either way the frame is the base with exactly those blocks' pixels taken
+    /// from the re-cast, and the rectangle holds every pixel with content.
     #[test]
     fn replace_blocks_takes_exactly_the_blocks() {
         let (w, h) = (24, 16);
@@ -1971,7 +2002,19 @@ mod tests {
             for &b in &blocks {
                 mask.set(b);
             }
-            let got = replace_blocks(base.clone(), &again, &mask).to_full();
+            let got = replace_blocks(base.clone(), &again, &mask);
+            // The rectangle grows only as far as the re-cast's content.
+            let bound = base.rect.union(&again.rect);
+            let gr = got.rect;
+            assert!(
+                gr.x >= bound.x
+                    && gr.y >= bound.y
+                    && gr.x + gr.w <= bound.x + bound.w
+                    && gr.y + gr.h <= bound.y + bound.h,
+                "{gr:?} outside {bound:?}"
+            );
+            assert_eq!(got.pixels.len(), gr.area());
+            let got = got.to_full();
             for y in 0..h {
                 for x in 0..w {
                     let want = if mask.pixel(x, y) {
