@@ -11,7 +11,9 @@
 # the first mode (early termination is per region unless occlusion tells a worker what lies
 # in front), blocks left out and re-cast by occlusion, the imbalance (slowest / mean worker
 # render time, and the same of the workers' samples, which oversubscribed cores do not
-# blur), the re-splits over the run, bytes moved per frame (exchange + gather) and the peak RSS of the largest
+# blur), the re-splits over the run, the CPU time all workers spent per frame (and in their
+# renders) and its ratio to the first p's (the work distribution adds, which sharing cores
+# does not inflate, unlike wall times), bytes moved per frame (exchange + gather) and the peak RSS of the largest
 # process (GNU time: the coordinator or a worker). Writes the table to stdout and the raw
 # stats under $OUT (default target/strong-scaling).
 #
@@ -54,8 +56,8 @@ done
 python3 - "$OUT" "$MODES" $PS <<'EOF'
 import json, statistics, sys, re
 out, modes, ps = sys.argv[1], sys.argv[2].split(), [int(p) for p in sys.argv[3:]]
-print("| occlusion | p | frame time (frames 1..) | speed-up | efficiency | samples/frame | inflation | blocks left out / re-cast | imbalance (max/mean render) | imbalance of samples | re-splits | MB moved/frame | largest process peak RSS MiB |")
-print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+print("| occlusion | p | frame time (frames 1..) | speed-up | efficiency | samples/frame | inflation | rays/frame | workers' CPU/frame (render) | work over the first p | blocks left out / re-cast | imbalance (max/mean render) | imbalance of samples | re-splits | MB moved/frame | largest process peak RSS MiB |")
+print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
 base_samples = None
 for mode in modes:
     rows = {}
@@ -66,10 +68,13 @@ for mode in modes:
         warm = [f for f in frames if f["frame"] > 0] or frames
         t = statistics.median(f["seconds"] for f in warm)
         samples = statistics.median(f["samples"] for f in warm)
+        rays = statistics.median(sum(w.get("rays", 0) for w in workers if w["frame"] == f["frame"]) for f in warm)
         occ = statistics.median(f.get("occluded_blocks", 0) for f in warm)
         fix = statistics.median(f.get("fixup_blocks", 0) for f in warm)
         imb = []
         simb = []
+        cpu = []
+        rcpu = []
         moved = []
         for f in warm:
             ws = [w for w in workers if w["frame"] == f["frame"]]
@@ -78,20 +83,23 @@ for mode in modes:
             n = [w["samples"] for w in ws]
             simb.append(max(n) / (sum(n) / len(n)) if n and sum(n) > 0 else 1.0)
             moved.append(sum(w["bytes_sent"] + w["gather_bytes"] for w in ws))
+            cpu.append(sum(w.get("cpu_s", 0) for w in ws))
+            rcpu.append(sum(w.get("render_cpu_s", 0) for w in ws))
         splits = sum(1 for l in lines if l["kind"] == "rebalance")
         rss = 0
         for l in open(f"{out}/{mode}_p{p}.time"):
             m = re.search(r"Maximum resident set size \(kbytes\): (\d+)", l)
             if m:
                 rss = int(m.group(1)) / 1024
-        rows[p] = (t, samples, occ, fix, statistics.median(imb), statistics.median(simb), splits, statistics.median(moved), rss)
+        rows[p] = (t, samples, occ, fix, statistics.median(imb), statistics.median(simb), splits, statistics.median(moved), rss, statistics.median(cpu), statistics.median(rcpu), rays)
     base = rows[ps[0]]
     if base_samples is None:
         base_samples = base[1]
     for p in ps:
-        t, s, occ, fix, imb, simb, splits, mv, rss = rows[p]
+        t, s, occ, fix, imb, simb, splits, mv, rss, cpu, rcpu, rays = rows[p]
         sp = base[0] / t * ps[0]
-        print(f"| {mode} | {p} | {t*1e3:.0f} ms | {sp:.2f} | {sp/p*100:.0f} % | {s/1e6:.1f} M | {(s/base_samples-1)*100:+.1f} % | {occ:.0f} / {fix:.0f} | {imb:.2f} | {simb:.2f} | {splits} | {mv/1e6:.1f} | {rss:.0f} |")
+        work = f"{cpu/base[9]:.2f}×" if base[9] > 0 else "–"
+        print(f"| {mode} | {p} | {t*1e3:.0f} ms | {sp:.2f} | {sp/p*100:.0f} % | {s/1e6:.1f} M | {(s/base_samples-1)*100:+.1f} % | {rays/1e6:.2f} M | {cpu*1e3:.0f} ms ({rcpu*1e3:.0f}) | {work} | {occ:.0f} / {fix:.0f} | {imb:.2f} | {simb:.2f} | {splits} | {mv/1e6:.1f} | {rss:.0f} |")
 
 # Where a frame's time goes: medians over frames 1.. of the slowest worker's phases and of
 # the mean worker's render (the gap between the two is the imbalance), in milliseconds.

@@ -629,6 +629,13 @@ pub struct WorkerFrameStats {
     pub render_end_us: u64,
     /// Seconds casting rays over all feedback rounds (all leaves).
     pub cast_s: f64,
+    /// CPU seconds (user and system, every thread of the worker process) from the frame
+    /// request to the end of rendering: the render's work, which sharing cores with other
+    /// processes does not inflate as it does `render_s`.
+    pub render_cpu_s: f64,
+    /// CPU seconds of the worker process over the whole frame (render, occlusion, exchange,
+    /// final piece).
+    pub cpu_s: f64,
     /// Seconds loading pages and updating the atlas between rounds.
     pub load_s: f64,
     /// Seconds of the final round's cast (all leaves): the converged frame's cost, what the
@@ -682,6 +689,9 @@ pub struct WorkerFrameStats {
     pub render_rounds: u32,
     /// Ray samples of the last render round (and of the occlusion fix-up's last round).
     pub samples: u64,
+    /// Rays of the last render round (and of the occlusion fix-up's last round): every
+    /// pixel of each leaf's screen rectangle that was cast, whether or not it met the leaf.
+    pub rays: u64,
     /// Cross-worker occlusion: screen blocks left uncast because the previous frame
     /// predicted content in front of this worker hides them.
     pub occluded_blocks: u64,

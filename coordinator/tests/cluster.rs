@@ -1229,6 +1229,13 @@ fn a_sequence_that_re_splits_the_tree_still_equals_in_process_frame_by_frame() {
     assert!(!workers.is_empty(), "{stats}");
     for w in &workers {
         assert!(w["page_work"].as_u64().unwrap() > 0, "{w}");
+        // Each worker's rays, and its process's CPU time: the render's within the frame's.
+        assert!(w["rays"].as_u64().unwrap() > 0, "{w}");
+        let (render, all) = (
+            w["render_cpu_s"].as_f64().unwrap(),
+            w["cpu_s"].as_f64().unwrap(),
+        );
+        assert!(render > 0.0 && all >= render, "{w}");
     }
     for i in 0..4 {
         let a = read_exr(&dir.path().join(format!("in_{i:03}.exr")));

@@ -264,7 +264,7 @@ async fn node(opts: NodeOptions) -> Result<()> {
                     };
                     node.reclaim_canvas();
                     match result {
-                        Ok((mut stats, piece, composite_start)) => {
+                        Ok((mut stats, piece, (composite_start, cpu_start))) => {
                             test_fault(rank, frame, "gather");
                             let t = Instant::now();
                             // Into the coordinator's canvas when it gave one: in place,
@@ -289,6 +289,7 @@ async fn node(opts: NodeOptions) -> Result<()> {
                             stats.blended_in_canvas = canvas.is_some() && piece.placed;
                             stats.gather_bytes = bytes;
                             stats.composite_s = composite_start.elapsed().as_secs_f64();
+                            stats.cpu_s = process_cpu_s() - cpu_start;
                             let msg = WorkerMsg::FrameDone {
                                 frame,
                                 stats,
@@ -1054,13 +1055,15 @@ impl Node {
         Ok(piece.span)
     }
 
+    /// Renders and composites one frame; returns its stats, the final piece, when the
+    /// compositing started and the process's CPU time when the frame did.
     async fn frame(
         &mut self,
         req: &FrameRequest,
         events: &mut mpsc::Receiver<PeerEvent>,
         control: &mut mpsc::Receiver<Result<CoordMsg, String>>,
         csend: &mut quinn::SendStream,
-    ) -> Result<(WorkerFrameStats, FinalPiece, Instant)> {
+    ) -> Result<(WorkerFrameStats, FinalPiece, (Instant, f64))> {
         if let Some(leaves) = &req.leaves {
             // A re-split: new regions from this frame on. The engine keeps its resident
             // pages; those the new regions need are still there.
@@ -1123,6 +1126,7 @@ impl Node {
                 .map_err(|e| anyhow!("frame {}: bad wall: {e}", req.frame))?;
         }
         let frame_start = Instant::now();
+        let cpu_start = process_cpu_s();
         self.lz4 = req.composite.lz4;
         let position = req
             .order
@@ -1252,6 +1256,7 @@ impl Node {
         }
         page_work_shares(&mut stats.page_work, &stats.leaf_cast_s);
         stats.render_end_us = strata_net::unix_us();
+        stats.render_cpu_s = process_cpu_s() - cpu_start;
         let cache = self.engine.cache_stats();
         stats.pages_read = cache.pages_read;
         stats.bytes_read = cache.bytes_read;
@@ -1414,7 +1419,7 @@ impl Node {
             }
             _ => result,
         };
-        Ok((stats, result, composite_start))
+        Ok((stats, result, (composite_start, cpu_start)))
     }
 
     /// Hands one outgoing piece to its transport: written to the peer's shared-memory
@@ -1708,6 +1713,7 @@ impl Node {
                     push_distinct(&mut stats.effects, &r.variant.effects.to_string());
                     push_distinct(&mut stats.variant, &r.variant_name);
                     stats.samples += r.last.samples;
+                    stats.rays += r.last.rays;
                     if r.outcome != Outcome::Converged {
                         outcome = r.outcome;
                     }
@@ -1721,6 +1727,21 @@ impl Node {
             }
         }
     }
+}
+
+/// CPU seconds this process has used so far, user and system, all threads (0 if the
+/// system will not say).
+fn process_cpu_s() -> f64 {
+    let mut u = std::mem::MaybeUninit::<libc::rusage>::zeroed();
+    // SAFETY: `getrusage` fills the struct it is given; on failure it is left zeroed.
+    let u = unsafe {
+        if libc::getrusage(libc::RUSAGE_SELF, u.as_mut_ptr()) != 0 {
+            return 0.0;
+        }
+        u.assume_init()
+    };
+    let s = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    s(u.ru_utime) + s(u.ru_stime)
 }
 
 /// Turns page records holding seconds (one per leaf, page and cast: a re-cast adds its
