@@ -12,14 +12,14 @@
 #   bonsai and on the demo survey.
 # Each step has its own time limit, so one that hangs does not cost the others; SKIP="NAME ..."
 # leaves steps out (caster-scaling, contention, survey-contention, gpu-tests, backends,
-# strong-scaling, strong-variants).
+# strong-scaling, strong-variants, strong-leaves).
 #
 # Prepare on the project machine: bench/device-prepare.sh (release binaries, the GPU test
 # binary, GNU time, the bonsai and the Vulkan loader's packages, 18 MB in all).
 # Run with the device tool: carry [".gl", "device-carry"], command `bash bench/device-all.sh`.
 # Results land in $OUT (or the first argument): caster-scaling.md, gpu-tests.log,
 # backends.md, strong-scaling.md, strong-scaling-raw.tgz (the stats, without the images),
-# strong-variants.md, contention.md, survey-contention.md, machine.txt.
+# strong-variants.md, strong-leaves.md, contention.md, survey-contention.md, machine.txt.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 RESULTS=${1:-${OUT:?set OUT or pass a results folder}}
@@ -125,5 +125,19 @@ step strong-variants "${LIMIT_VARIANTS:-150}" bash -c '
       bash bench/strong-scaling.sh configs/demo.toml --set volume.0.opacity=0.06 \
       --set render.backend=cpu --set "$v" 2>&1 | grep "^|"
   done | tee "$2/strong-variants.md"' "$CARRY" "$VARIANTS" "$RESULTS"
+# What distribution adds to the work, without processes sharing cores: one worker with all
+# 16 threads rendering its region as 1 leaf, then as 8 leaves (the k-d split of p = 8,
+# composited in the process; no occlusion between leaves). Compare the workers' CPU per
+# frame and the samples and rays.
+step strong-leaves "${LIMIT_LEAVES:-90}" bash -c '
+  set -o pipefail
+  for lv in 1 8; do
+    echo "## cluster.leaves_per_worker=$lv"
+    PS=1 MODES=off THREADS=16 FRAMES=${FRAMES:-5} COORDINATOR="$0/coordinator" TIME_BIN="$0/time" \
+      OUT="/tmp/strong-scaling/leaves-$lv" \
+      bash bench/strong-scaling.sh configs/demo.toml --set volume.0.opacity=0.06 \
+      --set render.backend=cpu --set cluster.leaves_per_worker=$lv \
+      --set cluster.rebalance_threshold=0 2>&1 | grep "^|"
+  done | tee "$1/strong-leaves.md"' "$CARRY" "$RESULTS"
 tar czf "$RESULTS/strong-scaling-raw.tgz" -C /tmp --exclude '*.png' strong-scaling 2>/dev/null
 ls -la "$RESULTS"
