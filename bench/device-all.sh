@@ -12,7 +12,9 @@
 #   bonsai and on the demo survey.
 # Each step has its own time limit, so one that hangs does not cost the others; SKIP="NAME ..."
 # leaves steps out (caster-scaling, contention, survey-contention, gpu-tests, backends,
-# strong-scaling, strong-variants, strong-leaves).
+# strong-scaling, strong-variants, strong-leaves). The limits add up to more than one device
+# call may run (600 s) and than a 15-minute lease: pick the steps of each call with SKIP,
+# e.g. SKIP="caster-scaling contention gpu-tests backends" for the strong-scaling steps alone.
 #
 # Prepare on the project machine: bench/device-prepare.sh (release binaries, the GPU test
 # binary, GNU time, the bonsai and the Vulkan loader's packages, 18 MB in all).

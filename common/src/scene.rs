@@ -204,8 +204,10 @@ pub struct ClusterSettings {
     /// `rebalance_threshold`. 0 turns re-splitting off.
     #[serde(default = "default_rebalance_threshold")]
     pub rebalance_threshold: f64,
-    /// How far a re-split follows the measurement, in (0, 1]: each leaf's cost per unit of
-    /// estimate is raised to this power (1: all the way; smaller: damped).
+    /// How far a re-split follows the measurement, in (0, 1] (1: all the way; smaller:
+    /// damped). With `rebalance_model = "leaves"` each leaf's cost per unit of estimate is
+    /// raised to this power; with `"pages"` the new cost of each box is this fraction of the
+    /// measured one plus the rest of the cost in force.
     #[serde(default = "default_rebalance_damping")]
     pub rebalance_damping: f64,
     /// What a re-split distributes each leaf's measured time by: `leaves` (the default:

@@ -165,6 +165,8 @@ pub struct Rebalance {
     /// What the measured time was divided by: `"pages"` (the pages the rays entered) or
     /// `"leaves"` (each leaf's estimated boxes, one factor per leaf).
     pub model: &'static str,
+    /// The workers' page records the re-split used (0 for `"leaves"`).
+    pub page_records: usize,
     /// Leaf regions before and after.
     pub old_leaves: Vec<strata_common::kd::Region>,
     /// After.
@@ -2064,11 +2066,12 @@ impl Cluster {
         if !(imbalance > t) {
             return None;
         }
-        // Where each leaf's time went, page by page (`(leaf, key, share)`).
+        // Where each leaf's time went, page by page (`(leaf, key, share)`). A worker sends at
+        // most `MAX_PAGE_WORK` records; more (a faulty peer) are not read.
         let mut work = Vec::new();
         for (slot, s) in done.stats.iter().enumerate() {
             let mine = d.worker_leaves(slot);
-            for w in &s.page_work {
+            for w in s.page_work.iter().take(wire::MAX_PAGE_WORK) {
                 if let Some(&l) = mine.get(w.leaf as usize) {
                     work.push((l, w.key, w.share));
                 }
@@ -2105,6 +2108,7 @@ impl Cluster {
             measured_imbalance: imbalance,
             expected_imbalance: new.imbalance(),
             model: if by_pages { "pages" } else { "leaves" },
+            page_records: if by_pages { work.len() } else { 0 },
             old_leaves: d.tree.leaves.clone(),
             new_leaves: new.tree.leaves.clone(),
         };

@@ -55,9 +55,9 @@ pub const TRANSPARENT_FACTOR: f64 = 0.05;
 /// Cost of one horizon cell, in volume samples.
 pub const HORIZON_CELL_COST: f64 = 1.0;
 
-/// A re-split by measured page work keeps this fraction of each box's estimated share as a
-/// floor under its measured cost: a box the view did not reach (hidden, or outside the
-/// frame) still costs a little, so the split does not hand one worker all of it at once.
+/// A re-split by measured page work adds this fraction of each box's estimated share to its
+/// measured cost: a box the view did not reach (hidden, or outside the frame) still costs a
+/// little, so the split does not hand one worker all of it at once.
 pub const MEASURED_FLOOR: f64 = 0.05;
 
 /// [`DatasetBoxes::level0`] of a level-0 page with no box (a horizon tile without a valid
@@ -133,10 +133,16 @@ impl SceneCosts {
 /// `feedback::page_shares`). A page's seconds go to the level-0 boxes under it that lie in
 /// the leaf, in proportion to their estimated cost there (a coarse page's time falls where
 /// the estimate says its samples are); what a leaf's shares leave over (tiles whose rays
-/// entered no page) is spread the same way over the whole leaf. Each box then costs its
-/// measured seconds, converted to the field's units over the measured leaves, plus
-/// [`MEASURED_FLOOR`] of its estimated share; boxes in leaves without a measurement keep
-/// their cost. The result is `(1 − damping)` of the field in force plus `damping` of that.
+/// entered no page) is spread the same way over the whole leaf. Each box then costs
+/// [`MEASURED_FLOOR`] of its estimated share plus its measured seconds, converted to the
+/// field's units so that the measured leaves keep the cost they had in the field; boxes in
+/// leaves without a measurement keep their cost. The result is `(1 − damping)` of the field
+/// in force plus `damping` of that.
+///
+/// Records are untrusted (a worker's stats): records of a leaf not in `d`, of no page of
+/// the scene, or with a share that is not positive are ignored, a record repeated for the
+/// same leaf and page counts once (its shares added), and a leaf's shares are scaled down
+/// when they add up to more than 1.
 ///
 /// Unlike [`Decomposition::reweighted`], which scales all of a leaf's boxes by one factor,
 /// this moves cost *within* a leaf: the part of a leaf where rays terminate early, or that
@@ -165,16 +171,32 @@ pub fn reweighted_by_pages(
             0.0
         }
     };
+    // Each leaf's records, merged per page (so a page's boxes are walked once per leaf
+    // whatever a worker sent), and each leaf's shares scaled to add up to at most 1.
+    let mut merged: Vec<(usize, u64, f64)> = work
+        .iter()
+        .filter(|&&(leaf, _, share)| leaf < leaves.len() && timed(leaf) && ok(share as f64))
+        .map(|&(leaf, key, share)| (leaf, key, share as f64))
+        .collect();
+    merged.sort_unstable_by_key(|&(leaf, key, _)| (leaf, key));
+    merged.dedup_by(|b, a| {
+        let same = (a.0, a.1) == (b.0, b.1);
+        if same {
+            a.2 += b.2;
+        }
+        same
+    });
+    let mut total_share = vec![0.0f64; leaves.len()];
+    for &(leaf, _, share) in &merged {
+        total_share[leaf] += share;
+    }
     // Seconds per box, and the share of each leaf's time given to pages.
     let mut secs = vec![0.0; nb];
     let mut attributed = vec![0.0f64; leaves.len()];
     let mut under = Vec::new();
     let mut weights = Vec::new();
-    for &(leaf, key, share) in work {
-        let share = share as f64;
-        if !timed(leaf) || !ok(share) {
-            continue;
-        }
+    for &(leaf, key, share) in &merged {
+        let share = share / total_share[leaf].max(1.0);
         costs.page_boxes(key, &mut under);
         weights.clear();
         weights.extend(
@@ -186,7 +208,7 @@ pub fn reweighted_by_pages(
         if !ok(total) {
             continue;
         }
-        let s = share.min(1.0) * measured[leaf];
+        let s = share * measured[leaf];
         for (&b, &w) in under.iter().zip(&weights) {
             secs[b] += s * w / total;
         }
@@ -220,8 +242,13 @@ pub fn reweighted_by_pages(
     if !ok(field_timed) || !ok(secs_total) || !ok(est_total) {
         return boxes.to_vec();
     }
-    let to_field = field_timed / secs_total;
+    // The floor, in the field's units, then the seconds scaled to what is left of the
+    // measured leaves' cost (so that they keep their share of the whole, floor included).
     let est_to_field = field_total / est_total;
+    let floor: f64 = (0..nb)
+        .map(|b| MEASURED_FLOOR * est_to_field * estimate(b) * in_timed[b].min(1.0))
+        .sum();
+    let to_field = (field_timed - floor).max(0.5 * field_timed) / secs_total;
     let dmp = if damping.is_finite() {
         damping.clamp(0.0, 1.0)
     } else {
@@ -699,6 +726,34 @@ mod tests {
             reweighted_by_pages(&c, &c.boxes, &d, &measured, &junk, 1.0),
             plain
         );
+        // A leaf beyond the tree with a time (more times than leaves) is ignored too.
+        let longer = [measured[0], measured[1], 3.0, 4.0];
+        let beyond = [(3, key(&c, 0, 0, [0, 0, 0]), 0.5)];
+        assert_eq!(
+            reweighted_by_pages(&c, &c.boxes, &d, &longer, &beyond, 1.0),
+            plain
+        );
+        // A record sent twice in halves counts as one; shares adding up to more than 1 are
+        // scaled down to 1.
+        let close = |a: &[CostBox], b: &[CostBox]| {
+            a.iter()
+                .zip(b)
+                .all(|(x, y)| (x.cost - y.cost).abs() <= 1e-9 * y.cost.abs())
+        };
+        let halves: Vec<(usize, u64, f32)> = work
+            .iter()
+            .flat_map(|&(l, k, s)| [(l, k, s / 2.0), (l, k, s / 2.0)])
+            .collect();
+        let doubled: Vec<(usize, u64, f32)> =
+            work.iter().map(|&(l, k, s)| (l, k, 2.0 * s)).collect();
+        assert!(close(
+            &reweighted_by_pages(&c, &c.boxes, &d, &measured, &halves, 1.0),
+            &rw
+        ));
+        assert!(close(
+            &reweighted_by_pages(&c, &c.boxes, &d, &measured, &doubled, 1.0),
+            &rw
+        ));
         // A coarse page's time goes to the level-0 boxes under it in its leaf: all of
         // leaf 0's time in the level-2 page over bricks 0–3 gives those four boxes equal
         // costs, like no page record at all.

@@ -412,10 +412,9 @@ impl RenderSummary {
         for (frame, workers) in self.frames.iter().enumerate() {
             for w in workers {
                 let mut v = serde_json::to_value(w)?;
-                // The per-page shares feed re-splits; a line per worker and frame keeps
-                // only their count.
+                // The per-page shares fed the re-split (and are dropped after it).
                 if let Some(o) = v.as_object_mut() {
-                    o.insert("page_work".into(), w.page_work.len().into());
+                    o.remove("page_work");
                 }
                 v["kind"] = "worker".into();
                 v["frame"] = frame.into();
@@ -633,6 +632,11 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
                     if let Some(r) = cluster.rebalance(&fr, i as u64) {
                         rebalances.push(r);
                     }
+                }
+                // The page records have served the re-split; a long sequence keeps only
+                // the rest of each worker's stats.
+                for s in &mut fr.stats {
+                    s.page_work = Vec::new();
                 }
                 done.push(fr);
             }
