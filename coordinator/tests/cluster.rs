@@ -1161,6 +1161,16 @@ fn an_orbit_renders_every_frame_on_one_set_of_workers_like_in_process() {
     assert!(!plain.exists());
 }
 
+/// The lines of a `--stats` file of one `kind`, parsed.
+fn lines_of_kind(stats: &str, kind: &str) -> Vec<serde_json::Value> {
+    let tag = format!("\"kind\":\"{kind}\"");
+    stats
+        .lines()
+        .filter(|l| l.contains(&tag))
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect()
+}
+
 #[test]
 fn a_sequence_that_re_splits_the_tree_still_equals_in_process_frame_by_frame() {
     let dir = tempfile::tempdir().unwrap();
@@ -1183,11 +1193,7 @@ fn a_sequence_that_re_splits_the_tree_still_equals_in_process_frame_by_frame() {
             "cluster.leaves_per_worker=2",
         ],
     );
-    let rebalances: Vec<serde_json::Value> = stats
-        .lines()
-        .filter(|l| l.contains("\"kind\":\"rebalance\""))
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let rebalances = lines_of_kind(&stats, "rebalance");
     assert!(!rebalances.is_empty(), "no re-split: {stats}");
     for r in &rebalances {
         assert!(r["measured_imbalance"].as_f64().unwrap() > 1.0, "{r}");
@@ -1219,21 +1225,13 @@ fn a_sequence_that_re_splits_the_tree_still_equals_in_process_frame_by_frame() {
             "cluster.rebalance_model=pages",
         ],
     );
-    let rebalances: Vec<serde_json::Value> = stats
-        .lines()
-        .filter(|l| l.contains("\"kind\":\"rebalance\""))
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let rebalances = lines_of_kind(&stats, "rebalance");
     assert!(!rebalances.is_empty(), "no re-split: {stats}");
     for r in &rebalances {
         assert_eq!(r["model"], "pages", "{r}");
         assert!(r["page_records"].as_u64().unwrap() > 0, "{r}");
     }
-    let workers: Vec<serde_json::Value> = stats
-        .lines()
-        .filter(|l| l.contains("\"kind\":\"worker\""))
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let workers = lines_of_kind(&stats, "worker");
     assert!(!workers.is_empty(), "{stats}");
     for w in &workers {
         // Each worker's rays, and its process's CPU time: the render's within the frame's.
