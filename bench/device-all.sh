@@ -1,20 +1,23 @@
 #!/usr/bin/env bash
 # Every check that needs the `device` machine (16 cores and an NVIDIA GPU, no Rust toolchain,
-# no ../shared), as one run that fits a 15-minute device lease:
+# no ../shared), as one prepared script whose steps are picked per device call with SKIP
+# (all of them together need more than one call and more than a 15-minute lease):
 #   1. issue 14: the CPU caster on 1, 2, 4, 8 and 16 threads, the default path and the scalar
 #      path before issue 14 (bench/device-caster-scaling.sh runs all six paths instead);
 #   2. the engine's GPU tests (tests/tests/render_gpu.rs: GPU == CPU) on the hardware GPU;
 #   3. the engine's CPU and GPU backends on the same frames (`bench-render --only-backends`);
 #   4. issue 10: strong scaling over p = 1, 2, 4, 8 CPU workers of 2 threads
 #      (bench/strong-scaling.sh; `render.backend = cpu`, since the default takes the GPU there),
-#   then p = 8 with one setting changed each (VARIANTS); FRAMES frames of the orbit (5),
-#   and probes of the machine: one 2-thread caster alone against eight at once, on the
-#   bonsai and on the demo survey.
+#   then p = 8 with one setting changed each (VARIANTS), then one 16-thread worker rendering
+#   1 leaf against 8 (what distribution adds to the work without shared cores); FRAMES
+#   frames of the orbit (5), and probes of the machine: one 2-thread caster alone against
+#   eight at once, on the bonsai and on the demo survey.
 # Each step has its own time limit, so one that hangs does not cost the others; SKIP="NAME ..."
 # leaves steps out (caster-scaling, contention, survey-contention, gpu-tests, backends,
 # strong-scaling, strong-variants, strong-leaves). The limits add up to more than one device
 # call may run (600 s) and than a 15-minute lease: pick the steps of each call with SKIP,
-# e.g. SKIP="caster-scaling contention gpu-tests backends" for the strong-scaling steps alone.
+# e.g. SKIP="caster-scaling contention survey-contention gpu-tests backends" for the three
+# strong-scaling steps alone (430 s of limits).
 #
 # Prepare on the project machine: bench/device-prepare.sh (release binaries, the GPU test
 # binary, GNU time, the bonsai and the Vulkan loader's packages, 18 MB in all).

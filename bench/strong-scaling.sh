@@ -8,7 +8,7 @@
 #
 # Reports per p and mode: median frame time over frames 1.., speed-up and efficiency against
 # the first p of the same mode, samples per frame and their inflation over the first p of
-# the first mode (early termination is per region unless occlusion tells a worker what lies
+# the first mode, rays per frame (early termination is per region unless occlusion tells a worker what lies
 # in front), blocks left out and re-cast by occlusion, the imbalance (slowest / mean worker
 # render time, and the same of the workers' samples, which oversubscribed cores do not
 # blur), the re-splits over the run, the CPU time all workers spent per frame (and in their
