@@ -469,6 +469,18 @@ mod tests {
         path
     }
 
+    /// A volume store of `dims` samples all of value 1 (opaque under `scene`'s window),
+    /// on the identity transform.
+    fn opaque_store(dir: &Path, name: &str, dims: [u64; 3]) -> PathBuf {
+        volume_store(
+            dir,
+            name,
+            dims,
+            field(dims, |_, _, _| 1.0),
+            Affine3::IDENTITY,
+        )
+    }
+
     fn horizon_store(dir: &Path, dims: [u64; 2], heights: Vec<f32>) -> PathBuf {
         let path = dir.join("h.strata");
         let mut o = BuildOptions::horizon("h");
@@ -522,13 +534,7 @@ mod tests {
     fn costs_sum_to_samples() {
         let dir = tempfile::tempdir().unwrap();
         let dims = [70, 40, 20]; // 3×2×1 bricks of core 30
-        let opaque = volume_store(
-            dir.path(),
-            "o",
-            dims,
-            field(dims, |_, _, _| 1.0),
-            Affine3::IDENTITY,
-        );
+        let opaque = opaque_store(dir.path(), "o", dims);
         let clear = volume_store(
             dir.path(),
             "c",
@@ -587,13 +593,7 @@ mod tests {
     fn page_keys_map_onto_the_level0_boxes_under_them() {
         let dir = tempfile::tempdir().unwrap();
         let dims = [70, 40, 20]; // level 0: 3×2×1 bricks of core 30; level 1: 2×1×1
-        let v = volume_store(
-            dir.path(),
-            "o",
-            dims,
-            field(dims, |_, _, _| 1.0),
-            Affine3::IDENTITY,
-        );
+        let v = opaque_store(dir.path(), "o", dims);
         // 3×2 tiles of core 28 (border 2), the middle column without a valid height.
         let hdims = [60u64, 30];
         let heights = (0..hdims[0] * hdims[1])
@@ -640,13 +640,7 @@ mod tests {
     fn a_re_split_by_pages_moves_cost_within_a_leaf() {
         let dir = tempfile::tempdir().unwrap();
         let dims = [240, 30, 30]; // 8 bricks of core 30 along x, all opaque
-        let v = volume_store(
-            dir.path(),
-            "o",
-            dims,
-            field(dims, |_, _, _| 1.0),
-            Affine3::IDENTITY,
-        );
+        let v = opaque_store(dir.path(), "o", dims);
         let c = scene_costs(&scene(dir.path(), &[v], &[], "")).unwrap();
         assert_eq!(c.boxes.len(), 8);
         let d = Decomposition::balanced(c.root, &c.boxes, 2, 1, &c.planes);
@@ -814,13 +808,7 @@ mod tests {
             field(dims, |x, _, _| if x < 60 { 0.0 } else { 1.0 }),
             Affine3::IDENTITY,
         );
-        let full = volume_store(
-            dir.path(),
-            "full",
-            dims,
-            field(dims, |_, _, _| 1.0),
-            Affine3::IDENTITY,
-        );
+        let full = opaque_store(dir.path(), "full", dims);
         let mid = 59.5;
 
         let d = decompose(&scene(dir.path(), &[full], &[], ""), 2, 1).unwrap();

@@ -1180,9 +1180,10 @@ fn a_sequence_that_re_splits_the_tree_still_equals_in_process_frame_by_frame() {
     let go = |name: &str, extra: &[&str]| orbit_run(&scene, dir.path(), name, 4, extra);
     go("in", &["--in-process"]);
     // Threshold 1: any measured imbalance re-splits; 2 leaves per worker, full steps.
-    let (stats, log) = go(
-        "re",
-        &[
+    // `model` None: the default.
+    let resplit = |name: &str, model: Option<&str>| {
+        let set = model.map(|m| format!("cluster.rebalance_model={m}"));
+        let mut args = vec![
             "--workers",
             "3",
             "--set",
@@ -1191,40 +1192,34 @@ fn a_sequence_that_re_splits_the_tree_still_equals_in_process_frame_by_frame() {
             "cluster.rebalance_damping=1.0",
             "--set",
             "cluster.leaves_per_worker=2",
-        ],
-    );
+        ];
+        if let Some(set) = &set {
+            args.extend(["--set", set.as_str()]);
+        }
+        let r = go(name, &args);
+        for i in 0..4 {
+            let a = read_exr(&dir.path().join(format!("in_{i:03}.exr")));
+            let b = read_exr(&dir.path().join(format!("{name}_{i:03}.exr")));
+            let d = max_diff(&a, &b);
+            assert!(
+                d <= 1e-5,
+                "frame {i} after re-splits ({model:?}) differs by {d}"
+            );
+        }
+        r
+    };
+    // The default: one factor per leaf.
+    let (stats, log) = resplit("re", None);
     let rebalances = lines_of_kind(&stats, "rebalance");
     assert!(!rebalances.is_empty(), "no re-split: {stats}");
     for r in &rebalances {
         assert!(r["measured_imbalance"].as_f64().unwrap() > 1.0, "{r}");
         assert_ne!(r["old_leaves"], r["new_leaves"], "{r}");
-        // The default scales each leaf's boxes by one factor.
         assert_eq!(r["model"], "leaves", "{r}");
     }
     assert!(log.contains("new regions after a re-split"), "{log}");
-    for i in 0..4 {
-        let a = read_exr(&dir.path().join(format!("in_{i:03}.exr")));
-        let b = read_exr(&dir.path().join(format!("re_{i:03}.exr")));
-        let d = max_diff(&a, &b);
-        assert!(d <= 1e-5, "frame {i} after re-splits differs by {d}");
-    }
-    // By the pages the rays entered (`rebalance_model = "pages"`): re-splits too, from the
-    // workers' page records, and the same frames.
-    let (stats, _) = go(
-        "pg",
-        &[
-            "--workers",
-            "3",
-            "--set",
-            "cluster.rebalance_threshold=1.0",
-            "--set",
-            "cluster.rebalance_damping=1.0",
-            "--set",
-            "cluster.leaves_per_worker=2",
-            "--set",
-            "cluster.rebalance_model=pages",
-        ],
-    );
+    // By the pages the rays entered: re-splits too, from the workers' page records.
+    let (stats, _) = resplit("pg", Some("pages"));
     let rebalances = lines_of_kind(&stats, "rebalance");
     assert!(!rebalances.is_empty(), "no re-split: {stats}");
     for r in &rebalances {
@@ -1241,15 +1236,6 @@ fn a_sequence_that_re_splits_the_tree_still_equals_in_process_frame_by_frame() {
             w["cpu_s"].as_f64().unwrap(),
         );
         assert!(render > 0.0 && all >= render, "{w}");
-    }
-    for i in 0..4 {
-        let a = read_exr(&dir.path().join(format!("in_{i:03}.exr")));
-        let b = read_exr(&dir.path().join(format!("pg_{i:03}.exr")));
-        let d = max_diff(&a, &b);
-        assert!(
-            d <= 1e-5,
-            "frame {i} after re-splits by pages differs by {d}"
-        );
     }
     // Off: no re-split.
     let (stats, _) = go(
