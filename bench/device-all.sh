@@ -118,9 +118,10 @@ step strong-scaling "${LIMIT_STRONG:-190}" bash -c '
       --set render.backend=cpu 2>&1 |
     tee "$1/strong-scaling.md"' "$CARRY" "$RESULTS" "$PS"
 # The same orbit at p = 8 with occlusion on and one setting changed (VARIANTS, default:
-# re-splits by one factor per leaf (the default, as a baseline in the same step) and by
-# measured page work, re-splitting off, re-splitting at a lower threshold): what each gives.
-VARIANTS=${VARIANTS:-cluster.rebalance_model=leaves cluster.rebalance_model=pages cluster.rebalance_threshold=0 cluster.rebalance_threshold=1.1}
+# leaves measured by CPU time (the default, as a baseline in the same step) and by wall
+# time, re-splitting at the old threshold 1.25, by one factor per leaf, and off; the old
+# defaults were wall time, 1.25 and one factor per leaf): what each gives.
+VARIANTS=${VARIANTS:-cluster.rebalance_clock=cpu cluster.rebalance_clock=wall cluster.rebalance_threshold=1.25 cluster.rebalance_model=leaves cluster.rebalance_threshold=0}
 step strong-variants "${LIMIT_VARIANTS:-150}" bash -c '
   set -o pipefail
   for v in $1; do

@@ -10,8 +10,8 @@
 # the first p of the same mode, samples per frame and their inflation over the first p of
 # the first mode, rays per frame (early termination is per region unless occlusion tells a worker what lies
 # in front), blocks left out and re-cast by occlusion, the imbalance (slowest / mean worker
-# render time, and the same of the workers' samples, which oversubscribed cores do not
-# blur), the re-splits over the run, the CPU time all workers spent per frame (and in their
+# render time, the same of their render CPU time and of their samples, which
+# oversubscribed cores do not blur), the re-splits over the run, the CPU time all workers spent per frame (and in their
 # renders) and its ratio to the first p's (the work distribution adds, which sharing cores
 # does not inflate, unlike wall times), bytes moved per frame (exchange + gather) and the peak RSS of the largest
 # process (GNU time: the coordinator or a worker). Writes the table to stdout and the raw
@@ -56,8 +56,8 @@ done
 python3 - "$OUT" "$MODES" $PS <<'EOF'
 import json, statistics, sys, re
 out, modes, ps = sys.argv[1], sys.argv[2].split(), [int(p) for p in sys.argv[3:]]
-print("| occlusion | p | frame time (frames 1..) | speed-up | efficiency | samples/frame | inflation | rays/frame | workers' CPU/frame (render) | work over the first p | blocks left out / re-cast | imbalance (max/mean render) | imbalance of samples | re-splits | MB moved/frame | largest process peak RSS MiB |")
-print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+print("| occlusion | p | frame time (frames 1..) | speed-up | efficiency | samples/frame | inflation | rays/frame | workers' CPU/frame (render) | work over the first p | blocks left out / re-cast | imbalance (max/mean render) | imbalance of work (render CPU) | imbalance of samples | re-splits | MB moved/frame | largest process peak RSS MiB |")
+print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
 base_samples = None
 for mode in modes:
     rows = {}
@@ -72,6 +72,7 @@ for mode in modes:
         occ = statistics.median(f.get("occluded_blocks", 0) for f in warm)
         fix = statistics.median(f.get("fixup_blocks", 0) for f in warm)
         imb = []
+        cimb = []
         simb = []
         cpu = []
         rcpu = []
@@ -80,6 +81,8 @@ for mode in modes:
             ws = [w for w in workers if w["frame"] == f["frame"]]
             r = [w["render_s"] for w in ws]
             imb.append(max(r) / (sum(r) / len(r)) if r else 1.0)
+            c = [w.get("render_cpu_s", 0) for w in ws]
+            cimb.append(max(c) / (sum(c) / len(c)) if c and sum(c) > 0 else 1.0)
             n = [w["samples"] for w in ws]
             simb.append(max(n) / (sum(n) / len(n)) if n and sum(n) > 0 else 1.0)
             moved.append(sum(w["bytes_sent"] + w["gather_bytes"] for w in ws))
@@ -91,15 +94,15 @@ for mode in modes:
             m = re.search(r"Maximum resident set size \(kbytes\): (\d+)", l)
             if m:
                 rss = int(m.group(1)) / 1024
-        rows[p] = (t, samples, occ, fix, statistics.median(imb), statistics.median(simb), splits, statistics.median(moved), rss, statistics.median(cpu), statistics.median(rcpu), rays)
+        rows[p] = (t, samples, occ, fix, statistics.median(imb), statistics.median(simb), splits, statistics.median(moved), rss, statistics.median(cpu), statistics.median(rcpu), rays, statistics.median(cimb))
     base = rows[ps[0]]
     if base_samples is None:
         base_samples = base[1]
     for p in ps:
-        t, s, occ, fix, imb, simb, splits, mv, rss, cpu, rcpu, rays = rows[p]
+        t, s, occ, fix, imb, simb, splits, mv, rss, cpu, rcpu, rays, cimb = rows[p]
         sp = base[0] / t * ps[0]
         work = f"{cpu/base[9]:.2f}×" if base[9] > 0 else "–"
-        print(f"| {mode} | {p} | {t*1e3:.0f} ms | {sp:.2f} | {sp/p*100:.0f} % | {s/1e6:.1f} M | {(s/base_samples-1)*100:+.1f} % | {rays/1e6:.2f} M | {cpu*1e3:.0f} ms ({rcpu*1e3:.0f}) | {work} | {occ:.0f} / {fix:.0f} | {imb:.2f} | {simb:.2f} | {splits} | {mv/1e6:.1f} | {rss:.0f} |")
+        print(f"| {mode} | {p} | {t*1e3:.0f} ms | {sp:.2f} | {sp/p*100:.0f} % | {s/1e6:.1f} M | {(s/base_samples-1)*100:+.1f} % | {rays/1e6:.2f} M | {cpu*1e3:.0f} ms ({rcpu*1e3:.0f}) | {work} | {occ:.0f} / {fix:.0f} | {imb:.2f} | {cimb:.2f} | {simb:.2f} | {splits} | {mv/1e6:.1f} | {rss:.0f} |")
 
 # Where a frame's time goes: medians over frames 1.. of the slowest worker's phases and of
 # the mean worker's render (the gap between the two is the imbalance), in milliseconds.

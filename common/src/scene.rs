@@ -210,13 +210,21 @@ pub struct ClusterSettings {
     /// measured one plus the rest of the cost in force.
     #[serde(default = "default_rebalance_damping")]
     pub rebalance_damping: f64,
-    /// What a re-split distributes each leaf's measured time by: `leaves` (the default:
-    /// the leaf's estimated cost boxes, all scaled by one factor per leaf) or `pages` (the
+    /// What a re-split distributes each leaf's measured time by: `pages` (the default: the
     /// pages its rays entered, tile by tile, so cost moves within a leaf to where the
-    /// view's work is). `pages` needs the CPU backend's per-tile times; without any page
+    /// view's work is) or `leaves` (the leaf's estimated cost boxes, all scaled by one
+    /// factor per leaf). `pages` needs the CPU backend's per-tile times; without any page
     /// work reported, a re-split uses `leaves`.
     #[serde(default)]
     pub rebalance_model: RebalanceModel,
+    /// Which clock measures each leaf's render for a re-split (its imbalance and its
+    /// costs): `cpu` (the default: the CPU time of the leaf's cast over the worker's render
+    /// threads, which workers sharing cores do not inflate) or `wall` (the cast's wall
+    /// time, which also counts what the worker could not control: cores shared with other
+    /// processes, or a slower machine). Where a worker reports no CPU time (the GPU
+    /// backend), a re-split uses wall times.
+    #[serde(default)]
+    pub rebalance_clock: RebalanceClock,
     /// How image pieces travel between processes: `auto` (shared memory between processes
     /// on one host, QUIC between hosts), `quic` (QUIC everywhere) or `shm` (shared memory
     /// everywhere; an error when the processes are not all on one host).
@@ -283,10 +291,21 @@ pub enum OnWorkerLoss {
 #[serde(rename_all = "lowercase")]
 pub enum RebalanceModel {
     /// Each leaf's measured time over its estimated cost, one factor per leaf.
-    #[default]
     Leaves,
     /// Each leaf's measured time, divided among the pages its rays entered.
+    #[default]
     Pages,
+}
+
+/// `cluster.rebalance_clock`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RebalanceClock {
+    /// The leaf cast's CPU time over the worker's render threads.
+    #[default]
+    Cpu,
+    /// The leaf cast's wall time.
+    Wall,
 }
 
 /// `cluster.transport`.
@@ -306,7 +325,10 @@ fn default_occlusion_block() -> u32 {
     2
 }
 fn default_rebalance_threshold() -> f64 {
-    1.25
+    // Measured by CPU time (`rebalance_clock`), eight workers settle at a work imbalance
+    // of about 1.15 with 1.1 against 1.22 with 1.25, for the same total work
+    // (docs/BENCHMARKS.md, "Re-splitting by CPU time, and the defaults").
+    1.1
 }
 fn default_rebalance_damping() -> f64 {
     0.5
@@ -328,7 +350,8 @@ impl Default for ClusterSettings {
             fingerprint_file: None,
             rebalance_threshold: default_rebalance_threshold(),
             rebalance_damping: default_rebalance_damping(),
-            rebalance_model: RebalanceModel::Leaves,
+            rebalance_model: RebalanceModel::Pages,
+            rebalance_clock: RebalanceClock::Cpu,
             transport: Transport::Auto,
             on_worker_loss: OnWorkerLoss::Reassign,
             replacement_wait_s: 0.0,

@@ -28,7 +28,7 @@ use serde::{de::DeserializeOwned, Deserialize, Serialize};
 /// Frame magic.
 pub const MAGIC: [u8; 4] = *b"STRF";
 /// Protocol version; bumped on any incompatible change of the header or the messages.
-pub const PROTOCOL_VERSION: u16 = 10;
+pub const PROTOCOL_VERSION: u16 = 11;
 /// Size of the frame header.
 pub const HEADER_LEN: usize = 24;
 /// Largest meta message any endpoint accepts (control messages are small; the scene text
@@ -656,6 +656,13 @@ pub struct WorkerFrameStats {
     /// Seconds of each leaf's final-round cast, in the order of this worker's leaves (for
     /// re-splitting by measured cost).
     pub leaf_cast_s: Vec<f64>,
+    /// The CPU time of each leaf's final-round cast (a whole cast of its converged tiles:
+    /// their threads' CPU seconds) over this worker's render threads, in the order of its
+    /// leaves: what the cast would take with the threads to itself, which more processes
+    /// than cores do not inflate. 0 where the worker cannot say (GPU backend, no
+    /// per-thread clock).
+    #[serde(default)]
+    pub leaf_cpu_s: Vec<f64>,
     /// Where each leaf's final cast went, page by page (only when the frame request asked
     /// for `page_work`; at most [`MAX_PAGE_WORK`] records; empty on the GPU backend, which
     /// times no tiles).

@@ -29,7 +29,7 @@ use strata_common::image::Rgba;
 use strata_common::kd::Decomposition;
 use strata_common::occlusion::{self, BlockGrid, FrontAccumulator, Transmittance};
 use strata_common::scene::{Camera, Scene, WallSettings};
-use strata_common::scene::{RebalanceModel, Transport};
+use strata_common::scene::{RebalanceClock, RebalanceModel, Transport};
 use strata_common::wall::TileFiles;
 use strata_common::wire::{
     self, CompositeChoice, CoordMsg, FrameRequest, FrameSource, Limits, PeerInfo, Setup, WallFrame,
@@ -79,6 +79,9 @@ pub struct ClusterOptions {
     /// `cluster.rebalance_model`: divide each leaf's measured time by the pages its rays
     /// entered, or by its estimated boxes.
     pub rebalance_model: strata_common::scene::RebalanceModel,
+    /// `cluster.rebalance_clock`: measure each leaf's cast by its CPU time over the
+    /// worker's threads, or by its wall time.
+    pub rebalance_clock: RebalanceClock,
     /// `cluster.transport`: shared memory between processes on one host, or QUIC.
     pub transport: Transport,
     /// `cluster.on_worker_loss`: re-render a frame without a worker that was lost, or fail.
@@ -167,6 +170,9 @@ pub struct Rebalance {
     pub model: &'static str,
     /// The workers' page records the re-split used (0 for `"leaves"`).
     pub page_records: usize,
+    /// The clock the leaves were measured by: `"cpu"` or `"wall"` (`cpu` asked for, but
+    /// some leaf had no CPU time).
+    pub clock: &'static str,
     /// Leaf regions before and after.
     pub old_leaves: Vec<strata_common::kd::Region>,
     /// After.
@@ -264,6 +270,7 @@ impl ClusterOptions {
             rebalance_threshold: c.rebalance_threshold,
             rebalance_damping: c.rebalance_damping,
             rebalance_model: c.rebalance_model,
+            rebalance_clock: c.rebalance_clock,
             transport: c.transport,
             on_worker_loss: c.on_worker_loss,
             replacement_wait: Duration::from_secs_f64(c.replacement_wait_s),
@@ -2055,13 +2062,9 @@ impl Cluster {
             return None;
         }
         let d = &self.decomposition;
-        let mut measured = vec![0.0; d.tree.leaves.len()];
         // The stats are in slot order (the decomposition's workers).
-        for (slot, s) in done.stats.iter().enumerate() {
-            for (i, &l) in d.worker_leaves(slot).iter().enumerate() {
-                measured[l] = s.leaf_cast_s.get(i).copied().unwrap_or(0.0);
-            }
-        }
+        let (measured, clock) =
+            decompose::measured_leaf_times(d, &done.stats, self.opts.rebalance_clock);
         let imbalance = d.measured_imbalance(&measured);
         if !(imbalance > t) {
             return None;
@@ -2109,6 +2112,7 @@ impl Cluster {
             expected_imbalance: new.imbalance(),
             model: if by_pages { "pages" } else { "leaves" },
             page_records: if by_pages { work.len() } else { 0 },
+            clock,
             old_leaves: d.tree.leaves.clone(),
             new_leaves: new.tree.leaves.clone(),
         };
@@ -2117,6 +2121,7 @@ impl Cluster {
             measured = format!("{imbalance:.3}"),
             expected = format!("{:.3}", r.expected_imbalance),
             model = r.model,
+            clock = r.clock,
             "re-split the k-d tree from measured render times"
         );
         for (slot, &rank) in self.slots.iter().enumerate() {

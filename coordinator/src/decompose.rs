@@ -46,7 +46,8 @@ use strata_common::geo::Affine3;
 use strata_common::ids::PageId;
 use strata_common::kd::{CostBox, Decomposition, Region};
 use strata_common::pyramid::Pyramid;
-use strata_common::scene::Scene;
+use strata_common::scene::{RebalanceClock, Scene};
+use strata_common::wire::WorkerFrameStats;
 use strata_worker::dataset::{Horizon, SceneData, Volume};
 
 /// Cost factor of a fully transparent brick relative to an opaque one (traversal only).
@@ -448,6 +449,34 @@ fn volume_planes(v: &Volume, planes: &mut [Vec<f64>; 3]) {
     }
 }
 
+/// Each leaf's measured render, in `d`'s leaf order, from the workers' frame stats (in the
+/// decomposition's slot order), and the clock used: by `clock`, the CPU time of each leaf's
+/// cast over its worker's render threads (`leaf_cpu_s`) where every leaf has one, else the
+/// cast's wall time (`leaf_cast_s`), so that the leaves compared were all measured alike.
+pub fn measured_leaf_times(
+    d: &Decomposition,
+    stats: &[WorkerFrameStats],
+    clock: RebalanceClock,
+) -> (Vec<f64>, &'static str) {
+    let by = |cpu: bool| {
+        let mut measured = vec![0.0; d.tree.leaves.len()];
+        for (slot, s) in stats.iter().enumerate() {
+            let times = if cpu { &s.leaf_cpu_s } else { &s.leaf_cast_s };
+            for (i, &l) in d.worker_leaves(slot).iter().enumerate() {
+                measured[l] = times.get(i).copied().unwrap_or(0.0);
+            }
+        }
+        measured
+    };
+    if clock == RebalanceClock::Cpu {
+        let cpu = by(true);
+        if cpu.iter().all(|&t| t > 0.0 && t.is_finite()) {
+            return (cpu, "cpu");
+        }
+    }
+    (by(false), "wall")
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -757,6 +786,71 @@ mod tests {
             assert!(
                 (rc[b].cost - plain[b].cost).abs() < 1e-9 * plain[b].cost,
                 "box {b}"
+            );
+        }
+    }
+
+    #[test]
+    fn leaves_are_measured_by_cpu_time_only_where_every_leaf_has_one() {
+        // 8 unit boxes along x, 2 workers with 2 leaves each.
+        let boxes: Vec<CostBox> = (0..8)
+            .map(|i| CostBox {
+                region: Region {
+                    lo: [i as f64, 0.0, 0.0],
+                    hi: [i as f64 + 1.0, 1.0, 1.0],
+                },
+                cost: 1.0,
+            })
+            .collect();
+        let root = Region {
+            lo: [0.0; 3],
+            hi: [8.0, 1.0, 1.0],
+        };
+        let d = Decomposition::balanced(root, &boxes, 2, 2, &[vec![], vec![], vec![]]);
+        let (w0, w1) = (d.worker_leaves(0), d.worker_leaves(1));
+        assert_eq!((w0.len(), w1.len()), (2, 2));
+        // Wall times say balanced; CPU times (what the casts cost) say worker 1's second
+        // leaf is three times the others.
+        let stats = |cpu1: Vec<f64>| {
+            vec![
+                WorkerFrameStats {
+                    leaf_cast_s: vec![2.0, 2.0],
+                    leaf_cpu_s: vec![1.0, 1.0],
+                    ..Default::default()
+                },
+                WorkerFrameStats {
+                    leaf_cast_s: vec![2.0, 2.0],
+                    leaf_cpu_s: cpu1,
+                    ..Default::default()
+                },
+            ]
+        };
+        let want = |a: [f64; 2], b: [f64; 2]| {
+            let mut m = vec![0.0; 4];
+            for (i, &l) in w0.iter().enumerate() {
+                m[l] = a[i];
+            }
+            for (i, &l) in w1.iter().enumerate() {
+                m[l] = b[i];
+            }
+            m
+        };
+        let s = stats(vec![1.0, 3.0]);
+        assert_eq!(
+            measured_leaf_times(&d, &s, RebalanceClock::Cpu),
+            (want([1.0, 1.0], [1.0, 3.0]), "cpu")
+        );
+        assert!(d.measured_imbalance(&measured_leaf_times(&d, &s, RebalanceClock::Cpu).0) > 1.2);
+        assert_eq!(
+            measured_leaf_times(&d, &s, RebalanceClock::Wall),
+            (want([2.0, 2.0], [2.0, 2.0]), "wall")
+        );
+        // A leaf without CPU time (GPU backend, an older worker, a missing entry): every
+        // leaf by wall time, so that none is compared on another clock.
+        for cpu1 in [vec![1.0, 0.0], vec![1.0], vec![1.0, f64::NAN]] {
+            assert_eq!(
+                measured_leaf_times(&d, &stats(cpu1), RebalanceClock::Cpu),
+                (want([2.0, 2.0], [2.0, 2.0]), "wall")
             );
         }
     }

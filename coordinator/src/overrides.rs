@@ -350,6 +350,19 @@ mod tests {
         assert_eq!(s.render.step, 0.5);
         let s = load_scene(&p, &[], Some((8, 9))).unwrap();
         assert_eq!((s.render.width, s.render.height), (8, 9));
+
+        // The re-split's clock: CPU time unless asked otherwise; an unknown one is named.
+        use strata_common::scene::RebalanceClock;
+        assert_eq!(s.cluster.rebalance_clock, RebalanceClock::Cpu);
+        let s = load_scene(&p, &sets(&["cluster.rebalance_clock=wall"]), None).unwrap();
+        assert_eq!(s.cluster.rebalance_clock, RebalanceClock::Wall);
+        let e = load_scene(&p, &sets(&["cluster.rebalance_clock=gpu"]), None)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("cluster.rebalance_clock") && e.contains("expected `cpu` or `wall`"),
+            "{e}"
+        );
     }
 
     #[test]

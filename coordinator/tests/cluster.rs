@@ -1180,9 +1180,9 @@ fn a_sequence_that_re_splits_the_tree_still_equals_in_process_frame_by_frame() {
     let go = |name: &str, extra: &[&str]| orbit_run(&scene, dir.path(), name, 4, extra);
     go("in", &["--in-process"]);
     // Threshold 1: any measured imbalance re-splits; 2 leaves per worker, full steps.
-    // `model` None: the default.
-    let resplit = |name: &str, model: Option<&str>| {
-        let set = model.map(|m| format!("cluster.rebalance_model={m}"));
+    // `set` (a `cluster.` key) None: the defaults.
+    let resplit = |name: &str, setting: Option<&str>| {
+        let set = setting.map(|m| format!("cluster.{m}"));
         let mut args = vec![
             "--workers",
             "3",
@@ -1203,23 +1203,40 @@ fn a_sequence_that_re_splits_the_tree_still_equals_in_process_frame_by_frame() {
             let d = max_diff(&a, &b);
             assert!(
                 d <= 1e-5,
-                "frame {i} after re-splits ({model:?}) differs by {d}"
+                "frame {i} after re-splits ({setting:?}) differs by {d}"
             );
         }
         r
     };
-    // The default: one factor per leaf.
-    let (stats, log) = resplit("re", None);
+    // One factor per leaf.
+    let (stats, log) = resplit("re", Some("rebalance_model=leaves"));
     let rebalances = lines_of_kind(&stats, "rebalance");
     assert!(!rebalances.is_empty(), "no re-split: {stats}");
     for r in &rebalances {
         assert!(r["measured_imbalance"].as_f64().unwrap() > 1.0, "{r}");
         assert_ne!(r["old_leaves"], r["new_leaves"], "{r}");
         assert_eq!(r["model"], "leaves", "{r}");
+        // The CPU backend times its tiles' threads: leaves are measured by CPU time.
+        assert_eq!(r["clock"], "cpu", "{r}");
     }
     assert!(log.contains("new regions after a re-split"), "{log}");
-    // By the pages the rays entered: re-splits too, from the workers' page records.
-    let (stats, _) = resplit("pg", Some("pages"));
+    for w in lines_of_kind(&stats, "worker") {
+        // Two leaves each, both with a CPU time and a wall time.
+        let cpu = w["leaf_cpu_s"].as_array().unwrap();
+        let wall = w["leaf_cast_s"].as_array().unwrap();
+        assert_eq!((cpu.len(), wall.len()), (2, 2), "{w}");
+        assert!(cpu.iter().all(|c| c.as_f64().unwrap() > 0.0), "{w}");
+    }
+    // Measured by wall time, as asked.
+    let (stats, _) = resplit("wall", Some("rebalance_clock=wall"));
+    let rebalances = lines_of_kind(&stats, "rebalance");
+    assert!(!rebalances.is_empty(), "no re-split: {stats}");
+    for r in &rebalances {
+        assert_eq!(r["clock"], "wall", "{r}");
+    }
+    // By the pages the rays entered (the default): re-splits too, from the workers' page
+    // records.
+    let (stats, _) = resplit("pg", None);
     let rebalances = lines_of_kind(&stats, "rebalance");
     assert!(!rebalances.is_empty(), "no re-split: {stats}");
     for r in &rebalances {

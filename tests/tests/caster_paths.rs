@@ -728,3 +728,46 @@ fn selective_rounds_cast_less_and_change_no_pixel() {
         "selective rounds saved 10 % of the samples in only {saved} of 16 batches"
     );
 }
+
+/// Each tile reports its thread's CPU time besides its wall time, and the batch sums the
+/// converged tiles' CPU time (what a re-split by `cluster.rebalance_clock = "cpu"`
+/// measures). A thread's CPU time over an interval cannot exceed that interval's wall time:
+/// the process's CPU time (every thread's) would, with tiles cast in parallel.
+#[test]
+fn tiles_report_their_threads_cpu_time() {
+    assert!(strata_worker::raycast::thread_cpu_seconds().is_some());
+    let dir = TempDir::new().unwrap();
+    let st = store(dir.path(), "blobs", SampleType::F32, blobs(100.0));
+    let mut s = scene_for(st, [0.0, 100.0], cameras().remove(0));
+    s.render.width = 192;
+    s.render.height = 160;
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(2)
+        .build()
+        .unwrap();
+    let r = pool.install(|| {
+        let mut e = Engine::new(&s).unwrap();
+        let view = e.view(s.render.width, s.render.height).unwrap();
+        let region = e.scene_region();
+        // A second batch with everything resident: one round, every tile cast.
+        e.render_batch(&view, &region).unwrap();
+        e.render_batch(&view, &region).unwrap()
+    });
+    assert_eq!(r.rounds, 1);
+    assert!(r.tiles.len() >= 4, "{} tiles", r.tiles.len());
+    let sum: f64 = r.tiles.iter().map(|t| t.cpu_seconds).sum();
+    assert!(
+        sum > 0.0 && r.last_cpu_seconds == sum,
+        "{} against {sum}",
+        r.last_cpu_seconds
+    );
+    for (i, t) in r.tiles.iter().enumerate() {
+        // 50 µs for the two clocks' reads not being one instant.
+        assert!(
+            t.cpu_seconds >= 0.0 && t.cpu_seconds <= t.seconds + 5e-5,
+            "tile {i}: {} s of CPU in {} s",
+            t.cpu_seconds,
+            t.seconds
+        );
+    }
+}

@@ -1153,6 +1153,7 @@ impl Node {
         let grid = BlockGrid::new(req.width, req.height, req.occlusion_block);
         let threshold = (self.engine.settings.early_termination as f32).min(1.0);
         stats.leaf_cast_s = vec![0.0; self.setup.leaves.len()];
+        stats.leaf_cpu_s = vec![0.0; self.setup.leaves.len()];
         let mut predicted = if occlusion {
             self.predicted_front(req, grid)
         } else {
@@ -1254,7 +1255,16 @@ impl Node {
                 front,
             });
         }
-        page_work_shares(&mut stats.page_work, &stats.leaf_cast_s);
+        // Page records are in CPU seconds where every leaf has them (see `image`).
+        let by_cpu = stats.leaf_cpu_s.iter().all(|&c| c > 0.0);
+        page_work_shares(
+            &mut stats.page_work,
+            if by_cpu {
+                &stats.leaf_cpu_s
+            } else {
+                &stats.leaf_cast_s
+            },
+        );
         stats.render_end_us = strata_net::unix_us();
         stats.render_cpu_s = process_cpu_s() - cpu_start;
         let cache = self.engine.cache_stats();
@@ -1683,9 +1693,12 @@ impl Node {
                 };
                 let mut images = Vec::new();
                 let mut outcome = Outcome::Converged;
+                let n = self.setup.leaves.len();
                 stats
                     .leaf_cast_s
-                    .resize(self.setup.leaves.len().max(stats.leaf_cast_s.len()), 0.0);
+                    .resize(n.max(stats.leaf_cast_s.len()), 0.0);
+                stats.leaf_cpu_s.resize(n.max(stats.leaf_cpu_s.len()), 0.0);
+                let threads = rayon::current_num_threads().max(1) as f64;
                 for &leaf in &req.leaf_order {
                     let region = self.leaf(leaf)?;
                     let r = self.engine.render_batch_limited(&view, &region, limits)?;
@@ -1694,11 +1707,19 @@ impl Node {
                     stats.load_s += r.load_seconds;
                     stats.last_round_s += r.last_seconds;
                     stats.leaf_cast_s[leaf as usize] += r.last_seconds;
+                    let cpu = r.last_cpu_seconds / threads;
+                    stats.leaf_cpu_s[leaf as usize] += cpu;
                     if req.page_work {
                         // Seconds of this cast per page, for now (a re-cast adds its own);
                         // `page_work_shares` turns them into shares of the leaf's time.
-                        let tiles = r.tiles.iter().map(|t| (&t.feedback[..], t.seconds));
-                        let s = r.last_seconds as f32;
+                        // The tiles' CPU time where there is one: a tile the system
+                        // descheduled for a while did not cost its pages that time.
+                        let by_cpu = cpu > 0.0;
+                        let tiles = r.tiles.iter().map(|t| {
+                            let s = if by_cpu { t.cpu_seconds } else { t.seconds };
+                            (&t.feedback[..], s)
+                        });
+                        let s = if by_cpu { cpu } else { r.last_seconds } as f32;
                         stats.page_work.extend(
                             crate::feedback::page_shares(tiles)
                                 .into_iter()

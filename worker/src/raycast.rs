@@ -169,8 +169,29 @@ pub struct TileOut {
     pub feedback: Vec<crate::feedback::FeedbackEntry>,
     /// Its counters.
     pub stats: CastStats,
-    /// Seconds its thread spent casting it.
+    /// Seconds its thread spent casting it (wall clock).
     pub seconds: f64,
+    /// CPU seconds its thread spent casting it ([`thread_cpu_seconds`]; 0 where the system
+    /// has no per-thread clock). Unlike `seconds`, time the thread was descheduled does not
+    /// count, so more workers than cores do not inflate it.
+    pub cpu_seconds: f64,
+}
+
+/// The CPU time the calling thread has used, in seconds (`CLOCK_THREAD_CPUTIME_ID`), or
+/// `None` where the system does not say.
+pub fn thread_cpu_seconds() -> Option<f64> {
+    #[cfg(unix)]
+    {
+        let mut ts = libc::timespec {
+            tv_sec: 0,
+            tv_nsec: 0,
+        };
+        // SAFETY: `clock_gettime` writes the struct it is given and nothing else.
+        if unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) } == 0 {
+            return Some(ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9);
+        }
+    }
+    None
 }
 
 /// The colour a ray accumulates front to back: `Rgba` (f32), as every frame, or `[f64; 4]`
@@ -1172,8 +1193,13 @@ impl<'a> FrameSetup<'a> {
                     return TileOut::default();
                 }
                 let t0 = std::time::Instant::now();
+                let c0 = thread_cpu_seconds();
                 let done = |feedback: Vec<crate::feedback::FeedbackEntry>, stats| {
                     let seconds = t0.elapsed().as_secs_f64();
+                    let cpu_seconds = match (c0, thread_cpu_seconds()) {
+                        (Some(a), Some(b)) => (b - a).max(0.0),
+                        _ => 0.0,
+                    };
                     if let Some(f) = self.on_tile {
                         f(&feedback);
                     }
@@ -1181,6 +1207,7 @@ impl<'a> FrameSetup<'a> {
                         feedback,
                         stats,
                         seconds,
+                        cpu_seconds,
                     }
                 };
                 let tx = r.x + (ti % tiles_x) * TILE;
