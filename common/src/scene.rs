@@ -220,9 +220,9 @@ pub struct ClusterSettings {
     /// Which clock measures each leaf's render for a re-split (its imbalance and its
     /// costs): `cpu` (the default: the CPU time of the leaf's cast over the worker's render
     /// threads, which workers sharing cores do not inflate) or `wall` (the cast's wall
-    /// time, which also counts what the worker could not control: cores shared with other
-    /// processes, or a slower machine). Where a worker reports no CPU time (the GPU
-    /// backend), a re-split uses wall times.
+    /// time, which also counts the time its threads did not run: cores shared with other
+    /// processes, waits). Where a worker reports no CPU time (the GPU backend), a re-split
+    /// uses wall times.
     #[serde(default)]
     pub rebalance_clock: RebalanceClock,
     /// How image pieces travel between processes: `auto` (shared memory between processes

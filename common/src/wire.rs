@@ -658,9 +658,10 @@ pub struct WorkerFrameStats {
     pub leaf_cast_s: Vec<f64>,
     /// The CPU time of each leaf's final-round cast (a whole cast of its converged tiles:
     /// their threads' CPU seconds) over this worker's render threads, in the order of its
-    /// leaves: what the cast would take with the threads to itself, which more processes
-    /// than cores do not inflate. 0 where the worker cannot say (GPU backend, no
-    /// per-thread clock).
+    /// leaves: about what the cast would take with the threads to itself (a lower bound:
+    /// serial set-up and uneven tile tails are not in it), which more processes than
+    /// cores do not inflate. 0 for a leaf that cast nothing (off screen); empty where the
+    /// worker cannot say (GPU backend, no per-thread clock).
     #[serde(default)]
     pub leaf_cpu_s: Vec<f64>,
     /// Where each leaf's final cast went, page by page (only when the frame request asked

@@ -451,8 +451,11 @@ fn volume_planes(v: &Volume, planes: &mut [Vec<f64>; 3]) {
 
 /// Each leaf's measured render, in `d`'s leaf order, from the workers' frame stats (in the
 /// decomposition's slot order), and the clock used: by `clock`, the CPU time of each leaf's
-/// cast over its worker's render threads (`leaf_cpu_s`) where every leaf has one, else the
-/// cast's wall time (`leaf_cast_s`), so that the leaves compared were all measured alike.
+/// cast over its worker's render threads (`leaf_cpu_s`) where every worker reported one for
+/// each of its leaves, else the cast's wall time (`leaf_cast_s`), so that the leaves
+/// compared were all measured alike. A worker without a CPU clock (GPU backend) reports no
+/// CPU times at all; a leaf that cast nothing (off screen) reports 0, a measurement like
+/// any other (the re-weighting treats a leaf measured at 0 as unmeasured, by either clock).
 pub fn measured_leaf_times(
     d: &Decomposition,
     stats: &[WorkerFrameStats],
@@ -468,11 +471,15 @@ pub fn measured_leaf_times(
         }
         measured
     };
-    if clock == RebalanceClock::Cpu {
-        let cpu = by(true);
-        if cpu.iter().all(|&t| t > 0.0 && t.is_finite()) {
-            return (cpu, "cpu");
-        }
+    let timed = |slot: usize, s: &WorkerFrameStats| {
+        s.leaf_cpu_s.len() >= d.worker_leaves(slot).len()
+            && s.leaf_cpu_s.iter().all(|&t| t >= 0.0 && t.is_finite())
+    };
+    if clock == RebalanceClock::Cpu
+        && stats.len() == d.workers
+        && stats.iter().enumerate().all(|(slot, s)| timed(slot, s))
+    {
+        return (by(true), "cpu");
     }
     (by(false), "wall")
 }
@@ -845,14 +852,24 @@ mod tests {
             measured_leaf_times(&d, &s, RebalanceClock::Wall),
             (want([2.0, 2.0], [2.0, 2.0]), "wall")
         );
-        // A leaf without CPU time (GPU backend, an older worker, a missing entry): every
-        // leaf by wall time, so that none is compared on another clock.
-        for cpu1 in [vec![1.0, 0.0], vec![1.0], vec![1.0, f64::NAN]] {
+        // A leaf that cast nothing (off screen) is a measurement of 0 s, not a missing clock.
+        assert_eq!(
+            measured_leaf_times(&d, &stats(vec![1.0, 0.0]), RebalanceClock::Cpu),
+            (want([1.0, 1.0], [1.0, 0.0]), "cpu")
+        );
+        // A worker without CPU times (GPU backend: none at all), with too few, or a
+        // corrupt one: every leaf by wall time, so that none is compared on another clock.
+        for cpu1 in [vec![], vec![1.0], vec![1.0, f64::NAN], vec![1.0, -1.0]] {
             assert_eq!(
                 measured_leaf_times(&d, &stats(cpu1), RebalanceClock::Cpu),
                 (want([2.0, 2.0], [2.0, 2.0]), "wall")
             );
         }
+        // Stats of fewer workers than the split has: by wall time too.
+        assert_eq!(
+            measured_leaf_times(&d, &s[..1], RebalanceClock::Cpu).1,
+            "wall"
+        );
     }
 
     #[test]

@@ -1241,6 +1241,7 @@ fn a_sequence_that_re_splits_the_tree_still_equals_in_process_frame_by_frame() {
     assert!(!rebalances.is_empty(), "no re-split: {stats}");
     for r in &rebalances {
         assert_eq!(r["model"], "pages", "{r}");
+        assert_eq!(r["clock"], "cpu", "{r}");
         assert!(r["page_records"].as_u64().unwrap() > 0, "{r}");
     }
     let workers = lines_of_kind(&stats, "worker");

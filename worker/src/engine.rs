@@ -97,9 +97,10 @@ pub struct BatchResult {
     /// round's time, scaled by the converged tiles' thread time against that round's.
     pub last_seconds: f64,
     /// The CPU time a cast of the whole converged frame takes: its tiles' thread CPU time
-    /// (each tile as its last cast left it), summed over threads. 0 on the GPU backend and
-    /// where the system has no per-thread clock.
-    pub last_cpu_seconds: f64,
+    /// (each tile as its last cast left it), summed over threads; 0 when no tile was cast
+    /// (a region off screen). `None` where nothing times it: the GPU backend, or a system
+    /// without a per-thread clock.
+    pub last_cpu_seconds: Option<f64>,
     /// Time spent casting (all rounds).
     pub cast_seconds: f64,
     /// Time spent waiting for loads and updating the atlas.
@@ -1094,7 +1095,9 @@ impl Engine {
                         }
                         _ => f.seconds,
                     },
-                    last_cpu_seconds: f.tiles.iter().map(|t| t.cpu_seconds).sum(),
+                    last_cpu_seconds: (self.gpu.is_none()
+                        && crate::raycast::thread_cpu_seconds().is_some())
+                    .then(|| f.tiles.iter().map(|t| t.cpu_seconds).sum()),
                     cast_seconds: cast_s,
                     load_seconds: load_s,
                     reports,

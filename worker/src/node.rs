@@ -1153,6 +1153,7 @@ impl Node {
         let grid = BlockGrid::new(req.width, req.height, req.occlusion_block);
         let threshold = (self.engine.settings.early_termination as f32).min(1.0);
         stats.leaf_cast_s = vec![0.0; self.setup.leaves.len()];
+        // Emptied by `image` when a cast has no CPU time (GPU backend, no thread clock).
         stats.leaf_cpu_s = vec![0.0; self.setup.leaves.len()];
         let mut predicted = if occlusion {
             self.predicted_front(req, grid)
@@ -1255,14 +1256,13 @@ impl Node {
                 front,
             });
         }
-        // Page records are in CPU seconds where every leaf has them (see `image`).
-        let by_cpu = stats.leaf_cpu_s.iter().all(|&c| c > 0.0);
+        // Page records are in CPU seconds when the casts were timed by CPU (see `image`).
         page_work_shares(
             &mut stats.page_work,
-            if by_cpu {
-                &stats.leaf_cpu_s
-            } else {
+            if stats.leaf_cpu_s.is_empty() {
                 &stats.leaf_cast_s
+            } else {
+                &stats.leaf_cpu_s
             },
         );
         stats.render_end_us = strata_net::unix_us();
@@ -1697,7 +1697,9 @@ impl Node {
                 stats
                     .leaf_cast_s
                     .resize(n.max(stats.leaf_cast_s.len()), 0.0);
-                stats.leaf_cpu_s.resize(n.max(stats.leaf_cpu_s.len()), 0.0);
+                if !stats.leaf_cpu_s.is_empty() {
+                    stats.leaf_cpu_s.resize(n.max(stats.leaf_cpu_s.len()), 0.0);
+                }
                 let threads = rayon::current_num_threads().max(1) as f64;
                 for &leaf in &req.leaf_order {
                     let region = self.leaf(leaf)?;
@@ -1707,19 +1709,32 @@ impl Node {
                     stats.load_s += r.load_seconds;
                     stats.last_round_s += r.last_seconds;
                     stats.leaf_cast_s[leaf as usize] += r.last_seconds;
-                    let cpu = r.last_cpu_seconds / threads;
-                    stats.leaf_cpu_s[leaf as usize] += cpu;
+                    // A leaf's CPU time over the render threads; without one (GPU backend,
+                    // no thread clock) the worker reports none at all, so that the
+                    // coordinator never takes a leaf that cast nothing (off screen: 0 s)
+                    // for a worker that cannot say.
+                    let cpu = r.last_cpu_seconds.map(|c| c / threads);
+                    match cpu {
+                        Some(c) if !stats.leaf_cpu_s.is_empty() => {
+                            stats.leaf_cpu_s[leaf as usize] += c
+                        }
+                        _ => stats.leaf_cpu_s.clear(),
+                    }
                     if req.page_work {
                         // Seconds of this cast per page, for now (a re-cast adds its own);
-                        // `page_work_shares` turns them into shares of the leaf's time.
-                        // The tiles' CPU time where there is one: a tile the system
-                        // descheduled for a while did not cost its pages that time.
-                        let by_cpu = cpu > 0.0;
+                        // `page_work_shares` turns them into shares of the leaf's time, in
+                        // the same clock. The tiles' CPU time where there is one: a tile
+                        // the system descheduled for a while did not cost its pages that
+                        // time.
+                        let by_cpu = !stats.leaf_cpu_s.is_empty();
                         let tiles = r.tiles.iter().map(|t| {
                             let s = if by_cpu { t.cpu_seconds } else { t.seconds };
                             (&t.feedback[..], s)
                         });
-                        let s = if by_cpu { cpu } else { r.last_seconds } as f32;
+                        let s = match cpu {
+                            Some(c) if by_cpu => c,
+                            _ => r.last_seconds,
+                        } as f32;
                         stats.page_work.extend(
                             crate::feedback::page_shares(tiles)
                                 .into_iter()
