@@ -762,6 +762,19 @@ fn tiles_report_their_threads_cpu_time() {
         "{:?} against {sum}",
         r.last_cpu_seconds
     );
+    // A region behind the camera casts no tile: 0 s of CPU, a measurement (not `None`, which
+    // says that nothing timed the cast and sends a re-split to wall time).
+    let behind = pool.install(|| {
+        let mut e = Engine::new(&s).unwrap();
+        let view = e.view(s.render.width, s.render.height).unwrap();
+        let region = strata_common::kd::Region {
+            lo: [-300.0, -200.0, 250.0],
+            hi: [-250.0, -150.0, 300.0],
+        };
+        e.render_batch(&view, &region).unwrap()
+    });
+    assert!(behind.tiles.iter().all(|t| t.cpu_seconds == 0.0));
+    assert_eq!(behind.last_cpu_seconds, Some(0.0));
     for (i, t) in r.tiles.iter().enumerate() {
         // 50 µs for the two clocks' reads not being one instant.
         assert!(
