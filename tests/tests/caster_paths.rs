@@ -729,9 +729,9 @@ fn selective_rounds_cast_less_and_change_no_pixel() {
     );
 }
 
-/// Each tile reports its thread's CPU time besides its wall time, and the batch sums the
-/// converged tiles' CPU time (what a re-split by `cluster.rebalance_clock = "cpu"`
-/// measures). A thread's CPU time over an interval cannot exceed that interval's wall time:
+/// With `Engine::tile_cpu_clock` on (as worker nodes have it), each tile reports its
+/// thread's CPU time besides its wall time, and the batch sums the converged tiles' CPU time
+/// (what a re-split by `cluster.rebalance_clock = "cpu"` measures); off, none. A thread's CPU time over an interval cannot exceed that interval's wall time:
 /// the process's CPU time (every thread's) would, with tiles cast in parallel.
 #[test]
 fn tiles_report_their_threads_cpu_time() {
@@ -745,14 +745,18 @@ fn tiles_report_their_threads_cpu_time() {
         .num_threads(2)
         .build()
         .unwrap();
-    let r = pool.install(|| {
+    let (r, untimed) = pool.install(|| {
         let mut e = Engine::new(&s).unwrap();
         let view = e.view(s.render.width, s.render.height).unwrap();
         let region = e.scene_region();
+        // Off unless asked for (two system calls per tile): no CPU time.
+        let untimed = e.render_batch(&view, &region).unwrap();
         // A second batch with everything resident: one round, every tile cast.
-        e.render_batch(&view, &region).unwrap();
-        e.render_batch(&view, &region).unwrap()
+        e.tile_cpu_clock = true;
+        (e.render_batch(&view, &region).unwrap(), untimed)
     });
+    assert_eq!(untimed.last_cpu_seconds, None);
+    assert!(untimed.tiles.iter().all(|t| t.cpu_seconds == 0.0));
     assert_eq!(r.rounds, 1);
     assert!(r.tiles.len() >= 4, "{} tiles", r.tiles.len());
     let sum: f64 = r.tiles.iter().map(|t| t.cpu_seconds).sum();
@@ -766,6 +770,7 @@ fn tiles_report_their_threads_cpu_time() {
     // says that nothing timed the cast and sends a re-split to wall time).
     let behind = pool.install(|| {
         let mut e = Engine::new(&s).unwrap();
+        e.tile_cpu_clock = true;
         let view = e.view(s.render.width, s.render.height).unwrap();
         let region = strata_common::kd::Region {
             lo: [-300.0, -200.0, 250.0],

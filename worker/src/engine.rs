@@ -98,8 +98,8 @@ pub struct BatchResult {
     pub last_seconds: f64,
     /// The CPU time a cast of the whole converged frame takes: its tiles' thread CPU time
     /// (each tile as its last cast left it), summed over threads; 0 when no tile was cast
-    /// (a region off screen). `None` where nothing times it: the GPU backend, or a system
-    /// without a per-thread clock.
+    /// (a region off screen). `None` where nothing times it: [`Engine::tile_cpu_clock`]
+    /// off, the GPU backend, or a system without a per-thread clock.
     pub last_cpu_seconds: Option<f64>,
     /// Time spent casting (all rounds).
     pub cast_seconds: f64,
@@ -147,6 +147,11 @@ pub struct Engine {
     /// `render.variant = "general"`). The feature-cost benchmark sets single effects here
     /// to measure what each costs a frame that does not use it.
     pub extra_effects: EffectSet,
+    /// Time each tile with its thread's CPU clock too ([`BatchResult::last_cpu_seconds`]):
+    /// two system calls per tile (about 0.5 µs each here, some 4 ms of CPU per 1024²
+    /// frame), so only where a re-split reads it (the worker node sets it); off, the
+    /// batch reports no CPU time.
+    pub tile_cpu_clock: bool,
 }
 
 type PreintCache =
@@ -371,6 +376,7 @@ impl Engine {
             tables,
             preint: Default::default(),
             runs: Default::default(),
+            tile_cpu_clock: false,
             frame_no: 0,
             seen_regions: HashSet::new(),
             extra_effects: match s.variant {
@@ -761,6 +767,7 @@ impl Engine {
             limits,
             only_tiles: None,
             on_tile: None,
+            cpu_clock: self.tile_cpu_clock,
             // f64 accumulation has one copy of the caster: the general one.
             variant: Variant::new(
                 effects,
@@ -1095,7 +1102,8 @@ impl Engine {
                         }
                         _ => f.seconds,
                     },
-                    last_cpu_seconds: (self.gpu.is_none()
+                    last_cpu_seconds: (self.tile_cpu_clock
+                        && self.gpu.is_none()
                         && crate::raycast::thread_cpu_seconds().is_some())
                     .then(|| f.tiles.iter().map(|t| t.cpu_seconds).sum()),
                     cast_seconds: cast_s,

@@ -579,8 +579,10 @@ async fn mesh(
             ));
         }
     }
-    let engine = tokio::task::block_in_place(|| Engine::new(&scene))
+    let mut engine = tokio::task::block_in_place(|| Engine::new(&scene))
         .context("opening the scene's stores")?;
+    // Re-splits measure leaves by their tiles' CPU time (`cluster.rebalance_clock`).
+    engine.tile_cpu_clock = true;
     let mut exchange = Exchange::new(
         rank,
         n as usize,

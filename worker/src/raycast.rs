@@ -73,6 +73,8 @@ pub struct FrameSetup<'a> {
     /// Called with each tile's requests as soon as the tile is cast, so that the pages it
     /// lacks start loading while the other tiles are still being cast.
     pub on_tile: Option<&'a (dyn Fn(&[crate::feedback::FeedbackEntry]) + Sync)>,
+    /// Time each tile with its thread's CPU clock too ([`TileOut::cpu_seconds`]).
+    pub cpu_clock: bool,
     /// Depth of the lockstep chunks a tile's rays are marched in (camera-relative units).
     pub chunk: f32,
     /// March single-volume spans in SIMD packets ([`crate::packet`]); only set where the
@@ -171,8 +173,8 @@ pub struct TileOut {
     pub stats: CastStats,
     /// Seconds its thread spent casting it (wall clock).
     pub seconds: f64,
-    /// CPU seconds its thread spent casting it ([`thread_cpu_seconds`]; 0 where the system
-    /// has no per-thread clock). Unlike `seconds`, time the thread was descheduled does not
+    /// CPU seconds its thread spent casting it ([`thread_cpu_seconds`], with
+    /// [`FrameSetup::cpu_clock`]; else 0, as where the system has no per-thread clock). Unlike `seconds`, time the thread was descheduled does not
     /// count, so more workers than cores do not inflate it.
     pub cpu_seconds: f64,
 }
@@ -1193,7 +1195,11 @@ impl<'a> FrameSetup<'a> {
                     return TileOut::default();
                 }
                 let t0 = std::time::Instant::now();
-                let c0 = thread_cpu_seconds();
+                let c0 = if self.cpu_clock {
+                    thread_cpu_seconds()
+                } else {
+                    None
+                };
                 let done = |feedback: Vec<crate::feedback::FeedbackEntry>, stats| {
                     let seconds = t0.elapsed().as_secs_f64();
                     let cpu_seconds = match (c0, thread_cpu_seconds()) {
