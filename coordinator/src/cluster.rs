@@ -170,8 +170,8 @@ pub struct Rebalance {
     pub model: &'static str,
     /// The workers' page records the re-split used (0 for `"leaves"`).
     pub page_records: usize,
-    /// The clock the leaves were measured by: `"cpu"` or `"wall"` (`cpu` asked for, but
-    /// some leaf had no CPU time).
+    /// The clock the leaves were measured by: `"cpu"` or `"wall"` (also where `cpu` was
+    /// asked for but some worker reported no CPU times).
     pub clock: &'static str,
     /// Leaf regions before and after.
     pub old_leaves: Vec<strata_common::kd::Region>,

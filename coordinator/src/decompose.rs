@@ -461,23 +461,23 @@ pub fn measured_leaf_times(
     stats: &[WorkerFrameStats],
     clock: RebalanceClock,
 ) -> (Vec<f64>, &'static str) {
+    let leaves: Vec<Vec<usize>> = (0..stats.len()).map(|w| d.worker_leaves(w)).collect();
     let by = |cpu: bool| {
         let mut measured = vec![0.0; d.tree.leaves.len()];
-        for (slot, s) in stats.iter().enumerate() {
+        for (s, mine) in stats.iter().zip(&leaves) {
             let times = if cpu { &s.leaf_cpu_s } else { &s.leaf_cast_s };
-            for (i, &l) in d.worker_leaves(slot).iter().enumerate() {
+            for (i, &l) in mine.iter().enumerate() {
                 measured[l] = times.get(i).copied().unwrap_or(0.0);
             }
         }
         measured
     };
-    let timed = |slot: usize, s: &WorkerFrameStats| {
-        s.leaf_cpu_s.len() >= d.worker_leaves(slot).len()
-            && s.leaf_cpu_s.iter().all(|&t| t >= 0.0 && t.is_finite())
+    let timed = |s: &WorkerFrameStats, mine: &Vec<usize>| {
+        s.leaf_cpu_s.len() >= mine.len() && s.leaf_cpu_s.iter().all(|&t| t >= 0.0 && t.is_finite())
     };
     if clock == RebalanceClock::Cpu
         && stats.len() == d.workers
-        && stats.iter().enumerate().all(|(slot, s)| timed(slot, s))
+        && stats.iter().zip(&leaves).all(|(s, mine)| timed(s, mine))
     {
         return (by(true), "cpu");
     }

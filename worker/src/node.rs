@@ -1715,12 +1715,13 @@ impl Node {
                     // no thread clock) the worker reports none at all, so that the
                     // coordinator never takes a leaf that cast nothing (off screen: 0 s)
                     // for a worker that cannot say.
-                    let cpu = r.last_cpu_seconds.map(|c| c / threads);
+                    let cpu = r
+                        .last_cpu_seconds
+                        .map(|c| c / threads)
+                        .filter(|_| !stats.leaf_cpu_s.is_empty());
                     match cpu {
-                        Some(c) if !stats.leaf_cpu_s.is_empty() => {
-                            stats.leaf_cpu_s[leaf as usize] += c
-                        }
-                        _ => stats.leaf_cpu_s.clear(),
+                        Some(c) => stats.leaf_cpu_s[leaf as usize] += c,
+                        None => stats.leaf_cpu_s.clear(),
                     }
                     if req.page_work {
                         // Seconds of this cast per page, for now (a re-cast adds its own);
@@ -1728,15 +1729,15 @@ impl Node {
                         // the same clock. The tiles' CPU time where there is one: a tile
                         // the system descheduled for a while did not cost its pages that
                         // time.
-                        let by_cpu = !stats.leaf_cpu_s.is_empty();
                         let tiles = r.tiles.iter().map(|t| {
-                            let s = if by_cpu { t.cpu_seconds } else { t.seconds };
+                            let s = if cpu.is_some() {
+                                t.cpu_seconds
+                            } else {
+                                t.seconds
+                            };
                             (&t.feedback[..], s)
                         });
-                        let s = match cpu {
-                            Some(c) if by_cpu => c,
-                            _ => r.last_seconds,
-                        } as f32;
+                        let s = cpu.unwrap_or(r.last_seconds) as f32;
                         stats.page_work.extend(
                             crate::feedback::page_shares(tiles)
                                 .into_iter()

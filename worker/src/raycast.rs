@@ -174,8 +174,9 @@ pub struct TileOut {
     /// Seconds its thread spent casting it (wall clock).
     pub seconds: f64,
     /// CPU seconds its thread spent casting it ([`thread_cpu_seconds`], with
-    /// [`FrameSetup::cpu_clock`]; else 0, as where the system has no per-thread clock). Unlike `seconds`, time the thread was descheduled does not
-    /// count, so more workers than cores do not inflate it.
+    /// [`FrameSetup::cpu_clock`]; else 0, as where the system has no per-thread clock).
+    /// Unlike `seconds`, time the thread was descheduled does not count, so more workers
+    /// than cores do not inflate it.
     pub cpu_seconds: f64,
 }
 
@@ -1202,10 +1203,10 @@ impl<'a> FrameSetup<'a> {
                 };
                 let done = |feedback: Vec<crate::feedback::FeedbackEntry>, stats| {
                     let seconds = t0.elapsed().as_secs_f64();
-                    let cpu_seconds = match (c0, thread_cpu_seconds()) {
-                        (Some(a), Some(b)) => (b - a).max(0.0),
-                        _ => 0.0,
-                    };
+                    // (Read again only where it was read at the start: off, no system call.)
+                    let cpu_seconds = c0
+                        .and_then(|a| thread_cpu_seconds().map(|b| (b - a).max(0.0)))
+                        .unwrap_or(0.0);
                     if let Some(f) = self.on_tile {
                         f(&feedback);
                     }
