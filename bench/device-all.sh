@@ -120,9 +120,10 @@ step strong-scaling "${LIMIT_STRONG:-190}" bash -c '
 # The same orbit at p = 8 with occlusion on and one setting changed (VARIANTS, default:
 # leaves measured by CPU time (the default, as a baseline in the same step) and by wall
 # time, re-splitting at the old threshold 1.25, by one factor per leaf, and off; the old
-# defaults were wall time, 1.25 and one factor per leaf): what each gives.
-VARIANTS=${VARIANTS:-cluster.rebalance_clock=cpu cluster.rebalance_clock=wall cluster.rebalance_threshold=1.25 cluster.rebalance_model=leaves cluster.rebalance_threshold=0}
-step strong-variants "${LIMIT_VARIANTS:-150}" bash -c '
+# defaults were wall time, 1.25 and one factor per leaf; and each worker bound to 2 CPUs
+# of its own): what each gives.
+VARIANTS=${VARIANTS:-cluster.rebalance_clock=cpu cluster.rebalance_clock=wall cluster.rebalance_threshold=1.25 cluster.rebalance_model=leaves cluster.rebalance_threshold=0 cluster.pin_workers=true}
+step strong-variants "${LIMIT_VARIANTS:-180}" bash -c '
   set -o pipefail
   for v in $1; do
     echo "## $v"

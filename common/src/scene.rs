@@ -191,6 +191,13 @@ pub struct ClusterSettings {
     /// Rayon threads per spawned worker; 0 = the cores divided among the workers.
     #[serde(default)]
     pub worker_threads: u32,
+    /// Local mode (`spawn = true`): bind each spawned worker process to its own block of
+    /// `worker_threads` CPUs (fewer where the CPUs this process may use do not go round),
+    /// cut in topology order (package, last-level cache, core), as MPI launchers bind
+    /// ranks. With more workers than CPUs, each gets one CPU, shared round robin (and a
+    /// warning). Each worker reports the CPUs it runs on (`cpus` in `--stats`).
+    #[serde(default)]
+    pub pin_workers: bool,
     /// File holding the shared secret (first line). Otherwise `$STRATA_SECRET`; local
     /// mode generates one per run when neither is set.
     #[serde(default)]
@@ -346,6 +353,7 @@ impl Default for ClusterSettings {
             idle_timeout_s: default_idle_timeout(),
             quic_mtu: default_quic_mtu(),
             worker_threads: 0,
+            pin_workers: false,
             secret_file: None,
             fingerprint_file: None,
             rebalance_threshold: default_rebalance_threshold(),

@@ -28,7 +28,7 @@ use serde::{de::DeserializeOwned, Deserialize, Serialize};
 /// Frame magic.
 pub const MAGIC: [u8; 4] = *b"STRF";
 /// Protocol version; bumped on any incompatible change of the header or the messages.
-pub const PROTOCOL_VERSION: u16 = 11;
+pub const PROTOCOL_VERSION: u16 = 12;
 /// Size of the frame header.
 pub const HEADER_LEN: usize = 24;
 /// Largest meta message any endpoint accepts (control messages are small; the scene text
@@ -656,6 +656,11 @@ pub struct WorkerFrameStats {
     /// Seconds of each leaf's final-round cast, in the order of this worker's leaves (for
     /// re-splitting by measured cost).
     pub leaf_cast_s: Vec<f64>,
+    /// The CPUs this worker's process may run on, as Linux lists them (`0-3,8`): its
+    /// binding by `cluster.pin_workers` or by a launcher (`srun --cpu-bind`); empty where
+    /// the system will not say.
+    #[serde(default)]
+    pub cpus: String,
     /// The CPU time of each leaf's final-round cast (a whole cast of its converged tiles:
     /// their threads' CPU seconds) over this worker's render threads, in the order of its
     /// leaves: about what the cast would take with the threads to itself (a lower bound:

@@ -40,6 +40,7 @@ use strata_net::canvas::PIXEL_BYTES;
 use strata_net::frame::{read_frame, with_timeout, write_frame, NetError};
 use strata_net::shm::{SegmentId, ShmReader};
 use strata_net::{secret, tls, transport, Identity, NetConfig};
+use strata_worker::affinity;
 use tokio::sync::mpsc;
 use tracing::{debug, info, warn};
 
@@ -64,6 +65,8 @@ pub struct ClusterOptions {
     pub quic_mtu: u16,
     /// Rayon threads per spawned worker (0: divide the cores).
     pub worker_threads: usize,
+    /// `cluster.pin_workers`: bind each spawned worker to its own block of CPUs.
+    pub pin_workers: bool,
     /// Shared secret (None: generate one; only allowed when spawning).
     pub secret: Option<Vec<u8>>,
     /// Where to write the fingerprint for launchers.
@@ -258,6 +261,7 @@ impl ClusterOptions {
             idle_timeout: Duration::from_secs_f64(c.idle_timeout_s),
             quic_mtu: c.quic_mtu,
             worker_threads: c.worker_threads as usize,
+            pin_workers: c.pin_workers,
             secret,
             fingerprint_file: c.fingerprint_file.clone(),
             max_pixels: match &scene.wall {
@@ -691,6 +695,7 @@ impl Cluster {
             info!(
                 workers = n,
                 threads_each = sp.threads,
+                pinned = sp.pin.is_some(),
                 "spawned local workers"
             );
         } else {
@@ -2352,6 +2357,9 @@ struct Spawner {
     quic_mtu: u16,
     /// Rayon threads per worker.
     threads: usize,
+    /// `cluster.pin_workers`: the allowed CPUs in topology order, cut into one block per
+    /// worker slot ([`strata_worker::affinity::block_for`]), and the run's worker count.
+    pin: Option<(Vec<usize>, usize)>,
 }
 
 impl Spawner {
@@ -2369,8 +2377,19 @@ impl Spawner {
                 vec!["worker".to_string()],
             ),
         };
+        let pin_order = match (opts.pin_workers, affinity::allowed()) {
+            (false, _) => None,
+            (true, Some(cpus)) => Some(affinity::topology_order(&cpus, affinity::place_of)),
+            (true, None) => {
+                warn!("cluster.pin_workers: this system does not say which CPUs may be used; the workers run unbound");
+                None
+            }
+        };
         let threads = if opts.worker_threads > 0 {
             opts.worker_threads
+        } else if let Some(order) = &pin_order {
+            // Bound: as many threads as each worker has CPUs of its own.
+            (order.len() / workers.max(1)).max(1)
         } else {
             let cores = std::thread::available_parallelism().map_or(1, |c| c.get());
             cores.div_ceil(workers.max(1)).max(1)
@@ -2385,13 +2404,30 @@ impl Spawner {
             connect_timeout: opts.connect_timeout,
             quic_mtu: opts.quic_mtu,
             threads,
+            pin: pin_order.map(|order| {
+                if workers > order.len() {
+                    warn!(
+                        workers,
+                        cpus = order.len(),
+                        "cluster.pin_workers: more workers than CPUs; each is bound to one CPU that others share"
+                    );
+                }
+                (order, workers)
+            }),
         })
     }
 
     /// Starts local worker process number `child` (named `local-{child}`, on GPU slot
     /// `gpu`), which dials this coordinator; its exit is reported on `tx` as
     /// [`Event::Exited`]. Returns its pid.
+    ///
+    /// With `cluster.pin_workers` it is bound to the CPUs of slot `gpu` (the slot of the
+    /// worker a replacement replaces).
     fn spawn(&self, child: usize, gpu: usize, tx: &mpsc::UnboundedSender<Event>) -> Result<u32> {
+        let cpus = self
+            .pin
+            .as_ref()
+            .map(|(order, workers)| affinity::block_for(order, *workers, self.threads, gpu).0);
         let mut cmd = tokio::process::Command::new(&self.exe);
         cmd.args(&self.args)
             .arg("--connect")
@@ -2417,11 +2453,16 @@ impl Spawner {
             .env(strata_worker::gpu::GPU_SLOT_ENV, gpu.to_string())
             .stdin(Stdio::null())
             .kill_on_drop(true);
-        // The workers die with the coordinator, however it ends (even SIGKILL).
+        // The workers die with the coordinator, however it ends (even SIGKILL). A bound
+        // worker's threads inherit its binding from the first.
+        let set = cpus.as_deref().map(affinity::CpuSet::new);
         unsafe {
-            cmd.pre_exec(|| {
+            cmd.pre_exec(move || {
                 if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
                     return Err(std::io::Error::last_os_error());
+                }
+                if let Some(set) = &set {
+                    set.bind()?;
                 }
                 Ok(())
             });
@@ -2430,6 +2471,11 @@ impl Spawner {
             .spawn()
             .with_context(|| format!("cannot start worker {}", self.exe.display()))?;
         let pid = proc.id().unwrap_or(0);
+        if let Some(c) = &cpus {
+            let mut c = c.clone();
+            c.sort_unstable();
+            debug!(child, pid, cpus = %affinity::format_list(&c), "bound a worker to its CPUs");
+        }
         let tx = tx.clone();
         tokio::spawn(async move {
             let status = match proc.wait().await {

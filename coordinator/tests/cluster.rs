@@ -136,6 +136,60 @@ fn distributed_equals_in_process_for_every_algorithm_and_worker_count() {
     }
 }
 
+/// `cluster.pin_workers`: each local worker runs on CPUs of its own, says which, and the
+/// image is the in-process one.
+#[test]
+fn pinned_workers_run_on_cpus_of_their_own_and_render_the_same_image() {
+    let allowed = strata_worker::affinity::allowed().expect("Linux says which CPUs we may use");
+    let dir = tempfile::tempdir().unwrap();
+    let cpus_of = |name: &str, extra: &[&str]| -> Vec<String> {
+        let out = dir.path().join(format!("{name}.exr"));
+        let stats = dir.path().join(format!("{name}.jsonl"));
+        let args = [
+            &["--workers", "2", "--stats", stats.to_str().unwrap()],
+            extra,
+        ]
+        .concat();
+        let o = render(&out, &args, &[]);
+        assert!(
+            o.status.success(),
+            "{name}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        let d = max_diff(reference(), &read_exr(&out));
+        assert!(d <= 1e-5, "{name}: differs from in-process by {d}");
+        lines_of_kind(&std::fs::read_to_string(&stats).unwrap(), "worker")
+            .iter()
+            .map(|w| w["cpus"].as_str().unwrap().to_string())
+            .collect()
+    };
+    // Unbound, each worker may run on every CPU this process may.
+    let all = strata_worker::affinity::format_list(&allowed);
+    assert_eq!(cpus_of("unbound", &[]), vec![all.clone(), all]);
+    // Bound with one thread each: one CPU each, of the allowed ones, and two different
+    // CPUs where there are two.
+    let bound = cpus_of(
+        "bound",
+        &[
+            "--set",
+            "cluster.pin_workers=true",
+            "--set",
+            "cluster.worker_threads=1",
+        ],
+    );
+    let ids: Vec<usize> = bound
+        .iter()
+        .map(|c| c.parse().unwrap_or_else(|_| panic!("one CPU, got {c:?}")))
+        .collect();
+    assert!(
+        ids.iter().all(|c| allowed.contains(c)),
+        "{ids:?} of {allowed:?}"
+    );
+    if allowed.len() >= 2 {
+        assert_ne!(ids[0], ids[1], "two workers bound to one CPU");
+    }
+}
+
 #[test]
 fn options_that_change_bytes_not_pixels() {
     let reference = reference();

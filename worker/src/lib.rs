@@ -5,6 +5,7 @@
 //! region, streaming its data out of core and refining the level of detail by feedback from
 //! the rays.
 //!
+//! * [`affinity`]: the CPUs a process may run on; binding local workers to their own.
 //! * [`cache`]: the host page cache (byte budget, LRU, locked pages, loader threads with a
 //!   priority queue in which real requests outrank prefetch).
 //! * [`atlas`]: the virtualized atlas: fixed pools of page slots and per-data-set page
@@ -23,6 +24,7 @@
 //!   wall's tile files and its preview mosaic.
 #![deny(missing_docs)]
 
+pub mod affinity;
 pub mod atlas;
 pub mod cache;
 pub mod cli;

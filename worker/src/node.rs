@@ -610,6 +610,9 @@ async fn mesh(
         deferred: Default::default(),
         front_last: None,
         lz4: false,
+        cpus: crate::affinity::allowed()
+            .map(|c| crate::affinity::format_list(&c))
+            .unwrap_or_default(),
         _acceptor: acceptor,
     };
     Ok((node, ev_rx))
@@ -896,6 +899,8 @@ struct Node {
     /// Cross-worker occlusion: the last frame's transmittance of what lies in front of this
     /// worker, the prediction for the next frame.
     front_last: Option<FrontLast>,
+    /// The CPUs this process may run on (`WorkerFrameStats::cpus`).
+    cpus: String,
     /// The peer listener of this mesh (idle once it is complete; stopped with the node).
     _acceptor: AbortOnDrop,
 }
@@ -1138,6 +1143,7 @@ impl Node {
         let mut stats = WorkerFrameStats {
             rank: self.rank,
             position: position as u32,
+            cpus: self.cpus.clone(),
             ..Default::default()
         };
         test_fault(self.rank, req.frame, "render");
