@@ -118,7 +118,8 @@ impl Pyramid {
         if page > max {
             return Err(PyramidError::PageTooLarge { page, max });
         }
-        if page <= 2 * border {
+        // In u64: `2 * border` of a u32 read from a file can wrap to 0.
+        if page as u64 <= 2 * border as u64 {
             return Err(PyramidError::NoCore { page, border });
         }
         let core = (page - 2 * border) as u64;
@@ -344,6 +345,12 @@ mod tests {
         ));
         assert!(matches!(
             Pyramid::new(Dim::Three, [4, 4, 4], 2, 1),
+            Err(PyramidError::NoCore { .. })
+        ));
+        // A border whose double wraps a u32 to 0 (a store header's field) has no core
+        // either.
+        assert!(matches!(
+            Pyramid::new(Dim::Three, [4, 4, 4], 64, 1 << 31),
             Err(PyramidError::NoCore { .. })
         ));
         assert!(matches!(

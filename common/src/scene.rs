@@ -695,6 +695,73 @@ impl std::fmt::Display for AdapterSelector {
     }
 }
 
+impl RenderSettings {
+    /// Checks the values no render can use; the error names the key (under `[render]`)
+    /// and says what was expected. [`Scene::parse`] points it at its line.
+    pub fn check(&self) -> Result<(), (&'static str, String)> {
+        for (key, v) in [
+            ("step", self.step),
+            ("tau", self.tau),
+            ("z_scale", self.z_scale),
+        ] {
+            if !(v > 0.0 && v.is_finite()) {
+                return Err((
+                    key,
+                    format!("render.{key} must be a positive number, got {v}"),
+                ));
+            }
+        }
+        if self.step < 1e-3 || self.step > 1e3 {
+            return Err((
+                "step",
+                format!(
+                    "render.step must lie in [0.001, 1000] voxels, got {}",
+                    self.step
+                ),
+            ));
+        }
+        if !(self.early_termination > 0.0 && self.early_termination <= 1.0) {
+            return Err((
+                "early_termination",
+                format!(
+                    "render.early_termination must lie in (0, 1], got {}",
+                    self.early_termination
+                ),
+            ));
+        }
+        if self.cache_mb == 0 {
+            return Err(("cache_mb", "render.cache_mb must be at least 1".into()));
+        }
+        for (key, v) in [
+            ("atlas_mb", self.atlas_mb),
+            ("horizon_atlas_mb", self.horizon_atlas_mb),
+        ] {
+            if v == 0 {
+                return Err((key, format!("render.{key} must be at least 1")));
+            }
+        }
+        if ![0, 8, 16].contains(&self.simd_lanes) {
+            return Err((
+                "simd_lanes",
+                format!(
+                    "render.simd_lanes must be 0 (the widest the CPU runs), 8 or 16, got {}",
+                    self.simd_lanes
+                ),
+            ));
+        }
+        if self.loader_threads == 0 || self.loader_threads > 256 {
+            return Err((
+                "loader_threads",
+                format!(
+                    "render.loader_threads must lie in 1..=256, got {}",
+                    self.loader_threads
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
 impl Default for RenderSettings {
     fn default() -> Self {
         RenderSettings {
@@ -864,6 +931,33 @@ impl Scene {
                 *f = base.join(&*f);
             }
         }
+        let at = |section: &str, key: &str, message: String| {
+            let (line, column) = key_position(text, section, key);
+            SceneError {
+                path: path.to_path_buf(),
+                line,
+                column,
+                message,
+            }
+        };
+        scene
+            .render
+            .check()
+            .map_err(|(key, message)| at("render", key, message))?;
+        if let Some(c) = &scene.camera {
+            use crate::camera::{View, ViewError};
+            let (w, h) = (scene.render.width.max(1), scene.render.height.max(1));
+            View::new(c, &scene.render, w, h).map_err(|e| {
+                let (section, key) = match &e {
+                    ViewError::Fov(_) => ("camera", "fov_deg"),
+                    ViewError::EyeIsTarget => ("camera", "target"),
+                    ViewError::UpParallel => ("camera", "up"),
+                    ViewError::ZScale(_) => ("render", "z_scale"),
+                    ViewError::Size(..) | ViewError::Wall(_) => ("render", "width"),
+                };
+                at(section, key, e.to_string())
+            })?;
+        }
         if let Some(w) = &scene.wall {
             w.geometry().check().map_err(|message| {
                 // Point at the key of the `[wall]` section the message names.
@@ -871,7 +965,7 @@ impl Scene {
                     .into_iter()
                     .find(|k| message.starts_with(&format!("wall.{k} ")))
                     .unwrap_or("tiles");
-                let (line, column) = wall_key_position(text, key);
+                let (line, column) = key_position(text, "wall", key);
                 SceneError {
                     path: path.to_path_buf(),
                     line,
@@ -882,7 +976,7 @@ impl Scene {
             if let Some(r) = &w.ranks {
                 let tiles = w.geometry().tiles() as usize;
                 if r.len() != tiles {
-                    let (line, column) = wall_key_position(text, "ranks");
+                    let (line, column) = key_position(text, "wall", "ranks");
                     return Err(SceneError {
                         path: path.to_path_buf(),
                         line,
@@ -904,10 +998,17 @@ impl Scene {
     }
 }
 
-/// Line and column of `key` inside the scene's `[wall]` section (1, 1 when not found, e.g.
-/// for a value that came from `--set`).
-fn wall_key_position(text: &str, key: &str) -> (usize, usize) {
-    let Some(sec) = text.find("[wall]") else {
+/// Line and column of `key` inside the scene's `[section]` (the section's header when the
+/// key is not written there, 1, 1 without the section, e.g. for a value that came from
+/// `--set`).
+fn key_position(text: &str, section: &str, key: &str) -> (usize, usize) {
+    let header = format!("[{section}]");
+    let Some(sec) = text.match_indices(&header).map(|(i, _)| i).find(|&i| {
+        text[..i]
+            .rsplit('\n')
+            .next()
+            .is_some_and(|l| l.trim().is_empty())
+    }) else {
         return (1, 1);
     };
     let mut at = sec;
@@ -975,6 +1076,40 @@ mod tests {
         assert_eq!(s.horizons[0].store, PathBuf::from("/abs/h.strata"));
         assert_eq!(s.render.width, 64);
         assert_eq!(s.render.height, 720);
+    }
+
+    #[test]
+    fn bad_values_point_at_their_key() {
+        let e = Scene::parse(
+            Path::new("s.toml"),
+            "[render]\nwidth = 64\n  step = 0.0\n[camera]\neye = [0, 0, 0]\ntarget = [1, 0, 0]\n",
+        )
+        .unwrap_err();
+        assert_eq!((e.line, e.column), (3, 3), "{e}");
+        assert!(e.to_string().starts_with("s.toml:3:3: render.step"), "{e}");
+        let camera = |body: &str| {
+            Scene::parse(
+                Path::new("c.toml"),
+                &format!("[render]\nwidth = 64\n\n[camera]\neye = [0, 0, 0]\n{body}"),
+            )
+        };
+        let e = camera("target = [1, 0, 0]\nfov_deg = 0.0\n").unwrap_err();
+        assert_eq!((e.line, e.column), (7, 1), "{e}");
+        assert!(e.to_string().contains("camera.fov_deg"), "{e}");
+        let e = camera("target = [0, 0, 0]\n").unwrap_err();
+        assert_eq!(e.line, 6, "{e}");
+        assert!(e.to_string().contains("coincide"), "{e}");
+        let e = camera("target = [1, 0, 0]\nup = [0, 0, 0]\n").unwrap_err();
+        assert_eq!(e.line, 7, "{e}");
+        assert!(e.to_string().contains("camera.up"), "{e}");
+        // A key the file does not hold (the default up along the view): its section.
+        let e = Scene::parse(
+            Path::new("c.toml"),
+            "[camera]\neye = [0, 0, 0]\ntarget = [0, 0, 5]\n",
+        )
+        .unwrap_err();
+        assert_eq!((e.line, e.column), (1, 1), "{e}");
+        assert!(camera("target = [1, 0, 0]\n").is_ok());
     }
 
     #[test]

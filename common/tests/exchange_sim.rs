@@ -507,6 +507,29 @@ fn early_pieces_are_checked_when_their_frame_starts_and_bounded() {
         other => panic!("{other:?}"),
     }
 
+    // 3b. The buffer bounds the bytes a piece holds, not what it took on the wire: an
+    //     LZ4 piece of 10 bytes that decompressed to 100 pixels (1.6 KB) does not fit
+    //     in 1 KB.
+    let mut ex = Exchange::new(
+        0,
+        2,
+        ExchangeLimits {
+            pending_bytes: 1000,
+            ..limits
+        },
+    );
+    ex.handle_piece(1, 1, 0, 1, piece(0, 100), 10);
+    one_rank_frame(&mut ex, 0, vec![0, 1], t);
+    match ex.poll_event() {
+        Some(ExchangeEvent::Failed {
+            error: ExchangeError::PendingFull {
+                rank: 1, pieces: 0, ..
+            },
+            ..
+        }) => {}
+        other => panic!("{other:?}"),
+    }
+
     // 4. Duplicates and stale pieces are dropped and counted, and the frame completes.
     let mut ex = Exchange::new(0, 2, limits);
     one_rank_frame(&mut ex, 5, vec![0, 1], t);

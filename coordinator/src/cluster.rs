@@ -315,9 +315,21 @@ impl Worker {
 }
 
 enum Event {
-    Msg { rank: u32, frame: strata_net::Frame },
-    Lost { rank: u32, error: String },
-    Exited { child: usize, status: String },
+    /// A worker's message; `_held` is its share of that worker's reader budget
+    /// (`spawn_reader`), given back when the event is dropped.
+    Msg {
+        rank: u32,
+        frame: strata_net::Frame,
+        _held: tokio::sync::OwnedSemaphorePermit,
+    },
+    Lost {
+        rank: u32,
+        error: String,
+    },
+    Exited {
+        child: usize,
+        status: String,
+    },
 }
 
 /// One frame's result.
@@ -809,7 +821,7 @@ impl Cluster {
                             "{} disconnected before the run started: {error}",
                             self.workers[rank as usize].describe()
                         ),
-                        Some(Event::Msg { rank, frame }) => {
+                        Some(Event::Msg { rank, frame, .. }) => {
                             match wire::decode_meta::<WorkerMsg>(&frame.meta) {
                                 Ok(WorkerMsg::Failed { message, .. }) => anyhow!(
                                     "{} failed: {message}",
@@ -1190,7 +1202,8 @@ impl Cluster {
                     let rank = self.child_rank(child).expect("a rank in the run");
                     lost.push((rank, format!("exited: {status}")));
                 }
-                Event::Msg { rank, frame } => match wire::decode_meta::<WorkerMsg>(&frame.meta) {
+                Event::Msg { rank, frame, .. } => match wire::decode_meta::<WorkerMsg>(&frame.meta)
+                {
                     Ok(WorkerMsg::Meshing { attempt: a }) => {
                         self.workers[rank as usize].attempt = a
                     }
@@ -1729,7 +1742,9 @@ impl Cluster {
                 {
                     debug!(child, "a worker given up on has exited");
                 }
-                Event::Msg { rank, frame: mut f } => {
+                Event::Msg {
+                    rank, frame: mut f, ..
+                } => {
                     let who = self.workers[rank as usize].describe();
                     let blame = |e: anyhow::Error| Failure::blaming(e, rank);
                     match wire::decode_meta::<WorkerMsg>(&f.meta) {
@@ -1748,6 +1763,12 @@ impl Cluster {
                             shm,
                             lz4,
                         }) if fno == frame => {
+                            if s.rank != rank {
+                                return Err(blame(anyhow!(
+                                    "{who} sent the frame stats of rank {} as its own",
+                                    s.rank
+                                )));
+                            }
                             if canvas.is_none() || self.workers[rank as usize].shm.is_none() {
                                 return Err(blame(anyhow!(
                                     "{who} wrote its final piece into a canvas it was not given"
@@ -1775,6 +1796,12 @@ impl Cluster {
                             lz4,
                             canvas: None,
                         }) if fno == frame => {
+                            if s.rank != rank {
+                                return Err(blame(anyhow!(
+                                    "{who} sent the frame stats of rank {} as its own",
+                                    s.rank
+                                )));
+                            }
                             let t = Instant::now();
                             gather_bytes += f.wire_len();
                             let limit = self.piece_limit();
@@ -2281,11 +2308,28 @@ fn spawn_reader(
     silence: Duration,
 ) {
     spawn_watchdog(conn.clone(), silence);
+    // The messages of this worker waiting to be handled hold at most two of the largest
+    // it may send (in KiB): past that the reader stops reading, and QUIC's flow control
+    // stops the worker, instead of a flood of (stale) messages queueing without bound.
+    let kib = |bytes: u64| bytes.div_ceil(1024).clamp(1, u32::MAX as u64 / 2) as u32;
+    let largest = kib(limits.max_meta as u64 + limits.max_bulk + wire::HEADER_LEN as u64);
+    let budget = Arc::new(tokio::sync::Semaphore::new(2 * largest as usize));
     tokio::spawn(async move {
         loop {
             match read_frame(&mut recv, &limits).await {
                 Ok(frame) => {
-                    if tx.send(Event::Msg { rank, frame }).is_err() {
+                    let need = kib(frame.wire_len()).min(largest);
+                    let Ok(held) = budget.clone().acquire_many_owned(need).await else {
+                        return;
+                    };
+                    if tx
+                        .send(Event::Msg {
+                            rank,
+                            frame,
+                            _held: held,
+                        })
+                        .is_err()
+                    {
                         return;
                     }
                 }

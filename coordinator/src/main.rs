@@ -398,6 +398,39 @@ fn file_name(p: &Path) -> String {
         .unwrap_or_default()
 }
 
+/// Refuses an output that is one of the run's inputs (the same file by another name too):
+/// writing it would replace the input.
+fn not_an_input(output: &Path, inputs: &[&Path]) -> Result<()> {
+    let Ok(out) = std::fs::canonicalize(output) else {
+        return Ok(()); // not there yet: no input
+    };
+    for input in inputs {
+        if std::fs::canonicalize(input).is_ok_and(|i| i == out) {
+            anyhow::bail!(
+                "{}: this is the input {}; writing it would replace it (choose another output)",
+                output.display(),
+                input.display()
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Checks, before any work, that the folder an output goes to exists.
+fn folder_exists(output: &Path, what: &str) -> Result<()> {
+    let parent = match output.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    anyhow::ensure!(
+        parent.is_dir(),
+        "{}: the folder {} of the {what} does not exist",
+        output.display(),
+        parent.display()
+    );
+    Ok(())
+}
+
 /// `--mp4`: encodes the sequence's frames if asked, or says why it could not.
 fn mp4_step(opts: &render::RenderOptions, mp4: Option<&Path>) -> Result<()> {
     use strata_coordinator::sequence::Mp4;
@@ -420,6 +453,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Ingest(Ingest::Raw(a)) => {
             let dtype = SampleType::parse(&a.dtype).expect("clap restricts --dtype");
             let dims = [a.dims[0], a.dims[1], a.dims[2]];
+            not_an_input(&a.store.output, &[&a.file])?;
             let src = source::RawSource::open(&a.file, dims, dtype, a.big_endian)?;
             let mut o = options(BuildOptions::volume(&file_name(&a.file), dtype), &a.store);
             if let Some(s) = &a.spacing {
@@ -460,6 +494,7 @@ fn run(cli: Cli) -> Result<()> {
                 }),
                 z_step: a.z_step,
             };
+            not_an_input(&a.store.output, &[&a.file])?;
             let vol = segy::open(&a.file, &opts)?;
             let info = vol.info();
             for w in &info.warnings {
@@ -523,6 +558,10 @@ fn run(cli: Cli) -> Result<()> {
             build_and_report(&vol, &a.store.output, &o, cli.quiet, "SEG-Y", t0)?;
         }
         Command::Ingest(Ingest::Horizon(a)) => {
+            let inputs: Vec<&Path> = std::iter::once(a.file.as_path())
+                .chain(a.survey.as_deref())
+                .collect();
+            not_an_input(&a.store.output, &inputs)?;
             let survey_store = match &a.survey {
                 Some(p) => Some(inspect::open_store(p)?),
                 None => None,
@@ -638,6 +677,34 @@ fn run(cli: Cli) -> Result<()> {
                 a.mp4.is_none() || a.orbit.is_some() || a.path.is_some(),
                 "--mp4 needs a sequence (--orbit N or --path FILE)"
             );
+            // Outputs are checked before the render, not found wanting after it.
+            let inputs: Vec<&Path> = std::iter::once(a.scene.as_path())
+                .chain(a.path.as_deref())
+                .collect();
+            for (out, what) in [
+                (Some(&a.output), "image (-o)"),
+                (a.exr.as_ref(), "EXR image (--exr)"),
+                (a.stats.as_ref(), "stats (--stats)"),
+                (a.mp4.as_ref(), "video (--mp4)"),
+            ] {
+                if let Some(out) = out {
+                    // A sequence's frames go to a folder of their own, made here.
+                    let sequence = a.orbit.is_some() || a.path.is_some();
+                    if sequence && strata_coordinator::sequence::is_numbered(out).unwrap_or(false) {
+                        if let Some(dir) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
+                            std::fs::create_dir_all(dir).with_context(|| {
+                                format!(
+                                    "{}: cannot create the folder {}",
+                                    out.display(),
+                                    dir.display()
+                                )
+                            })?;
+                        }
+                    }
+                    folder_exists(out, what)?;
+                    not_an_input(out, &inputs)?;
+                }
+            }
             let pb = progress(cli.quiet, "synth");
             let s = if a.in_process {
                 render::render_in_process(&opts, &pb)

@@ -620,9 +620,9 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
                     seconds: t.elapsed().as_secs_f64(),
                     rounds: fr.stats.iter().map(|s| s.render_rounds).max().unwrap_or(0),
                     outcome: worst_outcome(fr.stats.iter().map(|s| s.outcome.as_str())),
-                    samples: fr.stats.iter().map(|s| s.samples).sum(),
-                    occluded_blocks: fr.stats.iter().map(|s| s.occluded_blocks).sum(),
-                    fixup_blocks: fr.stats.iter().map(|s| s.fixup_blocks).sum(),
+                    samples: saturating_total(fr.stats.iter().map(|s| s.samples)),
+                    occluded_blocks: saturating_total(fr.stats.iter().map(|s| s.occluded_blocks)),
+                    fixup_blocks: saturating_total(fr.stats.iter().map(|s| s.fixup_blocks)),
                     effects: distinct(fr.stats.iter().map(|s| s.effects.as_str())),
                     variant: distinct(fr.stats.iter().map(|s| s.variant.as_str())),
                 });
@@ -680,7 +680,7 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
         height: h,
         rounds: fr.stats.iter().map(|s| s.render_rounds).max().unwrap_or(0),
         outcome: worst_outcome(fr.stats.iter().map(|s| s.outcome.as_str())),
-        samples: fr.stats.iter().map(|s| s.samples).sum(),
+        samples: saturating_total(fr.stats.iter().map(|s| s.samples)),
         // The same quantities as in-process, under the same names: the final round's cast
         // (of the slowest worker), casting and loading summed over the engines and the run's
         // frames, reads and cache lookups over the engines since they opened the scene.
@@ -689,14 +689,16 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
         load_seconds: frames.iter().flatten().map(|s| s.load_s).sum(),
         // Cache counters are per worker since it opened the scene: the last frame's.
         cache_hit_rate: {
-            let (h, l) = fr
-                .stats
-                .iter()
-                .fold((0, 0), |(h, l), s| (h + s.cache_hits, l + s.cache_lookups));
+            let (h, l) = fr.stats.iter().fold((0u64, 0u64), |(h, l), s| {
+                (
+                    h.saturating_add(s.cache_hits),
+                    l.saturating_add(s.cache_lookups),
+                )
+            });
             h as f64 / l.max(1) as f64
         },
-        pages_read: fr.stats.iter().map(|s| s.pages_read).sum(),
-        bytes_read: fr.stats.iter().map(|s| s.bytes_read).sum(),
+        pages_read: saturating_total(fr.stats.iter().map(|s| s.pages_read)),
+        bytes_read: saturating_total(fr.stats.iter().map(|s| s.bytes_read)),
         backend: {
             let mut b: Vec<&str> = fr.stats.iter().map(|s| s.backend.as_str()).collect();
             b.sort_unstable();
@@ -712,9 +714,9 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
         workers: n,
         algorithm: Some(format!("{:?}", choice.algorithm)),
         composite_seconds: fr.composite_s,
-        exchange_bytes: fr.stats.iter().map(|s| s.bytes_sent).sum(),
+        exchange_bytes: saturating_total(fr.stats.iter().map(|s| s.bytes_sent)),
         gather_bytes: fr.gather_bytes,
-        exchange_shm_bytes: fr.stats.iter().map(|s| s.shm_bytes_sent).sum(),
+        exchange_shm_bytes: saturating_total(fr.stats.iter().map(|s| s.shm_bytes_sent)),
         canvas_gather: fr.canvas_gather,
         lost_workers: lost_workers.clone(),
         joined_workers,
@@ -831,4 +833,10 @@ pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result
 /// Path helper for messages.
 pub fn display(p: &Path) -> String {
     p.display().to_string()
+}
+
+/// The sum of counters the workers reported, saturating: a worker's numbers come over the
+/// network and may be anything.
+fn saturating_total(counts: impl Iterator<Item = u64>) -> u64 {
+    counts.fold(0, u64::saturating_add)
 }

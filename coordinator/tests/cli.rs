@@ -654,3 +654,104 @@ up = [0.0, 0.0, -1.0]
         (Some(1), Some("round-limit"))
     );
 }
+
+/// Outputs and values are checked before any work: a missing folder, an output that is an
+/// input, a value no render can use, a scene value (named with its line), a timeout no
+/// clock can hold. Each fails with one error, exit 1, no panic and nothing written.
+#[test]
+fn outputs_and_values_are_checked_before_any_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let survey = small_survey(d);
+    let scene = survey.join("scene.toml");
+    let scene_s = scene.to_str().unwrap();
+    let scene_text = std::fs::read_to_string(&scene).unwrap();
+    std::fs::write(d.join("v.raw"), vec![1u8; 1000]).unwrap();
+    let bad_fov = d.join("fov.toml");
+    assert!(scene_text.contains("\nfov_deg = 35.0\n"), "{scene_text}");
+    std::fs::write(
+        &bad_fov,
+        scene_text.replace("fov_deg = 35.0", "fov_deg = 0.0"),
+    )
+    .unwrap();
+    let fov_line = 1 + scene_text[..scene_text.find("fov_deg").unwrap()]
+        .matches('\n')
+        .count();
+    let p = |n: &str| d.join(n).display().to_string();
+    let render = |extra: &[&str]| -> Vec<String> {
+        let mut v: Vec<String> = ["render", scene_s, "--in-process", "--size", "32x24"]
+            .map(String::from)
+            .to_vec();
+        v.extend(extra.iter().map(|s| s.to_string()));
+        v
+    };
+    let cases: Vec<(Vec<String>, String)> = vec![
+        (render(&["-o", &p("nodir/o.png")]), "nodir".into()),
+        (
+            render(&["-o", &p("o.png"), "--exr", &p("nodir/o.exr")]),
+            "nodir".into(),
+        ),
+        (
+            render(&["-o", &p("o.png"), "--stats", &p("nodir/s.jsonl")]),
+            "nodir".into(),
+        ),
+        (render(&["-o", scene_s]), "this is the input".into()),
+        (
+            render(&["-o", &p("o.png"), "--set", "render.atlas_mb=100000000"]),
+            "render.atlas_mb".into(),
+        ),
+        (
+            vec![
+                "render".into(),
+                bad_fov.display().to_string(),
+                "--in-process".into(),
+                "-o".into(),
+                p("o.png"),
+            ],
+            format!("fov.toml:{fov_line}:1: camera.fov_deg"),
+        ),
+        (
+            [
+                "ingest",
+                "raw",
+                &p("v.raw"),
+                "--dims",
+                "10",
+                "10",
+                "10",
+                "--dtype",
+                "u8",
+                "-o",
+                &p("v.raw"),
+            ]
+            .map(String::from)
+            .to_vec(),
+            "this is the input".into(),
+        ),
+    ];
+    let before = only_files(d);
+    for (args, needle) in cases {
+        let a: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
+        let o = coordinator(&a);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{a:?}: {err}");
+        assert!(err.contains(&needle), "{a:?}: expected {needle:?} in {err}");
+        assert!(!err.contains("panicked"), "{a:?}: {err}");
+        assert_eq!(only_files(d), before, "{a:?} left files behind");
+    }
+    assert_eq!(std::fs::read_to_string(&scene).unwrap(), scene_text);
+    assert_eq!(std::fs::read(d.join("v.raw")).unwrap(), vec![1u8; 1000]);
+    // A worker's timeouts are bounded as the coordinator's are.
+    for flag in ["--connect-timeout-s", "--idle-timeout-s"] {
+        let o = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+            .args(["-q", "worker", "--connect", "127.0.0.1:9", "--fingerprint"])
+            .arg("ab".repeat(32))
+            .args([flag, "inf"])
+            .env("STRATA_SECRET", "0123456789abcdef0123")
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{flag}: {err}");
+        assert!(err.contains(flag) && !err.contains("panicked"), "{err}");
+    }
+}

@@ -1543,6 +1543,30 @@ fn a_bad_shared_memory_segment_of_a_worker_is_refused_naming_it() {
         last.contains("worker 0 (fake") && last.contains("into the canvas of a"),
         "{log}"
     );
+
+    // 4. Frame stats that claim another rank (a wall frame's tile check indexed the
+    // workers by it).
+    let w = start_waiting_coordinator(1, &[]);
+    rt.block_on(async {
+        let (_ep, _conn, mut send, mut recv, _setup) = fake_worker(&w).await;
+        let (_seg, req) = segment_ready_and_frame(&mut send, &mut recv).await;
+        let msg = WorkerMsg::FrameDone {
+            frame: req.frame,
+            stats: strata_common::wire::WorkerFrameStats {
+                rank: 999,
+                ..Default::default()
+            },
+            shm: None,
+            lz4: false,
+            canvas: None,
+        };
+        say_then_linger(&mut send, &msg).await;
+    });
+    let (last, log) = failed(w);
+    assert!(
+        last.contains("worker 0 (fake") && last.contains("frame stats of rank 999"),
+        "{log}"
+    );
 }
 
 #[test]

@@ -80,10 +80,17 @@ pub fn join(a: JoinArgs) -> Result<()> {
     } else {
         "0.0.0.0:0".parse().unwrap()
     });
-    anyhow::ensure!(
-        a.connect_timeout_s > 0.0 && a.idle_timeout_s > 0.0,
-        "timeouts must be positive"
-    );
+    // The coordinator's bound (`cluster.*_timeout_s`): a duration from infinity or NaN
+    // would panic.
+    for (flag, v) in [
+        ("--connect-timeout-s", a.connect_timeout_s),
+        ("--idle-timeout-s", a.idle_timeout_s),
+    ] {
+        anyhow::ensure!(
+            v > 0.0 && v <= 1e6,
+            "{flag} must be a positive number of seconds up to 1e6, got {v}"
+        );
+    }
     crate::node::run(crate::node::NodeOptions {
         connect: addr,
         fingerprint,

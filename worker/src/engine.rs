@@ -1121,45 +1121,31 @@ impl Engine {
     }
 }
 
-fn validate(s: &RenderSettings) -> Result<()> {
-    let pos = |name: &str, v: f64| -> Result<()> {
-        if !(v > 0.0 && v.is_finite()) {
-            bail!("render.{name} must be a positive number, got {v}");
-        }
-        Ok(())
+/// This machine's physical memory in MiB (`None` where the system will not say).
+fn physical_memory_mb() -> Option<u64> {
+    // SAFETY: `sysconf` only reads system parameters.
+    let (pages, size) = unsafe {
+        (
+            libc::sysconf(libc::_SC_PHYS_PAGES),
+            libc::sysconf(libc::_SC_PAGESIZE),
+        )
     };
-    pos("step", s.step)?;
-    pos("tau", s.tau)?;
-    pos("z_scale", s.z_scale)?;
-    if s.step < 1e-3 || s.step > 1e3 {
-        bail!(
-            "render.step must lie in [0.001, 1000] voxels, got {}",
-            s.step
-        );
-    }
-    if !(s.early_termination > 0.0 && s.early_termination <= 1.0) {
-        bail!(
-            "render.early_termination must lie in (0, 1], got {}",
-            s.early_termination
-        );
-    }
-    if s.cache_mb == 0 {
-        bail!("render.cache_mb must be at least 1");
-    }
-    if s.atlas_mb == 0 || s.horizon_atlas_mb == 0 {
-        bail!("render.atlas_mb and render.horizon_atlas_mb must be at least 1");
-    }
-    if ![0, 8, 16].contains(&s.simd_lanes) {
-        bail!(
-            "render.simd_lanes must be 0 (the widest the CPU runs), 8 or 16, got {}",
-            s.simd_lanes
-        );
-    }
-    if s.loader_threads == 0 || s.loader_threads > 256 {
-        bail!(
-            "render.loader_threads must lie in 1..=256, got {}",
-            s.loader_threads
-        );
+    (pages > 0 && size > 0).then(|| (pages as u64).saturating_mul(size as u64) >> 20)
+}
+
+fn validate(s: &RenderSettings) -> Result<()> {
+    s.check().map_err(|(_, message)| anyhow::anyhow!(message))?;
+    // The CPU atlases are allocated whole at start: past the machine's memory the
+    // allocation would abort the process instead of failing here.
+    if let Some(mem) = physical_memory_mb() {
+        for (key, v) in [
+            ("atlas_mb", s.atlas_mb),
+            ("horizon_atlas_mb", s.horizon_atlas_mb),
+        ] {
+            if v > mem {
+                bail!("render.{key} = {v} exceeds this machine's memory ({mem} MiB)");
+            }
+        }
     }
     Ok(())
 }

@@ -340,8 +340,13 @@ fn temp_path(path: &Path) -> Result<PathBuf> {
 /// removes the temporary on any error.
 fn write_via_temp(path: &Path, write: impl FnOnce(&mut File) -> Result<()>) -> Result<()> {
     let tmp = temp_path(path)?;
-    let mut file =
-        File::create(&tmp).with_context(|| format!("{}: cannot create", tmp.display()))?;
+    let mut file = File::create(&tmp).with_context(|| {
+        format!(
+            "{}: cannot create it (through the temporary file {})",
+            path.display(),
+            tmp.display()
+        )
+    })?;
     let result = write(&mut file)
         .and_then(|()| file.sync_all().context("cannot sync"))
         .with_context(|| format!("{}: cannot write", path.display()))

@@ -271,7 +271,11 @@ pub struct ExchangeStats {
 struct Pending {
     rank: u32,
     piece: SparsePiece,
+    /// Bytes on the wire.
     len: u64,
+    /// Bytes it holds here (more than on the wire when it came LZ4-compressed), what
+    /// [`ExchangeLimits::pending_bytes`] bounds.
+    held: u64,
 }
 
 struct Active {
@@ -433,7 +437,7 @@ impl Exchange {
             .collect();
         for k in stale {
             let p = self.pending.remove(&k).unwrap();
-            self.pending_bytes -= p.len;
+            self.pending_bytes -= p.held;
             self.stats.stale += 1;
         }
         // Early pieces of this frame: now their senders can be checked.
@@ -523,8 +527,11 @@ impl Exchange {
             self.stats.duplicates += 1;
             return;
         }
+        // What the piece holds in memory, not what it took on the wire: an LZ4 piece
+        // decompressed on arrival can be hundreds of times larger.
+        let held = len.max(piece.byte_len() as u64);
         if self.pending.len() >= self.limits.pending_pieces
-            || self.pending_bytes + len > self.limits.pending_bytes
+            || self.pending_bytes + held > self.limits.pending_bytes
         {
             return self.fail(ExchangeError::PendingFull {
                 rank: sender,
@@ -532,13 +539,14 @@ impl Exchange {
                 bytes: self.pending_bytes,
             });
         }
-        self.pending_bytes += len;
+        self.pending_bytes += held;
         self.pending.insert(
             key,
             Pending {
                 rank: sender,
                 piece,
                 len,
+                held,
             },
         );
     }
@@ -679,7 +687,7 @@ impl Exchange {
                     .collect();
                 for k in keys {
                     let p = self.pending.remove(&k).unwrap();
-                    self.pending_bytes -= p.len;
+                    self.pending_bytes -= p.held;
                     let a = self.active.as_mut().unwrap();
                     match a.rc.receive(k.2 as usize, p.piece) {
                         Ok(()) => self.stats.bytes_received += p.len,

@@ -7,13 +7,13 @@ use std::path::PathBuf;
 #[non_exhaustive]
 pub enum StoreError {
     /// The operating system failed a read.
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         /// The store.
         path: PathBuf,
-        /// The cause.
-        #[source]
-        source: std::io::Error,
+        /// The cause: in the message, not a `source` as well (an error chain would print
+        /// it twice).
+        error: std::io::Error,
     },
     /// The file is not what the format says should be at `offset`.
     #[error("{path}: at byte {offset}: expected {expected}, found {found}")]

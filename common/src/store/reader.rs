@@ -32,9 +32,9 @@ pub struct PageStore {
 
 fn read_exact_at(file: &File, path: &Path, buf: &mut [u8], offset: u64) -> Result<(), StoreError> {
     file.read_exact_at(buf, offset)
-        .map_err(|source| StoreError::Io {
+        .map_err(|error| StoreError::Io {
             path: path.to_path_buf(),
-            source,
+            error,
         })
 }
 
@@ -43,9 +43,9 @@ impl PageStore {
     /// file is checked against the file's length before anything is allocated.
     pub fn open(path: impl AsRef<Path>) -> Result<Self, StoreError> {
         let path = path.as_ref().to_path_buf();
-        let io = |source| StoreError::Io {
+        let io = |error| StoreError::Io {
             path: path.clone(),
-            source,
+            error,
         };
         let file = File::open(&path).map_err(io)?;
         let file_len = file.metadata().map_err(io)?.len();
