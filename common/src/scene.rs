@@ -732,6 +732,15 @@ impl RenderSettings {
         if self.cache_mb == 0 {
             return Err(("cache_mb", "render.cache_mb must be at least 1".into()));
         }
+        if !self.background.iter().all(|c| (0.0..=1.0).contains(c)) {
+            return Err((
+                "background",
+                format!(
+                    "render.background {:?} must lie in 0..=1 (linear RGB)",
+                    self.background
+                ),
+            ));
+        }
         for (key, v) in [
             ("atlas_mb", self.atlas_mb),
             ("horizon_atlas_mb", self.horizon_atlas_mb),
@@ -944,6 +953,29 @@ impl Scene {
             .render
             .check()
             .map_err(|(key, message)| at("render", key, message))?;
+        for (i, h) in scene.horizons.iter().enumerate() {
+            let bad = |key: &str, what: String| {
+                let (line, column) = key_position_in(text, "[[horizon]]", i, key);
+                SceneError {
+                    path: path.to_path_buf(),
+                    line,
+                    column,
+                    message: format!("horizon {i}: {what}"),
+                }
+            };
+            if !h.color.iter().all(|c| (0.0..=1.0).contains(c)) {
+                return Err(bad(
+                    "color",
+                    format!("color {:?} must lie in 0..=1", h.color),
+                ));
+            }
+            if !(0.0..=1.0).contains(&h.opacity) {
+                return Err(bad(
+                    "opacity",
+                    format!("opacity {} must lie in 0..=1", h.opacity),
+                ));
+            }
+        }
         if let Some(c) = &scene.camera {
             use crate::camera::{View, ViewError};
             let (w, h) = (scene.render.width.max(1), scene.render.height.max(1));
@@ -1002,27 +1034,42 @@ impl Scene {
 /// key is not written there, 1, 1 without the section, e.g. for a value that came from
 /// `--set`).
 fn key_position(text: &str, section: &str, key: &str) -> (usize, usize) {
-    let header = format!("[{section}]");
-    let Some(sec) = text.match_indices(&header).map(|(i, _)| i).find(|&i| {
-        text[..i]
-            .rsplit('\n')
-            .next()
-            .is_some_and(|l| l.trim().is_empty())
-    }) else {
-        return (1, 1);
-    };
-    let mut at = sec;
-    for line in text[sec..].split_inclusive('\n').skip(1) {
-        at += text[at..].find(line).unwrap_or(0);
+    key_position_in(text, &format!("[{section}]"), 0, key)
+}
+
+/// Line and column of `key` in the `nth` table headed `header` (`[render]`, or
+/// `[[horizon]]` for an array of tables): the header's when the key is not written there,
+/// 1, 1 without the table.
+fn key_position_in(text: &str, header: &str, nth: usize, key: &str) -> (usize, usize) {
+    let mut offset = 0;
+    let mut seen = 0;
+    let mut inside: Option<usize> = None;
+    for line in text.split_inclusive('\n') {
         let t = line.trim_start();
+        let at = offset + (line.len() - t.len());
+        offset += line.len();
         if t.starts_with('[') {
-            break;
-        }
-        if t.starts_with(key) && t[key.len()..].trim_start().starts_with('=') {
-            return line_col(text, at + (line.len() - t.len()));
+            if inside.is_some() {
+                break;
+            }
+            let is_header = t.trim_end().strip_prefix(header).is_some_and(|r| {
+                let r = r.trim_start();
+                r.is_empty() || r.starts_with('#')
+            });
+            if is_header {
+                if seen == nth {
+                    inside = Some(at);
+                }
+                seen += 1;
+            }
+        } else if inside.is_some()
+            && t.starts_with(key)
+            && t[key.len()..].trim_start().starts_with('=')
+        {
+            return line_col(text, at);
         }
     }
-    line_col(text, sec)
+    inside.map_or((1, 1), |at| line_col(text, at))
 }
 
 #[cfg(test)]
@@ -1110,6 +1157,20 @@ mod tests {
         .unwrap_err();
         assert_eq!((e.line, e.column), (1, 1), "{e}");
         assert!(camera("target = [1, 0, 0]\n").is_ok());
+        // The second horizon's colour: its own line, not the first's.
+        let e = Scene::parse(
+            Path::new("h.toml"),
+            "[[horizon]]\nstore = \"a\"\ncolor = [1, 0, 0]\n\n[[horizon]]\nstore = \"b\"\ncolor = [0, nan, 0]\n",
+        )
+        .unwrap_err();
+        assert_eq!((e.line, e.column), (7, 1), "{e}");
+        assert!(e.to_string().contains("horizon 1: color"), "{e}");
+        let e = Scene::parse(
+            Path::new("b.toml"),
+            "[render]  # settings\nbackground = [0, 0, inf]\n",
+        )
+        .unwrap_err();
+        assert_eq!((e.line, e.column), (2, 1), "{e}");
     }
 
     #[test]

@@ -755,3 +755,54 @@ fn outputs_and_values_are_checked_before_any_work() {
         assert!(err.contains(flag) && !err.contains("panicked"), "{err}");
     }
 }
+
+/// A build ended by a signal leaves no temporary behind, and still dies of that signal.
+#[test]
+fn an_interrupted_build_leaves_no_temporary() {
+    use std::os::unix::process::ExitStatusExt;
+    for signal in [libc::SIGTERM, libc::SIGINT] {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("big");
+        let mut child = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+            .args([
+                "-q",
+                "synth",
+                "-o",
+                out.to_str().unwrap(),
+                "--size",
+                "700",
+                "600",
+                "500",
+            ])
+            .spawn()
+            .unwrap();
+        // Wait for the store's temporary to appear, then interrupt the build.
+        let t0 = std::time::Instant::now();
+        let temporaries = || -> Vec<String> {
+            std::fs::read_dir(&out)
+                .map(|d| {
+                    d.filter_map(|e| e.ok())
+                        .map(|e| e.file_name().to_string_lossy().into_owned())
+                        .filter(|n| n.contains(".tmp"))
+                        .collect()
+                })
+                .unwrap_or_default()
+        };
+        while temporaries().is_empty() {
+            assert!(
+                t0.elapsed().as_secs() < 60,
+                "no temporary appeared in {out:?}"
+            );
+            if let Some(s) = child.try_wait().unwrap() {
+                panic!("the build ended ({s}) before it could be interrupted");
+            }
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+        // SAFETY: signals our own child.
+        unsafe { libc::kill(child.id() as i32, signal) };
+        let status = child.wait().unwrap();
+        assert_eq!(status.signal(), Some(signal), "{status}");
+        assert_eq!(temporaries(), Vec::<String>::new(), "left behind");
+    }
+}

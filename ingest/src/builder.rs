@@ -127,10 +127,12 @@ pub struct BuildReport {
     pub source_samples: u64,
 }
 
-/// Removes the temporary file unless the build completed.
+/// Removes the temporary file unless the build completed (on errors and panics here, on
+/// signals through [`crate::cleanup`]).
 struct TempFile {
     path: PathBuf,
     keep: bool,
+    _signals: crate::cleanup::Registered,
 }
 
 impl Drop for TempFile {
@@ -209,8 +211,21 @@ pub fn build_store(
         vertical_domain: opts.vertical_domain,
     };
 
+    // The page index, bounded before anything is written: a layout of more pages than
+    // this machine can index fails here, not in an abort.
+    let mut entries: Vec<IndexEntry> = Vec::new();
+    entries
+        .try_reserve_exact(pyr.total_pages() as usize)
+        .map_err(|_| {
+            anyhow::anyhow!(
+                "{dims:?} samples make {} pages, more than this machine can index",
+                pyr.total_pages()
+            )
+        })?;
+    let path = temp_path_for(out);
     let tmp = TempFile {
-        path: temp_path_for(out),
+        _signals: crate::cleanup::register(&path),
+        path,
         keep: false,
     };
     let file = File::create(&tmp.path)
@@ -226,7 +241,6 @@ pub fn build_store(
         pages: pyr.total_pages(),
         ..Default::default()
     };
-    let mut entries: Vec<IndexEntry> = Vec::with_capacity(pyr.total_pages() as usize);
     let mut stats = Level0Stats {
         hist: Some(Box::default()),
         ..Level0Stats::default()

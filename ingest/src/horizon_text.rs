@@ -115,8 +115,9 @@ pub fn parse_horizon(path: &Path, opts: &HorizonParseOptions) -> Result<HorizonG
         check_survey(&file, s)?;
     }
     if let Some(n) = opts.null_value {
-        if n.is_nan() {
-            bail!("{file}: the null value must be a number, not NaN");
+        // Heights are finite: an infinite null (`--null 1e400`) would mark nothing.
+        if !n.is_finite() {
+            bail!("{file}: the null value must be a finite number, got {n}");
         }
     }
     let format = match opts.format {
@@ -1427,6 +1428,16 @@ mod tests {
         std::fs::write(&p, b"1 2 3\n1 \xff 3\n").unwrap();
         let e = parse(&p).unwrap_err().to_string();
         assert!(e.contains("binary.txt:2:"), "{e}");
+        // A null value that is not a finite number (`--null 1e400` reads as infinity).
+        let p = temp("null_inf.txt", "1 2 3\n1 3 4\n");
+        for null in [f64::INFINITY, f64::NAN] {
+            let opts = HorizonParseOptions {
+                null_value: Some(null),
+                ..Default::default()
+            };
+            let e = parse_horizon(&p, &opts).unwrap_err().to_string();
+            assert!(e.contains("null_inf.txt") && e.contains("finite"), "{e}");
+        }
         // Missing file.
         let e = parse(Path::new("/nonexistent/horizon.dat"))
             .unwrap_err()

@@ -4,6 +4,7 @@
 //!
 //! * [`source`]: the `GridSource` trait the builder reads through, raw files, memory grids.
 //! * [`builder`]: streams a source into a page store with bounded memory.
+//! * [`cleanup`]: its temporary file unlinked when a signal ends the process.
 //! * [`segy`]: SEG-Y rev 0/1/2 reading (and writing, for synthetic tests).
 //! * [`horizon_text`]: interpreted horizons from text exports.
 //! * [`synth`]: deterministic synthetic seismic surveys.
@@ -12,6 +13,7 @@
 //! The coordinator's `ingest`, `synth` and `inspect` commands are thin wrappers over these.
 
 pub mod builder;
+pub mod cleanup;
 pub mod horizon_text;
 pub mod inspect;
 pub mod segy;

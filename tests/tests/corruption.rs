@@ -131,3 +131,31 @@ fn raw_with_wrong_dims_names_file_and_sizes() {
     );
     assert!(RawSource::open(&p, [10, 10, 5], SampleType::U16, false).is_ok());
 }
+
+/// A header that decodes and checksums right but holds a NaN or singular index→world
+/// transform (every ray and region goes through it) is refused at open, naming the file.
+#[test]
+fn a_store_whose_transform_is_not_finite_or_invertible_is_refused() {
+    for bad in [f64::NAN, 0.0] {
+        let dir = tempfile::tempdir().unwrap();
+        let p = store(dir.path());
+        let mut b = std::fs::read(&p).unwrap();
+        let at = |o: usize| u64::from_le_bytes(b[o..o + 8].try_into().unwrap()) as usize;
+        let (ho, hl) = (at(16), at(24));
+        let cfg = bincode::config::standard();
+        let (mut h, _): (strata_common::store::StoreHeader, usize) =
+            bincode::serde::decode_from_slice(&b[ho..ho + hl], cfg).unwrap();
+        // x's scale: NaN, or 0 (a singular transform).
+        h.transform.rows[0][0] = bad;
+        let enc = bincode::serde::encode_to_vec(&h, cfg).unwrap();
+        assert_eq!(enc.len(), hl, "an f64 keeps its length");
+        b[ho..ho + hl].copy_from_slice(&enc);
+        strata_tests::fuzz::seal_store(&mut b);
+        std::fs::write(&p, &b).unwrap();
+        let e = PageStore::open(&p).err().expect("refused").to_string();
+        assert!(
+            e.contains("s.strata") && e.contains("finite, invertible"),
+            "{e}"
+        );
+    }
+}

@@ -118,6 +118,15 @@ impl PageStore {
                 e.to_string(),
             )
         })?;
+        // Every ray and region goes through it: a NaN or singular transform would render
+        // garbage, not fail.
+        if !header.transform.is_finite() || header.transform.inverse().is_none() {
+            return Err(fmt(
+                pre.header_offset,
+                "a finite, invertible index→world transform".into(),
+                format!("{:?}", header.transform.rows),
+            ));
+        }
         if pyramid.level_count() != header.levels as usize {
             return Err(fmt(
                 pre.header_offset,
