@@ -210,9 +210,14 @@ fn plan_frames(
     let mut plan = Vec::new();
     let mut skipped = 0;
     for i in a..b.min(n) {
+        let camera = at(i);
+        // Every frame's view is checked before any is rendered: a path whose interpolation
+        // passes the eye through the target fails here, naming the frame, not mid-run.
+        frame_view(scene, &camera, &scene.render, width.max(1), height.max(1))
+            .with_context(|| format!("{what}: frame {i}"))?;
         let f = FramePlan {
             index: i,
-            camera: at(i),
+            camera,
             png: crate::sequence::numbered(&opts.output, i)?,
             exr: opts
                 .exr

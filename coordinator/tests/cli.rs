@@ -677,6 +677,16 @@ fn outputs_and_values_are_checked_before_any_work() {
     let fov_line = 1 + scene_text[..scene_text.find("fov_deg").unwrap()]
         .matches('\n')
         .count();
+    // A path whose keyframes are fine but whose linear interpolation puts the eye on the
+    // target at t = 0.5 (frame 1 at 2 fps).
+    let through = d.join("through.toml");
+    std::fs::write(
+        &through,
+        "interpolation = \"linear\"\nfps = 2\n\
+         [[keyframes]]\ntime = 0.0\neye = [604300.0, 6075300.0, 100.0]\ntarget = [605300.0, 6075300.0, 100.0]\n\
+         [[keyframes]]\ntime = 1.0\neye = [606300.0, 6075300.0, 100.0]\ntarget = [605300.0, 6075300.0, 100.0]\n",
+    )
+    .unwrap();
     let p = |n: &str| d.join(n).display().to_string();
     let render = |extra: &[&str]| -> Vec<String> {
         let mut v: Vec<String> = ["render", scene_s, "--in-process", "--size", "32x24"]
@@ -696,6 +706,10 @@ fn outputs_and_values_are_checked_before_any_work() {
             "nodir".into(),
         ),
         (render(&["-o", scene_s]), "this is the input".into()),
+        (
+            render(&["-o", &p("f_%03d.png"), "--path", through.to_str().unwrap()]),
+            "frame 1".into(),
+        ),
         (
             render(&["-o", &p("o.png"), "--set", "render.atlas_mb=100000000"]),
             "render.atlas_mb".into(),
