@@ -819,4 +819,43 @@ fn an_interrupted_build_leaves_no_temporary() {
         assert_eq!(status.signal(), Some(signal), "{status}");
         assert_eq!(temporaries(), Vec::<String>::new(), "left behind");
     }
+    // A build started with SIGHUP ignored (`nohup`) is not ended by one.
+    use std::os::unix::process::CommandExt;
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("hup");
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_coordinator"));
+    cmd.args([
+        "-q",
+        "synth",
+        "-o",
+        out.to_str().unwrap(),
+        "--size",
+        "400",
+        "300",
+        "300",
+    ]);
+    // SAFETY: `signal` is async-signal-safe; it runs in the child before exec.
+    unsafe {
+        cmd.pre_exec(|| {
+            libc::signal(libc::SIGHUP, libc::SIG_IGN);
+            Ok(())
+        });
+    }
+    let mut child = cmd.spawn().unwrap();
+    let t0 = std::time::Instant::now();
+    while !std::fs::read_dir(&out).is_ok_and(|d| {
+        d.filter_map(|e| e.ok())
+            .any(|e| e.file_name().to_string_lossy().contains(".tmp"))
+    }) {
+        assert!(t0.elapsed().as_secs() < 60, "no temporary appeared");
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+    // SAFETY: signals our own child.
+    unsafe { libc::kill(child.id() as i32, libc::SIGHUP) };
+    let status = child.wait().unwrap();
+    assert!(
+        status.success(),
+        "an ignored SIGHUP ended the build: {status}"
+    );
+    assert!(out.join("scene.toml").exists());
 }

@@ -6,8 +6,8 @@
 //! temporary behind: hundreds of GB for a real survey. While a temporary is registered here,
 //! SIGINT, SIGTERM and SIGHUP first unlink every registered temporary, then end the process
 //! as the signal would have (default action, re-raised), so its exit status still says
-//! which signal ended it. The handlers the process had before are restored once no
-//! temporary is registered.
+//! which signal ended it. A signal the process ignores stays ignored. The handlers the
+//! process had before are restored once no temporary is registered.
 
 use std::ffi::CString;
 use std::os::unix::ffi::OsStrExt;
@@ -78,7 +78,9 @@ impl Drop for Registered {
     }
 }
 
-/// Installs `on_signal` for `signal`; returns the action it replaced.
+/// Installs `on_signal` for `signal`; returns the action it replaced. A signal the
+/// process ignores (SIGHUP under `nohup`, SIGINT in a background job of a script) stays
+/// ignored: it never ended the build, and must not start to.
 fn install(signal: libc::c_int) -> libc::sigaction {
     // SAFETY: plain-data structs, filled by `sigaction`; the handler is async-signal-safe.
     unsafe {
@@ -87,6 +89,9 @@ fn install(signal: libc::c_int) -> libc::sigaction {
         libc::sigemptyset(&mut new.sa_mask);
         let mut old: libc::sigaction = std::mem::zeroed();
         libc::sigaction(signal, &new, &mut old);
+        if old.sa_sigaction == libc::SIG_IGN {
+            libc::sigaction(signal, &old, std::ptr::null_mut());
+        }
         old
     }
 }
@@ -99,9 +104,16 @@ extern "C" fn on_signal(signal: libc::c_int) {
             unsafe { libc::unlink(path) };
         }
     }
-    // SAFETY: both are async-signal-safe; the default action ends the process.
+    // SAFETY: all async-signal-safe. The signal is blocked while its handler runs: raised
+    // again and unblocked, its default action ends the process here. Should another thread
+    // have put a handler back in between, `_exit` does.
     unsafe {
         libc::signal(signal, libc::SIG_DFL);
         libc::raise(signal);
+        let mut set: libc::sigset_t = std::mem::zeroed();
+        libc::sigemptyset(&mut set);
+        libc::sigaddset(&mut set, signal);
+        libc::pthread_sigmask(libc::SIG_UNBLOCK, &set, std::ptr::null_mut());
+        libc::_exit(128 + signal);
     }
 }

@@ -119,10 +119,12 @@ pub fn topology_order(cpus: &[usize], place: impl Fn(usize) -> Place) -> Vec<usi
 }
 
 /// The CPUs of worker `slot` of `workers`, each wanting `threads` of them, from `order`
-/// (see [`topology_order`]): consecutive blocks of `min(threads, order.len() / workers)`
-/// CPUs, so every worker has its own block while there are enough; with more workers than
-/// CPUs, one CPU each, round robin (shared). The second value is whether this worker's
-/// CPUs are shared with another worker's.
+/// (see [`topology_order`]): `order` is cut into `workers` even shares and each worker
+/// takes the first `min(threads, share)` CPUs of its own, so workers spread over the
+/// machine's cores and caches (not packed onto the first ones, where a core's second
+/// hardware thread would go to the next worker) and never share a CPU while there are
+/// enough; with more workers than CPUs, one CPU each, round robin (shared). The second
+/// value is whether this worker's CPUs are shared with another worker's.
 pub fn block_for(
     order: &[usize],
     workers: usize,
@@ -137,8 +139,9 @@ pub fn block_for(
     if workers > n {
         return (vec![order[slot % n]], true);
     }
-    let size = threads.clamp(1, n / workers);
-    let start = (slot % workers) * size;
+    let share = n / workers;
+    let size = threads.clamp(1, share);
+    let start = (slot % workers) * share;
     (order[start..start + size].to_vec(), false)
 }
 
@@ -172,15 +175,25 @@ mod tests {
         let order = topology_order(&all, place);
         // A core's two threads are neighbours, a cache's four cores follow each other.
         assert_eq!(&order[..8], &[0, 16, 1, 17, 2, 18, 3, 19]);
-        // Eight 2-thread workers: each on both threads of one core, disjoint.
-        let blocks: Vec<Vec<usize>> = (0..8).map(|s| block_for(&order, 8, 2, s).0).collect();
+        // Sixteen 2-thread workers: each on both threads of one core, disjoint.
+        let blocks: Vec<Vec<usize>> = (0..16).map(|s| block_for(&order, 16, 2, s).0).collect();
         assert_eq!(blocks[0], vec![0, 16]);
         assert_eq!(blocks[1], vec![1, 17]);
-        assert_eq!(blocks[7], vec![7, 23]);
+        assert_eq!(blocks[15], vec![15, 31]);
         let mut seen: Vec<usize> = blocks.concat();
         seen.sort();
         seen.dedup();
-        assert_eq!(seen.len(), 16);
+        assert_eq!(seen.len(), 32);
+        // Eight: spread one core apart, each on one core's two threads (never a second
+        // worker on a core's other thread).
+        let blocks: Vec<Vec<usize>> = (0..8).map(|s| block_for(&order, 8, 2, s).0).collect();
+        assert_eq!(blocks[0], vec![0, 16]);
+        assert_eq!(blocks[1], vec![2, 18]);
+        assert_eq!(blocks[7], vec![14, 30]);
+        // Two 1-thread workers: on different cores in different packages.
+        let (a, b) = (block_for(&order, 2, 1, 0).0, block_for(&order, 2, 1, 1).0);
+        assert_eq!((a.clone(), b.clone()), (vec![0], vec![8]));
+        assert_ne!(place(a[0]).package, place(b[0]).package);
         // Four 4-thread workers: two whole cores each, within one cache.
         for s in 0..4 {
             let (b, shared) = block_for(&order, 4, 4, s);
@@ -197,8 +210,8 @@ mod tests {
         // More threads than fit: an even share each.
         assert_eq!(block_for(&order, 2, 8, 0), (vec![0, 1], false));
         assert_eq!(block_for(&order, 2, 8, 1), (vec![2, 3], false));
-        // Fewer threads than a share: exactly `threads` each, from the front.
-        assert_eq!(block_for(&order, 2, 1, 1), (vec![1], false));
+        // Fewer threads than a share: exactly `threads` each, from the front of its share.
+        assert_eq!(block_for(&order, 2, 1, 1), (vec![2], false));
         // Three workers on four CPUs: one each, the last CPU unused.
         assert_eq!(block_for(&order, 3, 2, 2), (vec![2], false));
         // More workers than CPUs: one CPU each, round robin, shared.

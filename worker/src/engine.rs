@@ -319,6 +319,7 @@ impl Engine {
         let vpool = match (vps, gpu.as_mut()) {
             (None, _) => None,
             (Some(n), None) => {
+                cpu_atlas_fits("atlas_mb", s.atlas_mb)?;
                 let t = cpu_slot_type(&s, &data);
                 let page = data.volumes[0].pyramid.page() as usize;
                 let pool = Pool::typed(n, s.atlas_mb << 20, t);
@@ -352,7 +353,10 @@ impl Engine {
         };
         let hpool = match (hps, gpu.as_mut()) {
             (None, _) => None,
-            (Some(n), None) => Some(Pool::new(n, s.horizon_atlas_mb << 20)),
+            (Some(n), None) => {
+                cpu_atlas_fits("horizon_atlas_mb", s.horizon_atlas_mb)?;
+                Some(Pool::new(n, s.horizon_atlas_mb << 20))
+            }
             (Some(n), Some(g)) => {
                 let slots =
                     Pool::slots_for(n, s.horizon_atlas_mb << 20).min(g.max_horizon_slots(n));
@@ -1135,16 +1139,16 @@ fn physical_memory_mb() -> Option<u64> {
 
 fn validate(s: &RenderSettings) -> Result<()> {
     s.check().map_err(|(_, message)| anyhow::anyhow!(message))?;
-    // The CPU atlases are allocated whole at start: past the machine's memory the
-    // allocation would abort the process instead of failing here.
+    Ok(())
+}
+
+/// A CPU atlas (`render.{key}` MiB) is allocated whole at start: past the machine's
+/// memory the allocation would abort the process instead of failing here. (A GPU atlas
+/// lives in the adapter's memory, which its own limit bounds.)
+fn cpu_atlas_fits(key: &str, mb: u64) -> Result<()> {
     if let Some(mem) = physical_memory_mb() {
-        for (key, v) in [
-            ("atlas_mb", s.atlas_mb),
-            ("horizon_atlas_mb", s.horizon_atlas_mb),
-        ] {
-            if v > mem {
-                bail!("render.{key} = {v} exceeds this machine's memory ({mem} MiB)");
-            }
+        if mb > mem {
+            bail!("render.{key} = {mb} exceeds this machine's memory ({mem} MiB)");
         }
     }
     Ok(())
