@@ -364,8 +364,8 @@ fn singular_transforms_are_refused_at_build_and_at_open() {
     assert!(format!("{err:#}").contains("invertible"), "{err:#}");
     assert!(std::fs::read_dir(dir.path()).unwrap().next().is_none());
 
-    // A crafted store (CRCs right) with such a transform: the worker refuses to open it
-    // rather than panicking when it inverts the transform for its rays.
+    // A crafted store (CRCs right) with such a transform: the store reader refuses it, so
+    // the worker never gets to invert the transform for its rays.
     let path = dir.path().join("v.strata");
     build_store(
         &src,
@@ -392,5 +392,5 @@ fn singular_transforms_are_refused_at_build_and_at_open() {
         .err()
         .expect("refused");
     let e = format!("{err:#}");
-    assert!(e.contains("v.strata") && e.contains("singular"), "{e}");
+    assert!(e.contains("v.strata") && e.contains("invertible"), "{e}");
 }
