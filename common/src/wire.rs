@@ -532,6 +532,140 @@ impl WallFrame {
 /// Leaves one worker may be given.
 pub const MAX_LEAVES_PER_WORKER: usize = 64;
 
+/// The most ranks a run may have: a set-up naming more is refused before anything is
+/// sized from it.
+pub const MAX_RANKS: usize = 4096;
+
+/// Checks leaf regions from the network: 1..=[`MAX_LEAVES_PER_WORKER`] of them, each
+/// finite and not empty.
+pub fn check_leaves(leaves: &[Region]) -> Result<(), String> {
+    if leaves.is_empty() || leaves.len() > MAX_LEAVES_PER_WORKER {
+        return Err(format!(
+            "{} leaves (expected 1..={MAX_LEAVES_PER_WORKER})",
+            leaves.len()
+        ));
+    }
+    for r in leaves {
+        if !(0..3).all(|a| r.lo[a].is_finite() && r.hi[a].is_finite() && r.lo[a] < r.hi[a]) {
+            return Err(format!("a leaf region {r:?} is empty or not finite"));
+        }
+    }
+    Ok(())
+}
+
+impl Setup {
+    /// Checks a set-up from the network before a worker sizes anything from it: the run's
+    /// ranks (at most [`MAX_RANKS`]), this worker's rank and the absent ones among them,
+    /// one transport per peer, a frame limit that fits the `u32` pixel counts frames use,
+    /// and the leaves.
+    pub fn check(&self) -> Result<(), String> {
+        let n = self.peers.len();
+        if n == 0 || n > MAX_RANKS {
+            return Err(format!("a run of {n} workers (expected 1..={MAX_RANKS})"));
+        }
+        if self.rank as usize >= n {
+            return Err(format!(
+                "rank {} is not below the number of workers {n}",
+                self.rank
+            ));
+        }
+        let mut seen = vec![false; n];
+        for &r in &self.absent {
+            if r == self.rank || r as usize >= n || std::mem::replace(&mut seen[r as usize], true) {
+                return Err(format!(
+                    "the set-up's absent ranks {:?} must be distinct other ranks below {n}",
+                    self.absent
+                ));
+            }
+        }
+        if self.shm_peers.len() != n {
+            return Err(format!(
+                "the set-up names the transport of {} peers, the run has {n}",
+                self.shm_peers.len()
+            ));
+        }
+        if self.max_pixels == 0 || self.max_pixels > u32::MAX as u64 {
+            return Err(format!(
+                "a frame limit of {} pixels (expected 1..={})",
+                self.max_pixels,
+                u32::MAX
+            ));
+        }
+        check_leaves(&self.leaves).map_err(|e| format!("the set-up's leaves: {e}"))
+    }
+}
+
+impl FrameRequest {
+    /// Checks a frame request from the network against the run: `ranks` workers,
+    /// `leaves` leaves in force before it (its own re-split, if any, replaces them) and a
+    /// frame limit of `max_pixels`. The visibility order names distinct ranks of the run;
+    /// `leaf_order` is a permutation of the leaves (a leaf cast twice would double its
+    /// opacity, one left out would vanish from the image); the frame fits the limit; the
+    /// occlusion blocks are at most [`crate::occlusion::MAX_BLOCK`] pixels; a wall frame
+    /// fits its frame and takes no canvas (its tiles go to files).
+    pub fn check(&self, ranks: usize, leaves: usize, max_pixels: u64) -> Result<(), String> {
+        let f = self.frame;
+        let leaves = match &self.leaves {
+            Some(l) => {
+                check_leaves(l).map_err(|e| format!("frame {f}: {e}"))?;
+                l.len()
+            }
+            None => leaves,
+        };
+        let n = self.order.len();
+        if !(1..=ranks).contains(&n) {
+            return Err(format!(
+                "frame {f}: the visibility order has {n} ranks, the run has {ranks}"
+            ));
+        }
+        let mut seen = vec![false; ranks];
+        for &r in &self.order {
+            if r as usize >= ranks || std::mem::replace(&mut seen[r as usize], true) {
+                return Err(format!(
+                    "frame {f}: the visibility order {:?} repeats a rank or names one beyond the {ranks} ranks",
+                    self.order
+                ));
+            }
+        }
+        let mut seen = vec![false; leaves];
+        let permutation = self.leaf_order.len() == leaves
+            && self
+                .leaf_order
+                .iter()
+                .all(|&l| (l as usize) < leaves && !std::mem::replace(&mut seen[l as usize], true));
+        if !permutation {
+            return Err(format!(
+                "frame {f}: the leaf order {:?} is not an order of the worker's {leaves} leaves",
+                self.leaf_order
+            ));
+        }
+        let pixels = self.width as u64 * self.height as u64;
+        if pixels == 0 || pixels > max_pixels.min(u32::MAX as u64) {
+            return Err(format!(
+                "frame {f}: {}x{} pixels exceed the run's limit of {max_pixels} pixels (or are none)",
+                self.width, self.height
+            ));
+        }
+        if self.occlusion_block > crate::occlusion::MAX_BLOCK {
+            return Err(format!(
+                "frame {f}: occlusion blocks of {} pixels (at most {})",
+                self.occlusion_block,
+                crate::occlusion::MAX_BLOCK
+            ));
+        }
+        if let Some(w) = &self.wall {
+            w.check(self.width, self.height, &self.order)
+                .map_err(|e| format!("frame {f}: bad wall: {e}"))?;
+            if self.canvas.is_some() {
+                return Err(format!(
+                    "frame {f}: a wall frame with a canvas (its tiles go to files)"
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
 /// Largest number of [`PageWork`] records one worker reports per frame (about 1 MB on the
 /// wire, a quarter of [`MAX_META`]); a worker that touched more pages reports its largest
 /// shares and leaves the rest unattributed.
@@ -739,6 +873,156 @@ pub struct WorkerFrameStats {
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    fn region(x0: f64) -> Region {
+        Region {
+            lo: [x0, 0.0, 0.0],
+            hi: [x0 + 1.0, 1.0, 1.0],
+        }
+    }
+
+    fn setup() -> Setup {
+        let peer = |i: u8| PeerInfo {
+            addr: format!("127.0.0.1:{}", 7000 + i as u16),
+            fingerprint: [i; 32],
+            name: format!("w{i}"),
+        };
+        Setup {
+            rank: 1,
+            scene_toml: String::new(),
+            leaves: vec![region(0.0), region(1.0)],
+            peers: vec![peer(0), peer(1), peer(2)],
+            run_token: [7; 32],
+            max_pixels: 64 * 48,
+            timeout_ms: 1000,
+            shm_peers: vec![true; 3],
+            shm_gather: true,
+            absent: vec![2],
+            attempt: 0,
+            next_frame: 0,
+        }
+    }
+
+    fn request() -> FrameRequest {
+        FrameRequest {
+            frame: 3,
+            camera: Camera {
+                eye: [0.0, -10.0, 5.0],
+                target: [0.0; 3],
+                up: [0.0, 0.0, 1.0],
+                fov_deg: 30.0,
+            },
+            width: 64,
+            height: 48,
+            order: vec![2, 0, 1],
+            leaf_order: vec![1, 0],
+            composite: CompositeChoice {
+                algorithm: Algorithm::RadixK,
+                k: vec![],
+                interlace: true,
+                format: WireFormat::F32,
+                lz4: false,
+            },
+            source: FrameSource::Render,
+            leaves: None,
+            occlusion_block: 2,
+            occlusion_prepass: 4,
+            occlusion_motion: 0,
+            page_work: false,
+            wall: None,
+            canvas: None,
+        }
+    }
+
+    /// What a worker sizes or indexes from a set-up or a frame request is checked first;
+    /// each bad value is refused with what was wrong.
+    #[test]
+    fn set_ups_and_frame_requests_from_the_network_are_checked() {
+        assert_eq!(setup().check(), Ok(()));
+        let bad_setup = |f: &dyn Fn(&mut Setup), needle: &str| {
+            let mut s = setup();
+            f(&mut s);
+            let e = s.check().unwrap_err();
+            assert!(e.contains(needle), "{needle:?} not in {e:?}");
+        };
+        bad_setup(&|s| s.rank = 3, "rank 3");
+        bad_setup(&|s| s.absent = vec![1], "absent");
+        bad_setup(&|s| s.absent = vec![2, 2], "absent");
+        bad_setup(&|s| drop(s.shm_peers.pop()), "transport");
+        bad_setup(&|s| s.max_pixels = 1 << 40, "frame limit");
+        bad_setup(&|s| s.max_pixels = 0, "frame limit");
+        bad_setup(&|s| s.leaves.clear(), "0 leaves");
+        bad_setup(&|s| s.leaves = vec![region(0.0); 65], "65 leaves");
+        bad_setup(&|s| s.leaves[1].hi[2] = f64::NAN, "not finite");
+        bad_setup(&|s| s.leaves[0].hi[0] = s.leaves[0].lo[0], "empty");
+        bad_setup(
+            &|s| s.peers = vec![s.peers[0].clone(); MAX_RANKS + 1],
+            "workers",
+        );
+
+        let (ranks, leaves, max) = (3, 2, 64 * 48);
+        assert_eq!(request().check(ranks, leaves, max), Ok(()));
+        let bad = |f: &dyn Fn(&mut FrameRequest), needle: &str| {
+            let mut r = request();
+            f(&mut r);
+            let e = r.check(ranks, leaves, max).unwrap_err();
+            assert!(e.contains(needle), "{needle:?} not in {e:?}");
+            assert!(e.starts_with("frame 3:"), "{e}");
+        };
+        // A leaf twice (double opacity), one left out (missing from the image), one
+        // beyond the worker's leaves, a million of them.
+        bad(&|r| r.leaf_order = vec![0, 0], "leaf order");
+        bad(&|r| r.leaf_order = vec![0], "leaf order");
+        bad(&|r| r.leaf_order = vec![0, 2], "leaf order");
+        bad(&|r| r.leaf_order = vec![0; 1_000_000], "leaf order");
+        // A re-split's leaves replace the ones in force: the order follows them.
+        let mut r = request();
+        r.leaves = Some(vec![region(0.0)]);
+        r.leaf_order = vec![0];
+        assert_eq!(r.check(ranks, leaves, max), Ok(()));
+        bad(&|r| r.leaves = Some(vec![]), "0 leaves");
+        bad(&|r| r.order = vec![0, 0, 1], "repeats a rank");
+        bad(&|r| r.order = vec![0, 3], "repeats a rank");
+        bad(&|r| r.order = vec![], "0 ranks");
+        bad(&|r| r.width = 65, "limit");
+        bad(&|r| r.width = 0, "limit");
+        bad(&|r| r.occlusion_block = 65, "occlusion blocks");
+        // A wall frame takes no canvas (its last round would land there, not in its
+        // tiles' files).
+        let wall = WallFrame {
+            geometry: crate::wall::WallGeometry {
+                cols: 2,
+                rows: 1,
+                tile_w: 64,
+                tile_h: 24,
+                mullion_x: 0,
+                mullion_y: 0,
+            },
+            drivers: vec![0, 1],
+            files: vec![
+                crate::wall::TileFiles {
+                    png: "a.png".into(),
+                    exr: None,
+                };
+                2
+            ],
+            background: [0.0; 3],
+        };
+        let mut r = request();
+        r.wall = Some(wall.clone());
+        assert_eq!(r.check(ranks, leaves, max), Ok(()));
+        bad(
+            &|r| {
+                r.wall = Some(wall.clone());
+                r.canvas = Some(CanvasRef {
+                    name: format!("strata-shm-{}", "0f".repeat(16)),
+                    pid: 1,
+                    fd: 3,
+                })
+            },
+            "canvas",
+        );
+    }
 
     #[test]
     fn header_round_trip_and_limits() {

@@ -1024,6 +1024,11 @@ impl Engine {
             3..6 => region.hi[i - 3].to_bits(),
             _ => (view.width as u64) << 32 | view.height as u64,
         });
+        // (Bounded: regions and sizes come from the network; forgetting them only costs
+        // a region its first-frame rounds again.)
+        if self.seen_regions.len() >= 4096 {
+            self.seen_regions.clear();
+        }
         let seen = !self.seen_regions.insert(key);
         let rpf = self.settings.rounds_per_frame;
         let max_rounds = if seen && rpf > 0 {

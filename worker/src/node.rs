@@ -186,7 +186,14 @@ async fn node(opts: NodeOptions) -> Result<()> {
         let meshing = WorkerMsg::Meshing {
             attempt: setup.attempt,
         };
-        write_frame(&mut csend, &wire::encode_meta(&meshing), &[]).await?;
+        // Every write to the coordinator has a deadline: one that stops reading (flow
+        // control) would otherwise hold this worker for good, keep-alives and all.
+        with_timeout(
+            opts.connect_timeout,
+            "telling the coordinator it meshes",
+            write_frame(&mut csend, &wire::encode_meta(&meshing), &[]),
+        )
+        .await?;
         let mut suspects = Vec::new();
         let meshed = tokio::select! {
             r = mesh(&ep, &id, setup.clone(), &net, opts.connect_timeout, &mut suspects) => r,
@@ -237,10 +244,20 @@ async fn node(opts: NodeOptions) -> Result<()> {
                 pid: id.pid,
                 fd: id.fd,
             };
-            write_frame(&mut csend, &wire::encode_meta(&msg), &[]).await?;
+            with_timeout(
+                opts.connect_timeout,
+                "announcing the gather segment",
+                write_frame(&mut csend, &wire::encode_meta(&msg), &[]),
+            )
+            .await?;
             node.gather_shm = Some(w);
         }
-        write_frame(&mut csend, &wire::encode_meta(&WorkerMsg::Ready), &[]).await?;
+        with_timeout(
+            opts.connect_timeout,
+            "telling the coordinator it is ready",
+            write_frame(&mut csend, &wire::encode_meta(&WorkerMsg::Ready), &[]),
+        )
+        .await?;
         info!(rank, "ready");
 
         loop {
@@ -253,9 +270,7 @@ async fn node(opts: NodeOptions) -> Result<()> {
                 },
             };
             match msg {
-                CoordMsg::PeerLost { rank: lost } => node
-                    .exchange
-                    .handle_lost(lost, "the coordinator gave it up".into()),
+                CoordMsg::PeerLost { rank: lost } => node.peer_given_up(lost)?,
                 CoordMsg::Frame(req) => {
                     let frame = req.frame;
                     let result = tokio::select! {
@@ -297,7 +312,12 @@ async fn node(opts: NodeOptions) -> Result<()> {
                                 lz4,
                                 canvas,
                             };
-                            write_frame_chunks(&mut csend, &wire::encode_meta(&msg), bulk).await?;
+                            with_timeout(
+                                node.timeout,
+                                format!("sending frame {frame}'s result"),
+                                write_frame_chunks(&mut csend, &wire::encode_meta(&msg), bulk),
+                            )
+                            .await?;
                         }
                         Err(e) => {
                             warn!(frame, "frame failed: {e:#}");
@@ -306,7 +326,12 @@ async fn node(opts: NodeOptions) -> Result<()> {
                                 message: format!("{e:#}"),
                                 suspects: std::mem::take(&mut node.suspects),
                             };
-                            write_frame(&mut csend, &wire::encode_meta(&msg), &[]).await?;
+                            with_timeout(
+                                node.timeout,
+                                format!("reporting frame {frame}'s failure"),
+                                write_frame(&mut csend, &wire::encode_meta(&msg), &[]),
+                            )
+                            .await?;
                         }
                     }
                 }
@@ -374,26 +399,7 @@ async fn mesh(
 ) -> Result<(Node, mpsc::Receiver<PeerEvent>)> {
     let rank = setup.rank;
     test_fault(rank, 0, "setup");
-    anyhow::ensure!(
-        (rank as usize) < setup.peers.len(),
-        "rank {rank} is not below the number of workers {}",
-        setup.peers.len()
-    );
-    anyhow::ensure!(
-        setup
-            .absent
-            .iter()
-            .all(|&r| r != rank && (r as usize) < setup.peers.len()),
-        "the set-up's absent ranks {:?} must be other ranks below {}",
-        setup.absent,
-        setup.peers.len()
-    );
-    anyhow::ensure!(
-        setup.shm_peers.len() == setup.peers.len(),
-        "the set-up names the transport of {} peers, the run has {}",
-        setup.shm_peers.len(),
-        setup.peers.len()
-    );
+    setup.check().map_err(|e| anyhow!(e))?;
     let scene: Scene =
         toml::from_str(&setup.scene_toml).context("the scene sent by the coordinator")?;
     let timeout = Duration::from_millis(setup.timeout_ms.max(1));
@@ -877,6 +883,13 @@ impl PieceSink for ShmSink {
     }
 }
 
+/// Control messages a frame keeps for after it ([`Node::defer`]).
+const MAX_DEFERRED: usize = 64;
+
+/// Compositing plans a worker keeps (one per frame size, rank count and choice); past
+/// that they are built again.
+const MAX_PLANS: usize = 16;
+
 struct Node {
     rank: u32,
     setup: Setup,
@@ -1071,23 +1084,17 @@ impl Node {
         control: &mut mpsc::Receiver<Result<CoordMsg, String>>,
         csend: &mut quinn::SendStream,
     ) -> Result<(WorkerFrameStats, FinalPiece, (Instant, f64))> {
+        // Everything sized or indexed from the request is checked first (sans-IO, in
+        // `wire`): ranks, leaves and their order, the frame's size, occlusion blocks, wall.
+        req.check(
+            self.setup.peers.len(),
+            self.setup.leaves.len(),
+            self.setup.max_pixels,
+        )
+        .map_err(|e| anyhow!(e))?;
         if let Some(leaves) = &req.leaves {
             // A re-split: new regions from this frame on. The engine keeps its resident
             // pages; those the new regions need are still there.
-            anyhow::ensure!(
-                !leaves.is_empty() && leaves.len() <= wire::MAX_LEAVES_PER_WORKER,
-                "frame {}: {} leaves (expected 1..={})",
-                req.frame,
-                leaves.len(),
-                wire::MAX_LEAVES_PER_WORKER
-            );
-            for r in leaves {
-                anyhow::ensure!(
-                    (0..3).all(|a| r.lo[a].is_finite() && r.hi[a].is_finite() && r.lo[a] < r.hi[a]),
-                    "frame {}: a leaf region {r:?} is empty or not finite",
-                    req.frame
-                );
-            }
             info!(
                 frame = req.frame,
                 leaves = leaves.len(),
@@ -1099,39 +1106,8 @@ impl Node {
         // on lost workers.
         let all = self.setup.peers.len();
         let n = req.order.len();
-        anyhow::ensure!(
-            (1..=all).contains(&n),
-            "the visibility order has {n} ranks, the run has {all}"
-        );
-        let pixels = req.width as u64 * req.height as u64;
-        anyhow::ensure!(
-            pixels > 0 && pixels <= self.setup.max_pixels,
-            "frame of {}x{} exceeds the run's limit of {} pixels",
-            req.width,
-            req.height,
-            self.setup.max_pixels
-        );
-        // One checked pixel count: the run's limit comes over the network too.
-        let px = u32::try_from(pixels).map_err(|_| {
-            anyhow!(
-                "frame of {}x{} has more than {} pixels",
-                req.width,
-                req.height,
-                u32::MAX
-            )
-        })?;
-        let mut seen = vec![false; all];
-        for &r in &req.order {
-            anyhow::ensure!(
-                (r as usize) < all && !std::mem::replace(&mut seen[r as usize], true),
-                "the visibility order {:?} repeats a rank or names one beyond the {all} ranks",
-                req.order
-            );
-        }
-        if let Some(w) = &req.wall {
-            w.check(req.width, req.height, &req.order)
-                .map_err(|e| anyhow!("frame {}: bad wall: {e}", req.frame))?;
-        }
+        // (Checked: the pixel count fits a u32.)
+        let px = req.width * req.height;
         let frame_start = Instant::now();
         let cpu_start = process_cpu_s();
         self.lz4 = req.composite.lz4;
@@ -1151,12 +1127,6 @@ impl Node {
         //    the predicted front transmittance (the last frame's, or a first pass's) lets
         //    through, times its own, falls to 1 − early_termination, and rays behind opaque
         //    blocks are not cast.
-        anyhow::ensure!(
-            req.occlusion_block <= MAX_BLOCK,
-            "frame {}: occlusion blocks of {} pixels (at most {MAX_BLOCK})",
-            req.frame,
-            req.occlusion_block
-        );
         let occlusion = req.occlusion_block > 0 && matches!(req.source, FrameSource::Render);
         let grid = BlockGrid::new(req.width, req.height, req.occlusion_block);
         let threshold = (self.engine.settings.early_termination as f32).min(1.0);
@@ -1309,6 +1279,9 @@ impl Node {
                     req.composite.algorithm,
                     (!k.is_empty()).then_some(&k[..]),
                 )?);
+                if self.plans.len() >= MAX_PLANS {
+                    self.plans.clear();
+                }
                 self.plans.insert(key, p.clone());
                 p
             }
@@ -1388,11 +1361,9 @@ impl Node {
                 msg = control.recv() => match msg {
                     // The coordinator gave up on a peer: a frame waiting on it fails now,
                     // not at the idle timeout.
-                    Some(Ok(CoordMsg::PeerLost { rank })) => {
-                        self.exchange.handle_lost(rank, "the coordinator gave it up".into())
-                    }
+                    Some(Ok(CoordMsg::PeerLost { rank })) => self.peer_given_up(rank)?,
                     // Anything else (the re-run of this frame, shutdown) waits its turn.
-                    Some(Ok(m)) => self.deferred.push_back(m),
+                    Some(Ok(m)) => self.defer(m)?,
                     Some(Err(e)) => bail!("{e}"),
                     None => bail!("lost the coordinator"),
                 },
@@ -1629,8 +1600,7 @@ impl Node {
                 }
                 // The coordinator gave up on a peer: this attempt is over if it takes part.
                 CoordMsg::PeerLost { rank } => {
-                    self.exchange
-                        .handle_lost(rank, "the coordinator gave it up".into());
+                    self.peer_given_up(rank)?;
                     if req.order.contains(&rank) {
                         self.suspects = vec![rank];
                         bail!(
@@ -1640,9 +1610,35 @@ impl Node {
                         );
                     }
                 }
-                other => self.deferred.push_back(other),
+                other => self.defer(other)?,
             }
         }
+    }
+
+    /// The coordinator gave up on peer `rank`: frames waiting on it fail now. A rank that
+    /// is not another worker of the run is refused (this worker's own would fail every
+    /// later frame).
+    fn peer_given_up(&mut self, rank: u32) -> Result<()> {
+        anyhow::ensure!(
+            rank != self.rank && (rank as usize) < self.setup.peers.len(),
+            "the coordinator gave up rank {rank}, which is not a peer of rank {} in a run of {}",
+            self.rank,
+            self.setup.peers.len()
+        );
+        self.exchange
+            .handle_lost(rank, "the coordinator gave it up".into());
+        Ok(())
+    }
+
+    /// Keeps a control message that came during a frame for after it, up to
+    /// [`MAX_DEFERRED`] of them (a frame's re-run, a shutdown, a new set-up: a few).
+    fn defer(&mut self, m: CoordMsg) -> Result<()> {
+        anyhow::ensure!(
+            self.deferred.len() < MAX_DEFERRED,
+            "the coordinator sent more than {MAX_DEFERRED} messages during one frame"
+        );
+        self.deferred.push_back(m);
+        Ok(())
     }
 
     /// This worker's leaf `leaf` (an index from the coordinator, checked).
