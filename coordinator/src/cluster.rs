@@ -197,6 +197,11 @@ impl ClusterOptions {
             "cluster.workers must lie in 1..=256, got {workers}"
         );
         anyhow::ensure!(
+            c.worker_threads <= 1024,
+            "cluster.worker_threads must lie in 0..=1024 (0: the cores divided among the workers), got {}",
+            c.worker_threads
+        );
+        anyhow::ensure!(
             c.leaves_per_worker >= 1 && c.leaves_per_worker <= 64,
             "cluster.leaves_per_worker must lie in 1..=64, got {}",
             c.leaves_per_worker
@@ -771,8 +776,9 @@ impl Cluster {
         let (auth_tx, mut auth_rx) = mpsc::unbounded_channel();
         let ep = self.ep.clone();
         let secret_owned = secret.to_vec();
-        // At most this many handshakes at once; strangers cannot queue unbounded work.
-        let pending = std::sync::Arc::new(tokio::sync::Semaphore::new(64));
+        // At most this many handshakes at once (every worker of the run at once, and some
+        // to spare); strangers cannot queue unbounded work.
+        let pending = std::sync::Arc::new(tokio::sync::Semaphore::new((n + 16).max(64)));
         let acceptor = tokio::spawn(async move {
             while let Some(incoming) = ep.accept().await {
                 let Ok(permit) = pending.clone().try_acquire_owned() else {

@@ -681,13 +681,31 @@ fn run(cli: Cli) -> Result<()> {
             let inputs: Vec<&Path> = std::iter::once(a.scene.as_path())
                 .chain(a.path.as_deref())
                 .collect();
-            for (out, what) in [
+            let outputs = [
                 (Some(&a.output), "image (-o)"),
                 (a.exr.as_ref(), "EXR image (--exr)"),
                 (a.stats.as_ref(), "stats (--stats)"),
                 (a.mp4.as_ref(), "video (--mp4)"),
-            ] {
+            ];
+            // Two outputs that are one file: the later would silently replace the first.
+            for (i, (x, xw)) in outputs.iter().enumerate() {
+                for (y, yw) in &outputs[i + 1..] {
+                    if let (Some(x), Some(y)) = (x, y) {
+                        anyhow::ensure!(
+                            x != y,
+                            "{}: the {xw} and the {yw} are the same file",
+                            x.display()
+                        );
+                    }
+                }
+            }
+            for (out, what) in outputs {
                 if let Some(out) = out {
+                    anyhow::ensure!(
+                        !out.is_dir(),
+                        "{}: the {what} is a folder (expected a file name)",
+                        out.display()
+                    );
                     // A sequence's frames go to a folder of their own, made here.
                     let sequence = a.orbit.is_some() || a.path.is_some();
                     if sequence && strata_coordinator::sequence::is_numbered(out).unwrap_or(false) {
@@ -829,8 +847,16 @@ fn run(cli: Cli) -> Result<()> {
             strata_worker::cli::join(a)?;
         }
         Command::Study(Study::Accuracy(a)) => {
-            anyhow::ensure!(a.frames >= 1, "--frames must be at least 1");
-            anyhow::ensure!(a.workers != 1, "--workers must be 0 (none) or at least 2");
+            anyhow::ensure!(
+                (1..=1000).contains(&a.frames),
+                "--frames must lie in 1..=1000, got {}",
+                a.frames
+            );
+            anyhow::ensure!(
+                a.workers != 1 && a.workers <= 256,
+                "--workers must be 0 (none) or lie in 2..=256, got {}",
+                a.workers
+            );
             let opts = study::StudyOptions {
                 scene: a.scene.clone(),
                 out: a.output.clone(),

@@ -342,6 +342,9 @@ pub struct RenderSummary {
     pub generated_synthetic: bool,
     /// Total wall time.
     pub seconds: f64,
+    /// Of it, the seconds from asking the workers to shut down to their exit and closed
+    /// connections (distributed runs; 0 in process).
+    pub shutdown_seconds: f64,
     /// Worker processes (0: rendered in-process).
     pub workers: usize,
     /// Compositing algorithm (distributed runs).
@@ -647,8 +650,10 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
             }
             finish(writing.take()).await?;
             let transport = cluster.transport().clone();
+            let t = Instant::now();
             cluster.shutdown().await;
-            anyhow::Ok((done, sequence, rebalances, transport))
+            let shutdown_s = t.elapsed().as_secs_f64();
+            anyhow::Ok((done, sequence, rebalances, transport, shutdown_s))
         };
         tokio::select! {
             r = run => r,
@@ -657,7 +662,7 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
     });
     // Dropping the runtime kills any worker still running (kill_on_drop).
     drop(rt);
-    let (mut done, sequence, rebalances, transport) = result?;
+    let (mut done, sequence, rebalances, transport, shutdown_s) = result?;
     let lost_workers: Vec<crate::cluster::LostWorker> =
         done.iter().flat_map(|f| f.lost.iter().cloned()).collect();
     let joined_workers: Vec<crate::cluster::JoinedWorker> =
@@ -716,6 +721,7 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
         gpu_feedback_bytes: 0,
         generated_synthetic: generated,
         seconds: t0.elapsed().as_secs_f64(),
+        shutdown_seconds: shutdown_s,
         workers: n,
         algorithm: Some(format!("{:?}", choice.algorithm)),
         composite_seconds: fr.composite_s,

@@ -742,6 +742,35 @@ fn outputs_and_values_are_checked_before_any_work() {
             .to_vec(),
             "this is the input".into(),
         ),
+        (
+            ["synth", "-o", &p("tiny"), "--size", "2", "2", "2"]
+                .map(String::from)
+                .to_vec(),
+            "at least 8 samples".into(),
+        ),
+        (
+            render(&["-o", &p("o.png"), "--exr", &p("o.png")]),
+            "same file".into(),
+        ),
+        (
+            [
+                "render",
+                scene_s,
+                "--workers",
+                "2",
+                "--set",
+                "cluster.worker_threads=100000",
+                "-o",
+                &p("o.png"),
+            ]
+            .map(String::from)
+            .to_vec(),
+            "cluster.worker_threads".into(),
+        ),
+        (
+            render(&["-o", &p("o.png"), "--stats", d.to_str().unwrap()]),
+            "is a folder".into(),
+        ),
     ];
     let before = only_files(d);
     for (args, needle) in cases {

@@ -125,6 +125,14 @@ fn distributed_equals_in_process_for_every_algorithm_and_worker_count() {
             assert!(lines[..workers].iter().all(|l| l["kind"] == "worker"));
             assert_eq!(lines[workers]["kind"], "summary");
             assert_eq!(lines[workers]["workers"], workers);
+            // The workers close their peer connections on shutdown and exit at once: a
+            // worker that left them to its peer readers waited out its endpoint's 2 s
+            // idle wait, which every multi-worker run paid (about 0.01 s now).
+            let shutdown = lines[workers]["shutdown_seconds"].as_f64().unwrap();
+            assert!(
+                shutdown < 1.0,
+                "{algorithm} x{workers}: shutting down took {shutdown:.2} s"
+            );
             if workers > 1 {
                 let sent: u64 = lines[..workers]
                     .iter()

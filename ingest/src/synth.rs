@@ -70,7 +70,9 @@ impl SynthModel {
         let mut refl = Vec::new();
         let mut z = spacing * 0.8;
         let mut n = 0u64;
-        while z < nz + 0.3 * nz {
+        // At least three interfaces, which the three horizons' layers need (a thin cube,
+        // NZ below about 15, has fewer within it: the rest lie below).
+        while z < nz + 0.3 * nz || base.len() < 3 {
             base.push(z);
             let r = unit(seed, 1, n) * 2.0 - 1.0;
             // Every fourth interface is a strong reflector; the rest are weak.
@@ -281,9 +283,10 @@ pub fn synth(
     segy: bool,
     progress: &ProgressBar,
 ) -> Result<SynthOutput> {
+    // The model's checks first: a size it refuses leaves no folder behind.
+    let model = SynthModel::new(dims, seed)?;
     std::fs::create_dir_all(dir)
         .with_context(|| format!("{}: cannot create folder", dir.display()))?;
-    let model = SynthModel::new(dims, seed)?;
     let units = Units {
         lateral: "m".into(),
         vertical: "ms".into(),
@@ -400,9 +403,28 @@ pub fn synth(
 /// Writes `bytes` under a temporary name and renames it into place.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
     let tmp = crate::builder::temp_path_for(path);
-    std::fs::write(&tmp, bytes).with_context(|| format!("{}: cannot write", tmp.display()))?;
-    std::fs::rename(&tmp, path)
-        .with_context(|| format!("cannot rename {} to {}", tmp.display(), path.display()))
+    let result = std::fs::write(&tmp, bytes)
+        .with_context(|| {
+            format!(
+                "{}: cannot write (through {})",
+                path.display(),
+                tmp.display()
+            )
+        })
+        .and_then(|()| {
+            std::fs::rename(&tmp, path).with_context(|| {
+                format!(
+                    "{}: cannot replace it with {}",
+                    path.display(),
+                    tmp.display()
+                )
+            })
+        });
+    // Nothing half-written stays behind, whichever step failed.
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
 }
 
 /// Writes the model as a big-endian IEEE-float SEG-Y file (inline-sorted), under a temporary name.
@@ -478,4 +500,32 @@ fn write_horizon_text(model: &SynthModel, grid: &[f32], path: &Path) -> Result<(
         }
     }
     write_atomically(path, s.as_bytes())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Thin cubes (8 to 20 samples deep, the smallest allowed) have interfaces for the
+    /// three horizons whatever the seed; they panicked below 15 samples.
+    #[test]
+    fn thin_cubes_have_their_horizons_layers() {
+        let mut out = Vec::new();
+        for nz in 8..=20u64 {
+            for seed in [0, 1, 7, u64::MAX] {
+                let m = SynthModel::new([8, 8, nz], seed).unwrap();
+                assert!(m.base.len() >= 3, "nz {nz}, seed {seed}");
+                assert!(
+                    m.horizon_layers.iter().all(|&l| l < m.base.len()),
+                    "nz {nz}, seed {seed}: layers {:?} of {}",
+                    m.horizon_layers,
+                    m.base.len()
+                );
+                for (i, j) in [(0.0, 0.0), (7.0, 7.0), (3.5, 4.5)] {
+                    m.interfaces(i, j, &mut out);
+                    assert_eq!(out.len(), m.base.len());
+                }
+            }
+        }
+    }
 }

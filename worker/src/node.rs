@@ -335,7 +335,15 @@ async fn node(opts: NodeOptions) -> Result<()> {
                         }
                     }
                 }
-                CoordMsg::Shutdown => break 'setup,
+                CoordMsg::Shutdown => {
+                    // Closed here, not left to the peer readers (which hold the
+                    // connections open): the wait for the endpoint to go idle below would
+                    // otherwise run its full 2 s, which every multi-worker run paid.
+                    for c in node.peers.iter().flatten() {
+                        c.close(0u32.into(), b"done");
+                    }
+                    break 'setup;
+                }
                 // The coordinator lost a worker before the run was ready: mesh again.
                 CoordMsg::Setup(s) => {
                     for c in node.peers.iter().flatten() {
