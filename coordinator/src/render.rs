@@ -207,6 +207,9 @@ fn plan_frames(
         a < n,
         "--frames {a}..{b}: the sequence has frames 0..{n} ({what})"
     );
+    if b > n {
+        warn!("--frames {a}..{b}: the sequence has frames 0..{n} ({what}); rendering {a}..{n}");
+    }
     let mut plan = Vec::new();
     let mut skipped = 0;
     for i in a..b.min(n) {
@@ -527,7 +530,12 @@ pub fn composite_choice(scene: &Scene, workers: usize) -> Result<CompositeChoice
         choice.algorithm,
         (!k.is_empty()).then_some(&k[..]),
     )
-    .with_context(|| format!("composite settings {c:?} with {workers} workers"))?;
+    .with_context(|| {
+        format!(
+            "composite.algorithm = {:?} with composite.k = {:?} cannot composite {workers} workers",
+            c.algorithm, choice.k
+        )
+    })?;
     Ok(choice)
 }
 

@@ -768,6 +768,21 @@ fn outputs_and_values_are_checked_before_any_work() {
             "cluster.worker_threads".into(),
         ),
         (
+            [
+                "render",
+                scene_s,
+                "--workers",
+                "2",
+                "--set",
+                "composite.k=[0]",
+                "-o",
+                &p("o.png"),
+            ]
+            .map(String::from)
+            .to_vec(),
+            "composite.k = [0] cannot composite 2 workers".into(),
+        ),
+        (
             render(&["-o", &p("o.png"), "--stats", d.to_str().unwrap()]),
             "is a folder".into(),
         ),
