@@ -33,6 +33,7 @@
 //! * [`occlusion`]: per-block transmittance of partial images and the blocks each position
 //!   of the visibility order may leave uncast (cross-worker occlusion).
 //! * [`scene`]: the scene description (TOML) with errors that name line and column.
+//! * [`temp_name`]: the hidden name an output is written under before its rename.
 //!
 //! No async, no networking, no threads are spawned here.
 #![deny(missing_docs)]
@@ -54,6 +55,7 @@ pub mod sample;
 pub mod scene;
 pub mod stats;
 pub mod store;
+pub mod temp_name;
 pub mod tf;
 pub mod wall;
 pub mod wire;

@@ -416,6 +416,19 @@ fn not_an_input(output: &Path, inputs: &[&Path]) -> Result<()> {
     Ok(())
 }
 
+/// `path` with its folder resolved (`o.png` and `./o.png` are one file), where the folder
+/// exists; else as written.
+fn same_file_name(path: &Path) -> PathBuf {
+    let parent = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    match (std::fs::canonicalize(parent), path.file_name()) {
+        (Ok(dir), Some(name)) => dir.join(name),
+        _ => path.to_path_buf(),
+    }
+}
+
 /// Checks, before any work, that the folder an output goes to exists.
 fn folder_exists(output: &Path, what: &str) -> Result<()> {
     let parent = match output.parent() {
@@ -687,18 +700,22 @@ fn run(cli: Cli) -> Result<()> {
                 (a.stats.as_ref(), "stats (--stats)"),
                 (a.mp4.as_ref(), "video (--mp4)"),
             ];
-            // Two outputs that are one file: the later would silently replace the first.
+            // Two outputs that are one file (however spelt): the later would silently
+            // replace the first.
             for (i, (x, xw)) in outputs.iter().enumerate() {
                 for (y, yw) in &outputs[i + 1..] {
                     if let (Some(x), Some(y)) = (x, y) {
                         anyhow::ensure!(
-                            x != y,
+                            same_file_name(x) != same_file_name(y),
                             "{}: the {xw} and the {yw} are the same file",
                             x.display()
                         );
                     }
                 }
             }
+            // Every check first, then the sequence folders: a refused command makes none.
+            let sequence = a.orbit.is_some() || a.path.is_some();
+            let mut folders = Vec::new();
             for (out, what) in outputs {
                 if let Some(out) = out {
                     anyhow::ensure!(
@@ -706,22 +723,29 @@ fn run(cli: Cli) -> Result<()> {
                         "{}: the {what} is a folder (expected a file name)",
                         out.display()
                     );
-                    // A sequence's frames go to a folder of their own, made here.
-                    let sequence = a.orbit.is_some() || a.path.is_some();
-                    if sequence && strata_coordinator::sequence::is_numbered(out).unwrap_or(false) {
-                        if let Some(dir) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
-                            std::fs::create_dir_all(dir).with_context(|| {
-                                format!(
-                                    "{}: cannot create the folder {}",
-                                    out.display(),
-                                    dir.display()
-                                )
-                            })?;
-                        }
-                    }
-                    folder_exists(out, what)?;
                     not_an_input(out, &inputs)?;
+                    // A sequence's frames go to a folder of their own, made here.
+                    let dir = out.parent().filter(|p| !p.as_os_str().is_empty());
+                    match dir {
+                        Some(dir)
+                            if sequence
+                                && strata_coordinator::sequence::is_numbered(out)
+                                    .unwrap_or(false) =>
+                        {
+                            folders.push((out, dir))
+                        }
+                        _ => folder_exists(out, what)?,
+                    }
                 }
+            }
+            for (out, dir) in folders {
+                std::fs::create_dir_all(dir).with_context(|| {
+                    format!(
+                        "{}: cannot create the folder {}",
+                        out.display(),
+                        dir.display()
+                    )
+                })?;
             }
             let pb = progress(cli.quiet, "synth");
             let s = if a.in_process {

@@ -532,8 +532,9 @@ pub fn composite_choice(scene: &Scene, workers: usize) -> Result<CompositeChoice
     )
     .with_context(|| {
         format!(
-            "composite.algorithm = {:?} with composite.k = {:?} cannot composite {workers} workers",
-            c.algorithm, choice.k
+            "composite.algorithm = {} with composite.k = {:?} cannot composite {workers} workers",
+            serde_json::to_string(&c.algorithm).unwrap_or_default(),
+            choice.k
         )
     })?;
     Ok(choice)

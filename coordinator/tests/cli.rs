@@ -753,6 +753,27 @@ fn outputs_and_values_are_checked_before_any_work() {
             "same file".into(),
         ),
         (
+            render(&[
+                "-o",
+                &p("o.png"),
+                "--stats",
+                &format!("{}/./o.png", d.display()),
+            ]),
+            "same file".into(),
+        ),
+        // A sequence's folder is made only once every output passed its checks.
+        (
+            render(&[
+                "-o",
+                &p("seq/f_%03d.png"),
+                "--orbit",
+                "2",
+                "--stats",
+                d.to_str().unwrap(),
+            ]),
+            "is a folder".into(),
+        ),
+        (
             [
                 "render",
                 scene_s,
@@ -780,7 +801,8 @@ fn outputs_and_values_are_checked_before_any_work() {
             ]
             .map(String::from)
             .to_vec(),
-            "composite.k = [0] cannot composite 2 workers".into(),
+            "composite.algorithm = \"radix-k\" with composite.k = [0] cannot composite 2 workers"
+                .into(),
         ),
         (
             render(&["-o", &p("o.png"), "--stats", d.to_str().unwrap()]),

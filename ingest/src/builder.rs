@@ -145,11 +145,10 @@ impl Drop for TempFile {
 
 /// The temporary name a build writes to before renaming: hidden, in the same folder, with the pid.
 pub fn temp_path_for(out: &Path) -> PathBuf {
-    let name = out
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "store".into());
-    out.with_file_name(format!(".{name}.tmp{}", std::process::id()))
+    static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    strata_common::temp_name::temp_sibling(out, std::process::id(), n)
+        .unwrap_or_else(|| out.with_file_name(format!(".store.tmp{}", std::process::id())))
 }
 
 struct Output {

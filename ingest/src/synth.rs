@@ -70,9 +70,9 @@ impl SynthModel {
         let mut refl = Vec::new();
         let mut z = spacing * 0.8;
         let mut n = 0u64;
-        // At least three interfaces, which the three horizons' layers need (a thin cube,
-        // NZ below about 15, has fewer within it: the rest lie below).
-        while z < nz + 0.3 * nz || base.len() < 3 {
+        // At least four interfaces, which three distinct horizon surfaces need (a thin
+        // cube, NZ below about 20, has fewer within it: the rest lie below).
+        while z < nz + 0.3 * nz || base.len() < 4 {
             base.push(z);
             let r = unit(seed, 1, n) * 2.0 - 1.0;
             // Every fourth interface is a strong reflector; the rest are weak.
@@ -85,8 +85,10 @@ impl SynthModel {
             n += 1;
         }
         let count = base.len();
-        let pick = |frac: f64| ((frac * nz / spacing) as usize).clamp(1, count - 2);
-        let (h1, h2) = (pick(0.25), pick(0.55));
+        let pick = |frac: f64| (frac * nz / spacing) as usize;
+        // Distinct layers: h1 < h2 < h2 + 1 < count (count ≥ 4).
+        let h1 = pick(0.25).clamp(1, count - 3);
+        let h2 = pick(0.55).clamp(h1 + 1, count - 2);
         let horizon_layers = [h1, h2, h2 + 1];
         let (c, s) = (17f64.to_radians().cos(), 17f64.to_radians().sin());
         let survey = SurveyGrid {
@@ -506,15 +508,17 @@ fn write_horizon_text(model: &SynthModel, grid: &[f32], path: &Path) -> Result<(
 mod tests {
     use super::*;
 
-    /// Thin cubes (8 to 20 samples deep, the smallest allowed) have interfaces for the
-    /// three horizons whatever the seed; they panicked below 15 samples.
+    /// Thin cubes (8 to 20 samples deep, the smallest allowed) have three distinct
+    /// horizon layers whatever the seed; they panicked below 15 samples.
     #[test]
     fn thin_cubes_have_their_horizons_layers() {
         let mut out = Vec::new();
         for nz in 8..=20u64 {
             for seed in [0, 1, 7, u64::MAX] {
                 let m = SynthModel::new([8, 8, nz], seed).unwrap();
-                assert!(m.base.len() >= 3, "nz {nz}, seed {seed}");
+                assert!(m.base.len() >= 4, "nz {nz}, seed {seed}");
+                let [h1, h2, h3] = m.horizon_layers;
+                assert!(1 <= h1 && h1 < h2 && h2 < h3, "nz {nz}: {h1} {h2} {h3}");
                 assert!(
                     m.horizon_layers.iter().all(|&l| l < m.base.len()),
                     "nz {nz}, seed {seed}: layers {:?} of {}",

@@ -322,7 +322,7 @@ impl Engine {
                 cpu_atlas_fits("atlas_mb", s.atlas_mb)?;
                 let t = cpu_slot_type(&s, &data);
                 let page = data.volumes[0].pyramid.page() as usize;
-                let pool = Pool::typed(n, s.atlas_mb << 20, t);
+                let pool = Pool::typed(n, s.atlas_mb.saturating_mul(1 << 20), t);
                 tracing::debug!(
                     slot_type = ?t,
                     slots = pool.capacity(),
@@ -339,7 +339,7 @@ impl Engine {
                 // The samples live in one device buffer in their own width (8-bit data takes
                 // a byte per sample): as many slots as the budget and the adapter's largest
                 // binding allow.
-                let (want, slots) = g.volume_slots(n, s.atlas_mb << 20);
+                let (want, slots) = g.volume_slots(n, s.atlas_mb.saturating_mul(1 << 20));
                 if slots < want {
                     tracing::warn!(
                         want,
@@ -355,11 +355,11 @@ impl Engine {
             (None, _) => None,
             (Some(n), None) => {
                 cpu_atlas_fits("horizon_atlas_mb", s.horizon_atlas_mb)?;
-                Some(Pool::new(n, s.horizon_atlas_mb << 20))
+                Some(Pool::new(n, s.horizon_atlas_mb.saturating_mul(1 << 20)))
             }
             (Some(n), Some(g)) => {
-                let slots =
-                    Pool::slots_for(n, s.horizon_atlas_mb << 20).min(g.max_horizon_slots(n));
+                let slots = Pool::slots_for(n, s.horizon_atlas_mb.saturating_mul(1 << 20))
+                    .min(g.max_horizon_slots(n));
                 g.alloc_horizon_pool(slots, n)?;
                 Some(Pool::bookkeeping(n, slots))
             }
@@ -410,8 +410,13 @@ impl Engine {
             let top = p.level_count() - 1;
             let key = p.id(top, [0, 0, 0]).with_dataset(ds).0;
             let page = self.cache.load_now(key)?;
+            let key_name = if (ds as usize) < self.data.volumes.len() {
+                "render.atlas_mb"
+            } else {
+                "render.horizon_atlas_mb"
+            };
             self.place(ds, key, &page, 0, true, &none).map_err(|_| {
-                anyhow::anyhow!("the atlas has no slot for the root pages; raise render.atlas_mb")
+                anyhow::anyhow!("the atlas has no slot for the root pages; raise {key_name}")
             })?;
         }
         self.rebuild_tables();

@@ -324,16 +324,13 @@ fn check_size(path: &Path, width: u32, height: u32, rgba: &[[f32; 4]]) -> Result
     Ok(())
 }
 
-/// The hidden temporary name beside `path`: `.NAME.tmpPID`.
+/// The hidden temporary name beside `path`: `.NAME.tmpPID` ([`strata_common::temp_name`]; long
+/// names are cut and numbered).
 fn temp_path(path: &Path) -> Result<PathBuf> {
-    let name = path
-        .file_name()
-        .with_context(|| format!("{}: not a file name", path.display()))?;
-    Ok(path.with_file_name(format!(
-        ".{}.tmp{}",
-        name.to_string_lossy(),
-        std::process::id()
-    )))
+    static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    strata_common::temp_name::temp_sibling(path, std::process::id(), n)
+        .with_context(|| format!("{}: not a file name", path.display()))
 }
 
 /// Creates the temporary file, lets `write` fill it, syncs it and renames it to `path`;

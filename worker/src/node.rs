@@ -140,7 +140,12 @@ async fn node(opts: NodeOptions) -> Result<()> {
         fingerprint: id.fingerprint,
         host: strata_net::shm::host_id(),
     };
-    write_frame(&mut csend, &wire::encode_meta(&hello), &[]).await?;
+    with_timeout(
+        opts.connect_timeout,
+        "introducing this worker to the coordinator",
+        write_frame(&mut csend, &wire::encode_meta(&hello), &[]),
+    )
+    .await?;
     let control = Limits {
         max_meta: wire::MAX_META,
         max_bulk: 0,
@@ -163,18 +168,28 @@ async fn node(opts: NodeOptions) -> Result<()> {
             }
         }
     });
-    let mut setup = match tokio::time::timeout(opts.connect_timeout, ctl_rx.recv()).await {
-        Ok(Some(Ok(CoordMsg::Setup(s)))) => *s,
-        Ok(Some(Ok(CoordMsg::Refused { reason }))) => {
-            bail!("the coordinator refused this worker: {reason}")
+    // The first set-up. A `PeerLost` may come first (the coordinator gave up on a worker
+    // while it was setting the others up): it concerns a set-up this worker never had.
+    let first_deadline = tokio::time::Instant::now() + opts.connect_timeout;
+    let mut setup = loop {
+        match tokio::time::timeout_at(first_deadline, ctl_rx.recv()).await {
+            Ok(Some(Ok(CoordMsg::Setup(s)))) => break *s,
+            Ok(Some(Ok(CoordMsg::PeerLost { rank }))) => {
+                debug!(rank, "a lost peer before the first set-up: ignored")
+            }
+            Ok(Some(Ok(CoordMsg::Refused { reason }))) => {
+                bail!("the coordinator refused this worker: {reason}")
+            }
+            Ok(Some(Ok(other))) => {
+                bail!("expected the set-up from the coordinator, got {other:?}")
+            }
+            Ok(Some(Err(e))) => bail!("waiting for the coordinator's set-up: {e}"),
+            Ok(None) => bail!("waiting for the coordinator's set-up: lost the coordinator"),
+            Err(_) => bail!(
+                "waiting for the coordinator's set-up: nothing within {:.1} s",
+                opts.connect_timeout.as_secs_f64()
+            ),
         }
-        Ok(Some(Ok(other))) => bail!("expected the set-up from the coordinator, got {other:?}"),
-        Ok(Some(Err(e))) => bail!("waiting for the coordinator's set-up: {e}"),
-        Ok(None) => bail!("waiting for the coordinator's set-up: lost the coordinator"),
-        Err(_) => bail!(
-            "waiting for the coordinator's set-up: nothing within {:.1} s",
-            opts.connect_timeout.as_secs_f64()
-        ),
     };
     let server_config = strata_net::tls::server_config(&id, net.transport()?, net.client_auth)?;
     // A set-up, then frames until shutdown; a new set-up (the coordinator lost a worker

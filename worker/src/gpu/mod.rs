@@ -245,6 +245,13 @@ fn pick_adapter(choice: &AdapterChoice) -> Result<wgpu::Adapter> {
     let software = |a: &wgpu::Adapter| a.get_info().device_type == wgpu::DeviceType::Cpu;
     let names = || adapters_desc(&pollster::block_on(instance.enumerate_adapters(backends)));
     if let Some(want) = &choice.adapter {
+        // A blank selector is a substring of every name: it would pick the first adapter.
+        if want.trim().is_empty() {
+            bail!(
+                "render.gpu_adapter is empty: name an adapter (part of its name) or give its index ({})",
+                names()
+            );
+        }
         let found = match want.trim().parse::<usize>() {
             Ok(i) if i < adapters.len() => Some(adapters.swap_remove(i)),
             Ok(i) => bail!(
@@ -860,6 +867,24 @@ impl GpuCaster {
             self.uploaded += std::mem::size_of_val(o) as u64;
         }
         let px = frame.rect_w as u64 * frame.rect_h as u64;
+        // The frame's pixels are one storage binding and its rows one dispatch: a frame past
+        // either limit is refused here with what to do, not by the driver mid-frame. (Casting
+        // it in bands of rows is not built.)
+        let max_px = (self.limits.max_storage_buffer_binding_size as u64)
+            .min(self.limits.max_buffer_size)
+            / 16;
+        let max_groups = self.limits.max_compute_workgroups_per_dimension;
+        if px > max_px
+            || frame.rect_w.div_ceil(WORKGROUP) > max_groups
+            || frame.rect_h.div_ceil(WORKGROUP) > max_groups
+        {
+            bail!(
+                "GPU caster: a region of {}x{} pixels exceeds this adapter's limits ({max_px} pixels in one binding, {} pixels per side); render it with render.backend = \"cpu\", or smaller",
+                frame.rect_w,
+                frame.rect_h,
+                max_groups as u64 * WORKGROUP as u64
+            );
+        }
         // What the frame's tables need the pipeline to have. (Several volumes need `MULTI`
         // only where one is marched, which the engine's effects say: without it the
         // pipeline marches no volume of a multi-volume frame.)
