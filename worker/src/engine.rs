@@ -499,6 +499,11 @@ impl Engine {
         }
     }
 
+    /// The most pixels the GPU backend casts in one region (`None` on the CPU).
+    pub fn gpu_max_frame_pixels(&self) -> Option<u64> {
+        self.gpu.as_ref().map(|g| g.max_frame_pixels())
+    }
+
     /// Bits per sample of the GPU's volume pool (8, 16 or 32; `None` on the CPU).
     pub fn gpu_pool_bits(&self) -> Option<u32> {
         self.gpu

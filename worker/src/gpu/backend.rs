@@ -211,6 +211,11 @@ impl GpuBackend {
         self.format
     }
 
+    /// The most pixels one cast's region may have ([`GpuCaster::max_frame_pixels`]).
+    pub fn max_frame_pixels(&self) -> u64 {
+        self.caster.max_frame_pixels()
+    }
+
     /// Volume-pool slots for pages of `page_samples` samples: as many as `budget_bytes` holds
     /// in the pool's format and the adapter can bind (at least one).
     pub fn volume_slots(&self, page_samples: usize, budget_bytes: u64) -> (usize, usize) {

@@ -496,6 +496,12 @@ impl GpuCaster {
         self.info.device_type == wgpu::DeviceType::Cpu
     }
 
+    /// The most pixels one cast's region may have: its RGBA f32 output is one storage
+    /// binding.
+    pub fn max_frame_pixels(&self) -> u64 {
+        (self.limits.max_storage_buffer_binding_size as u64).min(self.limits.max_buffer_size) / 16
+    }
+
     /// Pool slots of `slot_bytes` the adapter can bind in one buffer.
     pub fn max_slots(&self, slot_bytes: u64) -> usize {
         let bind =
@@ -870,9 +876,7 @@ impl GpuCaster {
         // The frame's pixels are one storage binding and its rows one dispatch: a frame past
         // either limit is refused here with what to do, not by the driver mid-frame. (Casting
         // it in bands of rows is not built.)
-        let max_px = (self.limits.max_storage_buffer_binding_size as u64)
-            .min(self.limits.max_buffer_size)
-            / 16;
+        let max_px = self.max_frame_pixels();
         let max_groups = self.limits.max_compute_workgroups_per_dimension;
         if px > max_px
             || frame.rect_w.div_ceil(WORKGROUP) > max_groups
