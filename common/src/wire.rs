@@ -948,7 +948,12 @@ mod tests {
         bad_setup(&|s| s.rank = 3, "rank 3");
         bad_setup(&|s| s.absent = vec![1], "absent");
         bad_setup(&|s| s.absent = vec![2, 2], "absent");
-        bad_setup(&|s| drop(s.shm_peers.pop()), "transport");
+        bad_setup(
+            &|s| {
+                s.shm_peers.pop();
+            },
+            "transport",
+        );
         bad_setup(&|s| s.max_pixels = 1 << 40, "frame limit");
         bad_setup(&|s| s.max_pixels = 0, "frame limit");
         bad_setup(&|s| s.leaves.clear(), "0 leaves");
