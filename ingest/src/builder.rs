@@ -145,9 +145,7 @@ impl Drop for TempFile {
 
 /// The temporary name a build writes to before renaming: hidden, in the same folder, with the pid.
 pub fn temp_path_for(out: &Path) -> PathBuf {
-    static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-    let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    strata_common::temp_name::temp_sibling(out, std::process::id(), n)
+    strata_common::temp_name::temp_sibling(out, std::process::id())
         .unwrap_or_else(|| out.with_file_name(format!(".store.tmp{}", std::process::id())))
 }
 

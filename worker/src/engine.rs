@@ -1153,8 +1153,7 @@ fn physical_memory_mb() -> Option<u64> {
 }
 
 fn validate(s: &RenderSettings) -> Result<()> {
-    s.check().map_err(|(_, message)| anyhow::anyhow!(message))?;
-    Ok(())
+    s.check().map_err(|(_, message)| anyhow::anyhow!(message))
 }
 
 /// A CPU atlas (`render.{key}` MiB) is allocated whole at start: past the machine's

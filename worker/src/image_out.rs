@@ -327,9 +327,7 @@ fn check_size(path: &Path, width: u32, height: u32, rgba: &[[f32; 4]]) -> Result
 /// The hidden temporary name beside `path`: `.NAME.tmpPID` ([`strata_common::temp_name`]; long
 /// names are cut and numbered).
 fn temp_path(path: &Path) -> Result<PathBuf> {
-    static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-    let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    strata_common::temp_name::temp_sibling(path, std::process::id(), n)
+    strata_common::temp_name::temp_sibling(path, std::process::id())
         .with_context(|| format!("{}: not a file name", path.display()))
 }
 

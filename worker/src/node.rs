@@ -140,10 +140,11 @@ async fn node(opts: NodeOptions) -> Result<()> {
         fingerprint: id.fingerprint,
         host: strata_net::shm::host_id(),
     };
-    with_timeout(
+    tell(
+        &mut csend,
+        &hello,
         opts.connect_timeout,
         "introducing this worker to the coordinator",
-        write_frame(&mut csend, &wire::encode_meta(&hello), &[]),
     )
     .await?;
     let control = Limits {
@@ -201,12 +202,11 @@ async fn node(opts: NodeOptions) -> Result<()> {
         let meshing = WorkerMsg::Meshing {
             attempt: setup.attempt,
         };
-        // Every write to the coordinator has a deadline: one that stops reading (flow
-        // control) would otherwise hold this worker for good, keep-alives and all.
-        with_timeout(
+        tell(
+            &mut csend,
+            &meshing,
             opts.connect_timeout,
             "telling the coordinator it meshes",
-            write_frame(&mut csend, &wire::encode_meta(&meshing), &[]),
         )
         .await?;
         let mut suspects = Vec::new();
@@ -230,9 +230,11 @@ async fn node(opts: NodeOptions) -> Result<()> {
                     message: format!("{e:#}"),
                     suspects,
                 };
-                let _ = tokio::time::timeout(
+                let _ = tell(
+                    &mut csend,
+                    &msg,
                     Duration::from_secs(2),
-                    write_frame(&mut csend, &wire::encode_meta(&msg), &[]),
+                    "reporting the failed set-up",
                 )
                 .await;
                 match tokio::time::timeout(opts.connect_timeout, next_setup(&mut ctl_rx)).await {
@@ -259,18 +261,20 @@ async fn node(opts: NodeOptions) -> Result<()> {
                 pid: id.pid,
                 fd: id.fd,
             };
-            with_timeout(
+            tell(
+                &mut csend,
+                &msg,
                 opts.connect_timeout,
                 "announcing the gather segment",
-                write_frame(&mut csend, &wire::encode_meta(&msg), &[]),
             )
             .await?;
             node.gather_shm = Some(w);
         }
-        with_timeout(
+        tell(
+            &mut csend,
+            &WorkerMsg::Ready,
             opts.connect_timeout,
             "telling the coordinator it is ready",
-            write_frame(&mut csend, &wire::encode_meta(&WorkerMsg::Ready), &[]),
         )
         .await?;
         info!(rank, "ready");
@@ -341,12 +345,8 @@ async fn node(opts: NodeOptions) -> Result<()> {
                                 message: format!("{e:#}"),
                                 suspects: std::mem::take(&mut node.suspects),
                             };
-                            with_timeout(
-                                node.timeout,
-                                format!("reporting frame {frame}'s failure"),
-                                write_frame(&mut csend, &wire::encode_meta(&msg), &[]),
-                            )
-                            .await?;
+                            let what = format!("reporting frame {frame}'s failure");
+                            tell(&mut csend, &msg, node.timeout, what).await?;
                         }
                     }
                 }
@@ -354,16 +354,12 @@ async fn node(opts: NodeOptions) -> Result<()> {
                     // Closed here, not left to the peer readers (which hold the
                     // connections open): the wait for the endpoint to go idle below would
                     // otherwise run its full 2 s, which every multi-worker run paid.
-                    for c in node.peers.iter().flatten() {
-                        c.close(0u32.into(), b"done");
-                    }
+                    node.close_peers(0, b"done");
                     break 'setup;
                 }
                 // The coordinator lost a worker before the run was ready: mesh again.
                 CoordMsg::Setup(s) => {
-                    for c in node.peers.iter().flatten() {
-                        c.close(8u32.into(), b"new set-up");
-                    }
+                    node.close_peers(8, b"new set-up");
                     setup = *s;
                     continue 'setup;
                 }
@@ -380,6 +376,24 @@ async fn node(opts: NodeOptions) -> Result<()> {
     let _ = csend.finish();
     conn.close(0u32.into(), b"done");
     let _ = tokio::time::timeout(Duration::from_secs(2), ep.wait_idle()).await;
+    Ok(())
+}
+
+/// Sends `msg` to the coordinator within `deadline`. Every write to the coordinator has
+/// one: a coordinator that stops reading (flow control) would otherwise hold this worker
+/// for good, keep-alives and all.
+async fn tell(
+    csend: &mut quinn::SendStream,
+    msg: &WorkerMsg,
+    deadline: Duration,
+    what: impl Into<String>,
+) -> Result<(), NetError> {
+    with_timeout(
+        deadline,
+        what,
+        write_frame(csend, &wire::encode_meta(msg), &[]),
+    )
+    .await?;
     Ok(())
 }
 
@@ -1635,6 +1649,13 @@ impl Node {
                 }
                 other => self.defer(other)?,
             }
+        }
+    }
+
+    /// Closes every peer connection with `code` and `reason`.
+    fn close_peers(&self, code: u32, reason: &[u8]) {
+        for c in self.peers.iter().flatten() {
+            c.close(code.into(), reason);
         }
     }
 
