@@ -499,9 +499,23 @@ impl Engine {
         }
     }
 
-    /// The most pixels the GPU backend casts in one region (`None` on the CPU).
+    /// The most pixels the GPU backend casts in one dispatch (`None` on the CPU); a larger
+    /// region is cast in bands.
     pub fn gpu_max_frame_pixels(&self) -> Option<u64> {
         self.gpu.as_ref().map(|g| g.max_frame_pixels())
+    }
+
+    /// Caps the pixels the GPU backend casts in one band below the adapter's limit (`None`:
+    /// the adapter's), so that tests band frames of any size. No effect on the CPU.
+    pub fn set_gpu_band_pixels(&mut self, cap: Option<u64>) {
+        if let Some(g) = self.gpu.as_mut() {
+            g.set_band_pixels(cap);
+        }
+    }
+
+    /// Regions the GPU backend cast in more than one band (`None` on the CPU).
+    pub fn gpu_banded_regions(&self) -> Option<u64> {
+        self.gpu.as_ref().map(|g| g.banded_regions())
     }
 
     /// Bits per sample of the GPU's volume pool (8, 16 or 32; `None` on the CPU).

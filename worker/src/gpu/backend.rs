@@ -211,9 +211,19 @@ impl GpuBackend {
         self.format
     }
 
-    /// The most pixels one cast's region may have ([`GpuCaster::max_frame_pixels`]).
+    /// The most pixels one band of a cast may have ([`GpuCaster::max_frame_pixels`]).
     pub fn max_frame_pixels(&self) -> u64 {
         self.caster.max_frame_pixels()
+    }
+
+    /// Caps a band's pixels ([`GpuCaster::set_band_pixels`]).
+    pub fn set_band_pixels(&mut self, cap: Option<u64>) {
+        self.caster.set_band_pixels(cap);
+    }
+
+    /// Regions cast in more than one band ([`GpuCaster::banded_regions`]).
+    pub fn banded_regions(&self) -> u64 {
+        self.caster.banded_regions()
     }
 
     /// Volume-pool slots for pages of `page_samples` samples: as many as `budget_bytes` holds

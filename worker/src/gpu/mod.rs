@@ -171,6 +171,10 @@ pub struct GpuCaster {
     /// Bytes written to the device since the last [`take_uploaded`](Self::take_uploaded).
     uploaded: u64,
     uncaptured: Arc<Mutex<Option<String>>>,
+    /// A cap on a band's pixels below the adapter's binding ([`GpuCaster::set_band_pixels`]).
+    band_cap: Option<u64>,
+    /// Regions cast in more than one band.
+    bands_cast: u64,
 }
 
 /// The effects a cast pipeline is specialised on: those `cast.wgsl` has override constants
@@ -483,6 +487,8 @@ impl GpuCaster {
             sampler,
             uploaded: 0,
             uncaptured,
+            band_cap: None,
+            bands_cast: 0,
         })
     }
 
@@ -496,10 +502,13 @@ impl GpuCaster {
         self.info.device_type == wgpu::DeviceType::Cpu
     }
 
-    /// The most pixels one cast's region may have: its RGBA f32 output is one storage
-    /// binding.
+    /// The most pixels one band of a cast may have: its RGBA f32 output is one storage
+    /// binding. Larger regions are cast in bands.
     pub fn max_frame_pixels(&self) -> u64 {
-        (self.limits.max_storage_buffer_binding_size as u64).min(self.limits.max_buffer_size) / 16
+        let bind = (self.limits.max_storage_buffer_binding_size as u64)
+            .min(self.limits.max_buffer_size)
+            / 16;
+        self.band_cap.map_or(bind, |c| c.clamp(1, bind))
     }
 
     /// Pool slots of `slot_bytes` the adapter can bind in one buffer.
@@ -872,23 +881,96 @@ impl GpuCaster {
                 .write_buffer(self.occl.get(), 0, bytemuck::cast_slice(o));
             self.uploaded += std::mem::size_of_val(o) as u64;
         }
-        let px = frame.rect_w as u64 * frame.rect_h as u64;
-        // The frame's pixels are one storage binding and its rows one dispatch: a frame past
-        // either limit is refused here with what to do, not by the driver mid-frame. (Casting
-        // it in bands of rows is not built.)
-        let max_px = self.max_frame_pixels();
-        let max_groups = self.limits.max_compute_workgroups_per_dimension;
-        if px > max_px
-            || frame.rect_w.div_ceil(WORKGROUP) > max_groups
-            || frame.rect_h.div_ceil(WORKGROUP) > max_groups
-        {
-            bail!(
-                "GPU caster: a region of {}x{} pixels exceeds this adapter's limits ({max_px} pixels in one binding, {} pixels per side); render it with render.backend = \"cpu\", or smaller",
-                frame.rect_w,
-                frame.rect_h,
-                max_groups as u64 * WORKGROUP as u64
-            );
+        // The frame's pixels are one storage binding and its rows and columns one dispatch:
+        // a region past either limit is cast in bands, each its own dispatch and binding.
+        // Every ray reads its pixel's absolute position (`rect_x + gid.x`), so a band casts
+        // exactly the rays the whole region would.
+        let (band_w, band_h) = self.band_size(frame.rect_w, frame.rect_h);
+        if band_w >= frame.rect_w && band_h >= frame.rect_h {
+            return self.cast_band(frame, vols, hors, compiled);
         }
+        let (w, h) = (frame.rect_w as usize, frame.rect_h as usize);
+        let mut whole = GpuCast {
+            pixels: vec![[0.0; 4]; w * h],
+            feedback: Vec::new(),
+            samples: 0,
+            skipped: 0,
+            terminated: 0,
+            rays: 0,
+            hits: 0,
+            readback_bytes: 0,
+            feedback_bytes: 0,
+        };
+        for by in (0..frame.rect_h).step_by(band_h as usize) {
+            for bx in (0..frame.rect_w).step_by(band_w as usize) {
+                let band = FrameParams {
+                    rect_x: frame.rect_x + bx,
+                    rect_y: frame.rect_y + by,
+                    rect_w: band_w.min(frame.rect_w - bx),
+                    rect_h: band_h.min(frame.rect_h - by),
+                    ..*frame
+                };
+                let part = self.cast_band(&band, vols, hors, compiled)?;
+                let bw = band.rect_w as usize;
+                for (row, src) in part.pixels.chunks_exact(bw).enumerate() {
+                    let at = (by as usize + row) * w + bx as usize;
+                    whole.pixels[at..at + bw].copy_from_slice(src);
+                }
+                // Feedback counts per page-table entry: the engine sums repeated entries.
+                whole.feedback.extend(part.feedback);
+                whole.samples += part.samples;
+                whole.skipped += part.skipped;
+                whole.terminated += part.terminated;
+                whole.rays += part.rays;
+                whole.hits += part.hits;
+                whole.readback_bytes += part.readback_bytes;
+                whole.feedback_bytes += part.feedback_bytes;
+            }
+        }
+        self.bands_cast += 1;
+        Ok(whole)
+    }
+
+    /// The largest band, in pixels `(w, h)`, that one cast of a `rect_w × rect_h` region may
+    /// have: its RGBA f32 output within one storage binding (and the test cap,
+    /// [`set_band_pixels`](Self::set_band_pixels)), its sides within one dispatch. Bands are
+    /// whole workgroups high unless the region is narrower than one band of rows.
+    fn band_size(&self, rect_w: u32, rect_h: u32) -> (u32, u32) {
+        let max_px = self.max_frame_pixels();
+        let side = (self.limits.max_compute_workgroups_per_dimension as u64 * WORKGROUP as u64)
+            .min(u32::MAX as u64) as u32;
+        // A row wider than one binding is cut into columns too.
+        let w = rect_w
+            .min(side)
+            .min(max_px.min(u32::MAX as u64) as u32)
+            .max(1);
+        let mut h = (max_px / w as u64).clamp(1, side as u64) as u32;
+        if h < rect_h && h >= WORKGROUP {
+            h -= h % WORKGROUP;
+        }
+        (w, h.min(rect_h).max(1))
+    }
+
+    /// Caps the pixels of one cast's band below what the adapter binds (`None`: the
+    /// adapter's limit), so that tests can band frames of any size.
+    pub fn set_band_pixels(&mut self, cap: Option<u64>) {
+        self.band_cap = cap;
+    }
+
+    /// Regions cast in more than one band since the caster was made.
+    pub fn banded_regions(&self) -> u64 {
+        self.bands_cast
+    }
+
+    /// Casts one band: a region within the adapter's binding and dispatch limits.
+    fn cast_band(
+        &mut self,
+        frame: &FrameParams,
+        vols: &[VolumeParams],
+        hors: &[HorizonParams],
+        compiled: EffectSet,
+    ) -> Result<GpuCast> {
+        let px = frame.rect_w as u64 * frame.rect_h as u64;
         // What the frame's tables need the pipeline to have. (Several volumes need `MULTI`
         // only where one is marched, which the engine's effects say: without it the
         // pipeline marches no volume of a multi-volume frame.)
