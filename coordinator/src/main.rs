@@ -715,6 +715,30 @@ fn run(cli: Cli) -> Result<()> {
             }
             // Every check first, then the sequence folders: a refused command makes none.
             let sequence = a.orbit.is_some() || a.path.is_some();
+            // A sequence's numbered frames: another output that is one of them would be
+            // replaced by a frame, or replace one (an --mp4 written over a frame it encodes).
+            if sequence {
+                for (x, xw) in &outputs {
+                    let Some(x) =
+                        x.filter(|x| strata_coordinator::sequence::is_numbered(x).unwrap_or(false))
+                    else {
+                        continue;
+                    };
+                    for (y, yw) in &outputs {
+                        if let Some(y) = y {
+                            anyhow::ensure!(
+                                !strata_coordinator::sequence::is_frame_of(
+                                    &same_file_name(x),
+                                    &same_file_name(y)
+                                ),
+                                "{}: the {yw} is one of the frames of the {xw} ({})",
+                                y.display(),
+                                x.display()
+                            );
+                        }
+                    }
+                }
+            }
             let mut folders = Vec::new();
             for (out, what) in outputs {
                 if let Some(out) = out {

@@ -84,6 +84,30 @@ pub fn numbered(template: &Path, frame: u32) -> Result<PathBuf> {
     )))
 }
 
+/// Whether `path` is one of the frame paths of `template` (some frame number, at least as
+/// wide as the pattern's padding), compared as strings. `false` for a template without a
+/// pattern.
+pub fn is_frame_of(template: &Path, path: &Path) -> bool {
+    let (Some(t), Some(s)) = (template.to_str(), path.to_str()) else {
+        return false;
+    };
+    let Ok(Some(p)) = find(t) else {
+        return false;
+    };
+    let unescape = |t: &str| t.replace("%%", "%");
+    let (head, tail) = (unescape(&t[..p.start]), unescape(&t[p.end..]));
+    let Some(digits) = s
+        .strip_prefix(head.as_str())
+        .and_then(|r| r.strip_suffix(tail.as_str()))
+    else {
+        return false;
+    };
+    !digits.is_empty()
+        && digits.len() >= p.width.max(1)
+        && digits.bytes().all(|b| b.is_ascii_digit())
+        && (digits.len() == p.width || !digits.starts_with('0') || digits.len() == 1)
+}
+
 /// What became of an MP4 request.
 #[derive(Debug, PartialEq, Eq)]
 pub enum Mp4 {
@@ -164,6 +188,32 @@ mod tests {
         assert!(is_numbered(Path::new("a_%05d.png")).unwrap());
         assert!(!is_numbered(Path::new("a.png")).unwrap());
         assert!(!is_numbered(Path::new("100%%.png")).unwrap());
+    }
+
+    #[test]
+    fn frame_paths_are_recognised_as_the_patterns_frames() {
+        let of = |t: &str, p: &str| is_frame_of(Path::new(t), Path::new(p));
+        // Every path `numbered` makes is a frame of its pattern.
+        for t in ["out/f_%03d.png", "f%d.exr", "100%%_%04d.png"] {
+            for f in [0, 1, 7, 42, 999, 1000, 12345] {
+                let p = numbered(Path::new(t), f).unwrap();
+                assert!(is_frame_of(Path::new(t), &p), "{t} {}", p.display());
+            }
+        }
+        assert!(
+            !of("out/f_%03d.png", "out/f_01.png"),
+            "narrower than the padding"
+        );
+        assert!(
+            !of("out/f_%03d.png", "out/f_0001.png"),
+            "padded past the width"
+        );
+        assert!(!of("f%d.exr", "f012.exr"));
+        assert!(!of("out/f_%03d.png", "out/f_001.mp4"));
+        assert!(!of("out/f_%03d.png", "out/f_.png"));
+        assert!(!of("out/f_%03d.png", "out/f_00x.png"));
+        assert!(!of("out/f_%03d.png", "other/f_001.png"));
+        assert!(!of("out/f.png", "out/f.png"), "no pattern, no frames");
     }
 
     #[test]

@@ -761,6 +761,18 @@ fn outputs_and_values_are_checked_before_any_work() {
             ]),
             "same file".into(),
         ),
+        // A video written over one of the frames it encodes.
+        (
+            render(&[
+                "-o",
+                &p("f_%03d.png"),
+                "--orbit",
+                "3",
+                "--mp4",
+                &format!("{}/./f_002.png", d.display()),
+            ]),
+            "is one of the frames of the image (-o)".into(),
+        ),
         // A sequence's folder is made only once every output passed its checks.
         (
             render(&[
