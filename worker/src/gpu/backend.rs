@@ -541,7 +541,6 @@ impl GpuBackend {
             &tf,
             &hbounds,
         );
-        stats.uploaded_bytes = self.caster.take_uploaded();
         let out = self.caster.cast(
             &frame,
             &vols,
@@ -549,6 +548,8 @@ impl GpuBackend {
             setup.variant.compiled,
             occl.as_deref(),
         )?;
+        // After the cast, which uploads the occlusion limits.
+        stats.uploaded_bytes = self.caster.take_uploaded();
         stats.readback_bytes = out.readback_bytes;
         stats.feedback_bytes = out.feedback_bytes;
         let mut feedback = Feedback::default();

@@ -58,7 +58,8 @@ pub const GPU_SLOT_ENV: &str = "STRATA_GPU_SLOT";
 pub struct GpuCast {
     /// Pixels of the frame's rectangle, rows top to bottom.
     pub pixels: Vec<[f32; 4]>,
-    /// `(global page-table entry, rays that entered it)`, unordered.
+    /// `(global page-table entry, rays that entered it)`, unordered; a region cast in bands
+    /// lists an entry once per band that asked for it (the counts add up).
     pub feedback: Vec<(u32, u32)>,
     /// Trilinear samples taken.
     pub samples: u64,
@@ -508,7 +509,7 @@ impl GpuCaster {
         let bind = (self.limits.max_storage_buffer_binding_size as u64)
             .min(self.limits.max_buffer_size)
             / 16;
-        self.band_cap.map_or(bind, |c| c.clamp(1, bind))
+        self.band_cap.map_or(bind, |c| c.min(bind)).max(1)
     }
 
     /// Pool slots of `slot_bytes` the adapter can bind in one buffer.
@@ -932,23 +933,11 @@ impl GpuCaster {
     }
 
     /// The largest band, in pixels `(w, h)`, that one cast of a `rect_w × rect_h` region may
-    /// have: its RGBA f32 output within one storage binding (and the test cap,
-    /// [`set_band_pixels`](Self::set_band_pixels)), its sides within one dispatch. Bands are
-    /// whole workgroups high unless the region is narrower than one band of rows.
+    /// have on this adapter ([`band_shape`] with its binding, the test cap
+    /// [`set_band_pixels`](Self::set_band_pixels), and its dispatch side).
     fn band_size(&self, rect_w: u32, rect_h: u32) -> (u32, u32) {
-        let max_px = self.max_frame_pixels();
-        let side = (self.limits.max_compute_workgroups_per_dimension as u64 * WORKGROUP as u64)
-            .min(u32::MAX as u64) as u32;
-        // A row wider than one binding is cut into columns too.
-        let w = rect_w
-            .min(side)
-            .min(max_px.min(u32::MAX as u64) as u32)
-            .max(1);
-        let mut h = (max_px / w as u64).clamp(1, side as u64) as u32;
-        if h < rect_h && h >= WORKGROUP {
-            h -= h % WORKGROUP;
-        }
-        (w, h.min(rect_h).max(1))
+        let side = self.limits.max_compute_workgroups_per_dimension as u64 * WORKGROUP as u64;
+        band_shape(rect_w, rect_h, self.max_frame_pixels(), side)
     }
 
     /// Caps the pixels of one cast's band below what the adapter binds (`None`: the
@@ -1165,6 +1154,22 @@ impl GpuCaster {
     }
 }
 
+/// The largest band `(w, h)` of a `rect_w × rect_h` region whose RGBA f32 output fits
+/// `max_px` pixels (one storage binding) and whose sides fit `side` (one dispatch): the
+/// region's width where one row fits both, else columns; as many rows as fit, rounded down to
+/// whole workgroups where at least one workgroup's rows fit and the band is not the whole
+/// region. Never 0.
+fn band_shape(rect_w: u32, rect_h: u32, max_px: u64, side: u64) -> (u32, u32) {
+    let side = side.clamp(1, u32::MAX as u64);
+    let max_px = max_px.max(1);
+    let w = (rect_w as u64).min(side).min(max_px).max(1) as u32;
+    let mut h = (max_px / w as u64).min(side) as u32;
+    if h < rect_h && h >= WORKGROUP {
+        h -= h % WORKGROUP;
+    }
+    (w, h.min(rect_h).max(1))
+}
+
 /// Runs `f` inside validation and out-of-memory error scopes and turns what they caught into
 /// an error: wgpu's default reaction to either is a panic.
 fn checked<T>(device: &wgpu::Device, what: &str, f: impl FnOnce() -> T) -> Result<T> {
@@ -1176,5 +1181,33 @@ fn checked<T>(device: &wgpu::Device, what: &str, f: impl FnOnce() -> T) -> Resul
     match validation.or(out_of_memory) {
         Some(e) => bail!("{what}: {e}"),
         None => Ok(value),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{band_shape, WORKGROUP};
+
+    #[test]
+    fn bands_fit_one_binding_and_one_dispatch() {
+        // Fits whole: one band.
+        assert_eq!(band_shape(640, 480, 1 << 20, 1 << 19), (640, 480));
+        // Rows as many as the binding holds, rounded down to whole workgroups.
+        assert_eq!(band_shape(100, 1000, 100 * 37, 1 << 19), (100, 32));
+        // Fewer rows than one workgroup fit: not rounded.
+        assert_eq!(band_shape(100, 1000, 100 * 3 + 5, 1 << 19), (100, 3));
+        // A row wider than one binding: columns, one row each.
+        assert_eq!(band_shape(61, 37, 40, 1 << 19), (40, 1));
+        // A row wider than one dispatch: columns of the dispatch side.
+        assert_eq!(band_shape(2000, 10, 1 << 30, 512), (512, 10));
+        // Rows past the dispatch side.
+        assert_eq!(band_shape(10, 5000, 1 << 30, 512), (10, 512));
+        // Every band of a region covers it exactly, within both limits.
+        for (w, h, px, side) in [(61, 37, 491, 1 << 19), (1000, 999, 7777, 96), (1, 1, 1, 1)] {
+            let (bw, bh) = band_shape(w, h, px, side);
+            assert!(bw >= 1 && bh >= 1 && bw as u64 * bh as u64 <= px.max(bw as u64));
+            assert!(bw as u64 <= side && bh as u64 <= side);
+            assert!(bh == h || bh < WORKGROUP || bh % WORKGROUP == 0);
+        }
     }
 }
