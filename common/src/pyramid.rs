@@ -56,6 +56,15 @@ pub enum PyramidError {
         /// Largest allowed.
         max: u32,
     },
+    /// More pages in all levels than a store or page table may index (a crafted or corrupt
+    /// header: the index would be allocated before its checksum is read).
+    #[error("{pages} pages in all levels exceed the largest supported, {max}")]
+    TooManyPages {
+        /// Pages the layout needs.
+        pages: u64,
+        /// Largest allowed.
+        max: u64,
+    },
     /// Too many bricks for the id's Morton field.
     #[error("{bricks} pages along one axis exceed the page-id limit of {limit}")]
     TooManyBricks {
@@ -65,6 +74,10 @@ pub enum PyramidError {
         limit: u64,
     },
 }
+
+/// Most pages of one pyramid, all levels: 2^28 (64³ pages of u8 samples: 64 TiB; its store
+/// index 10 GiB). The page table's entries are `u32`.
+pub const MAX_TOTAL_PAGES: u64 = 1 << 28;
 
 /// Largest brick edge of a volume page (256³ f32 = 64 MiB).
 pub const MAX_PAGE_3D: u32 = 256;
@@ -142,6 +155,13 @@ impl Pyramid {
                 bricks[a] = b as u32;
             }
             levels.push(Level { dims: d, bricks });
+            let pages: u64 = levels.iter().map(Level::page_count).sum();
+            if pages > MAX_TOTAL_PAGES {
+                return Err(PyramidError::TooManyPages {
+                    pages,
+                    max: MAX_TOTAL_PAGES,
+                });
+            }
             if bricks == [1, 1, 1] {
                 break;
             }
@@ -361,6 +381,18 @@ mod tests {
             Pyramid::new(Dim::Three, [u32::MAX as u64, 4, 4], 64, 1),
             Err(PyramidError::TooManyBricks { .. })
         ));
+        // Within the per-axis limit but 2^42 pages in all: its index alone would take
+        // 160 TiB, read from a sparse file before the checksum could refuse it.
+        let max = MAX_BRICKS_PER_AXIS_3D as u64 * 62;
+        assert!(matches!(
+            Pyramid::new(Dim::Three, [max, max, max], 64, 1),
+            Err(PyramidError::TooManyPages { .. })
+        ));
+        assert!(matches!(
+            Pyramid::new(Dim::Two, [1 << 20, 1 << 20, 1], 66, 1),
+            Err(PyramidError::TooManyPages { .. })
+        ));
+        assert!(Pyramid::new(Dim::Three, [62 * 512, 62 * 512, 62 * 512], 64, 1).is_ok());
         // Untrusted page sizes are bounded before anything allocates a page (a crafted
         // header once asked for u32::MAX³ samples).
         for (dim, page) in [(Dim::Three, 257), (Dim::Three, u32::MAX), (Dim::Two, 4097)] {

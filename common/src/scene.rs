@@ -695,10 +695,22 @@ impl std::fmt::Display for AdapterSelector {
     }
 }
 
+/// The largest image side in pixels (`render.width`, `render.height`, `--size`).
+pub const MAX_IMAGE_SIDE: u32 = 32768;
+
 impl RenderSettings {
     /// Checks the values no render can use; the error names the key (under `[render]`)
     /// and says what was expected. [`Scene::parse`] points it at its line.
     pub fn check(&self) -> Result<(), (&'static str, String)> {
+        // Every entry point (render, study, benches) allocates frames of this size.
+        for (key, v) in [("width", self.width), ("height", self.height)] {
+            if !(1..=MAX_IMAGE_SIDE).contains(&v) {
+                return Err((
+                    key,
+                    format!("render.{key} must lie in 1..={MAX_IMAGE_SIDE}, got {v}"),
+                ));
+            }
+        }
         for (key, v) in [
             ("step", self.step),
             ("tau", self.tau),
@@ -1134,6 +1146,20 @@ mod tests {
         .unwrap_err();
         assert_eq!((e.line, e.column), (3, 3), "{e}");
         assert!(e.to_string().starts_with("s.toml:3:3: render.step"), "{e}");
+        for bad in ["0", "70000"] {
+            let e = Scene::parse(
+                Path::new("s.toml"),
+                &format!(
+                    "[render]\nheight = {bad}\n[camera]\neye = [0, 0, 0]\ntarget = [1, 0, 0]\n"
+                ),
+            )
+            .unwrap_err();
+            assert!(
+                e.to_string()
+                    .starts_with("s.toml:2:1: render.height must lie in 1..=32768"),
+                "{e}"
+            );
+        }
         let camera = |body: &str| {
             Scene::parse(
                 Path::new("c.toml"),

@@ -2504,7 +2504,11 @@ impl Spawner {
             .stdin(Stdio::null())
             .kill_on_drop(true);
         // The workers die with the coordinator, however it ends (even SIGKILL). A bound
-        // worker's threads inherit its binding from the first.
+        // worker's threads inherit its binding from the first. PR_SET_PDEATHSIG fires when
+        // the *thread* that forked the child ends, so `spawn` (and a respawn) must run on a
+        // thread that lives as long as the run: the `Cluster`'s futures are driven by
+        // `block_on` on the calling thread (`render::render_distributed`), never from
+        // `spawn_blocking`, whose idle threads exit after 10 s.
         let set = cpus.as_deref().map(affinity::CpuSet::new);
         unsafe {
             cmd.pre_exec(move || {

@@ -15,8 +15,8 @@
 //!   box of the 8 mapped corners). Its cost is the brick's sample count, times
 //!   [`TRANSPARENT_FACTOR`] when the brick is fully transparent: rays skip such bricks in
 //!   the renderer, but still pay for traversing them. "Transparent" is the renderer's own
-//!   empty-space-skipping test, replicated here because it is inlined in
-//!   `Engine::setup`: with `render.empty_space_skipping`,
+//!   empty-space-skipping test (`TransferFunction::page_transparent`, which both call):
+//!   with `render.empty_space_skipping`,
 //!   [`TransferFunction::max_alpha`](strata_common::tf::TransferFunction::max_alpha) of
 //!   the page's index `[min, max]` is zero; without it, only pages with no valid sample.
 //! * **Horizons.** One box per level-0 tile that holds a valid height: laterally the cells

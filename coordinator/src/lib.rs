@@ -11,6 +11,11 @@
 //! * [`demo`]: the scene's built-in synthetic survey, generated once into a cache folder.
 //! * [`image_out`]: PNG (sRGB, flattened) and OpenEXR (float RGBA) image writers.
 //! * [`study`]: `study accuracy`, error against time for every accuracy knob of a scene.
+//! * [`render`]: `coordinator render`, a scene to images, in process or over workers;
+//!   [`cluster`]: the coordinator's side of a distributed render (workers started or
+//!   awaited, authenticated, handed their regions; per frame the camera, the visibility
+//!   order and the gather); [`setup_blame`]: who is to blame when a set-up fails;
+//!   [`sequence`]: the numbered output paths of frame sequences and their MP4.
 
 pub mod cluster;
 pub mod decompose;

@@ -104,7 +104,7 @@ enum Study {
 struct AccuracyArgs {
     /// Scene TOML (e.g. configs/demo.toml).
     scene: PathBuf,
-    /// Output folder (created; report.md, points.csv, <knob>.png/.svg).
+    /// Output folder (created; report.md, points.csv, one KNOB.png and KNOB.svg per knob).
     #[arg(short, long)]
     output: PathBuf,
     /// Image size, e.g. --size 480x270 (overrides render.width and render.height).
@@ -954,5 +954,16 @@ fn main() -> ExitCode {
             eprintln!("error: {e:#}");
             ExitCode::FAILURE
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    /// clap's own consistency checks of every command, flag and default (they otherwise
+    /// run only when a command is parsed).
+    #[test]
+    fn the_command_line_is_consistent() {
+        use clap::CommandFactory;
+        super::Cli::command().debug_assert();
     }
 }

@@ -13,7 +13,7 @@ use strata_common::scene::{line_col, Scene, SceneError};
 use toml::{Table, Value};
 
 /// Largest image side `parse_size` accepts.
-pub const MAX_SIDE: u32 = 32768;
+pub const MAX_SIDE: u32 = strata_common::scene::MAX_IMAGE_SIDE;
 
 /// Reads the scene file at `path`, applies the `KEY=VALUE` overrides in `sets` in order and
 /// then `size` (`render.width`, `render.height`), and parses the result.

@@ -16,7 +16,7 @@ use anyhow::{Context, Result};
 use indicatif::ProgressBar;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-use strata_common::scene::{Camera, Scene};
+use strata_common::scene::{Camera, Scene, MAX_IMAGE_SIDE};
 use strata_common::wire::{CompositeChoice, FrameSource, WorkerFrameStats};
 use strata_worker::engine::Engine;
 use tracing::{info, warn};
@@ -454,8 +454,8 @@ fn prepare(opts: &RenderOptions, progress: &ProgressBar) -> Result<(Scene, bool)
     };
     let (w, h) = (scene.render.width, scene.render.height);
     anyhow::ensure!(
-        w > 0 && h > 0 && w <= 32768 && h <= 32768,
-        "{}: render.width and render.height must lie in 1..=32768, got {w}x{h}",
+        (1..=MAX_IMAGE_SIDE).contains(&w) && (1..=MAX_IMAGE_SIDE).contains(&h),
+        "{}: render.width and render.height must lie in 1..={MAX_IMAGE_SIDE}, got {w}x{h}",
         opts.scene.display()
     );
     // (`Scene::parse` has checked the wall's layout.)

@@ -38,6 +38,10 @@ fn help_everywhere() {
         &["ingest", "horizon", "--help"],
         &["synth", "--help"],
         &["inspect", "--help"],
+        &["render", "--help"],
+        &["study", "--help"],
+        &["study", "accuracy", "--help"],
+        &["worker", "--help"],
     ] {
         let o = coordinator(args);
         assert!(o.status.success(), "{args:?}");

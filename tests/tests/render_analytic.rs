@@ -75,13 +75,15 @@ fn homogeneous_slab_transmittance_for_many_steps() {
         );
         // Constant colour: premultiplied colour = colour · alpha.
         assert!((c[0] - grey_mid() * c[3]).abs() < 2e-5, "{c:?}");
-        // Opacity correction makes the result converge to the continuous slab 1-(1-a)^L.
-        let exact = 1.0 - (1.0 - a).powf(32.0);
-        let tol = if step < 1.0 { 0.01 } else { 1.0 };
-        assert!(
-            (c[3] as f64 - exact).abs() < tol * 0.05 + 1e-3 || step > 3.0,
-            "step {step}"
-        );
+        // Opacity correction makes the result converge to the continuous slab 1-(1-a)^L as
+        // the step shrinks. Coarser steps (3.7, 50) sample the slab at lattice points whose
+        // count times the step is not its length: the assertion above holds them to the
+        // lattice's exact value instead.
+        if step <= 1.0 {
+            let exact = 1.0 - (1.0 - a).powf(32.0);
+            let tol = if step < 1.0 { 1.5e-3 } else { 0.051 };
+            assert!((c[3] as f64 - exact).abs() < tol, "step {step}");
+        }
     }
 }
 

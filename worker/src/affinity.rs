@@ -24,7 +24,7 @@ pub fn allowed() -> Option<Vec<usize>> {
     }
 }
 
-/// A CPU set for [`bind`], built ahead of a `fork` (building it allocates nothing, but
+/// A CPU set for [`CpuSet::bind`], built ahead of a `fork` (building it allocates nothing, but
 /// a `pre_exec` closure should do as little as it can).
 #[derive(Clone, Copy)]
 pub struct CpuSet(libc::cpu_set_t);

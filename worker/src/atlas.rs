@@ -50,6 +50,8 @@ impl PageTable {
             });
             n += l.bricks.iter().map(|&b| b as u64).product::<u64>();
         }
+        // Unreachable for a pyramid that was built: `Pyramid::new` refuses more than
+        // `MAX_TOTAL_PAGES` (2^28) pages.
         assert!(
             n < u32::MAX as u64,
             "a page table of {n} entries does not fit u32 indices"

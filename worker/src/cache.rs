@@ -10,7 +10,7 @@
 //! number, so one key space covers all stores.
 
 use std::collections::{BTreeMap, BinaryHeap, HashMap, HashSet};
-use std::sync::{Arc, Condvar, Mutex};
+use std::sync::{Arc, Condvar, Mutex, PoisonError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 use strata_common::ids::PageId;
@@ -140,17 +140,29 @@ impl PageCache {
 
     /// Decoded bytes held now.
     pub fn bytes(&self) -> u64 {
-        self.shared.state.lock().unwrap().bytes
+        self.shared
+            .state
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .bytes
     }
 
     /// Counters so far.
     pub fn stats(&self) -> CacheStats {
-        self.shared.state.lock().unwrap().stats
+        self.shared
+            .state
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .stats
     }
 
     /// Looks a page up (counts a hit or a miss and refreshes its age).
     pub fn get(&self, key: u64) -> Option<PageData> {
-        let mut st = self.shared.state.lock().unwrap();
+        let mut st = self
+            .shared
+            .state
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
         st.tick += 1;
         let tick = st.tick;
         let State {
@@ -173,12 +185,21 @@ impl PageCache {
 
     /// Whether the page is held (no counters touched).
     pub fn contains(&self, key: u64) -> bool {
-        self.shared.state.lock().unwrap().map.contains_key(&key)
+        self.shared
+            .state
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .map
+            .contains_key(&key)
     }
 
     /// Queues a page for loading unless it is held or already queued at this class or above.
     pub fn request(&self, key: u64, class: Class, priority: f32) {
-        let mut st = self.shared.state.lock().unwrap();
+        let mut st = self
+            .shared
+            .state
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
         if st.map.contains_key(&key) {
             return;
         }
@@ -205,13 +226,21 @@ impl PageCache {
 
     /// Replaces the set of locked pages (never evicted while locked).
     pub fn set_locked(&self, keys: impl IntoIterator<Item = u64>) {
-        let mut st = self.shared.state.lock().unwrap();
+        let mut st = self
+            .shared
+            .state
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
         st.locked = keys.into_iter().collect();
     }
 
     /// Drops queued prefetch requests (a new frame's feedback supersedes them).
     pub fn cancel_prefetch(&self) {
-        let mut st = self.shared.state.lock().unwrap();
+        let mut st = self
+            .shared
+            .state
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
         let heap = std::mem::take(&mut st.heap);
         let mut keep = BinaryHeap::new();
         for q in heap {
@@ -228,7 +257,11 @@ impl PageCache {
     /// since the last call (a page that fails to load is reported, not retried forever).
     pub fn wait_real(&self, timeout: Duration) -> Result<(), String> {
         let deadline = Instant::now() + timeout;
-        let mut st = self.shared.state.lock().unwrap();
+        let mut st = self
+            .shared
+            .state
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
         while st.real_outstanding > 0 {
             let now = Instant::now();
             if now >= deadline {
@@ -237,7 +270,12 @@ impl PageCache {
                     timeout, st.real_outstanding
                 ));
             }
-            st = self.shared.done.wait_timeout(st, deadline - now).unwrap().0;
+            st = self
+                .shared
+                .done
+                .wait_timeout(st, deadline - now)
+                .unwrap_or_else(PoisonError::into_inner)
+                .0;
         }
         if st.errors.is_empty() {
             Ok(())
@@ -252,7 +290,11 @@ impl PageCache {
             return Ok(d);
         }
         let (data, stored) = read(&self.shared.stores, key)?;
-        let mut st = self.shared.state.lock().unwrap();
+        let mut st = self
+            .shared
+            .state
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
         st.stats.pages_read += 1;
         st.stats.bytes_read += stored;
         insert(&self.shared, &mut st, key, data.clone(), Class::Real);
@@ -262,7 +304,11 @@ impl PageCache {
 
 impl Drop for PageCache {
     fn drop(&mut self) {
-        self.shared.state.lock().unwrap().shutdown = true;
+        self.shared
+            .state
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .shutdown = true;
         self.shared.work.notify_all();
         for t in self.threads.drain(..) {
             let _ = t.join();
@@ -326,7 +372,7 @@ fn insert(shared: &Shared, st: &mut State, key: u64, data: PageData, class: Clas
 fn loader(shared: Arc<Shared>) {
     loop {
         let job = {
-            let mut st = shared.state.lock().unwrap();
+            let mut st = shared.state.lock().unwrap_or_else(PoisonError::into_inner);
             loop {
                 if st.shutdown {
                     return;
@@ -341,11 +387,27 @@ fn loader(shared: Arc<Shared>) {
                         _ => continue,
                     }
                 }
-                st = shared.work.wait(st).unwrap();
+                st = shared.work.wait(st).unwrap_or_else(PoisonError::into_inner);
             }
         };
-        let result = read(&shared.stores, job.key);
-        let mut st = shared.state.lock().unwrap();
+        // A panic while decoding (a bug; bad files are errors) is this page's error: the
+        // request is still counted done and the loader thread lives on, so the frame fails
+        // with the cause instead of waiting out its timeout.
+        let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            read(&shared.stores, job.key)
+        }))
+        .unwrap_or_else(|p| {
+            let what = p
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| p.downcast_ref::<String>().cloned())
+                .unwrap_or_default();
+            Err(anyhow::anyhow!(
+                "reading page {:#x} panicked: {what}",
+                job.key
+            ))
+        });
+        let mut st = shared.state.lock().unwrap_or_else(PoisonError::into_inner);
         st.in_flight -= 1;
         // The pending entry is what a real request was counted against. Two jobs for one
         // page can be in flight (a prefetch already loading when a real request queues it

@@ -20,6 +20,9 @@
 //! functions and colour maps, page transparency, affine inverses) lives in
 //! `strata_common` (`camera`, `tf`, `geo`).
 //! * [`engine`]: frames, feedback → loads → atlas updates, batch convergence.
+//! * [`dataset`]: open stores with their transforms and per-page value bounds.
+//! * [`node`]: the worker as a cluster node (coordinator link, peer mesh, the compositing
+//!   exchange per frame); [`cli`]: its `--connect` command line.
 //! * [`image_out`]: PNG (sRGB, flattened) and OpenEXR (float RGBA) writers, atomic; a
 //!   wall's tile files and its preview mosaic.
 #![deny(missing_docs)]

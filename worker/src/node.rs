@@ -679,11 +679,21 @@ async fn accept_peers(
 ) {
     let n = fingerprints.len() as u32;
     let fingerprints = Arc::new(fingerprints);
+    // At most this many handshakes at once (every other rank of the run, twice, and some to
+    // spare), as the coordinator bounds its own: strangers cannot queue unbounded work.
+    let pending = Arc::new(tokio::sync::Semaphore::new((2 * n as usize + 16).max(64)));
     while let Some(incoming) = ep.accept().await {
+        let Ok(permit) = pending.clone().try_acquire_owned() else {
+            warn!(remote = %incoming.remote_address(), "refused a peer connection: too many handshakes in progress");
+            incoming.refuse();
+            continue;
+        };
         let token = *token.borrow();
         let out = out.clone();
         let fingerprints = fingerprints.clone();
         tokio::spawn(async move {
+            // Held until this connection is accepted or refused.
+            let _permit = permit;
             let remote = incoming.remote_address();
             let conn = match incoming.await {
                 Ok(c) => c,
