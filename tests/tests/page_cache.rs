@@ -1,7 +1,9 @@
-//! The page cache's loader threads: a real request for a page whose prefetch is already
-//! loading queues it again, so two loaders can read the same page at once; the request must
-//! be counted done exactly once (the race once underflowed the outstanding count and
-//! poisoned the cache, seen in a distributed sequence test).
+//! The page cache: its promises (prefetched pages never evict, real requests evict the
+//! least recently used unlocked pages and go before queued prefetches), and a race of its
+//! loader threads: a real request for a page whose prefetch is already loading queues it
+//! again, so two loaders can read the same page at once; the request must be counted done
+//! exactly once (the race once underflowed the outstanding count and poisoned the cache,
+//! seen in a distributed sequence test).
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -34,4 +36,79 @@ fn a_real_request_for_a_page_being_prefetched_is_counted_once() {
             assert!(cache.get(k).is_some(), "page {k:#x} not loaded");
         }
     }
+}
+
+/// The cache's two promises (module docs of `strata_worker::cache`): prefetched pages never
+/// evict anything, and real requests evict the least recently used unlocked pages; and
+/// real requests outrank queued prefetches.
+#[test]
+fn prefetch_never_evicts_real_requests_evict_lru_and_go_first() {
+    let dir = TempDir::new().unwrap();
+    let n = 96u64;
+    let data: Vec<f32> = (0..n * n * n).map(|i| (i % 251) as f32).collect();
+    let p = volume_store(dir.path(), "v", [n, n, n], data, Affine3::IDENTITY, 32);
+    let store = Arc::new(PageStore::open(&p).unwrap());
+    let keys: Vec<u64> = store.index().iter().map(|e| e.id.0).collect();
+    assert!(keys.len() > 20);
+    let page = strata_worker::cache::decoded_page_bytes(&store);
+    let wait_reads = |cache: &PageCache, reads: u64| {
+        let t = std::time::Instant::now();
+        while cache.stats().pages_read < reads {
+            assert!(t.elapsed() < Duration::from_secs(30), "{:?}", cache.stats());
+            std::thread::sleep(Duration::from_millis(2));
+        }
+    };
+
+    // Room for three pages, holding three.
+    let cache = PageCache::new(vec![store.clone()], 3 * page, 1);
+    for &k in &keys[..3] {
+        cache.request(k, Class::Real, 1.0);
+    }
+    cache.wait_real(Duration::from_secs(30)).unwrap();
+    // Five prefetches are read and dropped: nothing is evicted for them.
+    for &k in &keys[3..8] {
+        cache.request(k, Class::Prefetch, 1.0);
+    }
+    wait_reads(&cache, 8);
+    let s = cache.stats();
+    assert_eq!((s.evictions, s.prefetch_dropped), (0, 5), "{s:?}");
+    for &k in &keys[..3] {
+        assert!(cache.contains(k));
+    }
+    for &k in &keys[3..8] {
+        assert!(!cache.contains(k));
+    }
+    // Touch the first so the second is the least recently used; lock the third.
+    assert!(cache.get(keys[0]).is_some());
+    cache.set_locked([keys[2]]);
+    cache.request(keys[8], Class::Real, 1.0);
+    cache.wait_real(Duration::from_secs(30)).unwrap();
+    assert_eq!(cache.stats().evictions, 1);
+    assert!(
+        !cache.contains(keys[1]),
+        "the least recently used page goes"
+    );
+    assert!(cache.contains(keys[0]) && cache.contains(keys[2]) && cache.contains(keys[8]));
+    // Only unlocked pages go: the locked one outlives older ones.
+    cache.request(keys[9], Class::Real, 1.0);
+    cache.wait_real(Duration::from_secs(30)).unwrap();
+    assert!(!cache.contains(keys[0]) && cache.contains(keys[2]));
+    drop(cache);
+
+    // One loader, many prefetches queued, then one real request: it is read next, not
+    // after the prefetches (at most the page the loader already held was read before it).
+    let cache = PageCache::new(vec![store.clone()], 1 << 30, 1);
+    let (real, rest) = keys.split_last().unwrap();
+    for &k in rest {
+        cache.request(k, Class::Prefetch, 1.0);
+    }
+    cache.request(*real, Class::Real, 1.0);
+    cache.wait_real(Duration::from_secs(30)).unwrap();
+    let read = cache.stats().pages_read;
+    assert!(
+        read < rest.len() as u64 / 2,
+        "{read} pages read before the real request was done, of {} queued",
+        rest.len()
+    );
+    assert!(cache.contains(*real));
 }
