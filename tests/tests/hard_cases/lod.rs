@@ -63,8 +63,35 @@ fn lod_scene(ctx: &Ctx) -> Scene {
     )
 }
 
+/// The levels of dataset 0 that a converged CPU frame of the scene samples.
+fn levels_sampled(s: &Scene) -> Res<std::collections::BTreeSet<u8>> {
+    use strata_worker::engine::Engine;
+    let mut s = s.clone();
+    s.render.backend = strata_common::scene::Backend::Cpu;
+    let mut e = Engine::new(&s).map_err(|e| format!("{e:#}"))?;
+    let view = e
+        .view(s.render.width, s.render.height)
+        .map_err(|e| format!("{e:#}"))?;
+    let region = e.scene_region();
+    e.render_batch(&view, &region)
+        .map_err(|e| format!("{e:#}"))?;
+    let f = e
+        .render_frame(&view, &region)
+        .map_err(|e| format!("{e:#}"))?;
+    Ok(f.feedback
+        .coverage
+        .keys()
+        .map(|&k| strata_common::ids::PageId(k).level())
+        .collect())
+}
+
 fn transitions(ctx: &Ctx) -> Res<f64> {
     let s = lod_scene(ctx);
+    // The case's premise: the view samples more than one level.
+    let levels = levels_sampled(&s)?;
+    if levels.len() < 2 {
+        return Err(format!("the view samples levels {levels:?} only: mis-built").into());
+    }
     let tree = decomposition(&s, WORKERS)?;
     let whole = ctx.whole_reference(&s)?;
     let split = ctx.render_regions(&s, &tree)?;
