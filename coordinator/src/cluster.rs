@@ -688,6 +688,9 @@ impl Cluster {
         let net = NetConfig {
             idle_timeout: opts.idle_timeout,
             initial_mtu: opts.quic_mtu,
+            // Workers present their certificates, which must be the ones their hellos
+            // name (and the coordinator hands to their peers).
+            client_auth: true,
             ..NetConfig::default()
         };
         let ep = transport::endpoint(opts.listen, &id, &net)?;
@@ -2288,6 +2291,25 @@ async fn authenticate(incoming: quinn::Incoming, secret: &[u8]) -> Result<Authen
                 tokio::time::sleep(Duration::from_millis(50)).await;
                 conn.close(5u32.into(), b"wrong secret");
                 bail!("worker {name:?} (pid {pid}) presented the wrong shared secret");
+            }
+            // The fingerprint goes to every peer, which accepts only this certificate for
+            // this worker's rank: a hello naming another than the one presented would break
+            // the mesh.
+            let presented = tls::peer_fingerprint(&conn);
+            if !presented.is_some_and(|p| secret::ct_eq(&p, &fingerprint)) {
+                let reason = format!(
+                    "the certificate presented ({}) is not the one the hello names ({})",
+                    presented.map_or("none".into(), |p| tls::to_hex(&p)),
+                    tls::to_hex(&fingerprint)
+                );
+                let msg = wire::encode_meta(&CoordMsg::Refused {
+                    reason: reason.clone(),
+                });
+                let _ = tokio::time::timeout(t, write_frame(&mut send, &msg, &[])).await;
+                let _ = send.finish();
+                tokio::time::sleep(Duration::from_millis(50)).await;
+                conn.close(5u32.into(), b"wrong certificate");
+                bail!("worker {name:?} (pid {pid}): {reason}");
             }
             Ok((name, pid, fingerprint, host, conn, send, recv))
         }

@@ -519,10 +519,16 @@ fn bad_peers_are_refused_and_the_run_goes_on() {
         let ep =
             strata_net::transport::endpoint("127.0.0.1:0".parse().unwrap(), &id, &net).unwrap();
         for (meta_len, body) in [(u32::MAX, vec![]), (40u32, vec![0xffu8; 40])] {
-            let conn =
-                strata_net::transport::connect(&ep, addr, pinned, &net, Duration::from_secs(10))
-                    .await
-                    .unwrap();
+            let conn = strata_net::transport::connect_as(
+                &ep,
+                addr,
+                pinned,
+                Some(&id),
+                &net,
+                Duration::from_secs(10),
+            )
+            .await
+            .unwrap();
             let (mut send, mut recv) = conn.open_bi().await.unwrap();
             let header = strata_common::wire::encode_header(meta_len, 0);
             send.write_all(&header).await.unwrap();
@@ -530,6 +536,58 @@ fn bad_peers_are_refused_and_the_run_goes_on() {
             // The coordinator closes the connection: reading ends with an error, promptly.
             let r = tokio::time::timeout(Duration::from_secs(15), recv.read_to_end(1 << 20)).await;
             assert!(matches!(r, Ok(Err(_))), "connection not closed: {r:?}");
+        }
+    });
+
+    // 3b. The right secret, but a hello naming another certificate than the one presented
+    //     (its peers would pin the wrong one), and a client that presents none.
+    rt.block_on(async {
+        let id = strata_net::Identity::generate().unwrap();
+        let other = strata_net::Identity::generate().unwrap();
+        let net = strata_net::NetConfig::default();
+        let ep =
+            strata_net::transport::endpoint("127.0.0.1:0".parse().unwrap(), &id, &net).unwrap();
+        let conn = strata_net::transport::connect_as(
+            &ep,
+            addr,
+            pinned,
+            Some(&id),
+            &net,
+            Duration::from_secs(10),
+        )
+        .await
+        .unwrap();
+        let (mut send, mut recv) = conn.open_bi().await.unwrap();
+        let hello = strata_common::wire::encode_meta(&strata_common::wire::WorkerMsg::Hello {
+            secret: b"correct-horse-battery-staple-42".to_vec(),
+            name: "impostor".into(),
+            pid: 1,
+            fingerprint: other.fingerprint,
+            host: None,
+        });
+        strata_net::frame::write_frame(&mut send, &hello, &[])
+            .await
+            .unwrap();
+        let f = tokio::time::timeout(
+            Duration::from_secs(15),
+            strata_net::frame::read_frame(&mut recv, &strata_common::wire::Limits::HANDSHAKE),
+        )
+        .await
+        .unwrap()
+        .unwrap();
+        match strata_common::wire::decode_meta::<strata_common::wire::CoordMsg>(&f.meta) {
+            Ok(strata_common::wire::CoordMsg::Refused { reason }) => {
+                assert!(reason.contains("not the one the hello names"), "{reason}")
+            }
+            other => panic!("expected a refusal, got {other:?}"),
+        }
+        // Without a certificate the handshake itself fails.
+        let bare =
+            strata_net::transport::connect(&ep, addr, pinned, &net, Duration::from_secs(10)).await;
+        if let Ok(conn) = bare {
+            // TLS 1.3: the client may finish first; the server then closes the connection.
+            let r = tokio::time::timeout(Duration::from_secs(15), conn.closed()).await;
+            assert!(r.is_ok(), "a client without a certificate was kept");
         }
     });
 
@@ -542,7 +600,7 @@ fn bad_peers_are_refused_and_the_run_goes_on() {
     // The log is drained by a thread: wait for it to catch up with the ended coordinator.
     let read_log = || std::fs::read_to_string(w.dir.path().join("coordinator.log")).unwrap();
     let t = Instant::now();
-    while read_log().matches("refused a connection").count() < 4
+    while read_log().matches("refused a connection").count() < 6
         && t.elapsed() < Duration::from_secs(10)
     {
         std::thread::sleep(Duration::from_millis(100));
@@ -550,8 +608,10 @@ fn bad_peers_are_refused_and_the_run_goes_on() {
     let log = read_log();
     assert!(log.contains("wrong shared secret"), "{log}");
     // One refusal each: the worker that pinned another certificate (its handshake ends),
-    // the wrong secret, the oversized frame and the malformed one.
-    assert_eq!(log.matches("refused a connection").count(), 4, "{log}");
+    // the wrong secret, the oversized frame, the malformed one, the hello naming another
+    // certificate and the client without one.
+    assert_eq!(log.matches("refused a connection").count(), 6, "{log}");
+    assert!(log.contains("not the one the hello names"), "{log}");
 }
 
 #[test]
@@ -1352,9 +1412,16 @@ async fn fake_worker(
     let id = strata_net::Identity::generate().unwrap();
     let net = strata_net::NetConfig::default();
     let ep = strata_net::transport::endpoint("127.0.0.1:0".parse().unwrap(), &id, &net).unwrap();
-    let conn = strata_net::transport::connect(&ep, addr, pinned, &net, Duration::from_secs(10))
-        .await
-        .unwrap();
+    let conn = strata_net::transport::connect_as(
+        &ep,
+        addr,
+        pinned,
+        Some(&id),
+        &net,
+        Duration::from_secs(10),
+    )
+    .await
+    .unwrap();
     strata_net::transport::trust(&conn);
     let (mut send, mut recv) = conn.open_bi().await.unwrap();
     let hello = WorkerMsg::Hello {

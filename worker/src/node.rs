@@ -121,10 +121,12 @@ async fn node(opts: NodeOptions) -> Result<()> {
         ..NetConfig::default()
     };
     let ep = transport::endpoint(opts.bind, &id, &net)?;
-    let conn = transport::connect(
+    // Presenting this worker's certificate, which its hello names.
+    let conn = transport::connect_as(
         &ep,
         opts.connect,
         opts.fingerprint,
+        Some(&id),
         &net,
         opts.connect_timeout,
     )
