@@ -514,21 +514,8 @@ fn bad_peers_are_refused_and_the_run_goes_on() {
     let pinned = strata_net::tls::parse_fingerprint(&fp).unwrap();
     let addr: std::net::SocketAddr = format!("127.0.0.1:{}", w.port).parse().unwrap();
     rt.block_on(async {
-        let id = strata_net::Identity::generate().unwrap();
-        let net = strata_net::NetConfig::default();
-        let ep =
-            strata_net::transport::endpoint("127.0.0.1:0".parse().unwrap(), &id, &net).unwrap();
         for (meta_len, body) in [(u32::MAX, vec![]), (40u32, vec![0xffu8; 40])] {
-            let conn = strata_net::transport::connect_as(
-                &ep,
-                addr,
-                pinned,
-                Some(&id),
-                &net,
-                Duration::from_secs(10),
-            )
-            .await
-            .unwrap();
+            let (_id, _ep, conn) = dial(addr, pinned).await;
             let (mut send, mut recv) = conn.open_bi().await.unwrap();
             let header = strata_common::wire::encode_header(meta_len, 0);
             send.write_all(&header).await.unwrap();
@@ -542,21 +529,8 @@ fn bad_peers_are_refused_and_the_run_goes_on() {
     // 3b. The right secret, but a hello naming another certificate than the one presented
     //     (its peers would pin the wrong one), and a client that presents none.
     rt.block_on(async {
-        let id = strata_net::Identity::generate().unwrap();
         let other = strata_net::Identity::generate().unwrap();
-        let net = strata_net::NetConfig::default();
-        let ep =
-            strata_net::transport::endpoint("127.0.0.1:0".parse().unwrap(), &id, &net).unwrap();
-        let conn = strata_net::transport::connect_as(
-            &ep,
-            addr,
-            pinned,
-            Some(&id),
-            &net,
-            Duration::from_secs(10),
-        )
-        .await
-        .unwrap();
+        let (_id, ep, conn) = dial(addr, pinned).await;
         let (mut send, mut recv) = conn.open_bi().await.unwrap();
         let hello = strata_common::wire::encode_meta(&strata_common::wire::WorkerMsg::Hello {
             secret: b"correct-horse-battery-staple-42".to_vec(),
@@ -582,6 +556,7 @@ fn bad_peers_are_refused_and_the_run_goes_on() {
             other => panic!("expected a refusal, got {other:?}"),
         }
         // Without a certificate the handshake itself fails.
+        let net = strata_net::NetConfig::default();
         let bare =
             strata_net::transport::connect(&ep, addr, pinned, &net, Duration::from_secs(10)).await;
         if let Ok(conn) = bare {
@@ -1397,18 +1372,12 @@ fn a_sequence_that_re_splits_the_tree_still_equals_in_process_frame_by_frame() {
 /// A hand-driven worker for hostile-peer tests: connects to a waiting coordinator with the
 /// run's secret, claims this host for shared memory, and returns its endpoint, control
 /// stream and set-up.
-async fn fake_worker(
-    w: &Waiting,
-) -> (
-    quinn::Endpoint,
-    quinn::Connection,
-    quinn::SendStream,
-    quinn::RecvStream,
-    strata_common::wire::Setup,
-) {
-    use strata_common::wire::{self, CoordMsg, Limits, WorkerMsg};
-    let pinned = strata_net::tls::parse_fingerprint(&w.fingerprint).unwrap();
-    let addr: std::net::SocketAddr = format!("127.0.0.1:{}", w.port).parse().unwrap();
+/// A client with a fresh certificate, connected to the coordinator at `addr` and presenting
+/// it (as a worker does).
+async fn dial(
+    addr: std::net::SocketAddr,
+    pinned: strata_common::wire::Fingerprint,
+) -> (strata_net::Identity, quinn::Endpoint, quinn::Connection) {
     let id = strata_net::Identity::generate().unwrap();
     let net = strata_net::NetConfig::default();
     let ep = strata_net::transport::endpoint("127.0.0.1:0".parse().unwrap(), &id, &net).unwrap();
@@ -1422,6 +1391,22 @@ async fn fake_worker(
     )
     .await
     .unwrap();
+    (id, ep, conn)
+}
+
+async fn fake_worker(
+    w: &Waiting,
+) -> (
+    quinn::Endpoint,
+    quinn::Connection,
+    quinn::SendStream,
+    quinn::RecvStream,
+    strata_common::wire::Setup,
+) {
+    use strata_common::wire::{self, CoordMsg, Limits, WorkerMsg};
+    let pinned = strata_net::tls::parse_fingerprint(&w.fingerprint).unwrap();
+    let addr: std::net::SocketAddr = format!("127.0.0.1:{}", w.port).parse().unwrap();
+    let (id, ep, conn) = dial(addr, pinned).await;
     strata_net::transport::trust(&conn);
     let (mut send, mut recv) = conn.open_bi().await.unwrap();
     let hello = WorkerMsg::Hello {
