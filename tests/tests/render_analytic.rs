@@ -693,3 +693,63 @@ fn f64_accumulation_keeps_many_tiny_steps_exact() {
     let e = strata_worker::engine::Engine::new(&s64).unwrap();
     assert!(e.backend_name().starts_with("cpu"), "{}", e.backend_name());
 }
+
+/// Gradient shading against its closed form. In a linear ramp (values growing along x
+/// only) every sample's gradient points along x, at every level of detail, so a ray's
+/// samples all take the same headlight Blinn-Phong factors: `L0 = 0.3 + 0.6·|cos θ|` on the
+/// colour and `L1 = 0.25·|cos θ|^24` per unit of opacity, θ between the ray and x. Front to
+/// back, `Σ Tᵢ αᵢ (cᵢ L0 + L1) = L0·C + L1·A`: the shaded pixel is the unshaded pixel's
+/// colour times L0 plus its alpha times L1, whatever the transfer function, and its alpha is
+/// unchanged. The oblique view sweeps θ over the image, a near-axis ray included.
+#[test]
+fn gradient_shading_of_a_linear_ramp_matches_its_closed_form() {
+    let dir = TempDir::new().unwrap();
+    let data: Vec<f32> = (0..N * N * N).map(|i| (i % N) as f32 * 0.05).collect();
+    let store = volume_store(dir.path(), "ramp", [N, N, N], data, Affine3::IDENTITY, 32);
+    let s = scene(
+        vec![volume_layer(
+            store,
+            "viridis",
+            [0.0, 1.6],
+            vec![[0.0, 0.02], [1.0, 0.08]],
+        )],
+        vec![],
+        axis_camera([-40.0, 20.0, -30.0], [15.5, 15.5, 15.5]),
+        exact_settings(W, W),
+    );
+    let plain = render_on_both(&s, 1e-4, "a linear ramp, unshaded");
+    let mut lit = s.clone();
+    lit.render.volume_shading = true;
+    let shaded = render_on_both(&lit, 1e-4, "a linear ramp, shaded");
+    let view =
+        strata_common::camera::View::new(s.camera.as_ref().unwrap(), &s.render, W, W).unwrap();
+    let (mut seen, mut cos_range) = (0, [1.0f32, 0.0f32]);
+    for y in 0..W {
+        for x in 0..W {
+            let i = (y * W + x) as usize;
+            let (p, q) = (plain[i], shaded[i]);
+            assert_eq!(p[3], q[3], "({x}, {y}): shading changed the alpha");
+            if p[3] < 1e-3 {
+                continue;
+            }
+            let d = view.ray_dir(x, y);
+            let cos = d[0].abs() / (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            let (l0, l1) = (0.3 + 0.6 * cos, 0.25 * cos.powi(24));
+            for c in 0..3 {
+                let want = l0 * p[c] + l1 * p[3];
+                assert!(
+                    (q[c] - want).abs() <= 2e-6 + 1e-5 * want,
+                    "({x}, {y}) channel {c}: {} against the closed form {want} (cos θ = {cos})",
+                    q[c]
+                );
+            }
+            seen += 1;
+            cos_range = [cos_range[0].min(cos), cos_range[1].max(cos)];
+        }
+    }
+    assert!(seen > 1000, "{seen} pixels see the ramp");
+    assert!(
+        cos_range[0] < 0.6 && cos_range[1] > 0.85,
+        "the view sweeps too little of θ: cos θ in {cos_range:?}"
+    );
+}
