@@ -753,3 +753,84 @@ fn gradient_shading_of_a_linear_ramp_matches_its_closed_form() {
         "the view sweeps too little of θ: cos θ in {cos_range:?}"
     );
 }
+
+/// The mixing of overlapping volumes against its closed form. Two constant volumes fill the
+/// same box, `b` at half the resolution of `a`, with different colours and opacities `a`,
+/// `b` per unit step of their own voxels. The frame steps by the finer voxel (1), so `b`'s
+/// samples carry the corrected opacity `b' = 1 − (1 − b)^(1/2)`. Per sample the mix is
+/// `1 − (1 − a)(1 − b')` (independent absorbers) with the opacity-weighted colour
+/// `(a·c_a + b'·c_b) / (a + b')`; over the centre ray's `n` lattice points the pixel's alpha
+/// is `1 − ((1 − a)(1 − b'))^n` and its colour that mix times the alpha. Each volume's own
+/// colour is read from its render alone, where `b` steps by its own voxel (2).
+#[test]
+fn overlapping_volumes_mix_as_independent_absorbers_with_opacity_weighted_colour() {
+    let dir = TempDir::new().unwrap();
+    let (a, b) = (0.05f64, 0.08f64);
+    let layer = |name: &str, n: u64, colormap: &str, alpha: f64| {
+        // n samples per axis over the same box [-0.5, 31.5): cell-centred, scale N / n.
+        let k = (N / n) as f64;
+        let store = volume_store(
+            dir.path(),
+            name,
+            [n, n, n],
+            vec![1.0; (n * n * n) as usize],
+            Affine3::scale_offset([k; 3], [(k - 1.0) / 2.0; 3]),
+            32,
+        );
+        volume_layer(
+            store,
+            colormap,
+            [0.0, 2.0],
+            vec![[0.0, alpha], [1.0, alpha]],
+        )
+    };
+    let (va, vb) = (layer("a", N, "grey", a), layer("b", N / 2, "viridis", b));
+    let mut r = exact_settings(W, W);
+    r.adaptive_step = false;
+    r.step = 1.0;
+    let cam = axis_camera([15.5, 15.5, -50.0], [15.5, 15.5, 0.0]);
+    let render = |vols: Vec<strata_common::scene::VolumeLayer>, what: &str| {
+        let s = scene(vols, vec![], cam.clone(), r.clone());
+        centre(&render_on_both(&s, 1e-4, what))
+    };
+    let (alone_a, alone_b) = (
+        render(vec![va.clone()], "volume a alone"),
+        render(vec![vb.clone()], "volume b alone"),
+    );
+    let both = render(vec![va, vb], "both volumes, mixed");
+    // Box faces at -0.5 and 31.5: the ray is inside for t in [49.5, 81.5).
+    let (n1, n2) = (
+        lattice_count(49.5, 81.5, 1.0),
+        lattice_count(49.5, 81.5, 2.0),
+    );
+    assert_eq!((n1, n2), (32, 16));
+    let b1 = 1.0 - (1.0 - b).sqrt();
+    let (aa, ab, amix) = (
+        1.0 - (1.0 - a).powi(32),
+        1.0 - (1.0 - b).powi(16),
+        1.0 - ((1.0 - a) * (1.0 - b1)).powi(32),
+    );
+    assert!(
+        (alone_a[3] as f64 - aa).abs() < 2e-5,
+        "{alone_a:?} against alpha {aa}"
+    );
+    assert!(
+        (alone_b[3] as f64 - ab).abs() < 2e-5,
+        "{alone_b:?} against alpha {ab}"
+    );
+    assert!(
+        (both[3] as f64 - amix).abs() < 2e-5,
+        "{both:?} against alpha {amix}"
+    );
+    for c in 0..3 {
+        let (ca, cb) = (alone_a[c] as f64 / aa, alone_b[c] as f64 / ab);
+        let want = amix * (a * ca + b1 * cb) / (a + b1);
+        assert!(
+            (both[c] as f64 - want).abs() < 2e-5,
+            "channel {c}: {} against the closed form {want} (colours {ca}, {cb})",
+            both[c]
+        );
+    }
+    // The two colours differ, so the weights are tested.
+    assert!((0..3).any(|c| (alone_a[c] / alone_a[3] - alone_b[c] / alone_b[3]).abs() > 0.1));
+}

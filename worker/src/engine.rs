@@ -613,10 +613,18 @@ impl Engine {
                 .push((vmin * (1u64 << b) as f64 / (s.tau * pa as f64)) as f32);
             bands.dt.push(base * (1u64 << b) as f32);
         }
-        let exps: Vec<f32> = (0..nb)
-            .map(|b| (s.step as f32) * (1u64 << b) as f32)
-            .collect();
         for (i, v) in self.data.volumes.iter().enumerate() {
+            // Each volume's opacities are per its own finest voxel spacing (as ParaView's
+            // per-representation opacity unit distance defaults to the data's spacing), so a
+            // volume looks the same whatever other volumes share the scene: the step
+            // exponent of band b is its step over that spacing. (For the finest volume, and
+            // a volume alone, `vmin / own` is exactly 1.)
+            let own = (0..3)
+                .map(|k| col_len(&rel[i], k))
+                .fold(f64::INFINITY, f64::min);
+            let exps: Vec<f32> = (0..nb)
+                .map(|b| ((s.step * (vmin / own)) as f32) * (1u64 << b) as f32)
+                .collect();
             let inv = rel[i]
                 .inverse()
                 .expect("stores with singular transforms are refused at open, z_scale > 0");
