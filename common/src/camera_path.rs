@@ -34,8 +34,11 @@ pub enum Interpolation {
     Smooth,
 }
 
+/// The scene camera's default (`scene::Camera`): z grows downward in subsurface data, so
+/// up is −z. (It was +z, which turned a path without `up` upside down against the scene's
+/// own camera.)
 fn default_up() -> [f64; 3] {
-    [0.0, 0.0, 1.0]
+    [0.0, 0.0, -1.0]
 }
 
 fn default_fov() -> f64 {
@@ -56,7 +59,7 @@ pub struct Keyframe {
     pub eye: [f64; 3],
     /// Look-at point (world).
     pub target: [f64; 3],
-    /// Up direction.
+    /// Up direction (default `[0, 0, -1]`, as the scene camera's: z grows downward).
     #[serde(default = "default_up")]
     pub up: [f64; 3],
     /// Vertical field of view, degrees.
@@ -264,7 +267,11 @@ target = [606000.0, 6075000.0, 1200.0]
         assert_eq!(p.frame(2).eye, [605100.0, 6074000.0, -900.0]);
         assert_eq!(p.frame(4).eye, [605100.0, 6074100.0, -800.0]);
         assert_eq!(p.frame(6).eye, [605100.0, 6074200.0, -700.0]);
-        assert_eq!(p.frame(6).up, [0.0, 0.0, 1.0]);
+        assert_eq!(
+            p.frame(6).up,
+            [0.0, 0.0, -1.0],
+            "the scene camera's default up"
+        );
     }
 
     #[test]

@@ -4,7 +4,9 @@
 //! Lux's dissertation packed ids into 32 bits (8-bit instance, 24-bit index), which limits
 //! octrees to depth 7; its own 109 GiB volume needed depth 9 (digest §2.4, erratum). With
 //! 42 bits of Morton index an octree level addresses 2^14 bricks per axis (about a million
-//! samples per axis with 64³ bricks) and a quadtree level 2^21 tiles per axis.
+//! samples per axis with 64³ bricks) and a quadtree level 2^21 tiles per axis; a whole
+//! pyramid holds at most `pyramid::MAX_TOTAL_PAGES` (2^28) pages, which binds first for
+//! square horizons (about 2^14 tiles per axis).
 //!
 //! Level 0 is the finest level (the source samples); level `levels - 1` is the root.
 //! Ordering ids numerically orders pages by data set, then level, then Z-order, which is

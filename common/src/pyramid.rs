@@ -58,7 +58,9 @@ pub enum PyramidError {
     },
     /// More pages in all levels than a store or page table may index (a crafted or corrupt
     /// header: the index would be allocated before its checksum is read).
-    #[error("{pages} pages in all levels exceed the largest supported, {max}")]
+    #[error(
+        "{pages} pages in all levels exceed the largest supported, {max} (larger pages hold more)"
+    )]
     TooManyPages {
         /// Pages the layout needs.
         pages: u64,

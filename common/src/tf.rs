@@ -2,7 +2,7 @@
 //!
 //! A transfer function maps a sample value to straight RGBA (colour from a named colour map,
 //! opacity from a piecewise-linear curve) with alpha defined per *reference step* (one
-//! finest voxel spacing). The caster uses per-step tables: premultiplied colour with the
+//! finest voxel spacing of the volume it colours). The caster uses per-step tables: premultiplied colour with the
 //! opacity already corrected for that step, α' = 1 − (1 − α)^(Δs/Δs₀), so no `powf` runs per
 //! sample. Empty-space skipping asks [`TransferFunction::max_alpha`] whether any value in a
 //! brick's [min, max] can be visible.

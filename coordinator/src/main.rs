@@ -748,22 +748,32 @@ fn run(cli: Cli) -> Result<()> {
                         out.display()
                     );
                     not_an_input(out, &inputs)?;
-                    // A sequence's frames go to a folder of their own, made here.
-                    let dir = out.parent().filter(|p| !p.as_os_str().is_empty());
-                    match dir {
-                        Some(dir)
-                            if sequence
-                                && strata_coordinator::sequence::is_numbered(out)
-                                    .unwrap_or(false) =>
-                        {
-                            folders.push((out, dir))
+                    // A sequence's frames go to a folder of their own, made here: the
+                    // pattern's folder as the frames name it (`%%` is `%` there), so the
+                    // frame number must be in the file name.
+                    let numbered =
+                        sequence && strata_coordinator::sequence::is_numbered(out).unwrap_or(false);
+                    if numbered {
+                        let name_numbered = out.file_name().is_some_and(|n| {
+                            strata_coordinator::sequence::is_numbered(Path::new(n)).unwrap_or(false)
+                        });
+                        anyhow::ensure!(
+                            name_numbered,
+                            "{}: the frame-number pattern of the {what} must be in the file name, not in a folder",
+                            out.display()
+                        );
+                        let first = strata_coordinator::sequence::numbered(out, 0)?;
+                        match first.parent().filter(|p| !p.as_os_str().is_empty()) {
+                            Some(dir) => folders.push((out, dir.to_path_buf())),
+                            None => folder_exists(out, what)?,
                         }
-                        _ => folder_exists(out, what)?,
+                    } else {
+                        folder_exists(out, what)?;
                     }
                 }
             }
             for (out, dir) in folders {
-                std::fs::create_dir_all(dir).with_context(|| {
+                std::fs::create_dir_all(&dir).with_context(|| {
                     format!(
                         "{}: cannot create the folder {}",
                         out.display(),

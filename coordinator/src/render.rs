@@ -404,7 +404,7 @@ impl RenderSummary {
         }
     }
 
-    /// `--stats` output: one JSON object per line: per frame (`"kind": "frame"`), per worker
+    /// `--stats` output: one JSON object per line: per frame (`"kind": "frame"`), per re-split (`"kind": "rebalance"`), per worker
     /// and frame (`"kind": "worker"`), then the summary (`"kind": "summary"`).
     pub fn json_lines(&self) -> Result<String> {
         let mut out = String::new();

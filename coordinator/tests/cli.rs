@@ -777,6 +777,11 @@ fn outputs_and_values_are_checked_before_any_work() {
             ]),
             "is one of the frames of the image (-o)".into(),
         ),
+        // The frame number names files, not folders.
+        (
+            render(&["-o", &p("shot_%02d/img.png"), "--orbit", "2"]),
+            "must be in the file name".into(),
+        ),
         // A sequence's folder is made only once every output passed its checks.
         (
             render(&[
@@ -837,6 +842,15 @@ fn outputs_and_values_are_checked_before_any_work() {
     }
     assert_eq!(std::fs::read_to_string(&scene).unwrap(), scene_text);
     assert_eq!(std::fs::read(d.join("v.raw")).unwrap(), vec![1u8; 1000]);
+    // A `%%` in the folder of a pattern is a `%`: the folder made is the one the frames go
+    // to (it was made as `100%%`, and the frames failed after the render).
+    let a = render(&["-o", &p("100%%/f_%03d.png"), "--orbit", "2"]);
+    let a: Vec<&str> = a.iter().map(|s| s.as_str()).collect();
+    let o = coordinator(&a);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(d.join("100%/f_001.png").is_file());
+    assert!(!d.join("100%%").exists());
+    std::fs::remove_dir_all(d.join("100%")).unwrap();
     // A worker's timeouts are bounded as the coordinator's are.
     for flag in ["--connect-timeout-s", "--idle-timeout-s"] {
         let o = Command::new(env!("CARGO_BIN_EXE_coordinator"))

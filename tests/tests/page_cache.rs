@@ -96,7 +96,8 @@ fn prefetch_never_evicts_real_requests_evict_lru_and_go_first() {
     drop(cache);
 
     // One loader, many prefetches queued, then one real request: it is read next, not
-    // after the prefetches (at most the page the loader already held was read before it).
+    // after the prefetches (only what the loader took while the requests were being queued
+    // was read before it; a queue in arrival order would read them all first).
     let cache = PageCache::new(vec![store.clone()], 1 << 30, 1);
     let (real, rest) = keys.split_last().unwrap();
     for &k in rest {
@@ -106,7 +107,7 @@ fn prefetch_never_evicts_real_requests_evict_lru_and_go_first() {
     cache.wait_real(Duration::from_secs(30)).unwrap();
     let read = cache.stats().pages_read;
     assert!(
-        read < rest.len() as u64 / 2,
+        read < rest.len() as u64 / 4,
         "{read} pages read before the real request was done, of {} queued",
         rest.len()
     );

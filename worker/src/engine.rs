@@ -575,7 +575,8 @@ impl Engine {
     ) -> FrameSetup<'a> {
         let s = &self.settings;
         let pa = view.pixel_angle;
-        // Finest voxel spacing in display units (reference for step and opacity).
+        // Finest voxel spacing of all volumes in display units: the step's reference (each
+        // volume's opacity takes its own spacing, below).
         let mut vmin = f64::INFINITY;
         let mut max_levels = 1;
         let mut vols = Vec::new();

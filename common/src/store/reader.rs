@@ -149,7 +149,17 @@ impl PageStore {
         if iend > file_len {
             return Err(truncated("the index", pre.index_offset, iend));
         }
-        let mut index = vec![IndexEntry::default(); pre.index_count as usize];
+        // Up to MAX_TOTAL_PAGES entries (10 GiB): allocated fallibly, so a store this
+        // machine cannot index is an error, not an abort.
+        let mut index = Vec::new();
+        if index.try_reserve_exact(pre.index_count as usize).is_err() {
+            return Err(fmt(
+                40,
+                "an index this machine can hold".into(),
+                format!("{} entries of {INDEX_ENTRY_LEN} bytes", pre.index_count),
+            ));
+        }
+        index.resize(pre.index_count as usize, IndexEntry::default());
         read_exact_at(
             &file,
             &path,
