@@ -955,3 +955,60 @@ fn an_interrupted_build_leaves_no_temporary() {
     );
     assert!(out.join("scene.toml").exists());
 }
+
+/// The README's first command, as a fresh checkout runs it: the demo scene generates its
+/// survey on first use (here into a fresh folder beside a copy of configs/demo.toml), local
+/// workers are spawned and the image is composited from them. Only the size is smaller
+/// (`--size`, to keep the test short); the command is checked against the README's.
+#[test]
+fn the_readme_demo_command_renders_on_a_fresh_checkout() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
+    let command = "cargo run --release --bin coordinator -- render configs/demo.toml -o demo.png";
+    assert!(
+        readme.contains(&format!("```sh\n{command}\n```")),
+        "README.md no longer shows {command:?}: update this test with it"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("demo.toml");
+    std::fs::copy(root.join("configs/demo.toml"), &scene).unwrap();
+    let out = dir.path().join("demo.png");
+    let o = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+        .arg("render")
+        .arg(&scene)
+        .arg("-o")
+        .arg(&out)
+        .args(["--size", "160x90"])
+        .output()
+        .unwrap();
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
+    assert!(o.status.success(), "{stdout}\n{stderr}");
+    // Generated on first use, beside the scene.
+    assert!(dir.path().join("synthetic/demo/seismic.strata").is_file());
+    for h in 1..=3 {
+        assert!(dir
+            .path()
+            .join(format!("synthetic/demo/horizon{h}.strata"))
+            .is_file());
+    }
+    // Rendered by spawned workers, not in process.
+    assert!(stdout.contains("workers, "), "{stdout}");
+    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&out).unwrap()));
+    let mut reader = decoder.read_info().unwrap();
+    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut buf).unwrap();
+    assert_eq!((info.width, info.height), (160, 90));
+    // The slices and horizons cover much of the frame over the black background.
+    let lit = buf
+        .chunks_exact(3)
+        .filter(|p| p.iter().any(|&c| c > 8))
+        .count();
+    assert!(
+        lit > 160 * 90 / 4,
+        "{lit} of {} pixels show something",
+        160 * 90
+    );
+}
