@@ -85,7 +85,7 @@ fn distributed_equals_in_process_for_every_algorithm_and_worker_count() {
     assert!(alpha > 100.0, "the reference image is nearly empty");
     let dir = tempfile::tempdir().unwrap();
     for workers in [1, 2, 3, 4, 7] {
-        for algorithm in ["direct-send", "binary-swap", "radix-k"] {
+        for algorithm in ["direct-send", "binary-swap", "radix-k", "gather"] {
             let out = dir.path().join(format!("{algorithm}-{workers}.exr"));
             let stats = dir.path().join(format!("{algorithm}-{workers}.jsonl"));
             let set = format!("composite.algorithm={algorithm}");
@@ -2230,6 +2230,16 @@ fn a_wall_renders_each_tile_on_its_driver_like_the_crop_of_one_frustum() {
         .collect();
     assert_eq!(workers.len(), 3);
     let tile_bytes = 24 * 20 * 16u64;
+    // The drivers write the tiles: what reaches the coordinator is each worker's frame
+    // stats and an empty final piece, less than one tile's pixels in all.
+    let summary: serde_json::Value = stats
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .find(|v| v["kind"] == "summary")
+        .unwrap();
+    let gathered = summary["gather_bytes"].as_u64().unwrap();
+    assert!(gathered < tile_bytes / 2, "{summary}");
+    assert_eq!(summary["canvas_gather"], 0, "{summary}");
     for w in &workers {
         let rank = w["rank"].as_u64().unwrap();
         let written = w["tiles_written"].as_u64().unwrap();

@@ -619,3 +619,58 @@ fn gpu_casts_a_region_past_the_adapters_largest_binding() {
     eprintln!("on the CPU in {:?}", t.elapsed());
     assert!(max_diff(&cpu, &gpu) <= 1e-4, "{}", max_diff(&cpu, &gpu));
 }
+
+/// A scene past the GPU caster's limits (4 volumes, 16 horizons) is refused by
+/// `render.backend = "gpu"` with an error that names the limit and what to use, and goes to
+/// the CPU under `auto`. Decided before any adapter is asked for, so this runs anywhere.
+#[test]
+fn scenes_past_the_gpu_casters_limits_are_refused_by_gpu_and_go_to_the_cpu_under_auto() {
+    use strata_common::geo::Affine3;
+    let dir = TempDir::new().unwrap();
+    let n = 8u64;
+    let vol = |i: usize| {
+        let store = volume_store(
+            dir.path(),
+            &format!("v{i}"),
+            [n, n, n],
+            vec![i as f32; (n * n * n) as usize],
+            Affine3::IDENTITY,
+            32,
+        );
+        volume_layer(store, "grey", [0.0, 8.0], vec![[0.0, 0.1], [1.0, 0.1]])
+    };
+    let hor = |i: usize| {
+        let store = horizon_store(
+            dir.path(),
+            &format!("h{i}"),
+            [n, n],
+            vec![i as f32 * 0.4; (n * n) as usize],
+            Affine3::IDENTITY,
+            32,
+        );
+        horizon_layer(store, [0.5, 0.5, 0.5], 0.3)
+    };
+    let camera = strata_common::scene::Camera {
+        eye: [3.5, 3.5, -30.0],
+        target: [3.5, 3.5, 3.5],
+        up: [0.0, 1.0, 0.0],
+        fov_deg: 35.0,
+    };
+    for (vols, hors, limit) in [(5, 0, "at most 4 volumes"), (1, 17, "at most 16 horizons")] {
+        let s = scene(
+            (0..vols).map(vol).collect(),
+            (0..hors).map(hor).collect(),
+            camera.clone(),
+            exact_settings(16, 12),
+        );
+        let err = Engine::new(&on(&s, Backend::Gpu)).err().expect("refused");
+        let msg = format!("{err:#}");
+        assert!(
+            msg.contains(limit) && msg.contains("use \"cpu\" or \"auto\""),
+            "{msg}"
+        );
+        let e = Engine::new(&on(&s, Backend::Auto)).unwrap();
+        assert!(e.backend_name().starts_with("cpu"), "{}", e.backend_name());
+        assert!(!render_whole(&on(&s, Backend::Auto)).is_empty());
+    }
+}
