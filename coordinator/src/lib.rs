@@ -17,6 +17,8 @@
 //!   order and the gather); [`setup_blame`]: who is to blame when a set-up fails;
 //!   [`sequence`]: the numbered output paths of frame sequences and their MP4.
 
+#![deny(missing_docs)]
+
 pub mod cluster;
 pub mod decompose;
 pub mod demo;

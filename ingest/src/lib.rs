@@ -12,6 +12,8 @@
 //!
 //! The coordinator's `ingest`, `synth` and `inspect` commands are thin wrappers over these.
 
+#![deny(missing_docs)]
+
 pub mod builder;
 pub mod cleanup;
 pub mod horizon_text;

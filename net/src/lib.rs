@@ -16,6 +16,8 @@
 //! * [`canvas`]: the coordinator's frame-sized shared image that the workers on its host
 //!   write their final spans into.
 
+#![deny(missing_docs)]
+
 pub mod canvas;
 pub mod frame;
 pub mod secret;
