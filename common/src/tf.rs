@@ -35,6 +35,8 @@ fn map_points(name: &str) -> Option<&'static [[f32; 3]]> {
         [0.5, 0.0, 0.0],
     ];
     const GREY: &[[f32; 3]] = &[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]];
+    // Colour values, not approximations of 1/π (0.318 is a blue component).
+    #[allow(clippy::approx_constant)]
     const VIRIDIS: &[[f32; 3]] = &[
         [0.267, 0.005, 0.329],
         [0.283, 0.141, 0.458],
