@@ -19,6 +19,10 @@ pub struct NetConfig {
     pub initial_mtu: u16,
     /// Demand a certificate from every client (workers' endpoints: peers pin each other).
     pub client_auth: bool,
+    /// Generic segmentation offload: one system call sends a train of datagrams where the
+    /// OS has it (Linux); quinn falls back by itself where it has not. On by default; off
+    /// only to measure what it gives (`bench-composite` does).
+    pub segmentation_offload: bool,
 }
 
 impl Default for NetConfig {
@@ -28,6 +32,7 @@ impl Default for NetConfig {
             keep_alive: Duration::from_secs(2),
             initial_mtu: 1200,
             client_auth: false,
+            segmentation_offload: true,
         }
     }
 }
@@ -50,6 +55,7 @@ impl NetConfig {
         t.max_concurrent_uni_streams(quinn::VarInt::from_u32(1));
         t.max_concurrent_bidi_streams(quinn::VarInt::from_u32(1));
         t.initial_mtu(self.initial_mtu.max(1200));
+        t.enable_segmentation_offload(self.segmentation_offload);
         if self.initial_mtu > 1452 {
             // Let path MTU discovery keep (and probe above) a large starting size instead
             // of capping it at the Ethernet-safe 1452.
