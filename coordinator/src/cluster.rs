@@ -1811,6 +1811,11 @@ impl Cluster {
                                     s.rank
                                 )));
                             }
+                            if lz4 && !composite.lz4 {
+                                return Err(blame(anyhow!(
+                                    "{who} sent a compressed final piece, in a run without composite.lz4"
+                                )));
+                            }
                             let t = Instant::now();
                             gather_bytes += f.wire_len();
                             let limit = self.piece_limit();

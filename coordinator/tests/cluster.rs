@@ -1636,15 +1636,61 @@ fn a_bad_shared_memory_segment_of_a_worker_is_refused_naming_it() {
         last.contains("worker 0 (fake") && last.contains("frame stats of rank 999"),
         "{log}"
     );
+
+    // 5. A compressed final piece in a run that does not compress.
+    let w = start_waiting_coordinator(1, &[]);
+    rt.block_on(async {
+        let (_ep, _conn, mut send, mut recv, _setup) = fake_worker(&w).await;
+        let (_seg, req) = segment_ready_and_frame(&mut send, &mut recv).await;
+        assert!(!req.composite.lz4);
+        let msg = WorkerMsg::FrameDone {
+            frame: req.frame,
+            stats: Default::default(),
+            shm: None,
+            lz4: true,
+            canvas: None,
+        };
+        say_then_linger(&mut send, &msg).await;
+    });
+    let (last, log) = failed(w);
+    assert!(
+        last.contains("worker 0 (fake") && last.contains("without composite.lz4"),
+        "{log}"
+    );
 }
 
 #[test]
 fn a_bad_segment_from_a_peer_fails_the_frame_naming_that_peer() {
-    use strata_common::wire::{self, PeerMsg};
+    use strata_common::wire::PeerMsg;
     if strata_net::shm::host_id().is_none() {
         eprintln!("skipped: this host has no /dev/shm");
         return;
     }
+    // Rank 0 dials us; answer its hello with a segment that does not exist.
+    let msg = PeerMsg::ShmSegment {
+        name: format!("strata-shm-{}", "ab".repeat(16)),
+        pid: std::process::id(),
+        fd: 1 << 20,
+    };
+    a_peer_message_fails_the_frame(msg, &[], "shared-memory segment of worker 1 (fake");
+}
+
+#[test]
+fn a_compressed_piece_in_a_run_without_lz4_fails_the_frame_naming_its_sender() {
+    use strata_common::wire::PeerMsg;
+    let msg = PeerMsg::Piece {
+        frame: 0,
+        round: 0,
+        from: 1,
+        lz4: true,
+    };
+    a_peer_message_fails_the_frame(msg, &[0u8; 64], "a compressed piece from worker 1 (fake");
+}
+
+/// A fake rank 1, dialled by a real rank 0, sends `msg` (with `bulk`) on the peer
+/// connection; the frame must fail on worker 0 with an error containing `needle`.
+fn a_peer_message_fails_the_frame(msg: strata_common::wire::PeerMsg, bulk: &[u8], needle: &str) {
+    use strata_common::wire;
     // Fail instead of re-rendering without the peer, to see the error itself.
     let w = start_waiting_coordinator(2, &["--set", "cluster.on_worker_loss=\"fail\""]);
     // A real worker joins first (rank 0) and will dial the fake (rank 1).
@@ -1654,18 +1700,11 @@ fn a_bad_segment_from_a_peer_fails_the_frame_naming_that_peer() {
     rt.block_on(async {
         let (ep, _conn, mut send, _recv, setup) = fake_worker(&w).await;
         assert_eq!(setup.rank, 1);
-        assert!(setup.shm_peers[0], "peers on one host share memory");
-        // Rank 0 dials us; answer its hello with a segment that does not exist.
         let peer = accept_dialling_peer(&ep).await;
-        let msg = PeerMsg::ShmSegment {
-            name: format!("strata-shm-{}", "ab".repeat(16)),
-            pid: std::process::id(),
-            fd: 1 << 20,
-        };
-        strata_net::send_uni(&peer, &wire::encode_meta(&msg), &[])
+        strata_net::send_uni(&peer, &wire::encode_meta(&msg), bulk)
             .await
             .unwrap();
-        let _gather = fake_ready(&mut send, true).await;
+        let _gather = fake_ready(&mut send, setup.shm_gather).await;
         tokio::time::sleep(Duration::from_secs(3)).await;
     });
     let (status, log) = finish(w);
@@ -1674,8 +1713,7 @@ fn a_bad_segment_from_a_peer_fails_the_frame_naming_that_peer() {
     assert!(!status.success());
     let last = log.lines().last().unwrap_or_default();
     assert!(
-        last.contains("failed on worker 0")
-            && last.contains("shared-memory segment of worker 1 (fake"),
+        last.contains("failed on worker 0") && last.contains(needle),
         "{log}"
     );
 }

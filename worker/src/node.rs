@@ -619,6 +619,7 @@ async fn mesh(
                 limits,
                 u32::try_from(setup.max_pixels).unwrap_or(u32::MAX),
                 setup.shm_peers[r],
+                scene.composite.lz4,
                 timeout,
                 ev_tx.clone(),
             ));
@@ -771,6 +772,7 @@ async fn read_peer(
     limits: Limits,
     max_pixels: u32,
     shm_allowed: bool,
+    lz4_allowed: bool,
     stream_timeout: Duration,
     out: mpsc::Sender<PeerEvent>,
 ) {
@@ -807,6 +809,12 @@ async fn read_peer(
                 from,
                 lz4,
             }) => {
+                if lz4 && !lz4_allowed {
+                    conn.close(3u32.into(), b"unasked compression");
+                    break format!(
+                        "a compressed piece from {what}, in a run without composite.lz4"
+                    );
+                }
                 // The piece keeps the buffer it arrived in (no copy of its pixels).
                 let parsed = tokio::task::block_in_place(|| {
                     if lz4 {
