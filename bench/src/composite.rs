@@ -231,8 +231,12 @@ fn main() -> Result<()> {
             opts.worker_threads = 1;
             opts.transport = transport;
             opts.quic_mtu = mtu;
+            // LZ4 is a run setting: the workers' peer readers accept compressed pieces only
+            // in a run set up with it.
+            let mut run_scene = scene.clone();
+            run_scene.composite.lz4 = lz4;
             let rows_p = rt.block_on(async {
-            let mut cluster = Cluster::start(&scene, opts).await?;
+            let mut cluster = Cluster::start(&run_scene, opts).await?;
             let mut rows = Vec::new();
             for (density, coverage, interlace) in [
                 ("dense", 1.0f32, false),

@@ -265,6 +265,12 @@ pub fn screen_motion(a: &View, b: &View, bounds: &Region, quantile: f64) -> f64 
     moves[i]
 }
 
+/// World up as the display shows it: −z where z grows downward (`render.z_down`), else +z.
+/// A camera or camera-path keyframe that names no `up` takes it.
+pub fn world_up(render: &RenderSettings) -> [f64; 3] {
+    [0.0, 0.0, if render.z_down { -1.0 } else { 1.0 }]
+}
+
 /// A camera that frames a world box: from the south-west, above, at 35°.
 pub fn default_camera(bounds: &Region, render: &RenderSettings) -> Camera {
     let d = DisplayMap::new(render);
@@ -282,7 +288,7 @@ pub fn default_camera(bounds: &Region, render: &RenderSettings) -> Camera {
     Camera {
         eye: inv(eye_d),
         target: inv(c),
-        up: [0.0, 0.0, d.zmul.signum()],
+        up: world_up(render),
         fov_deg: 35.0,
     }
 }

@@ -11,7 +11,7 @@
 //! time = 0.0
 //! eye = [605000.0, 6074000.0, -900.0]
 //! target = [606000.0, 6075000.0, 1200.0]
-//! up = [0.0, 0.0, -1.0]        # default [0, 0, 1]
+//! up = [0.0, 0.0, -1.0]        # default: the world's up as the scene shows it (−z when z grows downward)
 //! fov_deg = 35.0               # default 35
 //! [[keyframes]]
 //! time = 4.0
@@ -34,9 +34,7 @@ pub enum Interpolation {
     Smooth,
 }
 
-/// The scene camera's default (`scene::Camera`): z grows downward in subsurface data, so
-/// up is −z. (It was +z, which turned a path without `up` upside down against the scene's
-/// own camera.)
+/// Until [`CameraPath::with_default_up`] says otherwise: −z, up where z grows downward.
 fn default_up() -> [f64; 3] {
     [0.0, 0.0, -1.0]
 }
@@ -59,9 +57,10 @@ pub struct Keyframe {
     pub eye: [f64; 3],
     /// Look-at point (world).
     pub target: [f64; 3],
-    /// Up direction (default `[0, 0, -1]`, as the scene camera's: z grows downward).
-    #[serde(default = "default_up")]
-    pub up: [f64; 3],
+    /// Up direction; absent: the path's default up ([`CameraPath::with_default_up`]: the
+    /// scene's world up, −z where z grows downward, +z otherwise).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub up: Option<[f64; 3]>,
     /// Vertical field of view, degrees.
     #[serde(default = "default_fov")]
     pub fov_deg: f64,
@@ -79,6 +78,9 @@ pub struct CameraPath {
     pub fps: f64,
     /// Keyframes, times strictly increasing.
     pub keyframes: Vec<Keyframe>,
+    /// The up of keyframes that name none (not in the file: the scene decides it).
+    #[serde(skip, default = "default_up")]
+    pub default_up: [f64; 3],
 }
 
 /// The most frames a path may describe.
@@ -119,7 +121,7 @@ impl CameraPath {
                 && k.eye
                     .iter()
                     .chain(&k.target)
-                    .chain(&k.up)
+                    .chain(k.up.iter().flatten())
                     .all(|v| v.is_finite());
             if !finite {
                 return bad(format!("keyframe {i}: every value must be finite"));
@@ -147,6 +149,13 @@ impl CameraPath {
         Ok(())
     }
 
+    /// Sets the up of keyframes that name none: the scene's world up
+    /// (`camera::world_up`).
+    pub fn with_default_up(mut self, up: [f64; 3]) -> Self {
+        self.default_up = up;
+        self
+    }
+
     /// Seconds from the first keyframe to the last.
     pub fn duration(&self) -> f64 {
         self.keyframes.last().map_or(0.0, |l| l.time) - self.keyframes[0].time
@@ -166,8 +175,14 @@ impl CameraPath {
     /// The camera at path time `t` (clamped to the keyframes' span).
     pub fn at(&self, t: f64) -> Camera {
         let k = &self.keyframes;
+        let up = |f: &Keyframe| f.up.unwrap_or(self.default_up);
         if k.len() == 1 {
-            return camera_of(&k[0]);
+            return Camera {
+                eye: k[0].eye,
+                target: k[0].target,
+                up: up(&k[0]),
+                fov_deg: k[0].fov_deg,
+            };
         }
         let (t0, t1) = (k[0].time, k[k.len() - 1].time);
         let mut t = t.clamp(t0, t1);
@@ -181,6 +196,7 @@ impl CameraPath {
         let h = b.time - a.time;
         let u = (t - a.time) / h;
         let get = |f: &Keyframe| -> [f64; 10] {
+            let up = up(f);
             [
                 f.eye[0],
                 f.eye[1],
@@ -188,9 +204,9 @@ impl CameraPath {
                 f.target[0],
                 f.target[1],
                 f.target[2],
-                f.up[0],
-                f.up[1],
-                f.up[2],
+                up[0],
+                up[1],
+                up[2],
                 f.fov_deg,
             ]
         };
@@ -223,15 +239,6 @@ impl CameraPath {
             up: [v[6], v[7], v[8]],
             fov_deg: v[9],
         }
-    }
-}
-
-fn camera_of(k: &Keyframe) -> Camera {
-    Camera {
-        eye: k.eye,
-        target: k.target,
-        up: k.up,
-        fov_deg: k.fov_deg,
     }
 }
 

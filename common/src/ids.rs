@@ -5,8 +5,9 @@
 //! octrees to depth 7; its own 109 GiB volume needed depth 9 (digest §2.4, erratum). With
 //! 42 bits of Morton index an octree level addresses 2^14 bricks per axis (about a million
 //! samples per axis with 64³ bricks) and a quadtree level 2^21 tiles per axis; a whole
-//! pyramid holds at most `pyramid::MAX_TOTAL_PAGES` (2^28) pages, which binds first for
-//! square horizons (about 2^14 tiles per axis).
+//! pyramid holds at most `pyramid::MAX_TOTAL_PAGES` (2^28) pages, which binds before
+//! the Morton field does: about 645 bricks per axis for a cubic volume, 2^14 tiles per axis
+//! for a square horizon.
 //!
 //! Level 0 is the finest level (the source samples); level `levels - 1` is the root.
 //! Ordering ids numerically orders pages by data set, then level, then Z-order, which is

@@ -925,6 +925,18 @@ impl Scene {
                 message: e.message().to_string(),
             }
         })?;
+        // A camera without `up` takes the world's up as the display shows it (−z when z
+        // grows downward, +z otherwise), as the camera made for a scene without one does.
+        if let Some(c) = &mut scene.camera {
+            let given = text
+                .parse::<toml::Table>()
+                .ok()
+                .and_then(|t| t.get("camera")?.get("up").map(|_| ()))
+                .is_some();
+            if !given {
+                c.up = crate::camera::world_up(&scene.render);
+            }
+        }
         let base = path.parent().unwrap_or(Path::new("."));
         for v in &mut scene.volumes {
             if v.store.is_relative() {
@@ -1135,6 +1147,24 @@ mod tests {
         assert_eq!(s.horizons[0].store, PathBuf::from("/abs/h.strata"));
         assert_eq!(s.render.width, 64);
         assert_eq!(s.render.height, 720);
+    }
+
+    #[test]
+    fn a_camera_without_up_takes_the_worlds_up_as_displayed() {
+        let up = |render: &str, camera_up: &str| {
+            let text = format!(
+                "[render]\n{render}\n[camera]\neye = [0, 0, 0]\ntarget = [1, 0, 0]\n{camera_up}"
+            );
+            Scene::parse(Path::new("s.toml"), &text)
+                .unwrap()
+                .camera
+                .unwrap()
+                .up
+        };
+        assert_eq!(up("z_down = true", ""), [0.0, 0.0, -1.0]);
+        assert_eq!(up("z_down = false", ""), [0.0, 0.0, 1.0]);
+        assert_eq!(up("", ""), [0.0, 0.0, -1.0], "z grows downward by default");
+        assert_eq!(up("z_down = false", "up = [0, 1, 0]"), [0.0, 1.0, 0.0]);
     }
 
     #[test]

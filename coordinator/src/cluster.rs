@@ -569,6 +569,9 @@ pub struct Cluster {
     setup_attempt: u32,
     /// The scene every set-up carries.
     scene_toml: String,
+    /// `composite.lz4` of that scene: the workers' peer readers accept compressed pieces
+    /// only in a run set up with it, so every frame must ask for the same.
+    lz4: bool,
     /// Cluster mode: workers that authenticated after the run filled up, admitted as
     /// replacements at the start of a frame (or refused when the run is full), and the
     /// task accepting them.
@@ -746,6 +749,7 @@ impl Cluster {
             setup_lost: Vec::new(),
             setup_attempt: 0,
             scene_toml: scene.to_toml(),
+            lz4: scene.composite.lz4,
             joiners: None,
             acceptor: None,
             events_tx: tx.clone(),
@@ -1582,6 +1586,13 @@ impl Cluster {
             return Err(Failure::of(anyhow!(
                 "frame of {width}x{height} exceeds the run's {} pixels",
                 self.opts.max_pixels
+            )));
+        }
+        if composite.lz4 != self.lz4 {
+            return Err(Failure::of(anyhow!(
+                "composite.lz4 is {} for this run's workers (set up from its scene); a frame cannot ask for {}",
+                self.lz4,
+                composite.lz4
             )));
         }
         let frame = self.frame_no;

@@ -717,11 +717,14 @@ fn run(cli: Cli) -> Result<()> {
             let sequence = a.orbit.is_some() || a.path.is_some();
             // A sequence's numbered frames: another output that is one of them would be
             // replaced by a frame, or replace one (an --mp4 written over a frame it encodes).
+            // Only the images are written per frame; --stats and --mp4 are one file each.
+            let per_frame = |what: &str| matches!(what, "image (-o)" | "EXR image (--exr)");
             if sequence {
                 for (x, xw) in &outputs {
-                    let Some(x) =
-                        x.filter(|x| strata_coordinator::sequence::is_numbered(x).unwrap_or(false))
-                    else {
+                    let Some(x) = x.filter(|x| {
+                        per_frame(xw)
+                            && strata_coordinator::sequence::is_numbered(x).unwrap_or(false)
+                    }) else {
                         continue;
                     };
                     for (y, yw) in &outputs {
@@ -751,8 +754,9 @@ fn run(cli: Cli) -> Result<()> {
                     // A sequence's frames go to a folder of their own, made here: the
                     // pattern's folder as the frames name it (`%%` is `%` there), so the
                     // frame number must be in the file name.
-                    let numbered =
-                        sequence && strata_coordinator::sequence::is_numbered(out).unwrap_or(false);
+                    let numbered = sequence
+                        && per_frame(what)
+                        && strata_coordinator::sequence::is_numbered(out).unwrap_or(false);
                     if numbered {
                         let name_numbered = out.file_name().is_some_and(|n| {
                             strata_coordinator::sequence::is_numbered(Path::new(n)).unwrap_or(false)

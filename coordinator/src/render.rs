@@ -161,7 +161,8 @@ fn plan_frames(
 ) -> Result<(Vec<FramePlan>, usize)> {
     let (n, what, at): (u32, String, Box<dyn Fn(u32) -> Camera>) = match (&opts.path, opts.orbit) {
         (Some(p), _) => {
-            let path = load_path(p)?;
+            let path =
+                load_path(p)?.with_default_up(strata_common::camera::world_up(&scene.render));
             let n = path.frame_count();
             (
                 n,

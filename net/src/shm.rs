@@ -18,7 +18,7 @@
 //!
 //! **Why a mapping is safe to read.** A mapped file that shrinks under its reader turns
 //! reads past the new end into `SIGBUS`. The sender seals the segment against shrinking
-//! (`F_SEAL_SHRINK`, then `F_SEAL_SEAL`, so no one can undo it) before announcing it, and
+//! (`F_SEAL_SHRINK` and `F_SEAL_SEAL` in one call, so no one can undo it) before announcing it, and
 //! the receiver refuses a segment without that seal: no one, the sender included, can
 //! truncate it, and every byte below the size the receiver mapped stays readable. A
 //! sender only grows its segment, with its memory allocated up front (`fallocate`), so a

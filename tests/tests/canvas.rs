@@ -1,7 +1,8 @@
 //! The gather into the coordinator's shared canvas (`strata_net::canvas`): workers on the
 //! coordinator's host write their final spans in place. The image must equal the one
 //! assembled from pieces sent over QUIC, bit for bit, with and without interlacing, and a
-//! frame a caller still holds must not be written by the next one.
+//! frame a caller still holds must not be written by the next one. (Also: a frame cannot
+//! change the run's `composite.lz4`.)
 
 use std::path::PathBuf;
 use strata_common::composite::{Algorithm, WireFormat};
@@ -133,4 +134,53 @@ fn the_canvas_equals_the_assembled_image_and_a_held_frame_stays_as_it_was() {
         "the shots must differ for this test to mean anything"
     );
     assert!(canvas[0] == canvas[4]);
+}
+
+/// `composite.lz4` is a run setting: the workers' peer readers accept compressed pieces only
+/// in a run set up with it, so a frame that asks for the other setting is refused before
+/// anything is sent, and the run goes on.
+#[test]
+fn a_frame_cannot_change_the_runs_lz4_setting() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = scene(dir.path());
+    assert!(!s.composite.lz4);
+    let mut opts = ClusterOptions::from_scene(&s, Some(2)).unwrap();
+    opts.worker_exe = Some(PathBuf::from(env!("CARGO_BIN_EXE_strata-test-worker")));
+    opts.worker_threads = 1;
+    opts.transport = Transport::Quic;
+    let camera = s.camera.clone().unwrap();
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(async {
+        let mut c = Cluster::start(&s, opts).await.unwrap();
+        let mut choice = CompositeChoice {
+            algorithm: Algorithm::BinarySwap,
+            k: vec![2],
+            interlace: false,
+            format: WireFormat::F32,
+            lz4: true,
+        };
+        let source = FrameSource::Synthetic {
+            coverage: 1.0,
+            seed: 1,
+        };
+        let err = c
+            .frame(&camera, W, H, &choice, source.clone())
+            .await
+            .err()
+            .expect("refused");
+        let msg = format!("{err:#}");
+        assert!(
+            msg.contains("composite.lz4 is false for this run's workers"),
+            "{msg}"
+        );
+        choice.lz4 = false;
+        let r = c.frame(&camera, W, H, &choice, source).await.unwrap();
+        assert!(r.lost.is_empty());
+        assert!(opaque_pixels(&r.image.to_vec()) > 100);
+        c.shutdown().await;
+    });
 }
