@@ -35,6 +35,24 @@ fn scene(dir: &std::path::Path) -> Scene {
     s
 }
 
+/// Options for `workers` test workers of one thread over `transport`, and a runtime.
+fn cluster_of(
+    s: &Scene,
+    workers: usize,
+    transport: Transport,
+) -> (ClusterOptions, tokio::runtime::Runtime) {
+    let mut opts = ClusterOptions::from_scene(s, Some(workers)).unwrap();
+    opts.worker_exe = Some(PathBuf::from(env!("CARGO_BIN_EXE_strata-test-worker")));
+    opts.worker_threads = 1;
+    opts.transport = transport;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    (opts, rt)
+}
+
 /// Frames of synthetic images (no rendering) on one cluster, for each `(coverage,
 /// interlace, seed)`; `hold` keeps every image alive until the end.
 fn frames(
@@ -42,16 +60,8 @@ fn frames(
     transport: Transport,
     shots: &[(f32, bool, u64)],
 ) -> (Vec<Vec<Rgba>>, Vec<(usize, usize)>, Vec<FrameImage>) {
-    let mut opts = ClusterOptions::from_scene(s, Some(WORKERS)).unwrap();
-    opts.worker_exe = Some(PathBuf::from(env!("CARGO_BIN_EXE_strata-test-worker")));
-    opts.worker_threads = 1;
-    opts.transport = transport;
+    let (opts, rt) = cluster_of(s, WORKERS, transport);
     let camera = s.camera.clone().unwrap();
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
     rt.block_on(async {
         let mut c = Cluster::start(s, opts).await.unwrap();
         let (mut copies, mut in_canvas, mut held) = (Vec::new(), Vec::new(), Vec::new());
@@ -144,16 +154,8 @@ fn a_frame_cannot_change_the_runs_lz4_setting() {
     let dir = tempfile::tempdir().unwrap();
     let s = scene(dir.path());
     assert!(!s.composite.lz4);
-    let mut opts = ClusterOptions::from_scene(&s, Some(2)).unwrap();
-    opts.worker_exe = Some(PathBuf::from(env!("CARGO_BIN_EXE_strata-test-worker")));
-    opts.worker_threads = 1;
-    opts.transport = Transport::Quic;
+    let (opts, rt) = cluster_of(&s, 2, Transport::Quic);
     let camera = s.camera.clone().unwrap();
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
     rt.block_on(async {
         let mut c = Cluster::start(&s, opts).await.unwrap();
         let mut choice = CompositeChoice {
