@@ -207,7 +207,7 @@ fn main() -> Result<()> {
         .map(|t| {
             let (kind, mtu) = match t.split_once('@') {
                 Some((k, m)) => match m.parse::<u16>() {
-                    Ok(m) if m >= 1200 && m <= 65527 => (k, m),
+                    Ok(m) if (1200..=65527).contains(&m) => (k, m),
                     _ => anyhow::bail!(
                         "--transports: {t:?}: the size after @ must be 1200..=65527 bytes"
                     ),

@@ -124,8 +124,8 @@ pub(crate) fn bonsai_store_at(
 pub(crate) fn bonsai_scene(store: &Path, w: u32, h: u32) -> Scene {
     let c = 127.5;
     let diag = (3.0f64).sqrt() * 255.0;
-    let d = [1.0, 0.6, 0.8];
-    let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2] as f64).sqrt();
+    let d: [f64; 3] = [1.0, 0.6, 0.8];
+    let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
     Scene {
         volumes: vec![VolumeLayer {
             store: store.to_path_buf(),

@@ -96,11 +96,10 @@ impl CoarsenFilter {
                     return f32::NAN;
                 }
                 let rms = (s2 / n as f64).sqrt();
+                // The mean's sign; where the mean is 0, the sign of the largest magnitude.
                 let sign = if s > 0.0 {
                     1.0
-                } else if s < 0.0 {
-                    -1.0
-                } else if peak < 0.0 {
+                } else if s < 0.0 || peak < 0.0 {
                     -1.0
                 } else {
                     1.0

@@ -436,7 +436,7 @@ const _: () = assert!(offset_of!(VolumeParams, pre_base) == 188);
 const _: () = assert!(offset_of!(VolumeParams, table_base) == 76);
 const _: () = assert!(offset_of!(VolumeParams, level_base) == 80);
 const _: () = assert!(offset_of!(VolumeParams, level_t) == 112);
-const _: () = assert!(size_of::<VolumeParams>() % 16 == 0);
+const _: () = assert!(size_of::<VolumeParams>().is_multiple_of(16));
 const _: () = assert!(offset_of!(FrameParams, n_hors) == 168);
 const _: () = assert!(size_of::<HorizonParams>() == 192);
 const _: () = assert!(offset_of!(HorizonParams, dims) == 80);

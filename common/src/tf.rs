@@ -298,7 +298,7 @@ impl TransferFunction {
         let mut m = 0.0f32;
         let mut i = i0;
         while i <= i1 {
-            if i % BLOCK == 0 && i + BLOCK - 1 <= i1 {
+            if i.is_multiple_of(BLOCK) && i + BLOCK - 1 <= i1 {
                 m = m.max(self.block_max[i / BLOCK]);
                 i += BLOCK;
             } else {

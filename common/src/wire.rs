@@ -209,6 +209,9 @@ pub struct CompositeChoice {
 }
 
 /// Worker → coordinator.
+// Messages are built once per frame or set-up and sent at once: a box per large variant
+// would only add an allocation.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum WorkerMsg {
     /// First message on a connection: who the worker is and the shared secret.
@@ -288,6 +291,8 @@ pub enum WorkerMsg {
 }
 
 /// Coordinator → worker.
+// As `WorkerMsg`: built once and sent at once.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum CoordMsg {
     /// Everything a worker needs before the first frame.

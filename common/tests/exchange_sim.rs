@@ -188,10 +188,7 @@ fn simulate(p: usize, algorithm: Algorithm, frames: u64, faults: Faults, seed: u
     let mut duplicates = 0;
     let mut buffered = 0;
     loop {
-        let next = match queue.pop_first() {
-            Some(((t, _), ev)) => Some((t, ev)),
-            None => None,
-        };
+        let next = queue.pop_first().map(|((t, _), ev)| (t, ev));
         let touched: Vec<u32> = match next {
             Some((t, Ev::Start(r))) => {
                 now = t;

@@ -185,7 +185,7 @@ impl Net {
     /// Starts the relay: every packet between hosts delayed by `delay`, a fraction `loss`
     /// of them dropped.
     fn impair(&self, delay: Duration, loss: f64) -> Result<impair::Relay, String> {
-        impair::start(&self.switch, Self::TUN, delay, loss, 0x5eed_0f_1055)
+        impair::start(&self.switch, Self::TUN, delay, loss, 0x005e_ed0f_1055)
     }
 
     /// A command run inside node `k`'s namespace.

@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 /// The targets by name, as the fuzzer and the corpus folders name them.
+#[allow(clippy::type_complexity)]
 pub const TARGETS: [(&str, fn(&[u8])); 8] = [
     ("segy", segy),
     ("horizon_text", horizon_text),
@@ -173,7 +174,7 @@ pub fn seal_store(b: &mut [u8]) {
     let u32_at = |b: &[u8], at: usize| u32::from_le_bytes(b[at..at + 4].try_into().unwrap());
     let range = |off: u64, len: u64, total: usize| -> Option<std::ops::Range<usize>> {
         let end = off.checked_add(len)?;
-        (end <= total as u64).then(|| off as usize..end as usize)
+        (end <= total as u64).then_some(off as usize..end as usize)
     };
     let n = b.len();
     let (ho, hl) = (u64_at(b, 16), u64_at(b, 24));

@@ -55,6 +55,7 @@ fn cluster_of(
 
 /// Frames of synthetic images (no rendering) on one cluster, for each `(coverage,
 /// interlace, seed)`; `hold` keeps every image alive until the end.
+#[allow(clippy::type_complexity)]
 fn frames(
     s: &Scene,
     transport: Transport,
@@ -133,7 +134,7 @@ fn the_canvas_equals_the_assembled_image_and_a_held_frame_stays_as_it_was() {
     }
     // Every frame was held while the later ones ran: none was written again.
     for (i, (h, c)) in held.iter().zip(&canvas).enumerate() {
-        assert!(&h[..] == &c[..], "frame {i} changed after it was returned");
+        assert!(h[..] == c[..], "frame {i} changed after it was returned");
         assert!(
             matches!(h, FrameImage::Canvas(_)),
             "frame {i} not in a canvas"
@@ -182,7 +183,7 @@ fn a_frame_cannot_change_the_runs_lz4_setting() {
         choice.lz4 = false;
         let r = c.frame(&camera, W, H, &choice, source).await.unwrap();
         assert!(r.lost.is_empty());
-        assert!(opaque_pixels(&r.image.to_vec()) > 100);
+        assert!(opaque_pixels(&r.image) > 100);
         c.shutdown().await;
     });
 }

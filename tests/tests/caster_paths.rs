@@ -487,7 +487,7 @@ fn packets_and_the_scalar_march_agree_bit_for_bit() {
                     let mut fb: Vec<(u64, u32)> =
                         f.feedback.coverage.iter().map(|(&k, &c)| (k, c)).collect();
                     fb.sort_unstable();
-                    let lanes = lanes.map_or(0, |l| strata_worker::packet::lanes_for(l));
+                    let lanes = lanes.map_or(0, strata_worker::packet::lanes_for);
                     let path = if lanes == 8 {
                         " simd".to_string()
                     } else if lanes > 0 {

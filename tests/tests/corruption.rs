@@ -152,7 +152,7 @@ fn a_store_whose_transform_is_not_finite_or_invertible_is_refused() {
         b[ho..ho + hl].copy_from_slice(&enc);
         strata_tests::fuzz::seal_store(&mut b);
         std::fs::write(&p, &b).unwrap();
-        let e = PageStore::open(&p).err().expect("refused").to_string();
+        let e = PageStore::open(&p).expect_err("refused").to_string();
         assert!(
             e.contains("s.strata") && e.contains("finite, invertible"),
             "{e}"

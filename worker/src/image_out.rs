@@ -195,7 +195,7 @@ pub fn write_tiles(
 ) -> Result<()> {
     let n = wall.tile_pixels() as usize;
     anyhow::ensure!(
-        n > 0 && pixels.len() % n == 0,
+        n > 0 && pixels.len().is_multiple_of(n),
         "{} pixels are not whole tiles of {}x{}",
         pixels.len(),
         wall.tile_w,

@@ -227,7 +227,7 @@ mod tests {
             let data: Vec<f32> = (0..p * p * p)
                 .map(|i| {
                     let h = (i as u32).wrapping_mul(2654435761) >> 8;
-                    if h % 97 == 0 {
+                    if h.is_multiple_of(97) {
                         f32::NAN
                     } else {
                         (h % 1000) as f32 - 500.0

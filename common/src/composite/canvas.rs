@@ -147,7 +147,7 @@ mod tests {
 
     fn pixel(i: usize, seed: u32) -> Rgba {
         // Every third pixel transparent, so pieces have runs.
-        if (i as u32 + seed) % 3 == 0 {
+        if (i as u32 + seed).is_multiple_of(3) {
             [0.0; 4]
         } else {
             let v = (i as f32 + 1.0) * 0.001 + seed as f32;

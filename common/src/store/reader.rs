@@ -76,10 +76,7 @@ impl PageStore {
                 format!("{} bytes", pre.header_len),
             ));
         }
-        let hend = pre
-            .header_offset
-            .checked_add(pre.header_len)
-            .unwrap_or(u64::MAX);
+        let hend = pre.header_offset.saturating_add(pre.header_len);
         if hend > file_len {
             return Err(truncated("the header", pre.header_offset, hend));
         }
@@ -95,9 +92,7 @@ impl PageStore {
         }
         // Version 1 ends before `stats`, version 2 before `vertical_domain`: each absent
         // trailing option is bincode's `None` tag.
-        for _ in pre.version..FORMAT_VERSION {
-            hb.push(0);
-        }
+        hb.resize(hb.len() + (FORMAT_VERSION - pre.version) as usize, 0);
         // A length prefix inside the header is untrusted: bincode claims what a string or
         // list would take before allocating it, and the limit refuses more than a header of
         // at most MAX_HEADER_BYTES can hold (no element decodes from under 1 byte to over 16).
@@ -141,11 +136,8 @@ impl PageStore {
                 format!("{}", pre.index_count),
             ));
         }
-        let ilen = pre
-            .index_count
-            .checked_mul(INDEX_ENTRY_LEN)
-            .unwrap_or(u64::MAX);
-        let iend = pre.index_offset.checked_add(ilen).unwrap_or(u64::MAX);
+        let ilen = pre.index_count.saturating_mul(INDEX_ENTRY_LEN);
+        let iend = pre.index_offset.saturating_add(ilen);
         if iend > file_len {
             return Err(truncated("the index", pre.index_offset, iend));
         }
@@ -193,10 +185,7 @@ impl PageStore {
                 }
                 if e.has_payload() {
                     // Checked: a crafted offset must not wrap around past the bound.
-                    let end = e
-                        .offset
-                        .checked_add(e.stored_len as u64)
-                        .unwrap_or(u64::MAX);
+                    let end = e.offset.saturating_add(e.stored_len as u64);
                     if e.offset < PREAMBLE_LEN || end > pre.header_offset.min(pre.index_offset) {
                         return Err(fmt(
                             at + 8,

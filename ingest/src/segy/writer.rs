@@ -92,6 +92,7 @@ impl SegyWriter {
 
     /// Appends one trace. Coordinates are stored in centimetres (scalar -100) as both CDP
     /// and source X/Y; inline/crossline at 189/193 and 9/21.
+    #[allow(clippy::needless_late_init)] // one `b` per format arm reads best as a match
     pub fn write_trace(
         &mut self,
         inline: i32,

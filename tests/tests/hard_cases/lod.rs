@@ -90,7 +90,9 @@ fn transitions(ctx: &Ctx) -> Res<f64> {
     // The case's premise: the view samples more than one level.
     let levels = levels_sampled(&s)?;
     if levels.len() < 2 {
-        return Err(format!("the view samples levels {levels:?} only: mis-built").into());
+        return Err(format!(
+            "the view samples levels {levels:?} only: mis-built"
+        ));
     }
     let tree = decomposition(&s, WORKERS)?;
     let whole = ctx.whole_reference(&s)?;

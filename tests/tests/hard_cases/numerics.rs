@@ -244,7 +244,7 @@ fn constant(ctx: &Ctx) -> Res<f64> {
 }
 
 fn nan_inf(ctx: &Ctx) -> Res<f64> {
-    let bad = |i: u64, j: u64, k: u64| (i * 7 + j * 13 + k * 29) % 23 == 0;
+    let bad = |i: u64, j: u64, k: u64| (i * 7 + j * 13 + k * 29).is_multiple_of(23);
     let field = |inf: bool| {
         move |i: u64, j: u64, k: u64| {
             if bad(i, j, k) {

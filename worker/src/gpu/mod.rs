@@ -506,7 +506,9 @@ impl GpuCaster {
     /// The most pixels one band of a cast may have: its RGBA f32 output is one storage
     /// binding. Larger regions are cast in bands.
     pub fn max_frame_pixels(&self) -> u64 {
-        let bind = (self.limits.max_storage_buffer_binding_size as u64)
+        let bind = self
+            .limits
+            .max_storage_buffer_binding_size
             .min(self.limits.max_buffer_size)
             / 16;
         self.band_cap.map_or(bind, |c| c.min(bind)).max(1)
@@ -514,15 +516,17 @@ impl GpuCaster {
 
     /// Pool slots of `slot_bytes` the adapter can bind in one buffer.
     pub fn max_slots(&self, slot_bytes: u64) -> usize {
-        let bind =
-            (self.limits.max_storage_buffer_binding_size as u64).min(self.limits.max_buffer_size);
+        let bind = self
+            .limits
+            .max_storage_buffer_binding_size
+            .min(self.limits.max_buffer_size);
         (bind / slot_bytes.max(1)) as usize
     }
 
     /// Allocates the volume pool: `slots` slots of `slot_bytes`, elements of `bits` bits
     /// (`strata_common::gpu::PoolFormat`).
     pub fn alloc_pool(&mut self, slots: usize, slot_bytes: u64, bits: u32) -> Result<()> {
-        if !matches!(bits, 8 | 16 | 32) || slot_bytes % 4 != 0 {
+        if !matches!(bits, 8 | 16 | 32) || !slot_bytes.is_multiple_of(4) {
             bail!("GPU pool: {bits}-bit elements in slots of {slot_bytes} bytes");
         }
         let bytes = slots as u64 * slot_bytes;
