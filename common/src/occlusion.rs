@@ -424,7 +424,8 @@ impl FrontTransmittance {
     /// The termination threshold of a ray in `block` for the whole-ray threshold
     /// `threshold`: `None` when the front lets at most `1 − threshold` through (the ray
     /// need not be cast), else the largest own opacity the ray needs, `1 − (1 − t)/T`,
-    /// rounded down.
+    /// rounded up to an f32 (never below it, so what a ray stopped there leaves unseen
+    /// stays within `1 − t`).
     #[inline]
     pub fn ray_threshold(&self, block: usize, threshold: f32) -> Option<f32> {
         let q = self.q[block];
@@ -437,9 +438,12 @@ impl FrontTransmittance {
             return None;
         }
         let own = 1.0 - (1.0 - t) / front;
+        // Rounded up: a ray that stops at alpha e loses at most front·(1 − e) behind, which
+        // must stay within 1 − t, so e may not fall below `own` (it stays ≤ t: own < t
+        // where the front is not clear, and t is an f32).
         let mut e = own as f32;
-        if e as f64 > own {
-            e = f32::from_bits(e.to_bits() - 1);
+        if (e as f64) < own {
+            e = f32::from_bits(e.to_bits() + 1);
         }
         Some(e)
     }
@@ -727,6 +731,36 @@ mod tests {
     use super::*;
     use crate::image::{composite_front_to_back, Rect, Rgba};
     use proptest::prelude::*;
+
+    /// Every per-ray threshold keeps what a ray stopped there leaves unseen within 1 − t,
+    /// `front · (1 − e) ≤ 1 − t` on the f32 `e`, to f64 rounding (a threshold rounded down
+    /// to an f32 breaks it by up to an f32 ulp).
+    #[test]
+    fn ray_thresholds_never_lose_more_than_one_minus_t() {
+        let levels: Vec<Level> = (1..CLEAR).step_by(7).collect();
+        let grid = BlockGrid::new(levels.len() as u32, 1, 1);
+        let map = FrontTransmittance::checked(grid, levels.clone()).unwrap();
+        let mut limited = 0;
+        for t in [0.5f32, 0.9, 0.99, 0.999, 0.3333] {
+            for (b, &q) in levels.iter().enumerate() {
+                let front = q as f64 / SCALE;
+                match map.ray_threshold(b, t) {
+                    None => assert!(front <= 1.0 - t as f64, "q {q}, t {t}"),
+                    Some(e) => {
+                        assert!(e <= t, "q {q}, t {t}: {e}");
+                        // (1e-12: the f64 rounding of this check, far below an f32 ulp.)
+                        let lost = front * (1.0 - e as f64);
+                        assert!(
+                            lost <= 1.0 - t as f64 + 1e-12,
+                            "q {q}, t {t}: e {e} loses {lost}"
+                        );
+                        limited += 1;
+                    }
+                }
+            }
+        }
+        assert!(limited > 10_000);
+    }
 
     fn image(w: u32, h: u32, rect: Rect, alpha: impl Fn(u32, u32) -> f32) -> PartialImage {
         let mut pixels = Vec::new();

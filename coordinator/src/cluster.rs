@@ -1656,13 +1656,16 @@ impl Cluster {
             1,
         );
         let mut pre_coverage: Vec<Option<Transmittance>> = vec![None; self.workers.len()];
-        let mut pre_front = FrontAccumulator::new(pre_grid);
+        // The accumulators are as large as their grids (a 2^31-pixel wall's main grid has
+        // hundreds of millions of blocks): one that the frame does not use is empty.
+        let unused = BlockGrid::new(0, 0, 1);
+        let mut pre_front = FrontAccumulator::new(if prepass { pre_grid } else { unused });
         let has_prepass = prepass;
         let mut pre_sent = !prepass;
         // Cross-worker occlusion: each worker's block transmittance, by rank. Each position
         // of the order gets its map as soon as the workers in front of it have reported.
         let mut coverage: Vec<Option<Transmittance>> = vec![None; self.workers.len()];
-        let mut front = FrontAccumulator::new(grid);
+        let mut front = FrontAccumulator::new(if occlusion { grid } else { unused });
         let mut maps_sent = !occlusion;
         let mut occlusion_s = 0.0;
         // Workers on this host write their final spans into a canvas, in place.

@@ -51,13 +51,6 @@ fn prefetch_never_evicts_real_requests_evict_lru_and_go_first() {
     let keys: Vec<u64> = store.index().iter().map(|e| e.id.0).collect();
     assert!(keys.len() > 20);
     let page = strata_worker::cache::decoded_page_bytes(&store);
-    let wait_reads = |cache: &PageCache, reads: u64| {
-        let t = std::time::Instant::now();
-        while cache.stats().pages_read < reads {
-            assert!(t.elapsed() < Duration::from_secs(30), "{:?}", cache.stats());
-            std::thread::sleep(Duration::from_millis(2));
-        }
-    };
 
     // Room for three pages, holding three.
     let cache = PageCache::new(vec![store.clone()], 3 * page, 1);
@@ -65,13 +58,30 @@ fn prefetch_never_evicts_real_requests_evict_lru_and_go_first() {
         cache.request(k, Class::Real, 1.0);
     }
     cache.wait_real(Duration::from_secs(30)).unwrap();
-    // Five prefetches are read and dropped: nothing is evicted for them.
+    // Three real requests, none held: three misses, three reads.
+    let s = cache.stats();
+    assert_eq!((s.hits, s.misses, s.pages_read), (0, 3, 3), "{s:?}");
+    // Five prefetches into the full cache are dropped before they are read: nothing is
+    // evicted for them, and the disk is not asked (they were read and thrown away).
     for &k in &keys[3..8] {
         cache.request(k, Class::Prefetch, 1.0);
     }
-    wait_reads(&cache, 8);
+    let t = std::time::Instant::now();
+    while cache.stats().prefetch_dropped < 5 {
+        assert!(t.elapsed() < Duration::from_secs(30), "{:?}", cache.stats());
+        std::thread::sleep(Duration::from_millis(2));
+    }
     let s = cache.stats();
-    assert_eq!((s.evictions, s.prefetch_dropped), (0, 5), "{s:?}");
+    assert_eq!(
+        (s.evictions, s.prefetch_dropped, s.pages_read),
+        (0, 5, 3),
+        "{s:?}"
+    );
+    // A real request for a held page is a hit, and reads nothing.
+    cache.request(keys[1], Class::Real, 1.0);
+    cache.wait_real(Duration::from_secs(30)).unwrap();
+    let s = cache.stats();
+    assert_eq!((s.hits, s.misses, s.pages_read), (1, 3, 3), "{s:?}");
     for &k in &keys[..3] {
         assert!(cache.contains(k));
     }

@@ -31,9 +31,9 @@ pub enum Class {
 /// Counters of a cache.
 #[derive(Copy, Clone, Debug, Default, PartialEq, Eq, serde::Serialize)]
 pub struct CacheStats {
-    /// Lookups that found the page.
+    /// Real requests (pages the atlas lacked) whose page the cache held.
     pub hits: u64,
-    /// Lookups that did not.
+    /// Real requests whose page had to be read.
     pub misses: u64,
     /// Pages evicted.
     pub evictions: u64,
@@ -156,7 +156,9 @@ impl PageCache {
             .stats
     }
 
-    /// Looks a page up (counts a hit or a miss and refreshes its age).
+    /// Looks a page up and refreshes its age. (Hits and misses are counted where pages are
+    /// asked for, [`request`](Self::request): a lookup after the wait for its load would
+    /// always hit.)
     pub fn get(&self, key: u64) -> Option<PageData> {
         let mut st = self
             .shared
@@ -165,22 +167,12 @@ impl PageCache {
             .unwrap_or_else(PoisonError::into_inner);
         st.tick += 1;
         let tick = st.tick;
-        let State {
-            map, lru, stats, ..
-        } = &mut *st;
-        match map.get_mut(&key) {
-            Some(e) => {
-                lru.remove(&e.tick);
-                e.tick = tick;
-                lru.insert(tick, key);
-                stats.hits += 1;
-                Some(e.data.clone())
-            }
-            None => {
-                stats.misses += 1;
-                None
-            }
-        }
+        let State { map, lru, .. } = &mut *st;
+        let e = map.get_mut(&key)?;
+        lru.remove(&e.tick);
+        e.tick = tick;
+        lru.insert(tick, key);
+        Some(e.data.clone())
     }
 
     /// Whether the page is held (no counters touched).
@@ -201,6 +193,9 @@ impl PageCache {
             .lock()
             .unwrap_or_else(PoisonError::into_inner);
         if st.map.contains_key(&key) {
+            if class == Class::Real {
+                st.stats.hits += 1;
+            }
             return;
         }
         if let Some(&c) = st.pending.get(&key) {
@@ -210,6 +205,7 @@ impl PageCache {
         }
         if class == Class::Real && st.pending.get(&key) != Some(&Class::Real) {
             st.real_outstanding += 1;
+            st.stats.misses += 1;
         }
         st.pending.insert(key, class);
         st.seq += 1;
@@ -287,6 +283,12 @@ impl PageCache {
     /// Loads a page on the calling thread (used for the pinned roots), inserting it.
     pub fn load_now(&self, key: u64) -> anyhow::Result<PageData> {
         if let Some(d) = self.get(key) {
+            self.shared
+                .state
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .stats
+                .hits += 1;
             return Ok(d);
         }
         let (data, stored) = read(&self.shared.stores, key)?;
@@ -297,6 +299,7 @@ impl PageCache {
             .unwrap_or_else(PoisonError::into_inner);
         st.stats.pages_read += 1;
         st.stats.bytes_read += stored;
+        st.stats.misses += 1;
         insert(&self.shared, &mut st, key, data.clone(), Class::Real);
         Ok(data)
     }
@@ -381,6 +384,15 @@ fn loader(shared: Arc<Shared>) {
                     // Skip stale heap entries (re-queued at a higher class, or cancelled).
                     match st.pending.get(&q.key) {
                         Some(&c) if c == q.class => {
+                            // A prefetch the full cache would drop is not read at all: once
+                            // the cache has filled, only real loads make room.
+                            if q.class == Class::Prefetch
+                                && st.bytes + page_bytes_of(&shared.stores, q.key) > shared.budget
+                            {
+                                st.pending.remove(&q.key);
+                                st.stats.prefetch_dropped += 1;
+                                continue;
+                            }
                             st.in_flight += 1;
                             break q;
                         }
@@ -439,6 +451,14 @@ fn loader(shared: Arc<Shared>) {
         drop(st);
         shared.done.notify_all();
     }
+}
+
+/// Bytes of one decoded page of the store page `key` belongs to (0 for an unknown data set:
+/// its read fails and reports it).
+fn page_bytes_of(stores: &[Arc<PageStore>], key: u64) -> u64 {
+    stores
+        .get(PageId(key).dataset() as usize)
+        .map_or(0, |s| page_bytes(s))
 }
 
 /// Bytes of one decoded page of `store`.
