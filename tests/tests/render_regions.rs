@@ -190,3 +190,57 @@ fn real_ct_volume_splits_seamlessly() {
     let d = max_diff(&whole, &render_split(&s, &tree));
     assert!(d < 1e-5, "max difference {d}");
 }
+
+/// A horizon atlas too small for the view's tiles must not hold back the volume's pages: a
+/// round takes only pages whose pool has room, so the volume's pool fills as it would with
+/// room for every tile, and the batch ends `atlas-full` only when every page still missing
+/// is one no pool can take. (A round once took the most-requested missing pages whatever
+/// their pool, so horizon tiles could fill it, upload nothing, and end the batch as
+/// atlas-full with the volume half loaded.)
+#[test]
+fn a_full_horizon_atlas_does_not_hold_back_the_volumes_pages() {
+    use strata_worker::engine::{Engine, Outcome};
+    let dir = TempDir::new().unwrap();
+    let path = survey(dir.path(), [600, 400, 40]);
+    let mut s = load(&path, 160, 100);
+    // Horizons translucent and no early termination: which volume pages the rays need
+    // does not depend on how finely the horizons are drawn.
+    for h in &mut s.horizons {
+        h.opacity = 0.5;
+    }
+    s.volumes[0].opacity = 0.2;
+    s.render.upload_pages_per_frame = 4;
+    s.render.max_rounds = 400;
+    let run = |horizon_atlas_mb: u64| {
+        let mut s = s.clone();
+        s.render.horizon_atlas_mb = horizon_atlas_mb;
+        let mut e = Engine::new(&s).unwrap();
+        let view = e.view(s.render.width, s.render.height).unwrap();
+        let region = e.scene_region();
+        let r = e.render_batch(&view, &region).unwrap();
+        let f = e.render_frame(&view, &region).unwrap();
+        let last = e.update(&f.feedback, true).unwrap();
+        (r.outcome, r.rounds, e.atlas_usage(), last)
+    };
+    let (ample, _, ample_use, _) = run(64);
+    assert_eq!(ample, Outcome::Converged);
+    let (outcome, rounds, usage, last) = run(1);
+    assert_eq!(
+        outcome,
+        Outcome::AtlasFull,
+        "1 MiB must not hold the tiles ({rounds} rounds)"
+    );
+    assert!(
+        ample_use.1 > usage.1,
+        "the small horizon atlas holds fewer tiles"
+    );
+    assert_eq!(
+        usage.0, ample_use.0,
+        "the volume's pool holds as many pages as with room for every tile"
+    );
+    assert_eq!(last.uploaded, 0);
+    assert_eq!(
+        last.no_slot, last.missing,
+        "every page still missing lacks a slot: {last:?}"
+    );
+}

@@ -330,6 +330,17 @@ impl Pool {
         self.map.get(&key).copied()
     }
 
+    /// How many pages [`place`](Self::place) can still take with `keep` protected: free
+    /// slots and slots holding a page that is neither pinned nor kept.
+    pub fn room(&self, keep: &HashSet<u64>) -> usize {
+        self.free.len()
+            + self
+                .map
+                .iter()
+                .filter(|(k, &s)| self.slots[s as usize].pinned == 0 && !keep.contains(k))
+                .count()
+    }
+
     /// Marks a resident page as used in `frame`.
     pub fn touch(&mut self, key: u64, frame: u32) {
         if let Some(&s) = self.map.get(&key) {

@@ -981,7 +981,27 @@ impl Engine {
         // upload stay locked in the cache until they are in the atlas, so the locked set,
         // and any overshoot of the cache budget, is bounded by the upload budget.
         let budget = self.settings.upload_pages_per_frame.max(1) as usize;
-        let round: Vec<(u64, u32)> = missing.iter().copied().take(budget).collect();
+        // Only pages their pool has room for (free slots, or slots of pages this frame does
+        // not need): a pool full of needed pages must not take the round's places from the
+        // other pool's pages (the round would upload nothing and end the batch as
+        // atlas-full while the other pool had room), nor be read from disk for nothing.
+        let mut room = [true, false].map(|volume| {
+            let pool = if volume { &self.vpool } else { &self.hpool };
+            pool.as_ref().map_or(0, |p| p.room(&needed))
+        });
+        let mut round: Vec<(u64, u32)> = Vec::with_capacity(budget.min(missing.len()));
+        for &(k, c) in &missing {
+            if round.len() >= budget {
+                break;
+            }
+            let r = &mut room[!self.is_volume(strata_common::ids::PageId(k).dataset()) as usize];
+            if *r == 0 {
+                report.no_slot += 1;
+                continue;
+            }
+            *r -= 1;
+            round.push((k, c));
+        }
         self.cache.set_locked(round.iter().map(|e| e.0));
         self.cache.cancel_prefetch();
         let maxc = round.iter().map(|e| e.1).max().unwrap_or(1).max(1) as f32;
