@@ -176,3 +176,73 @@ fn rays_stop_at_their_block_limits_on_both_casters() {
         assert!(d <= 1e-4, "GPU re-cast differs from CPU by {d}");
     }
 }
+
+/// With `render.rounds_per_frame` set, a region's first frame still converges, and so does
+/// occlusion's re-cast of some of its blocks in that frame: the re-cast takes the first
+/// cast's round budget. (It had been given the budget of a region seen before, one round
+/// here, and stopped at the round limit without the pages its rays had been hidden from.)
+#[test]
+fn the_recast_of_a_regions_first_frame_converges_under_rounds_per_frame() {
+    let dir = TempDir::new().unwrap();
+    // Wider than `survey`'s, so the two halves of the screen see different bricks.
+    let out = strata_coordinator::synth::synth(
+        dir.path(),
+        [320, 240, 48],
+        5,
+        false,
+        &indicatif::ProgressBar::hidden(),
+    )
+    .unwrap();
+    let mut s = Scene::parse(&out.scene, &std::fs::read_to_string(&out.scene).unwrap()).unwrap();
+    s.render.width = 96;
+    s.render.height = 64;
+    s.render.early_termination = T as f64;
+    s.render.max_rounds = 64;
+    let mut s = on_backend(&s, Backend::Cpu);
+    s.render.rounds_per_frame = 1;
+    let (w, h) = (s.render.width, s.render.height);
+    let grid = BlockGrid::new(w, h, 4);
+    // The first cast: the left half hidden behind an opaque front, the right half clear.
+    let q: Vec<u16> = (0..grid.len())
+        .map(|b| {
+            if (b % grid.cols() as usize) < grid.cols() as usize / 2 {
+                0
+            } else {
+                CLEAR
+            }
+        })
+        .collect();
+    let hidden = FrontTransmittance::checked(grid, q).unwrap();
+    let mut e = Engine::new(&s).unwrap();
+    let view = e.view(w, h).unwrap();
+    let region = e.scene_region();
+    let first = RayLimits {
+        front: &hidden,
+        only: None,
+        threshold: T,
+    };
+    let r = e.render_batch_limited(&view, &region, Some(first)).unwrap();
+    assert_eq!(r.outcome, Outcome::Converged, "{:?}", r.reports);
+    // The re-cast: the hidden half turns out clear.
+    let clear = FrontTransmittance::checked(grid, vec![CLEAR; grid.len()]).unwrap();
+    let mut only = BlockMask::empty(grid);
+    for b in 0..grid.len() {
+        if (b % grid.cols() as usize) < grid.cols() as usize / 2 {
+            only.set(b);
+        }
+    }
+    let again = RayLimits {
+        front: &clear,
+        only: Some(&only),
+        threshold: T,
+    };
+    let r = e.render_batch_limited(&view, &region, Some(again)).unwrap();
+    assert_eq!(r.outcome, Outcome::Converged, "{:?}", r.reports);
+    assert!(
+        r.rounds > 1,
+        "the re-cast needed no page: the test shows nothing"
+    );
+    // A later frame of the same region takes the budget of a seen region.
+    let r = e.render_batch_limited(&view, &region, None).unwrap();
+    assert_eq!(r.rounds, 1);
+}

@@ -142,6 +142,10 @@ pub struct Engine {
     /// Regions rendered in batch mode so far: a region's first batch converges whatever
     /// `render.rounds_per_frame` says.
     seen_regions: HashSet<[u64; 7]>,
+    /// The last batch's region key and whether it had been seen before it: a re-cast of
+    /// some of its blocks (cross-worker occlusion's fix-up, in the same frame) takes the
+    /// same round budget as the frame's first cast, not the budget of a seen region.
+    last_batch: Option<([u64; 7], bool)>,
     gpu: Option<GpuBackend>,
     /// Effects compiled into every frame's code beyond its own (all of them when
     /// `render.variant = "general"`). The feature-cost benchmark sets single effects here
@@ -383,6 +387,7 @@ impl Engine {
             tile_cpu_clock: false,
             frame_no: 0,
             seen_regions: HashSet::new(),
+            last_batch: None,
             extra_effects: match s.variant {
                 CodePath::Specialised => EffectSet::NONE,
                 CodePath::General => EffectSet::ALL,
@@ -1082,7 +1087,12 @@ impl Engine {
         if self.seen_regions.len() >= 4096 {
             self.seen_regions.clear();
         }
-        let seen = !self.seen_regions.insert(key);
+        let recast = limits.as_ref().is_some_and(|l| l.only.is_some());
+        let seen = match self.last_batch {
+            Some((k, seen)) if recast && k == key => seen,
+            _ => !self.seen_regions.insert(key),
+        };
+        self.last_batch = Some((key, seen));
         let rpf = self.settings.rounds_per_frame;
         let max_rounds = if seen && rpf > 0 {
             rpf.min(self.settings.max_rounds)
