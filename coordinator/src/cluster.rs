@@ -1627,8 +1627,20 @@ impl Cluster {
             None => None,
         };
         // (A wall's stacked tiles are not a picture a low-resolution pass could stand for.)
+        // (Nor for a frame whose first-pass map, one block per pixel at 1/PREPASS_SCALE,
+        // might not fit a control message: its workers start without a prediction.)
+        let pre_fits = occlusion::max_encoded_len(
+            BlockGrid::new(
+                width.div_ceil(PREPASS_SCALE),
+                height.div_ceil(PREPASS_SCALE),
+                1,
+            )
+            .len(),
+        ) + 1024
+            <= wire::MAX_META as usize;
         let prepass = occlusion
             && wall.is_none()
+            && pre_fits
             && self.opts.occlusion_prepass
             && !self.occlusion_last.as_ref().is_some_and(|(w, h, last, _)| {
                 (*w, *h) == (width, height) && same_fronts(last, &order)
