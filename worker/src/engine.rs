@@ -982,9 +982,10 @@ impl Engine {
             return Ok(report);
         }
         // This round loads and uploads at most the per-frame budget, most important first
-        // (the rest is asked for again by the next frame's feedback). Pages waiting for
-        // upload stay locked in the cache until they are in the atlas, so the locked set,
-        // and any overshoot of the cache budget, is bounded by the upload budget.
+        // (the rest is asked for again by the next frame's feedback). The round's pages are
+        // locked in the cache for the length of this update (loaded, then copied into the
+        // atlas), so the locked set, and any overshoot of the cache budget, is bounded by
+        // the upload budget.
         let budget = self.settings.upload_pages_per_frame.max(1) as usize;
         // Only pages their pool has room for (free slots, or slots of pages this frame does
         // not need): a pool full of needed pages must not take the round's places from the
