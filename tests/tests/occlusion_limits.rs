@@ -15,14 +15,14 @@ const T: f32 = 0.99;
 
 /// The synthetic survey (volume and horizons), dense enough that rays terminate.
 fn survey(dir: &std::path::Path) -> Scene {
-    let out = strata_coordinator::synth::synth(
-        dir,
-        [72, 56, 48],
-        5,
-        false,
-        &indicatif::ProgressBar::hidden(),
-    )
-    .unwrap();
+    survey_of(dir, [72, 56, 48])
+}
+
+/// A synthetic survey of `size` samples at 96×64 pixels, terminating at `T`.
+fn survey_of(dir: &std::path::Path, size: [u64; 3]) -> Scene {
+    let out =
+        strata_coordinator::synth::synth(dir, size, 5, false, &indicatif::ProgressBar::hidden())
+            .unwrap();
     let mut s = Scene::parse(&out.scene, &std::fs::read_to_string(&out.scene).unwrap()).unwrap();
     s.render.width = 96;
     s.render.height = 64;
@@ -185,18 +185,7 @@ fn rays_stop_at_their_block_limits_on_both_casters() {
 fn the_recast_of_a_regions_first_frame_converges_under_rounds_per_frame() {
     let dir = TempDir::new().unwrap();
     // Wider than `survey`'s, so the two halves of the screen see different bricks.
-    let out = strata_coordinator::synth::synth(
-        dir.path(),
-        [320, 240, 48],
-        5,
-        false,
-        &indicatif::ProgressBar::hidden(),
-    )
-    .unwrap();
-    let mut s = Scene::parse(&out.scene, &std::fs::read_to_string(&out.scene).unwrap()).unwrap();
-    s.render.width = 96;
-    s.render.height = 64;
-    s.render.early_termination = T as f64;
+    let mut s = survey_of(dir.path(), [320, 240, 48]);
     s.render.max_rounds = 64;
     let mut s = on_backend(&s, Backend::Cpu);
     s.render.rounds_per_frame = 1;

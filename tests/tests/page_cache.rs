@@ -13,15 +13,21 @@ use strata_tests::scenes::volume_store;
 use strata_worker::cache::{Class, PageCache};
 use tempfile::TempDir;
 
-#[test]
-fn a_real_request_for_a_page_being_prefetched_is_counted_once() {
-    let dir = TempDir::new().unwrap();
+/// A 96³ store in 32³ pages (more than 20 of them, all levels) and its page keys.
+fn store_of_pages(dir: &std::path::Path) -> (Arc<PageStore>, Vec<u64>) {
     let n = 96u64;
     let data: Vec<f32> = (0..n * n * n).map(|i| (i % 251) as f32).collect();
-    let p = volume_store(dir.path(), "v", [n, n, n], data, Affine3::IDENTITY, 32);
+    let p = volume_store(dir, "v", [n, n, n], data, Affine3::IDENTITY, 32);
     let store = Arc::new(PageStore::open(&p).unwrap());
     let keys: Vec<u64> = store.index().iter().map(|e| e.id.0).collect();
     assert!(keys.len() > 20);
+    (store, keys)
+}
+
+#[test]
+fn a_real_request_for_a_page_being_prefetched_is_counted_once() {
+    let dir = TempDir::new().unwrap();
+    let (store, keys) = store_of_pages(dir.path());
     for _ in 0..100 {
         let cache = PageCache::new(vec![store.clone()], 1 << 30, 2);
         for &k in &keys {
@@ -44,12 +50,7 @@ fn a_real_request_for_a_page_being_prefetched_is_counted_once() {
 #[test]
 fn prefetch_never_evicts_real_requests_evict_lru_and_go_first() {
     let dir = TempDir::new().unwrap();
-    let n = 96u64;
-    let data: Vec<f32> = (0..n * n * n).map(|i| (i % 251) as f32).collect();
-    let p = volume_store(dir.path(), "v", [n, n, n], data, Affine3::IDENTITY, 32);
-    let store = Arc::new(PageStore::open(&p).unwrap());
-    let keys: Vec<u64> = store.index().iter().map(|e| e.id.0).collect();
-    assert!(keys.len() > 20);
+    let (store, keys) = store_of_pages(dir.path());
     let page = strata_worker::cache::decoded_page_bytes(&store);
 
     // Room for three pages, holding three.
