@@ -717,28 +717,28 @@ fn run(cli: Cli) -> Result<()> {
             let sequence = a.orbit.is_some() || a.path.is_some();
             // A sequence's numbered frames: another output that is one of them would be
             // replaced by a frame, or replace one (an --mp4 written over a frame it encodes).
-            // Only the images are written per frame; --stats and --mp4 are one file each.
-            let per_frame = |what: &str| matches!(what, "image (-o)" | "EXR image (--exr)");
-            if sequence {
-                for (x, xw) in &outputs {
-                    let Some(x) = x.filter(|x| {
-                        per_frame(xw)
-                            && strata_coordinator::sequence::is_numbered(x).unwrap_or(false)
-                    }) else {
-                        continue;
-                    };
-                    for (y, yw) in &outputs {
-                        if let Some(y) = y {
-                            anyhow::ensure!(
-                                !strata_coordinator::sequence::is_frame_of(
-                                    &same_file_name(x),
-                                    &same_file_name(y)
-                                ),
-                                "{}: the {yw} is one of the frames of the {xw} ({})",
-                                y.display(),
-                                x.display()
-                            );
-                        }
+            // The per-frame patterns: only the images (the first two outputs) are written per
+            // frame; --stats and --mp4 are one file each.
+            let patterns: Vec<(&PathBuf, &str)> = outputs[..2]
+                .iter()
+                .filter(|_| sequence)
+                .filter_map(|&(o, w)| {
+                    o.filter(|o| strata_coordinator::sequence::is_numbered(o).unwrap_or(false))
+                        .map(|o| (o, w))
+                })
+                .collect();
+            for &(x, xw) in &patterns {
+                for (y, yw) in &outputs {
+                    if let Some(y) = y {
+                        anyhow::ensure!(
+                            !strata_coordinator::sequence::is_frame_of(
+                                &same_file_name(x),
+                                &same_file_name(y)
+                            ),
+                            "{}: the {yw} is one of the frames of the {xw} ({})",
+                            y.display(),
+                            x.display()
+                        );
                     }
                 }
             }
@@ -754,10 +754,7 @@ fn run(cli: Cli) -> Result<()> {
                     // A sequence's frames go to a folder of their own, made here: the
                     // pattern's folder as the frames name it (`%%` is `%` there), so the
                     // frame number must be in the file name.
-                    let numbered = sequence
-                        && per_frame(what)
-                        && strata_coordinator::sequence::is_numbered(out).unwrap_or(false);
-                    if numbered {
+                    if patterns.iter().any(|&(p, _)| std::ptr::eq(p, out)) {
                         let name_numbered = out.file_name().is_some_and(|n| {
                             strata_coordinator::sequence::is_numbered(Path::new(n)).unwrap_or(false)
                         });
