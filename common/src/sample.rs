@@ -82,6 +82,24 @@ impl SampleType {
         v.round().clamp(lo, hi) + 0.0
     }
 
+    /// [`quantize`](Self::quantize) for a store whose integer samples reserve `no_data` for
+    /// holes: a valid value that would round to the sentinel takes the neighbouring integer
+    /// inside the type's range instead (one unit away), so it is not read back as a hole.
+    /// `NaN` stays `NaN`; `f32` stores and stores without a sentinel are unaffected.
+    pub fn quantize_valid(self, v: f32, no_data: Option<f32>) -> f32 {
+        let q = self.quantize(v);
+        match no_data {
+            Some(nd) if self != SampleType::F32 && q == nd => {
+                if nd < self.range().1 {
+                    nd + 1.0
+                } else {
+                    nd - 1.0
+                }
+            }
+            _ => q,
+        }
+    }
+
     /// Decodes little-endian samples into `out` (which has `bytes.len() / size` elements),
     /// mapping `no_data` to `NaN`.
     pub fn decode_le(self, bytes: &[u8], no_data: Option<f32>, out: &mut [f32]) {
@@ -149,6 +167,27 @@ mod tests {
         assert_eq!(SampleType::I8.quantize(-1000.0), -128.0);
         assert!(SampleType::U16.quantize(f32::NAN).is_nan());
         assert_eq!(SampleType::I16.quantize(-0.4).to_bits(), 0.0f32.to_bits());
+    }
+
+    #[test]
+    fn valid_values_never_quantize_to_the_no_data_sentinel() {
+        assert_eq!(
+            SampleType::I16.quantize_valid(-40000.0, Some(-32768.0)),
+            -32767.0
+        );
+        assert_eq!(
+            SampleType::I16.quantize_valid(-32768.2, Some(-32768.0)),
+            -32767.0
+        );
+        assert_eq!(SampleType::U8.quantize_valid(0.3, Some(0.0)), 1.0);
+        assert_eq!(SampleType::U8.quantize_valid(300.0, Some(255.0)), 254.0);
+        assert_eq!(SampleType::U8.quantize_valid(7.0, Some(0.0)), 7.0);
+        assert!(SampleType::U16.quantize_valid(f32::NAN, Some(0.0)).is_nan());
+        assert_eq!(SampleType::U8.quantize_valid(0.0, None), 0.0);
+        assert_eq!(
+            SampleType::F32.quantize_valid(-32768.0, Some(-32768.0)),
+            -32768.0
+        );
     }
 
     proptest! {

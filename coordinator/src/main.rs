@@ -389,6 +389,18 @@ fn build_and_report(
     let r = build_store(src, out, o, &pb)?;
     pb.finish_and_clear();
     summarize(out, &r, t0.elapsed().as_secs_f64());
+    if r.moved_off_no_data > 0 {
+        if let Some(nd) = o.no_data {
+            let step = if nd < o.sample_type.range().1 { 1 } else { -1 };
+            warn!(
+                samples = r.moved_off_no_data,
+                "{}: {} valid samples held the no-data sentinel {nd} (used for the missing traces) and were stored as {} instead",
+                out.display(),
+                r.moved_off_no_data,
+                nd + step as f32
+            );
+        }
+    }
     Ok(())
 }
 

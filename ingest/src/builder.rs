@@ -125,6 +125,10 @@ pub struct BuildReport {
     pub file_bytes: u64,
     /// Level-0 samples read from the source.
     pub source_samples: u64,
+    /// Valid level-0 samples whose value was the integer store's no-data sentinel, stored
+    /// one unit away from it instead (see [`SampleType::quantize_valid`]) so they are not read
+    /// back as holes.
+    pub moved_off_no_data: u64,
 }
 
 /// Removes the temporary file unless the build completed (on errors and panics here, on
@@ -275,6 +279,7 @@ pub fn build_store(
     }
     header.stats = stats.hist.as_deref().and_then(ValueHistogram::stats);
     report.source_samples = stats.acc.count();
+    report.moved_off_no_data = stats.moved_off_no_data;
 
     // Coarser levels from the level below, read back from the file being written.
     for l in 1..pyr.level_count() {
@@ -348,6 +353,8 @@ struct Level0Stats {
     valid: u64,
     min: f32,
     max: f32,
+    /// Valid source samples that would have been stored as the no-data sentinel.
+    moved_off_no_data: u64,
     /// A page's valid core values, for the data set's histogram.
     values: Vec<f32>,
     /// The data set's: every page's values counted (mean, RMS, percentiles).
@@ -455,7 +462,12 @@ fn build_level(
                     .map(|&br| {
                         let page = cut_page(pyr, level, br, &buf, p.blo, p.bsz, header);
                         let id = pyr.id(level, br);
-                        let st = (level == 0).then(|| core_stats(pyr, br, &page, lev.dims));
+                        let st = (level == 0).then(|| {
+                            let mut st = core_stats(pyr, br, &page, lev.dims);
+                            st.moved_off_no_data =
+                                moved_off_no_data(pyr, br, &buf, p.blo, p.bsz, header);
+                            st
+                        });
                         let (mut e, bytes) = encode_page(header, id, &page);
                         if let Some(ch) = children {
                             // A coarse page's bounds cover its children's, so empty-space skipping and
@@ -499,6 +511,7 @@ fn build_level(
                             }
                         }
                         s.valid += t.valid;
+                        s.moved_off_no_data += t.moved_off_no_data;
                         s.acc = s.acc.combine(t.acc);
                         if let Some(h) = s.hist.as_deref_mut() {
                             for &v in &t.values {
@@ -565,7 +578,7 @@ fn cut_page(
     };
     let (mx, my, mz) = (map(0), map(1), map(2));
     let mut page = vec![f32::NAN; pyr.page_samples()];
-    let q = |v: f32| h.sample_type.quantize(v);
+    let q = |v: f32| h.sample_type.quantize_valid(v, h.no_data);
     let mut i = 0;
     for z in &mz {
         for y in &my {
@@ -582,6 +595,38 @@ fn cut_page(
         }
     }
     page
+}
+
+/// How many valid source samples of the level-0 page `br` owns (its core) quantize to the
+/// store's no-data sentinel, and so are stored one unit away from it.
+fn moved_off_no_data(
+    pyr: &Pyramid,
+    br: [u32; 3],
+    buf: &[f32],
+    blo: [u64; 3],
+    bsz: [u64; 3],
+    h: &StoreHeader,
+) -> u64 {
+    let Some(nd) = h.no_data.filter(|_| h.sample_type != SampleType::F32) else {
+        return 0;
+    };
+    if h.kind != DataKind::Volume {
+        return 0;
+    }
+    let r = pyr.core_range(0, br);
+    let mut n = 0;
+    for z in r[2].0..r[2].1 {
+        for y in r[1].0..r[1].1 {
+            let row = ((z - blo[2]) * bsz[1] + (y - blo[1])) * bsz[0];
+            for x in r[0].0..r[0].1 {
+                let v = buf[(row + x - blo[0]) as usize];
+                if !v.is_nan() && h.sample_type.quantize(v) == nd {
+                    n += 1;
+                }
+            }
+        }
+    }
+    n
 }
 
 /// Digest terms and range of the samples a level-0 page owns (its core inside the data set).

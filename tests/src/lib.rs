@@ -84,7 +84,9 @@ pub fn check_coarse_levels(store: &PageStore) -> Result<(), String> {
                             }
                         }
                     }
-                    let want = h.sample_type.quantize(h.filter.apply(&kids));
+                    let want = h
+                        .sample_type
+                        .quantize_valid(h.filter.apply(&kids), h.no_data);
                     let got = coarse[((z * cd[1] + y) * cd[0] + x) as usize];
                     if !same(got, want) {
                         return Err(format!("level {l} sample ({x},{y},{z}): stored {got}, filter of level {} gives {want}", l - 1));

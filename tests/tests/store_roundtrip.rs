@@ -192,6 +192,55 @@ fn nan_no_data_in_f32_volume() {
     assert_eq!(store.header().valid_samples, 40 * 35 * 33 - nan);
 }
 
+/// A SEG-Y cube with missing traces in an integer type stores its holes as the type's
+/// sentinel (the `ingest segy` CLI picks the range's low end). Real samples at that value
+/// (clipped amplitudes, the zeros of a u8 cube) must stay values: stored one unit away and
+/// counted, not read back as holes, and the recorded digest must still verify.
+#[test]
+fn valid_samples_at_the_no_data_sentinel_are_not_read_back_as_holes() {
+    let dims = [70, 40, 35];
+    for (t, nd) in [(SampleType::I16, -32768.0f32), (SampleType::U8, 0.0)] {
+        let mut data = synthetic(dims, t, 11);
+        // A missing trace (a column of holes), and real samples at the sentinel: a clipped
+        // run and scattered ones, some on page borders.
+        for z in 0..dims[2] {
+            data[((z * dims[1] + 3) * dims[0] + 4) as usize] = f32::NAN;
+        }
+        let at_sentinel: Vec<usize> = (0..data.len())
+            .filter(|i| i % 37 == 5 && !data[*i].is_nan())
+            .collect();
+        for &i in &at_sentinel {
+            data[i] = nd;
+        }
+        let moved = data.iter().filter(|&&v| v == nd).count() as u64;
+        let holes = data.iter().filter(|v| v.is_nan()).count() as u64;
+        let src = MemorySource { dims, data };
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("v.strata");
+        let mut o = BuildOptions::volume("t", t);
+        o.page_size = 32;
+        o.no_data = Some(nd);
+        let report = build_store(&src, &out, &o, &ProgressBar::hidden()).unwrap();
+        assert_eq!(report.moved_off_no_data, moved, "{t:?}");
+        let store = PageStore::open(&out).unwrap();
+        assert_eq!(
+            store.header().valid_samples,
+            dims.iter().product::<u64>() - holes
+        );
+        let l0 = level_grid(&store, 0).unwrap();
+        let step = if nd < t.range().1 { 1.0 } else { -1.0 };
+        for (i, (a, b)) in l0.iter().zip(&src.data).enumerate() {
+            let want = if *b == nd { nd + step } else { *b };
+            assert!(same(*a, want), "{t:?} sample {i}: store {a}, want {want}");
+        }
+        check_borders(&store).unwrap();
+        check_coarse_levels(&store).unwrap();
+        // Every page of every level decodes, and the level-0 digest is the recorded one.
+        strata_coordinator::inspect::inspect(&out, true, &ProgressBar::hidden())
+            .unwrap_or_else(|e| panic!("{t:?}: {e:#}"));
+    }
+}
+
 #[test]
 fn integer_store_without_sentinel_refuses_no_data() {
     let dims = [10, 10, 10];
