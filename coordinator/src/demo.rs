@@ -19,7 +19,8 @@ use strata_common::scene::SyntheticSpec;
 pub const MARKER: &str = ".complete";
 
 /// Makes sure the synthetic survey of `spec` exists in `spec.dir`, generating it (with
-/// `crate::synth::synth`) if it is missing, incomplete or of another size or seed.
+/// `crate::synth::synth`) if it is missing or empty, or holds this cache's survey of
+/// another size or seed. A non-empty folder without the cache's marker is refused.
 /// Returns whether it generated.
 pub fn ensure_synthetic(spec: &SyntheticSpec, progress: &ProgressBar) -> Result<bool> {
     let dir = spec.dir.as_path();
@@ -49,10 +50,24 @@ pub fn ensure_synthetic(spec: &SyntheticSpec, progress: &ProgressBar) -> Result<
             "the cached synthetic survey is {}, the scene asks for {want}: regenerating",
             have.trim()
         ),
-        Err(_) if dir.exists() => tracing::info!(
-            dir = %dir.display(),
-            "the synthetic survey folder is incomplete: regenerating"
-        ),
+        // Generation renames a complete folder into place, so a folder without the marker
+        // was never one of ours, whatever its files are called (`coordinator synth` writes
+        // the same names): only an empty one is used.
+        Err(_) if dir.exists() => {
+            let first = std::fs::read_dir(dir)
+                .ok()
+                .and_then(|mut d| d.next())
+                .and_then(|e| e.ok())
+                .map(|e| e.file_name().to_string_lossy().into_owned());
+            if let Some(n) = first {
+                bail!(
+                    "{}: holds {n:?} but not this cache's marker {MARKER}, so it was not \
+                     generated here; refusing to replace it (move it away, or pick another \
+                     synthetic.dir)",
+                    dir.display()
+                );
+            }
+        }
         Err(_) => {}
     }
     if dir.exists() {
@@ -114,11 +129,12 @@ fn check_removable(dir: &Path) -> Result<()> {
     for e in entries {
         let e = e.with_context(|| format!("{}: cannot list", dir.display()))?;
         let n = e.file_name().to_string_lossy().into_owned();
+        // What `synth` writes without SEG-Y and text horizons (this cache never asks for
+        // them, so such files are the user's).
         let ours = n == MARKER
             || n == "scene.toml"
             || n == "seismic.strata"
-            || n == "seismic.sgy"
-            || (n.starts_with("horizon") && (n.ends_with(".strata") || n.ends_with(".txt")))
+            || (n.starts_with("horizon") && n.ends_with(".strata"))
             || (n.starts_with('.') && n.contains(".tmp"));
         if !ours || !e.file_type().is_ok_and(|t| t.is_file()) {
             bail!(
@@ -235,10 +251,11 @@ mod tests {
         assert_ne!(std::fs::read(dir.join("seismic.strata")).unwrap(), first);
         assert!(!ensure_synthetic(&spec(&dir, 2), &ProgressBar::hidden()).unwrap());
 
-        // A folder without the marker (an interrupted older run) is regenerated.
-        std::fs::remove_file(dir.join(MARKER)).unwrap();
-        assert!(ensure_synthetic(&spec(&dir, 2), &ProgressBar::hidden()).unwrap());
-        assert!(dir.join(MARKER).is_file());
+        // An empty folder is generated into.
+        let empty = root.path().join("empty");
+        std::fs::create_dir(&empty).unwrap();
+        assert!(ensure_synthetic(&spec(&empty, 2), &ProgressBar::hidden()).unwrap());
+        assert!(empty.join(MARKER).is_file());
     }
 
     #[test]
@@ -250,6 +267,36 @@ mod tests {
         let e = ensure_synthetic(&spec(&dir, 1), &ProgressBar::hidden()).unwrap_err();
         assert!(e.to_string().contains("thesis.tex"), "{e}");
         assert!(dir.join("thesis.tex").is_file());
+
+        // A folder without the marker is not this cache's, even when its files have the
+        // names a survey's have (`coordinator synth` output, a SEG-Y and text horizons).
+        let survey = root.path().join("survey");
+        std::fs::create_dir(&survey).unwrap();
+        for n in [
+            "seismic.sgy",
+            "horizon_top.txt",
+            "seismic.strata",
+            "scene.toml",
+        ] {
+            std::fs::write(survey.join(n), "user data").unwrap();
+        }
+        let e = ensure_synthetic(&spec(&survey, 1), &ProgressBar::hidden()).unwrap_err();
+        assert!(e.to_string().contains(MARKER), "{e}");
+        for n in [
+            "seismic.sgy",
+            "horizon_top.txt",
+            "seismic.strata",
+            "scene.toml",
+        ] {
+            assert_eq!(std::fs::read(survey.join(n)).unwrap(), b"user data");
+        }
+        // A marked folder (another seed) that the user put a file of their own into.
+        let marked = root.path().join("marked");
+        assert!(ensure_synthetic(&spec(&marked, 1), &ProgressBar::hidden()).unwrap());
+        std::fs::write(marked.join("seismic.sgy"), "user data").unwrap();
+        let e = ensure_synthetic(&spec(&marked, 2), &ProgressBar::hidden()).unwrap_err();
+        assert!(e.to_string().contains("seismic.sgy"), "{e}");
+        assert!(marked.join("seismic.sgy").is_file());
 
         let file = root.path().join("plain");
         std::fs::write(&file, "x").unwrap();
