@@ -36,7 +36,7 @@
 
 use std::fs::File;
 use std::os::fd::{AsRawFd, FromRawFd};
-use std::os::unix::fs::MetadataExt;
+use std::os::unix::fs::{MetadataExt, OpenOptionsExt};
 use std::sync::Arc;
 
 use bytes::Bytes;
@@ -304,6 +304,11 @@ impl ShmWriter {
         let map = self.map.as_mut().expect("reserved");
         map[at.offset as usize..start as usize]
             .copy_from_slice(&encode_shm_record(frame, round, from, len));
+        // The header before the payload, for every reader: one still reading an older
+        // record here (a failed frame's, announced before this one) that finds its payload
+        // changed then also finds the header changed, and knows the record stale
+        // ([`ShmReader::read_piece`]).
+        std::sync::atomic::fence(std::sync::atomic::Ordering::Release);
         fill(&mut map[start as usize..end as usize]);
         self.cursor = end.next_multiple_of(ALIGN);
         Ok(at)
@@ -368,20 +373,33 @@ pub(crate) fn open_checked(id: &SegmentId, write: bool) -> Result<(File, String)
     }
     let path = format!("/proc/{}/fd/{}", id.pid, id.fd);
     let shown = format!("{} ({path})", id.name);
-    let file = std::fs::OpenOptions::new()
-        .read(true)
-        .write(write)
-        .open(&path)
-        .map_err(io_error(&shown))?;
     let refuse = |why: String| ShmError::NotPrivate {
         path: shown.clone(),
         why,
     };
+    let want = format!("/memfd:{} (deleted)", id.name);
+    // What the descriptor names, looked at before opening it: opening a named FIFO (or a
+    // terminal) that a peer announced would block this thread for good, or give the
+    // process a controlling terminal.
+    let announced = std::fs::read_link(&path).map_err(io_error(&shown))?;
+    if announced.as_os_str() != want.as_str() {
+        return Err(refuse(format!(
+            "the descriptor is {}, not the announced segment",
+            announced.display()
+        )));
+    }
+    // Non-blocking and without a controlling terminal all the same: the descriptor can be
+    // replaced between the look and the open (checked again below).
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .write(write)
+        .custom_flags(libc::O_NONBLOCK | libc::O_NOCTTY)
+        .open(&path)
+        .map_err(io_error(&shown))?;
     // What this process holds now (the sender's descriptor could have been reused
     // between the announcement and the open).
     let held = std::fs::read_link(format!("/proc/self/fd/{}", file.as_raw_fd()))
         .map_err(io_error(&shown))?;
-    let want = format!("/memfd:{} (deleted)", id.name);
     if held.as_os_str() != want.as_str() {
         return Err(refuse(format!(
             "the descriptor is {}, not the announced segment",
@@ -543,23 +561,55 @@ impl ShmReader {
         max_pixels: u32,
     ) -> Result<SparsePiece, ShmError> {
         let payload = self.read(at, limit, frame, round, from)?;
-        let bad = |source| ShmError::Piece {
+        let parsed = parse_piece(&payload, max_pixels);
+        self.piece_or_stale(parsed, at, limit, frame, round, from)
+    }
+
+    /// A piece parsed from the record at `at`, or, where it did not parse, why: the record
+    /// is stale if its header no longer is the announced one (its sender rewrote it for a
+    /// later frame while this reader still read the failed frame's announcement: a benign
+    /// race, not a bad peer), else the piece is bad.
+    fn piece_or_stale(
+        &mut self,
+        parsed: Result<SparsePiece, strata_common::composite::PieceError>,
+        at: ShmRef,
+        limit: u64,
+        frame: u64,
+        round: u32,
+        from: u32,
+    ) -> Result<SparsePiece, ShmError> {
+        let source = match parsed {
+            Ok(p) => return Ok(p),
+            Err(e) => e,
+        };
+        // Pairs with the writer's fence between a record's header and its payload.
+        std::sync::atomic::fence(std::sync::atomic::Ordering::Acquire);
+        self.read(at, limit, frame, round, from)?;
+        Err(ShmError::Piece {
             offset: at.offset,
             source,
-        };
-        let h = SparsePiece::HEADER_BYTES;
-        let Some(header) = payload.first_chunk::<{ SparsePiece::HEADER_BYTES }>() else {
-            // Shorter than a header: let the parser say so.
-            return SparsePiece::parse(&payload, max_pixels).map_err(bad);
-        };
-        let head_len = (h as u64).saturating_add(SparsePiece::runs_bytes_in_header(header));
-        if head_len > payload.len() as u64 {
-            return SparsePiece::parse(&payload, max_pixels).map_err(bad);
-        }
-        let head_len = head_len as usize;
-        let head = payload[..head_len].to_vec();
-        SparsePiece::parse_split(&head, payload.slice(head_len..), max_pixels).map_err(bad)
+        })
     }
+}
+
+/// The piece in a record's payload: the header and run lengths are copied out and
+/// checked, the pixel data stays in the mapping.
+fn parse_piece(
+    payload: &Bytes,
+    max_pixels: u32,
+) -> Result<SparsePiece, strata_common::composite::PieceError> {
+    let h = SparsePiece::HEADER_BYTES;
+    let Some(header) = payload.first_chunk::<{ SparsePiece::HEADER_BYTES }>() else {
+        // Shorter than a header: let the parser say so.
+        return SparsePiece::parse(payload, max_pixels);
+    };
+    let head_len = (h as u64).saturating_add(SparsePiece::runs_bytes_in_header(header));
+    if head_len > payload.len() as u64 {
+        return SparsePiece::parse(payload, max_pixels);
+    }
+    let head_len = head_len as usize;
+    let head = payload[..head_len].to_vec();
+    SparsePiece::parse_split(&head, payload.slice(head_len..), max_pixels)
 }
 
 #[cfg(test)]
@@ -612,6 +662,62 @@ mod tests {
             read(&mut r, a, 1 << 20, 3, 0, 1),
             Err(ShmError::Header { .. })
         ));
+    }
+
+    #[test]
+    fn a_piece_rewritten_while_read_is_stale_not_bad() {
+        let (mut w, mut r) = pair();
+        let junk = [0xA5u8; 96];
+        let at = w.write(1, 0, 1, &junk).unwrap();
+        // A piece that does not parse under its own, unchanged header: the peer's fault.
+        let payload = r.read(at, 1 << 20, 1, 0, 1).unwrap();
+        let e = r
+            .piece_or_stale(parse_piece(&payload, 1 << 20), at, 1 << 20, 1, 0, 1)
+            .unwrap_err();
+        assert!(matches!(e, ShmError::Piece { .. }), "{e}");
+        assert!(matches!(
+            r.read_piece(at, 1 << 20, 1, 0, 1, 1 << 20),
+            Err(ShmError::Piece { .. })
+        ));
+        // The same bytes read while the sender rewrote the record for its next frame (its
+        // header first): stale, which the reader drops, not a bad peer to disconnect.
+        w.reset();
+        let again = w.write(2, 0, 1, &[0x5Au8; 96]).unwrap();
+        assert_eq!(again.offset, at.offset);
+        let e = r
+            .piece_or_stale(parse_piece(&payload, 1 << 20), at, 1 << 20, 1, 0, 1)
+            .unwrap_err();
+        assert!(matches!(e, ShmError::Header { .. }), "{e}");
+    }
+
+    /// A peer announcing a descriptor that is a FIFO without a writer: opening it for
+    /// reading would block until a writer came, so it is looked at before it is opened.
+    #[test]
+    fn an_announced_fifo_is_refused_without_blocking() {
+        let dir = tempfile::tempdir().unwrap();
+        let fifo = dir.path().join("f");
+        let c = std::ffi::CString::new(fifo.as_os_str().as_encoded_bytes()).unwrap();
+        // SAFETY: a valid NUL-terminated path.
+        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+        let held = std::fs::OpenOptions::new()
+            .read(true)
+            .custom_flags(libc::O_NONBLOCK)
+            .open(&fifo)
+            .unwrap();
+        let id = SegmentId {
+            name: format!("{PREFIX}{}", "0".repeat(32)),
+            pid: std::process::id(),
+            fd: held.as_raw_fd(),
+        };
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let _ = tx.send(ShmReader::open(&id).map(|_| ()));
+        });
+        let got = rx
+            .recv_timeout(std::time::Duration::from_secs(10))
+            .expect("opening an announced FIFO blocked");
+        assert!(matches!(got, Err(ShmError::NotPrivate { .. })), "{got:?}");
+        drop(held);
     }
 
     #[test]

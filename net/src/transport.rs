@@ -54,6 +54,10 @@ impl NetConfig {
         t.send_window(128 << 20);
         t.max_concurrent_uni_streams(quinn::VarInt::from_u32(1));
         t.max_concurrent_bidi_streams(quinn::VarInt::from_u32(1));
+        // Strata sends no unreliable datagrams; unsupported, a peer's DATAGRAM frame is a
+        // protocol violation instead of up to 1.25 MB (quinn's default) queued per
+        // connection, past the window above, before any proof of who it is.
+        t.datagram_receive_buffer_size(None);
         t.initial_mtu(self.initial_mtu.max(1200));
         t.enable_segmentation_offload(self.segmentation_offload);
         if self.initial_mtu > 1452 {
@@ -170,5 +174,45 @@ pub async fn connect_as(
             "connecting to {addr}: no answer within {:.1} s",
             timeout.as_secs_f64()
         )),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Connections offer no DATAGRAM support, either way: a stranger cannot queue datagrams
+    /// before it has proven who it is.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 1)]
+    async fn connections_take_no_datagrams() {
+        let cfg = NetConfig::default();
+        let server_id = tls::Identity::generate().unwrap();
+        let server = endpoint("127.0.0.1:0".parse().unwrap(), &server_id, &cfg).unwrap();
+        let addr = server.local_addr().unwrap();
+        let accept = tokio::spawn(async move {
+            let incoming = server.accept().await.expect("a connection");
+            let conn = incoming.await.expect("a handshake");
+            let offered = conn.max_datagram_size();
+            (server, conn, offered)
+        });
+        let client_id = tls::Identity::generate().unwrap();
+        let client = endpoint("127.0.0.1:0".parse().unwrap(), &client_id, &cfg).unwrap();
+        let conn = connect_as(
+            &client,
+            addr,
+            server_id.fingerprint,
+            Some(&client_id),
+            &cfg,
+            Duration::from_secs(10),
+        )
+        .await
+        .unwrap();
+        let (_server, _sconn, offered_by_client) = accept.await.unwrap();
+        assert_eq!(
+            conn.max_datagram_size(),
+            None,
+            "the server offers datagrams"
+        );
+        assert_eq!(offered_by_client, None, "the client offers datagrams");
     }
 }
