@@ -24,7 +24,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use strata_common::camera::{screen_motion, View};
 use strata_common::composite::canvas as composite_canvas;
-use strata_common::composite::{assemble, Interlace, Span, SparsePiece};
+use strata_common::composite::{assemble, build_plan, Interlace, Span, SparsePiece};
 use strata_common::image::Rgba;
 use strata_common::kd::Decomposition;
 use strata_common::occlusion::{self, BlockGrid, FrontAccumulator, Transmittance};
@@ -114,6 +114,19 @@ pub const PREPASS_SCALE: u32 = 4;
 /// (13 pixels) cut the blocks cast again at p = 8 from about 30 000 to 1 000 per frame for
 /// 7 % more samples, and the lower quartile to 3 000 for 4 %.
 const MOTION_QUANTILE: f64 = 0.5;
+
+/// The deadline a worker keeps for its own frame waits (its peers' pieces, its sends),
+/// counted from when it receives the frame: shorter than the coordinator's
+/// `cluster.frame_timeout_s`, by a fifth of it up to 10 s, so that a worker stuck with a
+/// hung peer says which one (`WorkerMsg::Failed::suspects`) before the coordinator runs out
+/// of time itself and, knowing only who has not answered, blames every worker still in the
+/// exchange. (A worker waits for the coordinator's occlusion map longer than the frame
+/// timeout: the coordinator blames that wait itself.)
+pub fn worker_frame_timeout(frame_timeout: Duration) -> Duration {
+    frame_timeout
+        .saturating_sub((frame_timeout / 5).min(Duration::from_secs(10)))
+        .max(Duration::from_millis(1))
+}
 
 /// The ranks a frame that ran out of time is blamed on (`missing`: those without a
 /// result). While occlusion maps are still going out (`waiting_on`: the coverage by rank of
@@ -429,6 +442,43 @@ fn finish_canvas(
         }
     }
     composite_canvas::finish(frame, interlace, &spans)
+}
+
+/// Checks that each worker's final piece (`spans`, in the order of `slots`) covers the
+/// part of the image the frame's compositing plan gives its position in `order`, as the
+/// workers build it: the gather checks only that pieces lie in the frame and do not
+/// overlap, so a worker returning less (a bug, or a lie) would leave a transparent stripe
+/// in a frame reported as done. Returns the first rank whose piece differs, and why.
+fn final_spans_match_the_plan(
+    pixels: u32,
+    composite: &CompositeChoice,
+    order: &[u32],
+    slots: &[u32],
+    spans: &[Span],
+) -> Result<(), (u32, anyhow::Error)> {
+    let k: Vec<usize> = composite.k.iter().map(|&k| k as usize).collect();
+    let plan = build_plan(
+        order.len(),
+        pixels,
+        composite.algorithm,
+        (!k.is_empty()).then_some(&k[..]),
+    );
+    for (&rank, &span) in slots.iter().zip(spans) {
+        let fail = |e: anyhow::Error| Err((rank, e));
+        let Ok(plan) = &plan else {
+            return fail(anyhow!("no compositing plan for {} ranks", order.len()));
+        };
+        let Some(pos) = order.iter().position(|&r| r == rank) else {
+            return fail(anyhow!("not in the frame's visibility order"));
+        };
+        let want = plan.result[pos];
+        if span != want && !(span.is_empty() && want.is_empty()) {
+            return fail(anyhow!(
+                "its final piece holds pixels {span}, not its part {want} of the image"
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// A worker given up on.
@@ -1114,7 +1164,7 @@ impl Cluster {
                 peers: peers.clone(),
                 run_token: token,
                 max_pixels: self.opts.max_pixels,
-                timeout_ms: self.opts.frame_timeout.as_millis() as u64,
+                timeout_ms: worker_frame_timeout(self.opts.frame_timeout).as_millis() as u64,
                 shm_peers: shm[rank as usize].clone(),
                 shm_gather: gather[rank as usize],
                 absent: absent.clone(),
@@ -1867,8 +1917,7 @@ impl Cluster {
                                             "{who} sent its final piece both inline and in shared memory"
                                         )));
                                     }
-                                    gather_bytes += wire::SHM_RECORD_HEADER as u64 + at.len;
-                                    tokio::task::block_in_place(|| {
+                                    let piece = tokio::task::block_in_place(|| {
                                         r.read_piece(
                                             at,
                                             limit,
@@ -1881,7 +1930,10 @@ impl Cluster {
                                     .with_context(|| {
                                         format!("the final piece of {who} in shared memory")
                                     })
-                                    .map_err(blame)?
+                                    .map_err(blame)?;
+                                    // Counted once the record's length has been checked.
+                                    gather_bytes += wire::SHM_RECORD_HEADER as u64 + at.len;
+                                    piece
                                 }
                                 (Some(_), None) => {
                                     return Err(blame(anyhow!(
@@ -1954,10 +2006,13 @@ impl Cluster {
                         }) => {
                             // A worker that failed because peers vanished or stalled blames
                             // them; only ranks of this frame count.
-                            let lost = suspects
+                            // Each once: a rank named twice is one loss, not two.
+                            let mut lost: Vec<u32> = suspects
                                 .into_iter()
                                 .filter(|r| slots.contains(r) && *r != rank)
                                 .collect();
+                            lost.sort_unstable();
+                            lost.dedup();
                             return Err(Failure {
                                 error: anyhow!("frame {frame} failed on {who}: {message}"),
                                 lost,
@@ -1996,6 +2051,26 @@ impl Cluster {
             .iter()
             .map(|&r| pieces[r as usize].take().unwrap())
             .collect();
+        if wall.is_none() {
+            let spans: Vec<Span> = pieces
+                .iter()
+                .map(|p| match p {
+                    Final::Piece(p) => p.span,
+                    Final::InCanvas(s) => *s,
+                })
+                .collect();
+            final_spans_match_the_plan(width * height, composite, &order, &slots, &spans).map_err(
+                |(rank, e)| {
+                    Failure::blaming(
+                        e.context(format!(
+                            "frame {frame}: {}",
+                            self.workers[rank as usize].describe()
+                        )),
+                        rank,
+                    )
+                },
+            )?;
+        }
         let canvas_blended = stats.iter().filter(|s| s.blended_in_canvas).count();
         let pieces_in_canvas = pieces
             .iter()
@@ -2154,7 +2229,11 @@ impl Cluster {
         }
         let damping = self.opts.rebalance_damping;
         let by_pages = self.opts.rebalance_model == RebalanceModel::Pages && !work.is_empty();
-        self.costs.boxes = if by_pages {
+        // Kept only with the split it gives: the next re-split compares its measurement
+        // with the costs of the leaves in force, which were computed from the field in
+        // force (a field re-weighted again and again under unchanged leaves compounds the
+        // correction past the damping).
+        let boxes = if by_pages {
             decompose::reweighted_by_pages(
                 &self.estimate,
                 &self.costs.boxes,
@@ -2168,16 +2247,18 @@ impl Cluster {
         };
         let new = Decomposition::balanced(
             self.costs.root,
-            &self.costs.boxes,
+            &boxes,
             self.slots.len(),
             self.opts.leaves_per_worker,
             &self.costs.planes,
         );
         if new.tree.leaves == d.tree.leaves && new.owner == d.owner {
-            // The split planes snapped back to the same brick boundaries: nothing to send.
+            // The split planes snapped back to the same brick boundaries: nothing to send,
+            // and the field in force stays.
             debug!(frame, "re-split leaves the regions as they are");
             return None;
         }
+        self.costs.boxes = boxes;
         let r = Rebalance {
             after_frame: frame,
             measured_imbalance: imbalance,
@@ -2205,8 +2286,10 @@ impl Cluster {
         Some(r)
     }
 
-    /// Tells every worker to exit and waits (briefly) for them; stragglers are killed
-    /// when the cluster is dropped.
+    /// Tells every worker to exit and waits (briefly) for them. A local worker that does
+    /// not exit is killed when the task waiting on its process ends with the runtime
+    /// (`kill_on_drop`), or when this process exits (`PR_SET_PDEATHSIG`): not when the
+    /// cluster is dropped.
     pub async fn shutdown(mut self) {
         // Replacements spawned and never admitted have no part in the run to finish.
         for &pid in &self.respawned {
@@ -2667,6 +2750,47 @@ mod watchdog_tests {
 #[cfg(test)]
 mod blame_tests {
     use super::*;
+
+    /// The gather refuses a worker whose final piece is not its part of the plan (an empty
+    /// piece would have passed its checks and left a transparent stripe), for every
+    /// algorithm and with the order not the rank order; the honest pieces pass.
+    #[test]
+    fn a_final_piece_that_is_not_the_workers_part_is_blamed_on_it() {
+        use strata_common::composite::{Algorithm, WireFormat};
+        let order = [2u32, 0, 1];
+        let slots = [0u32, 1, 2];
+        for algorithm in [
+            Algorithm::BinarySwap,
+            Algorithm::RadixK,
+            Algorithm::DirectSend,
+            Algorithm::Gather,
+        ] {
+            let c = CompositeChoice {
+                algorithm,
+                k: Vec::new(),
+                interlace: false,
+                format: WireFormat::F32,
+                lz4: false,
+            };
+            let plan = build_plan(3, 1200, algorithm, None).unwrap();
+            let honest: Vec<Span> = slots
+                .iter()
+                .map(|&r| plan.result[order.iter().position(|&o| o == r).unwrap()])
+                .collect();
+            final_spans_match_the_plan(1200, &c, &order, &slots, &honest).unwrap();
+            for liar in 0..3 {
+                if honest[liar].is_empty() {
+                    continue; // nothing to leave out
+                }
+                let mut spans = honest.clone();
+                spans[liar] = Span::new(0, 0);
+                let (rank, e) =
+                    final_spans_match_the_plan(1200, &c, &order, &slots, &spans).unwrap_err();
+                assert_eq!(rank, slots[liar], "{algorithm:?}");
+                assert!(e.to_string().contains("not its part"), "{e}");
+            }
+        }
+    }
 
     fn cov(present: &[bool]) -> Vec<Option<Transmittance>> {
         let grid = BlockGrid::new(4, 4, 2);

@@ -814,6 +814,50 @@ fn a_hung_worker_is_given_up_on_and_the_sequence_goes_on_without_it() {
     assert_eq!(text.matches("\"kind\":\"worker\"").count(), 6, "{text}");
 }
 
+#[test]
+fn a_worker_stuck_mid_frame_is_blamed_by_its_peers_before_the_frame_timeout() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = survey().join("scene.toml");
+    let (_, _) = orbit_run(&scene, dir.path(), "in", 2, &["--in-process"]);
+    // Worker 2's frame thread blocks before it renders frame 0 (as on a read that never
+    // returns): its process and connections live on, so neither the watchdog nor a lost
+    // connection gives it up. The survivors wait for its pieces until their own frame
+    // timeout, shorter than the coordinator's, and blame it; without occlusion nothing
+    // else tells the coordinator who hangs (it had blamed all three and ended the run).
+    for occlusion in ["false", "true"] {
+        let out = dir.path().join(format!("stuck_{occlusion}_%03d.exr"));
+        let stats = dir.path().join(format!("stuck_{occlusion}.jsonl"));
+        let o = render_scene(
+            &scene,
+            &out,
+            &[
+                "--orbit",
+                "2",
+                "--workers",
+                "3",
+                "--set",
+                "cluster.frame_timeout_s=8",
+                "--set",
+                &format!("cluster.occlusion={occlusion}"),
+                "--stats",
+                stats.to_str().unwrap(),
+            ],
+            &[("STRATA_TEST_FAULT", "2:hang:render")],
+        );
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(o.status.success(), "occlusion {occlusion}: {err}");
+        for i in 0..2 {
+            let a = read_exr(&dir.path().join(format!("in_{i:03}.exr")));
+            let b = read_exr(&dir.path().join(format!("stuck_{occlusion}_{i:03}.exr")));
+            let d = max_diff(&a, &b);
+            assert!(d <= 1e-5, "occlusion {occlusion}: frame {i} differs by {d}");
+        }
+        let (text, lost) = lost_workers(&stats);
+        assert_eq!(lost.len(), 1, "{text}");
+        assert_eq!(lost[0]["rank"], 2, "{text}");
+    }
+}
+
 /// The checks of a 4-frame orbit on 2 workers where worker 1 was lost in frame 0 and a
 /// replacement joined at frame 1: every frame (`out(i)`) equals the in-process one in
 /// `refs`, the summary lists one loss and one joiner (rank 2, frame 1, assignment 0 and 2),

@@ -986,8 +986,8 @@ struct FrontLast {
 }
 
 /// Test hook (debug builds only, what the tests run; release binaries ignore it):
-/// `STRATA_TEST_FAULT=RANK:kill|stop:PHASE` (several separated by commas) makes worker RANK
-/// SIGKILL or SIGSTOP itself at
+/// `STRATA_TEST_FAULT=RANK:kill|stop|hang:PHASE` (several separated by commas) makes worker
+/// RANK SIGKILL or SIGSTOP itself, or block the calling thread for good (`hang`), at
 /// PHASE: `setup` (on its first set-up, before it dials its peers), `ready` (meshed, before
 /// it says so) or, in frame 0, `render` (before rendering), `exchange` (after rendering,
 /// before sending anything), `round` or `round0` (with its first round's pieces sent),
@@ -1012,6 +1012,14 @@ fn test_fault(rank: u32, frame: u64, phase: &str) {
     let sig = match signal {
         "kill" => libc::SIGKILL,
         "stop" => libc::SIGSTOP,
+        // The calling thread blocks for good (as on a read that never returns) while the
+        // process, its other runtime thread and its connections live on.
+        "hang" => {
+            warn!(rank, phase, "STRATA_TEST_FAULT: hanging");
+            loop {
+                std::thread::sleep(std::time::Duration::from_secs(3600));
+            }
+        }
         _ => return,
     };
     warn!(rank, phase, signal, "STRATA_TEST_FAULT");
@@ -1426,15 +1434,25 @@ impl Node {
                 },
             }
         };
-        for (what, s) in sends {
+        for (what, to_rank, s) in sends {
             let left = (frame_start + self.timeout).saturating_duration_since(Instant::now());
-            match tokio::time::timeout(left, s).await {
-                Ok(Ok(r)) => stats.bytes_sent += r?,
-                Ok(Err(e)) => bail!("sending to {what}: {e}"),
-                Err(_) => bail!(
+            // A send that fails or stalls is the receiver's doing (a lost or hung peer):
+            // blamed on it, so the coordinator re-renders without it instead of ending
+            // the run for want of a suspect.
+            let sent = match tokio::time::timeout(left, s).await {
+                Ok(Ok(r)) => r,
+                Ok(Err(e)) => Err(anyhow!("sending to {what}: {e}")),
+                Err(_) => Err(anyhow!(
                     "sending to {what} did not finish within the frame timeout of {:.1} s",
                     self.timeout.as_secs_f64()
-                ),
+                )),
+            };
+            match sent {
+                Ok(bytes) => stats.bytes_sent += bytes,
+                Err(e) => {
+                    self.suspects = vec![to_rank];
+                    return Err(e);
+                }
             }
         }
         let x = self.exchange.stats();
@@ -1475,7 +1493,7 @@ impl Node {
         &mut self,
         out: Outgoing,
         stats: &mut WorkerFrameStats,
-    ) -> Result<(String, tokio::task::JoinHandle<Result<u64>>)> {
+    ) -> Result<(String, u32, tokio::task::JoinHandle<Result<u64>>)> {
         let to_rank = out.to_rank;
         let conn = self
             .peers
@@ -1520,6 +1538,7 @@ impl Node {
         let task_what = what.clone();
         Ok((
             what,
+            to_rank,
             tokio::spawn(async move {
                 send_uni_chunks(&conn, &meta, chunks)
                     .await
@@ -1604,6 +1623,11 @@ impl Node {
         frame_start: Instant,
     ) -> Result<FrontTransmittance> {
         let deadline = frame_start + self.timeout;
+        // The map comes when the workers in front have reported; a worker in front that
+        // hangs is the coordinator's to blame, at its own frame timeout (later than this
+        // worker's, `Setup::timeout_ms`), which it ends by giving that worker up
+        // (`PeerLost`) or the run. Failing here first would blame no one.
+        let map_deadline = frame_start + 2 * self.timeout;
         // Nothing lies behind the last worker of the order: no one needs its coverage.
         if req.order.last() != Some(&self.rank) {
             let map = tokio::task::block_in_place(|| Transmittance::of_image(image, grid.block));
@@ -1624,15 +1648,15 @@ impl Node {
             return Ok(FrontTransmittance::clear(grid));
         }
         loop {
-            let left = deadline.saturating_duration_since(Instant::now());
+            let left = map_deadline.saturating_duration_since(Instant::now());
             let msg = match tokio::time::timeout(left, control.recv()).await {
                 Ok(Some(Ok(m))) => m,
                 Ok(Some(Err(e))) => bail!("{e}"),
                 Ok(None) => bail!("lost the coordinator"),
                 Err(_) => bail!(
-                    "no occlusion map for frame {} from the coordinator within the frame timeout of {:.1} s",
+                    "no occlusion map for frame {} from the coordinator within {:.1} s",
                     req.frame,
-                    self.timeout.as_secs_f64()
+                    (2 * self.timeout).as_secs_f64()
                 ),
             };
             match msg {
