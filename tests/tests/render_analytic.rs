@@ -269,6 +269,33 @@ fn nan_samples_are_transparent() {
     );
 }
 
+/// A horizon's `color` is linear RGB, as `render.background` is: unlit and opaque, the
+/// surface's pixel is that colour exactly (it had been decoded as gamma 2.2, so 0.5 came out
+/// as 0.218).
+#[test]
+fn a_constant_horizon_colour_is_linear_rgb() {
+    let dir = TempDir::new().unwrap();
+    let p = plane(dir.path(), "plane", N, |_, _| 12.0);
+    let mut r = exact_settings(W, W);
+    r.lighting = false;
+    let colour = [0.5, 0.25, 0.8];
+    let s = scene(
+        vec![],
+        vec![horizon_layer(p, colour, 1.0)],
+        axis_camera([15.5, 15.5, 100.0], [15.5, 15.5, 0.0]),
+        r,
+    );
+    let px = render_on_both(&s, 1e-6, "a constant horizon colour");
+    let c = centre(&px);
+    for k in 0..3 {
+        assert!(
+            (c[k] as f64 - colour[k]).abs() < 1e-6,
+            "{c:?} vs {colour:?}"
+        );
+    }
+    assert_eq!(c[3], 1.0);
+}
+
 /// Top-down view of horizons over a 32×32 grid.
 fn top_down(w: u32) -> Camera {
     let _ = w;

@@ -285,7 +285,9 @@ impl Horizon {
             ds,
             pyramid: store.pyramid().clone(),
             to_world: h.transform,
-            color: layer.color.map(|c| (c.clamp(0.0, 1.0) as f32).powf(2.2)),
+            // Linear RGB, as `render.background` and the configs say (it had been decoded as
+            // gamma 2.2, so a horizon of the background's colour came out darker than it).
+            color: layer.color.map(|c| c.clamp(0.0, 1.0) as f32),
             depth_map,
             attribute,
             opacity: layer.opacity as f32,
