@@ -697,6 +697,7 @@ fn run(cli: Cli) -> Result<()> {
                 orbit: a.orbit,
                 path: a.path.clone(),
                 frames: a.frames.as_deref().map(render::parse_frames).transpose()?,
+                mp4: a.mp4.is_some(),
             };
             anyhow::ensure!(
                 a.mp4.is_none() || a.orbit.is_some() || a.path.is_some(),
@@ -754,7 +755,10 @@ fn run(cli: Cli) -> Result<()> {
                     }
                 }
             }
+            render::check_sequence(&opts)?;
             let mut folders = Vec::new();
+            // Outputs in the folder the frames' pattern makes are checked once it is known.
+            let mut later = Vec::new();
             for (out, what) in outputs {
                 if let Some(out) = out {
                     anyhow::ensure!(
@@ -781,8 +785,19 @@ fn run(cli: Cli) -> Result<()> {
                             None => folder_exists(out, what)?,
                         }
                     } else {
-                        folder_exists(out, what)?;
+                        later.push((out, what));
                     }
+                }
+            }
+            // A single-file output (--stats, --mp4) may go into the folder made for the
+            // frames.
+            for (out, what) in later {
+                let made = folders.iter().any(|(_, dir)| {
+                    out.parent()
+                        .is_some_and(|p| same_file_name(p) == same_file_name(dir))
+                });
+                if !made {
+                    folder_exists(out, what)?;
                 }
             }
             for (out, dir) in folders {
@@ -842,6 +857,10 @@ fn run(cli: Cli) -> Result<()> {
                     "nothing to render: all {} frame(s) of the range exist complete",
                     s.skipped
                 );
+                // The stats still say so (a script reads them after every run).
+                if let Some(p) = &a.stats {
+                    synth::write_atomically(p, s.json_lines()?.as_bytes())?;
+                }
                 mp4_step(&opts, a.mp4.as_deref())?;
                 return Ok(());
             }
@@ -886,11 +905,20 @@ fn run(cli: Cli) -> Result<()> {
                         );
                     }
                 }
-                println!(
-                    "wrote {} … {}",
-                    s.sequence[0].output,
-                    s.sequence[s.sequence.len() - 1].output
-                );
+                let (first, last) = (&s.sequence[0], &s.sequence[s.sequence.len() - 1]);
+                match s.wall {
+                    // Only tiles: name the first frame's first tile and the last's last.
+                    Some([c, r]) if !s.wall_preview => {
+                        let last_png =
+                            strata_coordinator::sequence::numbered(&a.output, last.frame)?;
+                        println!(
+                            "wrote {c}x{r} wall tiles per frame, {} … {}",
+                            first.output,
+                            strata_common::wall::tile_path(&last_png, c - 1, r - 1).display()
+                        );
+                    }
+                    _ => println!("wrote {} … {}", first.output, last.output),
+                }
             } else if let Some([c, r]) = s.wall {
                 use strata_common::wall::tile_path;
                 for o in std::iter::once(&a.output).chain(&a.exr) {

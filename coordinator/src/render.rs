@@ -42,21 +42,26 @@ pub struct RenderOptions {
     pub path: Option<PathBuf>,
     /// `--frames A..B`: only sequence frames `A..B` (end exclusive).
     pub frames: Option<(u32, u32)>,
+    /// `--mp4` follows the sequence: it encodes the `-o` frames, so they must be written.
+    pub mp4: bool,
 }
 
 /// `--mp4 FILE` after a sequence: the frames `--frames` asked for (all of them when
 /// resumed), at the camera path's fps or 24 for an orbit.
 pub fn write_mp4(opts: &RenderOptions, out: &Path) -> Result<crate::sequence::Mp4> {
-    let fps = match &opts.path {
-        Some(p) => load_path(p)?.fps,
-        None => 24.0,
+    let (fps, n) = match (&opts.path, opts.orbit) {
+        (Some(p), _) => {
+            let path = load_path(p)?;
+            (path.fps, path.frame_count())
+        }
+        (None, Some(n)) => (24.0, n),
+        (None, None) => anyhow::bail!("--mp4 needs a sequence (--orbit N or --path FILE)"),
     };
-    anyhow::ensure!(
-        opts.path.is_some() || opts.orbit.is_some(),
-        "--mp4 needs a sequence (--orbit N or --path FILE)"
-    );
-    let first = opts.frames.map_or(0, |f| f.0);
-    crate::sequence::encode_mp4(&opts.output, first, fps, out)
+    // Only these frames: others of the sequence may lie beside them (another part of an
+    // array job), and ffmpeg would read on until a number is missing.
+    let (first, end) = opts.frames.unwrap_or((0, n));
+    let end = end.min(n);
+    crate::sequence::encode_mp4(&opts.output, first, end.saturating_sub(first), fps, out)
 }
 
 /// Parses `--frames`: `A..B` (B excluded) or `A..=B` (B included).
@@ -146,54 +151,41 @@ struct FramePlan {
     exr: Option<PathBuf>,
 }
 
+/// The file that names frame `f` in the summary: its PNG, or, for a wall without its
+/// preview mosaic (only tiles are written), its first tile.
+fn frame_output(scene: &Scene, f: &FramePlan) -> String {
+    match &scene.wall {
+        Some(wall) if !wall.preview => display(&strata_common::wall::tile_path(&f.png, 0, 0)),
+        _ => display(&f.png),
+    }
+}
+
 /// The most frames one `--orbit` may ask for.
 const MAX_FRAMES: u32 = 1_000_000;
 
-/// The run's frames: the camera alone, `--orbit N` frames around it, or a camera path's
-/// frames, with numbered paths, cut to `--frames`. Also returns how many frames of the range
-/// were skipped because their outputs are complete already.
-fn plan_frames(
-    opts: &RenderOptions,
-    scene: &Scene,
-    camera: &Camera,
-    width: u32,
-    height: u32,
-) -> Result<(Vec<FramePlan>, usize)> {
-    let (n, what, at): (u32, String, Box<dyn Fn(u32) -> Camera>) = match (&opts.path, opts.orbit) {
-        (Some(p), _) => {
-            let path =
-                load_path(p)?.with_default_up(strata_common::camera::world_up(&scene.render));
-            let n = path.frame_count();
-            (
-                n,
-                format!("--path {}", p.display()),
-                Box::new(move |i| path.frame(i)),
-            )
-        }
+/// The checks of a run's sequence options that need no scene: `--orbit`'s count, the
+/// camera path (read and checked), `--frames` against the sequence, numbered outputs.
+/// `coordinator render` makes them before it creates the frames' folder, so a refused
+/// command leaves nothing behind; [`plan_frames`] makes them again.
+pub fn check_sequence(opts: &RenderOptions) -> Result<()> {
+    let (n, what) = match (&opts.path, opts.orbit) {
+        (Some(p), _) => (
+            load_path(p)?.frame_count(),
+            format!("--path {}", p.display()),
+        ),
         (None, Some(n)) => {
             anyhow::ensure!(
                 (1..=MAX_FRAMES).contains(&n),
                 "--orbit {n}: the frame count must lie in 1..={MAX_FRAMES}"
             );
-            let c = camera.clone();
-            (
-                n,
-                format!("--orbit {n}"),
-                Box::new(move |i| strata_common::camera::orbit(&c, n, i)),
-            )
+            (n, format!("--orbit {n}"))
         }
         (None, None) => {
             anyhow::ensure!(
                 opts.frames.is_none(),
                 "--frames needs a sequence (--orbit N or --path FILE)"
             );
-            let one = FramePlan {
-                index: 0,
-                camera: camera.clone(),
-                png: opts.output.clone(),
-                exr: opts.exr.clone(),
-            };
-            return Ok((vec![one], 0));
+            return Ok(());
         }
     };
     for p in std::iter::once(&opts.output).chain(&opts.exr) {
@@ -208,6 +200,55 @@ fn plan_frames(
         a < n,
         "--frames {a}..{b}: the sequence has frames 0..{n} ({what})"
     );
+    Ok(())
+}
+
+/// The run's frames: the camera alone, `--orbit N` frames around it, or a camera path's
+/// frames, with numbered paths, cut to `--frames`. Also returns how many frames of the range
+/// were skipped because their outputs are complete already.
+fn plan_frames(
+    opts: &RenderOptions,
+    scene: &Scene,
+    camera: &Camera,
+    width: u32,
+    height: u32,
+) -> Result<(Vec<FramePlan>, usize)> {
+    check_sequence(opts)?;
+    let (n, what, at): (u32, String, Box<dyn Fn(u32) -> Camera>) = match (&opts.path, opts.orbit) {
+        (Some(p), _) => {
+            let path =
+                load_path(p)?.with_default_up(strata_common::camera::world_up(&scene.render));
+            let n = path.frame_count();
+            (
+                n,
+                format!("--path {}", p.display()),
+                Box::new(move |i| path.frame(i)),
+            )
+        }
+        (None, Some(n)) => {
+            let c = camera.clone();
+            (
+                n,
+                format!("--orbit {n}"),
+                Box::new(move |i| strata_common::camera::orbit(&c, n, i)),
+            )
+        }
+        (None, None) => {
+            let one = FramePlan {
+                index: 0,
+                camera: camera.clone(),
+                png: opts.output.clone(),
+                exr: opts.exr.clone(),
+            };
+            return Ok((vec![one], 0));
+        }
+    };
+    anyhow::ensure!(
+        !opts.mp4 || scene.wall.as_ref().is_none_or(|w| w.preview),
+        "--mp4 encodes the -o frames, which a wall writes only with wall.preview = true \
+         (without it each tile is its own file)"
+    );
+    let (a, b) = opts.frames.unwrap_or((0, n));
     if b > n {
         warn!("--frames {a}..{b}: the sequence has frames 0..{n} ({what}); rendering {a}..{n}");
     }
@@ -257,7 +298,8 @@ fn frame_progress(progress: &ProgressBar, frames: usize) {
 pub struct FrameSummary {
     /// Frame number.
     pub frame: u32,
-    /// The PNG written.
+    /// The PNG written (a wall frame without its preview mosaic: its first tile, column 0
+    /// and row 0).
     pub output: String,
     /// Wall time of the frame (render, composite, write).
     pub seconds: f64,
@@ -634,7 +676,7 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
                 }
                 sequence.push(FrameSummary {
                     frame: i,
-                    output: display(&f.png),
+                    output: frame_output(&scene, f),
                     seconds: t.elapsed().as_secs_f64(),
                     rounds: fr.stats.iter().map(|s| s.render_rounds).max().unwrap_or(0),
                     outcome: worst_outcome(fr.stats.iter().map(|s| s.outcome.as_str())),
@@ -804,7 +846,7 @@ pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result
             load_seconds += result.load_seconds;
             sequence.push(FrameSummary {
                 frame: i,
-                output: display(&f.png),
+                output: frame_output(&scene, f),
                 seconds: t.elapsed().as_secs_f64(),
                 rounds: result.rounds,
                 outcome: result.outcome.clone().as_str().into(),

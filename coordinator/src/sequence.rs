@@ -117,11 +117,13 @@ pub enum Mp4 {
     NoFfmpeg,
 }
 
-/// Encodes the numbered PNG frames `first..` of `pattern` into an H.264 MP4 at `fps`, with
-/// `ffmpeg` from the PATH (never required: without it nothing is written and
-/// [`Mp4::NoFfmpeg`] says so). The file appears atomically: ffmpeg writes a temporary file
-/// beside it, renamed when it succeeds.
-pub fn encode_mp4(pattern: &Path, first: u32, fps: f64, out: &Path) -> Result<Mp4> {
+/// Encodes the `count` numbered PNG frames `first..first + count` of `pattern` into an
+/// H.264 MP4 at `fps`, with `ffmpeg` from the PATH (never required: without it nothing is
+/// written and [`Mp4::NoFfmpeg`] says so). An odd width or height is padded by one black
+/// row or column (H.264's 4:2:0 needs even sides). The file appears atomically: ffmpeg
+/// writes a temporary file beside it, renamed when it succeeds.
+pub fn encode_mp4(pattern: &Path, first: u32, count: u32, fps: f64, out: &Path) -> Result<Mp4> {
+    anyhow::ensure!(count > 0, "no frames to encode into {}", out.display());
     anyhow::ensure!(
         fps > 0.0 && fps.is_finite(),
         "MP4 frame rate must be positive, got {fps}"
@@ -140,7 +142,10 @@ pub fn encode_mp4(pattern: &Path, first: u32, fps: f64, out: &Path) -> Result<Mp
         .arg(format!("{fps}"))
         .args(["-start_number", &first.to_string(), "-i"])
         .arg(pattern)
+        .args(["-frames:v", &count.to_string()])
         .args([
+            "-vf",
+            "pad=ceil(iw/2)*2:ceil(ih/2)*2",
             "-c:v",
             "libx264",
             "-pix_fmt",

@@ -365,6 +365,33 @@ fn wall_sequences_number_their_tiles_and_resume() {
     let text = String::from_utf8_lossy(&o.stdout);
     assert!(text.contains("2 frame(s) skipped"), "{text}");
     assert!(d.join("frames/frame_00001_c1r0.png").is_file());
+
+    // Without the preview mosaic only tiles are written: the summary names tiles that
+    // exist, and a video of the (unwritten) -o frames is refused before anything renders.
+    let tiles_only = d.join("tiles/t_%02d.png");
+    let mut a = args.to_vec();
+    a[6] = tiles_only.to_str().unwrap();
+    a.extend(["--set", "wall.preview=false"]);
+    let o = coordinator(&a);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = String::from_utf8_lossy(&o.stdout);
+    let line = text
+        .lines()
+        .find(|l| l.starts_with("wrote"))
+        .unwrap_or_default();
+    for name in ["t_00_c0r0.png", "t_02_c1r0.png"] {
+        assert!(line.contains(name), "{text}");
+        assert!(d.join("tiles").join(name).is_file(), "{name}");
+    }
+    assert!(!d.join("tiles/t_00.png").exists());
+    let video = d.join("tiles/v.mp4");
+    a.extend(["--mp4", video.to_str().unwrap(), "--frames", "0..1"]);
+    std::fs::remove_dir_all(d.join("tiles")).unwrap();
+    let o = coordinator(&a);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("wall.preview"), "{err}");
+    assert!(!d.join("tiles/t_00_c0r0.png").exists());
 }
 
 /// A 40×32×24 synthetic survey (volume and three horizons) in `dir/survey`.
@@ -443,10 +470,18 @@ up = [0.0, 0.0, -1.0]
         .map(|i| std::fs::read(out.join(format!("f_{i:02}.png"))).unwrap())
         .collect();
     assert!(frames.windows(2).all(|w| w[0] != w[1]), "the camera moves");
-    // All complete: nothing rendered.
-    let o = render(&["--path", path_arg]);
+    // All complete: nothing rendered, and the stats say so.
+    let skipped_stats = d.join("skipped.jsonl");
+    let o = render(&[
+        "--path",
+        path_arg,
+        "--stats",
+        skipped_stats.to_str().unwrap(),
+    ]);
     assert!(o.status.success());
     assert!(String::from_utf8_lossy(&o.stdout).contains("nothing to render"));
+    let text = std::fs::read_to_string(&skipped_stats).unwrap();
+    assert!(text.contains("\"skipped\":4"), "{text}");
 
     // The same path in JSON renders the same frames.
     let json = d.join("path.json");
@@ -479,8 +514,15 @@ up = [0.0, 0.0, -1.0]
     std::fs::write(&bad, toml.replace("time = 1.0", "time = 0.0")).unwrap();
     let empty = d.join("empty");
     std::fs::create_dir(&empty).unwrap();
-    let epattern = empty.join("e_%02d.png");
+    // The frames' folder does not exist yet: a refused command must not make it.
+    let epattern = empty.join("sub").join("e_%02d.png");
+    let unnumbered_exr = empty.join("sub").join("x.exr");
     for (args, want) in [
+        (vec!["--orbit", "0"], "1..="),
+        (
+            vec!["--orbit", "3", "--exr", unnumbered_exr.to_str().unwrap()],
+            "frame-number pattern",
+        ),
         (vec!["--path", bad.to_str().unwrap()], "keyframe 1"),
         (
             vec!["--path", "/nonexistent/path.toml"],
@@ -504,7 +546,11 @@ up = [0.0, 0.0, -1.0]
         let err = String::from_utf8_lossy(&o.stderr);
         assert!(!o.status.success(), "{args:?}");
         assert!(err.contains(want), "{args:?}: {err}");
-        assert!(only_files(&empty).is_empty(), "{args:?}");
+        assert!(
+            std::fs::read_dir(&empty).unwrap().next().is_none(),
+            "{args:?}: the refused command left something in {}",
+            empty.display()
+        );
     }
 }
 
@@ -540,6 +586,23 @@ fn mp4_uses_ffmpeg_when_there_is_one_and_says_so_when_not() {
             .output()
             .unwrap()
     };
+    // The video and the stats may go into the folder the frames' pattern makes.
+    let fresh = d.join("fresh");
+    let o = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+        .env("PATH", &bin)
+        .args(["-q", "render"])
+        .arg(survey.join("scene.toml"))
+        .args(["--in-process", "--size", "32x24", "--orbit", "2"])
+        .arg("-o")
+        .arg(fresh.join("f_%03d.png"))
+        .arg("--mp4")
+        .arg(fresh.join("v.mp4"))
+        .arg("--stats")
+        .arg(fresh.join("s.jsonl"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(fresh.join("s.jsonl").is_file());
     // No ffmpeg: the frames are written, the run succeeds, and a note says why no MP4.
     let o = run(&bin, "1..3");
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
@@ -567,6 +630,9 @@ fn mp4_uses_ffmpeg_when_there_is_one_and_says_so_when_not() {
         args.contains("-framerate 24 -start_number 1 -i") && args.contains("f_%03d.png"),
         "{args}"
     );
+    // Frames 1 and 2 only (frame 3 of another part may lie beside them), odd sides padded.
+    assert!(args.contains("-frames:v 2 "), "{args}");
+    assert!(args.contains("pad=ceil(iw/2)*2:ceil(ih/2)*2"), "{args}");
     assert!(!only_files(d).iter().any(|f| f.contains("partial")));
     // A failing ffmpeg fails the run with its message, and leaves no MP4 behind.
     std::fs::write(&fake, "#!/bin/sh\necho 'codec not found' >&2\nexit 1\n").unwrap();
