@@ -235,7 +235,8 @@ pub fn build_store(
         w: BufWriter::with_capacity(8 << 20, file),
         offset: PREAMBLE_LEN,
     };
-    o.w.write_all(&[0u8; PREAMBLE_LEN as usize])?;
+    o.w.write_all(&[0u8; PREAMBLE_LEN as usize])
+        .with_context(|| format!("{}: cannot write", tmp.path.display()))?;
 
     progress.set_length(pyr.total_pages());
     let mut report = BuildReport {
@@ -283,8 +284,10 @@ pub fn build_store(
 
     // Coarser levels from the level below, read back from the file being written.
     for l in 1..pyr.level_count() {
-        o.w.flush()?;
-        let reader = File::open(&tmp.path)?;
+        o.w.flush()
+            .with_context(|| format!("{}: cannot write", tmp.path.display()))?;
+        let reader = File::open(&tmp.path)
+            .with_context(|| format!("{}: cannot reopen", tmp.path.display()))?;
         let fine = LevelSource::new(
             reader,
             &header,
@@ -318,11 +321,13 @@ pub fn build_store(
     // Header and index after the data; then the preamble that points at them.
     let hb = bincode::serde::encode_to_vec(&header, bincode::config::standard())?;
     let header_offset = o.offset;
-    o.w.write_all(&hb)?;
+    o.w.write_all(&hb)
+        .with_context(|| format!("{}: cannot write", tmp.path.display()))?;
     let index_offset = header_offset + hb.len() as u64;
     entries.sort_unstable_by_key(|e| e.id);
     let ib: &[u8] = bytemuck::cast_slice(&entries);
-    o.w.write_all(ib)?;
+    o.w.write_all(ib)
+        .with_context(|| format!("{}: cannot write", tmp.path.display()))?;
     let pre = Preamble {
         version: FORMAT_VERSION,
         header_offset,
@@ -332,9 +337,14 @@ pub fn build_store(
         header_crc: crc32c::crc32c(&hb),
         index_crc: crc32c::crc32c(ib),
     };
-    let mut file = o.w.into_inner().map_err(|e| e.into_error())?;
-    file.seek(SeekFrom::Start(0))?;
-    file.write_all(&pre.encode())?;
+    let mut file =
+        o.w.into_inner()
+            .map_err(|e| e.into_error())
+            .with_context(|| format!("{}: cannot write", tmp.path.display()))?;
+    file.seek(SeekFrom::Start(0))
+        .with_context(|| format!("{}: cannot write", tmp.path.display()))?;
+    file.write_all(&pre.encode())
+        .with_context(|| format!("{}: cannot write", tmp.path.display()))?;
     file.sync_all()
         .with_context(|| format!("{}: sync failed", tmp.path.display()))?;
     report.file_bytes = index_offset + ib.len() as u64;

@@ -240,12 +240,14 @@ fn read_line(
             Err(e) => bail!("{file}:{line_no}: read error: {e}"),
         };
         if avail.is_empty() {
+            lone_cr(buf, file, line_no)?;
             return Ok(any);
         }
         any = true;
         if let Some(p) = avail.iter().position(|&b| b == b'\n') {
             buf.extend_from_slice(&avail[..p]);
             reader.consume(p + 1);
+            lone_cr(buf, file, line_no)?;
             return Ok(true);
         }
         let n = avail.len();
@@ -258,6 +260,20 @@ fn read_line(
             );
         }
     }
+}
+
+/// Refuses a carriage return inside a line (one ending it, CRLF, is fine): a file with
+/// CR-only line endings (classic Mac OS) would otherwise read as one long line of every
+/// point, and could pass as a one-row grid.
+fn lone_cr(line: &[u8], file: &str, line_no: u64) -> Result<()> {
+    let body = line.strip_suffix(b"\r").unwrap_or(line);
+    if body.contains(&b'\r') {
+        bail!(
+            "{file}:{line_no}: a carriage return inside the line: the file's lines end in CR \
+             alone (classic Mac OS); convert them to LF or CRLF"
+        );
+    }
+    Ok(())
 }
 
 /// Fields of a data line: separated by whitespace, commas or semicolons.
@@ -1453,6 +1469,13 @@ mod tests {
         );
         let h = parse(&p).unwrap();
         assert_eq!((h.survey.n_inline, h.survey.n_xline, h.holes), (2, 2, 1));
+        // Lines ended by CR alone are refused naming the file and line (they had read as
+        // one line of nine numbers: a 1 × 9 grid).
+        for text in ["1 1 5\r1 2 6\r2 1 7\r", "IL XL Z\n1 1 5\r1 2 6\r2 1 7\r\n"] {
+            let cr = temp("cr.txt", text);
+            let e = format!("{:#}", parse(&cr).unwrap_err());
+            assert!(e.contains("cr.txt:") && e.contains("CR"), "{e}");
+        }
         let bad = SurveyGrid {
             inline0: 0.0,
             inline_step: 0.0,

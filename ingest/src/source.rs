@@ -42,7 +42,13 @@ impl RawSource {
         let want = dims
             .iter()
             .try_fold(dtype.size() as u64, |a, &d| a.checked_mul(d))
-            .context("dimensions overflow")?;
+            .with_context(|| {
+                format!(
+                    "{}: dimensions {dims:?} of {} samples overflow a 64-bit byte count",
+                    path.display(),
+                    dtype.name()
+                )
+            })?;
         if dims.contains(&0) {
             bail!(
                 "{}: dimensions must be at least 1, got {:?}",

@@ -64,6 +64,12 @@ impl SynthModel {
             dims[0] < (1 << 20) && dims[1] < (1 << 20),
             "at most 2^20 traces per axis"
         );
+        // Bounds the interfaces below (about one per 6 samples) before they are made.
+        anyhow::ensure!(
+            dims[2] < (1 << 20),
+            "at most 2^20 samples per trace, got {}",
+            dims[2]
+        );
         let nz = dims[2] as f64;
         let spacing = (nz / 24.0).clamp(6.0, 40.0);
         let mut base = Vec::new();
@@ -287,6 +293,13 @@ pub fn synth(
 ) -> Result<SynthOutput> {
     // The model's checks first: a size it refuses leaves no folder behind.
     let model = SynthModel::new(dims, seed)?;
+    // So is a SEG-Y it could not write, before the stores are built.
+    anyhow::ensure!(
+        !segy || dims[2] <= u16::MAX as u64,
+        "a SEG-Y trace holds at most {} samples (a 16-bit count), got {}",
+        u16::MAX,
+        dims[2]
+    );
     std::fs::create_dir_all(dir)
         .with_context(|| format!("{}: cannot create folder", dir.display()))?;
     let units = Units {
@@ -405,6 +418,7 @@ pub fn synth(
 /// Writes `bytes` under a temporary name and renames it into place.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
     let tmp = crate::builder::temp_path_for(path);
+    let _signals = crate::cleanup::register(&tmp);
     let result = std::fs::write(&tmp, bytes)
         .with_context(|| {
             format!(
@@ -434,6 +448,8 @@ pub fn write_segy(model: &SynthModel, path: &Path) -> Result<()> {
     use crate::segy::{Endian, SegyWriter};
     let [nx, ny, nz] = model.dims;
     let tmp = crate::builder::temp_path_for(path);
+    // Unlinked if a signal ends the process before the rename (a cube's worth of bytes).
+    let _signals = crate::cleanup::register(&tmp);
     let result = (|| -> Result<()> {
         let text = format!(
             "Strata synthetic seismic survey, seed {}\nInlines {}..{}, crosslines {}..{}, {} samples at {} ms\nIEEE float, big-endian, inline 189 crossline 193",
@@ -507,6 +523,28 @@ fn write_horizon_text(model: &SynthModel, grid: &[f32], path: &Path) -> Result<(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Sizes the outputs cannot take are refused before anything is written: a trace
+    /// longer than SEG-Y counts (the stores had been built first, then left without their
+    /// scene), and one deep enough to exhaust memory while the model's layers were made.
+    #[test]
+    fn sizes_the_outputs_cannot_take_are_refused_before_any_file() {
+        let root = tempfile::tempdir().unwrap();
+        let dir = root.path().join("s");
+        let e = synth(&dir, [8, 8, 70_000], 1, true, &ProgressBar::hidden()).unwrap_err();
+        assert!(e.to_string().contains("16-bit"), "{e}");
+        assert!(!dir.exists());
+        let e = synth(
+            &dir,
+            [8, 8, 100_000_000_000],
+            1,
+            false,
+            &ProgressBar::hidden(),
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("2^20 samples per trace"), "{e}");
+        assert!(!dir.exists());
+    }
 
     /// Thin cubes (8 to 20 samples deep, the smallest allowed) have three distinct
     /// horizon layers whatever the seed; they panicked below 15 samples.

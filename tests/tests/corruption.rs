@@ -159,3 +159,52 @@ fn a_store_whose_transform_is_not_finite_or_invertible_is_refused() {
         );
     }
 }
+
+/// A sealed store (checksums right) whose header claims more valid samples than it has
+/// samples, or a survey grid without lines, is refused at open naming the file: `inspect`
+/// subtracted and indexed by them (an overflow panic in checked builds).
+#[test]
+fn a_store_whose_counts_do_not_fit_its_dimensions_is_refused() {
+    type Patch = fn(&mut strata_common::store::StoreHeader);
+    let patches: [(Patch, &str); 2] = [
+        (|h| h.valid_samples = u64::MAX, "valid samples"),
+        (
+            |h| {
+                h.survey = Some(strata_common::geo::SurveyGrid {
+                    inline0: 0.0,
+                    inline_step: 1.0,
+                    n_inline: 0,
+                    xline0: 0.0,
+                    xline_step: 1.0,
+                    n_xline: 4,
+                    to_world: strata_common::geo::Affine2::IDENTITY,
+                })
+            },
+            "one inline",
+        ),
+    ];
+    for (patch, want) in patches {
+        let dir = tempfile::tempdir().unwrap();
+        let p = store(dir.path());
+        let mut b = std::fs::read(&p).unwrap();
+        let at = |b: &[u8], o: usize| u64::from_le_bytes(b[o..o + 8].try_into().unwrap());
+        let (ho, hl) = (at(&b, 16) as usize, at(&b, 24) as usize);
+        let cfg = bincode::config::standard();
+        let (mut h, _): (strata_common::store::StoreHeader, usize) =
+            bincode::serde::decode_from_slice(&b[ho..ho + hl], cfg).unwrap();
+        patch(&mut h);
+        // The new header (its length may differ) goes to the end, the preamble points at it.
+        let enc = bincode::serde::encode_to_vec(&h, cfg).unwrap();
+        let end = b.len() as u64;
+        b.extend_from_slice(&enc);
+        b[16..24].copy_from_slice(&end.to_le_bytes());
+        b[24..32].copy_from_slice(&(enc.len() as u64).to_le_bytes());
+        strata_tests::fuzz::seal_store(&mut b);
+        std::fs::write(&p, &b).unwrap();
+        let e = PageStore::open(&p).expect_err("refused").to_string();
+        assert!(e.contains("s.strata") && e.contains(want), "{e}");
+        let e = strata_coordinator::inspect::inspect(&p, false, &indicatif::ProgressBar::hidden())
+            .expect_err("refused");
+        assert!(format!("{e:#}").contains(want), "{e:#}");
+    }
+}

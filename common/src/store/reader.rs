@@ -122,6 +122,26 @@ impl PageStore {
                 format!("{:?}", header.transform.rows),
             ));
         }
+        // Counts that readers subtract from or index by.
+        let samples = header.dims.iter().try_fold(1u64, |a, &d| a.checked_mul(d));
+        if samples.is_none_or(|n| header.valid_samples > n) {
+            return Err(fmt(
+                pre.header_offset,
+                format!("at most {samples:?} valid samples for {:?}", header.dims),
+                format!("{}", header.valid_samples),
+            ));
+        }
+        if let Some(s) = header
+            .survey
+            .as_ref()
+            .filter(|s| s.n_inline == 0 || s.n_xline == 0)
+        {
+            return Err(fmt(
+                pre.header_offset,
+                "a survey grid of at least one inline and one crossline".into(),
+                format!("{} inlines, {} crosslines", s.n_inline, s.n_xline),
+            ));
+        }
         if pyramid.level_count() != header.levels as usize {
             return Err(fmt(
                 pre.header_offset,

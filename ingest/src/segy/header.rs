@@ -177,12 +177,13 @@ pub(crate) fn read_layout(path: &Path, opts: &SegyOptions) -> Result<Layout> {
     // Trace length: binary header vs first trace header, decided by the file size.
     let mut ns_bin = rd_u16(bin, 21, endian) as u64;
     let mut ns_bin_byte = 3221;
-    if ns_bin == 0 {
-        let ext = rd_u32(bin, 3269 - 3200, endian) as u64;
-        if ext != 0 {
-            ns_bin = ext;
-            ns_bin_byte = 3269;
-        }
+    // Rev 2: a non-zero extended count (bytes 3269-3272) overrides the 16-bit one, which a
+    // writer may leave saturated at 65535 for longer traces. Before rev 2 those bytes are
+    // unassigned, so they are read only where the 16-bit count is zero.
+    let ext = rd_u32(bin, 3269 - 3200, endian) as u64;
+    if ext != 0 && (ns_bin == 0 || revision.0 == 2) {
+        ns_bin = ext;
+        ns_bin_byte = 3269;
     }
     let mut first = [0u8; TRACE_HEADER_LEN as usize];
     let have_first = remain >= TRACE_HEADER_LEN;

@@ -1164,3 +1164,43 @@ fn duplicates_at_one_offset_are_not_called_pre_stack() {
         [1.0, 1.0, 1.0, 1.0, 2.0, 2.0, 2.0, 2.0, 3.0, 3.0, 3.0, 3.0, 4.0, 4.0, 4.0, 4.0]
     );
 }
+
+/// Rev 2: a trace longer than 65535 samples gives its length in the extended count (bytes
+/// 3269-3272), which overrides the 16-bit one even where a writer left that saturated at
+/// 65535 (the file had been refused: neither length fitted its size).
+#[test]
+fn rev2_extended_sample_count_overrides_a_saturated_16_bit_one() {
+    let t = tmp("rev2-long.sgy");
+    let ns = 70_000usize;
+    let small = tmp("rev2-seed.sgy");
+    let mut w =
+        SegyWriter::create(&small.0, "C 1 long traces", 4, 2000, 0, 5, Endian::Big).unwrap();
+    for i in 0..2 {
+        for j in 0..2 {
+            w.write_trace(10 + i, 20 + j, i as f64, j as f64, &[0.0; 4])
+                .unwrap();
+        }
+    }
+    w.finish().unwrap();
+    let seed = std::fs::read(&small.0).unwrap();
+    let mut b = seed[..3600].to_vec();
+    put_u16(&mut b, 3221, 65535, Endian::Big);
+    b[3268..3272].copy_from_slice(&(ns as u32).to_be_bytes());
+    b[3500] = 2;
+    b[3501] = 0;
+    for k in 0..4usize {
+        let mut h = seed[3600 + k * (240 + 16)..][..240].to_vec();
+        put_u16(&mut h, 115, 65535, Endian::Big);
+        b.extend_from_slice(&h);
+        for s in 0..ns {
+            b.extend_from_slice(&((k * 100_000 + s) as f32).to_be_bytes());
+        }
+    }
+    std::fs::write(&t.0, &b).unwrap();
+    let v = open(&t.0, &SegyOptions::default()).unwrap();
+    assert_eq!(v.dims(), [2, 2, ns as u64]);
+    let mut out = vec![0.0f32; ns];
+    let tr = v.trace_at(1, 1).unwrap();
+    v.read_trace(tr, &mut out).unwrap();
+    assert_eq!(out[ns - 1], (3 * 100_000 + ns - 1) as f32);
+}
