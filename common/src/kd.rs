@@ -6,6 +6,12 @@
 
 use serde::{Deserialize, Serialize};
 
+/// A re-split by measured times charges each part of the scene at least this fraction of
+/// its estimated cost: a part the view did not reach (hidden, or off screen) still costs a
+/// little, so a split does not hand one worker all of it at once, and a worker left idle
+/// by the view is given work.
+pub const MEASURED_FLOOR: f64 = 0.05;
+
 /// A half-open axis-aligned box `[lo, hi)` in world coordinates.
 #[derive(Copy, Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Region {
@@ -521,16 +527,22 @@ impl Decomposition {
 
     /// The cost boxes re-weighted by what the leaves measured: a box in leaf `l` (by its
     /// centre) costs its estimate times `(measured_l / leaf_cost_l) / (Σ measured / Σ
-    /// leaf_cost)`, raised to `damping` in (0, 1] so that one noisy frame moves the split
-    /// only part of the way. Leaves with no estimate or no measurement keep their weights.
-    /// Balancing these boxes re-splits the tree by the view's real work.
+    /// leaf_cost)`, at least [`MEASURED_FLOOR`], raised to `damping` in (0, 1] so that one
+    /// noisy frame moves the split only part of the way. A leaf measured at 0 s (off screen)
+    /// takes the floor: otherwise an idle worker would keep its share for good. Leaves with
+    /// no estimate or no measurement (`NaN`) keep their weights, as do all when no leaf
+    /// measured any time. Balancing these boxes re-splits the tree by the view's real work.
     pub fn reweighted(&self, boxes: &[CostBox], measured: &[f64], damping: f64) -> Vec<CostBox> {
         let n = self.tree.leaves.len();
         let ok = |v: f64| v.is_finite() && v > 0.0;
+        let reported = |v: f64| v.is_finite() && v >= 0.0;
         let (mut sm, mut se) = (0.0, 0.0);
         for l in 0..n {
-            let (m, e) = (measured.get(l).copied().unwrap_or(0.0), self.leaf_cost[l]);
-            if ok(m) && ok(e) {
+            let (m, e) = (
+                measured.get(l).copied().unwrap_or(f64::NAN),
+                self.leaf_cost[l],
+            );
+            if reported(m) && ok(e) {
                 sm += m;
                 se += e;
             }
@@ -542,9 +554,12 @@ impl Decomposition {
         };
         let ratio: Vec<f64> = (0..n)
             .map(|l| {
-                let (m, e) = (measured.get(l).copied().unwrap_or(0.0), self.leaf_cost[l]);
-                if ok(m) && ok(e) && ok(sm) && ok(se) {
-                    ((m / e) / (sm / se)).powf(d)
+                let (m, e) = (
+                    measured.get(l).copied().unwrap_or(f64::NAN),
+                    self.leaf_cost[l],
+                );
+                if reported(m) && ok(e) && ok(sm) && ok(se) {
+                    ((m / e) / (sm / se)).max(MEASURED_FLOOR).powf(d)
                 } else {
                     1.0
                 }
@@ -697,7 +712,26 @@ mod tests {
         );
         // Nothing measured: unchanged weights.
         assert_eq!(d.reweighted(&boxes, &[0.0, 0.0], 1.0), boxes);
+        assert_eq!(d.reweighted(&boxes, &[f64::NAN, f64::NAN], 1.0), boxes);
         assert_eq!(d.measured_imbalance(&[]), 1.0);
+        // The right leaf cast nothing (off screen): 0 s is a measurement. Its boxes take
+        // the floor, and the idle worker is given most of the busy one's half (the split
+        // had stayed at 50 for good, with the idle leaf's ratio left at 1).
+        let idle =
+            Decomposition::balanced(root, &d.reweighted(&boxes, &[3.0, 0.0], 1.0), 2, 1, &none);
+        // Left boxes cost 2 (ratio (3/50)/(3/100)), right ones the floor 0.05: half the
+        // 102.5 lies left of 51.25 / 2.
+        assert!(
+            (split(&idle) - 51.25 / 2.0).abs() < 1e-6,
+            "{}",
+            split(&idle)
+        );
+        // A leaf without a measurement (NaN) keeps its weights.
+        let unknown = d.reweighted(&boxes, &[3.0, f64::NAN], 1.0);
+        assert!(
+            unknown[99].cost == 1.0 && unknown[0].cost == 1.0,
+            "{unknown:?}"
+        );
     }
 
     #[test]

@@ -58,8 +58,9 @@ pub const HORIZON_CELL_COST: f64 = 1.0;
 
 /// A re-split by measured page work adds this fraction of each box's estimated share to its
 /// measured cost: a box the view did not reach (hidden, or outside the frame) still costs a
-/// little, so the split does not hand one worker all of it at once.
-pub const MEASURED_FLOOR: f64 = 0.05;
+/// little, so the split does not hand one worker all of it at once. (The leaves model
+/// floors each leaf's ratio at the same fraction.)
+pub use strata_common::kd::MEASURED_FLOOR;
 
 /// [`DatasetBoxes::level0`] of a level-0 page with no box (a horizon tile without a valid
 /// height).
@@ -160,8 +161,15 @@ pub fn reweighted_by_pages(
 ) -> Vec<CostBox> {
     let ok = |v: f64| v.is_finite() && v > 0.0;
     let (nb, leaves) = (costs.boxes.len(), &d.tree.leaves);
-    let timed = |l: usize| measured.get(l).copied().is_some_and(ok);
-    if boxes.len() != nb || !(0..leaves.len()).any(timed) {
+    // A leaf measured at 0 s (off screen) is measured: its boxes take the floor alone, so
+    // that an idle worker is given work. `NaN` is no measurement.
+    let timed = |l: usize| {
+        measured
+            .get(l)
+            .copied()
+            .is_some_and(|v| v.is_finite() && v >= 0.0)
+    };
+    if boxes.len() != nb || !(0..leaves.len()).any(|l| measured.get(l).copied().is_some_and(ok)) {
         return boxes.to_vec();
     }
     let estimate = |b: usize| {
@@ -455,7 +463,8 @@ fn volume_planes(v: &Volume, planes: &mut [Vec<f64>; 3]) {
 /// each of its leaves, else the cast's wall time (`leaf_cast_s`), so that the leaves
 /// compared were all measured alike. A worker without a CPU clock (GPU backend) reports no
 /// CPU times at all; a leaf that cast nothing (off screen) reports 0, a measurement like
-/// any other (the re-weighting treats a leaf measured at 0 as unmeasured, by either clock).
+/// any other (the re-weighting charges it the floor, `MEASURED_FLOOR`); a leaf a worker
+/// reported nothing for is `NaN` (unmeasured).
 pub fn measured_leaf_times(
     d: &Decomposition,
     stats: &[WorkerFrameStats],
@@ -463,11 +472,11 @@ pub fn measured_leaf_times(
 ) -> (Vec<f64>, &'static str) {
     let leaves: Vec<Vec<usize>> = (0..stats.len()).map(|w| d.worker_leaves(w)).collect();
     let by = |cpu: bool| {
-        let mut measured = vec![0.0; d.tree.leaves.len()];
+        let mut measured = vec![f64::NAN; d.tree.leaves.len()];
         for (s, mine) in stats.iter().zip(&leaves) {
             let times = if cpu { &s.leaf_cpu_s } else { &s.leaf_cast_s };
             for (i, &l) in mine.iter().enumerate() {
-                measured[l] = times.get(i).copied().unwrap_or(0.0);
+                measured[l] = times.get(i).copied().unwrap_or(f64::NAN);
             }
         }
         measured
@@ -744,6 +753,24 @@ mod tests {
             reweighted_by_pages(&c, &c.boxes, &d, &[0.0, 0.0], &work, 1.0),
             c.boxes
         );
+        // A leaf that cast nothing (off screen, 0 s) is measured: its boxes cost the floor
+        // alone and the next split gives its idle worker part of the busy one's (it had
+        // kept its full cost, and the split stayed where it was).
+        let busy = leaf_of(0);
+        let mut idle_times = vec![0.0; 2];
+        idle_times[busy] = measured[busy];
+        let busy_work: Vec<_> = work.iter().copied().filter(|w| w.0 == busy).collect();
+        let rw_idle = reweighted_by_pages(&c, &c.boxes, &d, &idle_times, &busy_work, 1.0);
+        for b in (0..8).filter(|&b| leaf_of(b) != busy) {
+            let want = MEASURED_FLOOR * c.boxes[b].cost;
+            assert!(
+                (rw_idle[b].cost - want).abs() < 1e-9 * want,
+                "box {b}: {} against the floor {want}",
+                rw_idle[b].cost
+            );
+        }
+        let moved = root_split(&split(&rw_idle)).1;
+        assert!(moved < 119.5, "the plane stayed at {moved}");
         let junk = [
             (0, key(&c, 0, 0, [0, 0, 0]), f32::NAN),
             (0, key(&c, 0, 0, [0, 0, 0]), -1.0),
