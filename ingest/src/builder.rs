@@ -30,8 +30,8 @@ use strata_common::pyramid::{Dim, Pyramid};
 use strata_common::sample::SampleType;
 use strata_common::stats::ValueHistogram;
 use strata_common::store::{
-    decode_payload, encode_page, Compression, DataKind, IndexEntry, Preamble, StoreHeader, Units,
-    VerticalDomain, FORMAT_VERSION, PREAMBLE_LEN,
+    decode_payload, encode_page, encode_page_stored, Compression, DataKind, IndexEntry, Preamble,
+    StoreHeader, Units, VerticalDomain, FORMAT_VERSION, PREAMBLE_LEN,
 };
 
 /// What to build.
@@ -478,10 +478,11 @@ fn build_level(
                                 moved_off_no_data(pyr, br, &buf, p.blo, p.bsz, header);
                             st
                         });
-                        let (mut e, bytes) = encode_page(header, id, &page);
+                        let (mut e, mut bytes) = encode_page(header, id, &page);
                         if let Some(ch) = children {
                             // A coarse page's bounds cover its children's, so empty-space skipping and
                             // min-max traversal stay conservative across levels.
+                            let (own_min, own_max) = (e.min, e.max);
                             for child in pyr.children(level, br) {
                                 if let Some(&(mn, mx)) = ch.get(&pyr.id(level - 1, child)) {
                                     if !mn.is_nan() {
@@ -489,6 +490,16 @@ fn build_level(
                                         e.max = if e.max.is_nan() { mx } else { e.max.max(mx) };
                                     }
                                 }
+                            }
+                            // A constant page is read back as its entry's min: one whose bounds
+                            // widened keeps its samples instead (its children vary where it
+                            // does not: a filter's mean or RMS of a checkerboard, u8 rounding).
+                            if e.flags & strata_common::store::PAGE_CONSTANT != 0
+                                && (e.min != own_min || e.max != own_max)
+                            {
+                                let (min, max) = (e.min, e.max);
+                                (e, bytes) = encode_page_stored(header, id, &page);
+                                (e.min, e.max) = (min, max);
                             }
                         }
                         (e, bytes, st)

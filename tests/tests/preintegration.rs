@@ -202,3 +202,48 @@ fn a_preintegrated_span_ends_where_another_volume_begins() {
         );
     }
 }
+
+/// With empty-space skipping off, a brick with no valid sample is still skipped (it has
+/// nothing to sample), so a pre-integrated span after it starts with a whole step. A region
+/// whose face lies at that brick's far face must do the same: split equals whole, at and
+/// around the face, and the GPU casts what the CPU does (it had looked at the brick beyond a
+/// region only with skipping on, so the region's span started with a half step).
+#[test]
+fn a_span_after_a_no_data_brick_starts_alike_in_every_region_without_skipping() {
+    use strata_common::kd::KdTree;
+    use strata_tests::scenes::{render_split, scene_region};
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    // Page 0 (32 samples, core 30, border 1: z 0..=30) holds no valid sample.
+    let data: Vec<f32> = (0..4 * 4 * N)
+        .map(|i| {
+            let z = i / 16;
+            if z <= 30 {
+                f32::NAN
+            } else {
+                z as f32 / (N - 1) as f32
+            }
+        })
+        .collect();
+    let store = volume_store(d, "holey", [4, 4, N], data, Affine3::IDENTITY, 32);
+    for step in [1.0f64] {
+        let mut s = ramp(d, step, true);
+        s.volumes[0].store = store.clone();
+        s.render.empty_space_skipping = false;
+        let whole = render_whole(&s);
+        assert!(centre(&whole)[3] > 0.05, "step {step}: nothing visible");
+        for face in [29.5, 29.7, 30.5, 31.5] {
+            let mut tree = KdTree::single(scene_region(&s));
+            tree.split_leaf(0, 2, face);
+            let split = render_split(&s, &tree);
+            let e = err(centre(&split), centre(&whole));
+            assert!(
+                e < 1e-5,
+                "step {step}, split at z = {face}: {:?} against {:?}",
+                centre(&split),
+                centre(&whole)
+            );
+        }
+        render_on_both(&s, 1e-4, &format!("no-data brick, step {step}"));
+    }
+}

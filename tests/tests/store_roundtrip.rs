@@ -378,6 +378,93 @@ fn horizon_tiles_keep_holes_and_never_invent_heights() {
     assert!(l1[(40 * c[0] + 50) as usize].is_nan());
 }
 
+/// A coarse page whose samples are all one value while its children vary (the RMS of a
+/// checkerboard of 0 and 2 is √2 everywhere) keeps its samples: its index bounds widen to
+/// the children's [0, 2], and a page stored as constant reads back as its entry's min (it
+/// had read back as 0 everywhere, at the root every distant view shows).
+#[test]
+fn a_constant_coarse_page_under_varying_children_reads_back_its_own_value() {
+    let dims = [64u64, 64, 64];
+    let data: Vec<f32> = (0..dims.iter().product::<u64>())
+        .map(|i| {
+            let (x, y, z) = (i % 64, (i / 64) % 64, i / 4096);
+            if (x + y + z) % 2 == 0 {
+                0.0
+            } else {
+                2.0
+            }
+        })
+        .collect();
+    let src = MemorySource { dims, data };
+    let (_d, store) = build(
+        &src,
+        SampleType::F32,
+        32,
+        1,
+        CoarsenFilter::SignedRms,
+        Compression::Lz4,
+        1 << 20,
+    );
+    check_coarse_levels(&store).unwrap();
+    for l in 1..store.pyramid().level_count() {
+        let g = level_grid(&store, l).unwrap();
+        assert!(
+            g.iter().all(|v| (v - 2f32.sqrt()).abs() < 1e-6),
+            "level {l}: {:?}",
+            &g[..4]
+        );
+    }
+    // The entries' bounds still cover the children's.
+    let root = store.index().last().unwrap();
+    assert_eq!((root.min, root.max), (0.0, 2.0));
+}
+
+/// A horizon with a line of holes every fourth line (an interpretation left unpicked
+/// there): its tiles from level 2 up are all holes (`HorizonMean` makes a hole wherever a
+/// child is one), yet their index bounds cover the heights under them, so the search goes
+/// down to them: a close view draws the surface (it had drawn nothing at any distance, and
+/// the scene's box had lost its height).
+#[test]
+fn a_horizon_with_lines_of_holes_is_found_under_its_all_hole_tiles() {
+    use strata_common::scene::{Backend, Camera};
+    use strata_tests::scenes::{exact_settings, horizon_layer, horizon_store, render_whole, scene};
+    let dir = tempfile::tempdir().unwrap();
+    let n = 300u64;
+    let heights: Vec<f32> = (0..n * n)
+        .map(|i| if (i / n) % 4 == 3 { f32::NAN } else { 5.0 })
+        .collect();
+    let p = horizon_store(
+        dir.path(),
+        "picked",
+        [n, n],
+        heights,
+        strata_common::geo::Affine3::IDENTITY,
+        128,
+    );
+    let store = PageStore::open(&p).unwrap();
+    let root = store.index().last().unwrap();
+    assert_eq!(root.valid, 0, "the root tile is all holes (the premise)");
+    assert_eq!((root.min, root.max), (5.0, 5.0));
+    let mut r = exact_settings(9, 9);
+    r.lighting = false;
+    r.backend = Backend::Cpu;
+    // Close above the middle, looking down: the picked lines fill the view.
+    let s = scene(
+        vec![],
+        vec![horizon_layer(p, [0.2, 0.6, 0.3], 1.0)],
+        Camera {
+            eye: [150.0, 150.5, 40.0],
+            target: [150.0, 150.5, 0.0],
+            up: [0.0, 1.0, 0.0],
+            fov_deg: 10.0,
+        },
+        r,
+    );
+    let img = render_whole(&s);
+    let hit = img.iter().filter(|p| p[3] > 0.5).count();
+    assert!(hit > 40, "{hit} of 81 pixels of the horizon were drawn");
+}
+
 proptest! {
     #![proptest_config(ProptestConfig { cases: 12, .. ProptestConfig::default() })]
     #[test]

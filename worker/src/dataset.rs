@@ -8,7 +8,7 @@ use strata_common::geo::Affine3;
 use strata_common::kd::Region;
 use strata_common::pyramid::Pyramid;
 use strata_common::scene::{HorizonLayer, Scene, VolumeLayer};
-use strata_common::store::{DataKind, PageStore, PAGE_EMPTY};
+use strata_common::store::{DataKind, PageStore};
 use strata_common::tf::{ColorMap, TransferFunction};
 
 /// A volume to draw.
@@ -77,11 +77,16 @@ fn pages_in_table_order(p: &Pyramid) -> impl Iterator<Item = (usize, [u32; 3])> 
     })
 }
 
+/// Each page's `[min, max]` from the index, `NaN` where nothing lies under it. A page with
+/// no valid sample of its own keeps the bounds ingest widened to its children's: a horizon's
+/// coarse tile is a hole wherever one of its 2×2 children is (`HorizonMean`), so a surface
+/// picked on every other line has all-hole coarse tiles over real heights, and a search
+/// that stopped at them found nothing at any distance.
 fn page_bounds(store: &PageStore) -> Vec<[f32; 2]> {
     let p = store.pyramid();
     pages_in_table_order(p)
         .map(|(l, b)| match store.entry(p.id(l, b)) {
-            Some(e) if e.flags & PAGE_EMPTY == 0 && e.valid > 0 => [e.min, e.max],
+            Some(e) if e.min <= e.max => [e.min, e.max],
             _ => [f32::NAN, f32::NAN],
         })
         .collect()

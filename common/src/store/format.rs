@@ -317,6 +317,26 @@ pub(crate) fn unshuffle(data: &[u8], elem: usize) -> Vec<u8> {
 ///
 /// Samples must already be quantized to the header's sample type.
 pub fn encode_page(header: &StoreHeader, id: PageId, samples: &[f32]) -> (IndexEntry, Vec<u8>) {
+    encode(header, id, samples, true)
+}
+
+/// [`encode_page`] with the samples always stored, even when they are all one value: for a
+/// coarse page whose index bounds are then widened to its children's, since a constant
+/// page is read back as its entry's `min`.
+pub fn encode_page_stored(
+    header: &StoreHeader,
+    id: PageId,
+    samples: &[f32],
+) -> (IndexEntry, Vec<u8>) {
+    encode(header, id, samples, false)
+}
+
+fn encode(
+    header: &StoreHeader,
+    id: PageId,
+    samples: &[f32],
+    constant: bool,
+) -> (IndexEntry, Vec<u8>) {
     let (mut min, mut max, mut valid) = (f32::INFINITY, f32::NEG_INFINITY, 0u32);
     for &v in samples {
         if !v.is_nan() {
@@ -338,7 +358,7 @@ pub fn encode_page(header: &StoreHeader, id: PageId, samples: &[f32]) -> (IndexE
     }
     e.min = min;
     e.max = max;
-    if valid as usize == samples.len() && min == max {
+    if constant && valid as usize == samples.len() && min == max {
         e.flags = PAGE_CONSTANT;
         return (e, Vec::new());
     }

@@ -27,9 +27,9 @@ mod reader;
 
 pub use error::StoreError;
 pub use format::{
-    decode_payload, encode_page, Compression, DataKind, IndexEntry, Preamble, StoreHeader, Units,
-    VerticalDomain, FORMAT_VERSION, MAGIC, MAX_HEADER_BYTES, MIN_FORMAT_VERSION, PAGE_COMPRESSED,
-    PAGE_CONSTANT, PAGE_EMPTY, PREAMBLE_LEN,
+    decode_payload, encode_page, encode_page_stored, Compression, DataKind, IndexEntry, Preamble,
+    StoreHeader, Units, VerticalDomain, FORMAT_VERSION, MAGIC, MAX_HEADER_BYTES,
+    MIN_FORMAT_VERSION, PAGE_COMPRESSED, PAGE_CONSTANT, PAGE_EMPTY, PREAMBLE_LEN,
 };
 pub(crate) use format::{shuffle, unshuffle};
 pub use reader::{Page, PageStore};
