@@ -165,6 +165,15 @@ impl TransferFunction {
         if !(lo.is_finite() && hi.is_finite() && hi > lo) {
             bail!("volume window must be two finite values lo < hi, got [{lo}, {hi}]");
         }
+        // The casters map values in f32: the window must stay two distinct finite values
+        // there (1e8 and 1e8 + 1 are one f32; ±1e40 are infinite), or every position is NaN.
+        let (lo32, hi32) = (lo as f32, hi as f32);
+        if !(lo32.is_finite() && hi32.is_finite() && hi32 > lo32) {
+            bail!(
+                "volume window [{lo}, {hi}] is not two distinct finite values in f32 \
+                 (the samples' precision): widen it, or keep it within ±3.4e38"
+            );
+        }
         if !(layer.opacity >= 0.0 && layer.opacity.is_finite()) {
             bail!("volume opacity must be >= 0, got {}", layer.opacity);
         }
@@ -357,10 +366,6 @@ pub fn corrected_alpha(a: f32, exponent: f32) -> f32 {
 /// Entries per axis of a pre-integrated table.
 pub const PREINT_SIZE: usize = 256;
 
-/// Largest straight alpha the pre-integration treats as finite extinction (`α = 1` would be
-/// an infinite one): `−ln(1 − α)` stays below 16.2.
-const PREINT_MAX_ALPHA: f64 = 1.0 - 1e-7;
-
 impl TransferFunction {
     /// The pre-integrated table for a step of `exponent` reference steps (seed 001, Engel et
     /// al. 2001): entry `(f, b)` is the premultiplied RGBA of a segment whose value runs
@@ -406,9 +411,15 @@ impl TransferFunction {
                 for j in 0..k {
                     let u = (j as f64 + 0.5) / k as f64;
                     let s = straight(xf + u * (xb - xf));
-                    // Sub-step opacity: 1 − (1 − α)^(e/k), in the expm1/ln1p form.
-                    let a =
-                        -((e / k as f64) * (-s[3].clamp(0.0, PREINT_MAX_ALPHA)).ln_1p()).exp_m1();
+                    // Sub-step opacity: 1 − (1 − α)^(e/k), in the expm1/ln1p form. An
+                    // opaque entry is opaque over any part of a step (as the step table's
+                    // is): clamped short of 1, k sub-steps of a short step had multiplied
+                    // back to 1 − 1e-7^e, 0.55 at e = 0.05.
+                    let a = if s[3] >= 1.0 {
+                        1.0
+                    } else {
+                        -((e / k as f64) * (-s[3].max(0.0)).ln_1p()).exp_m1()
+                    };
                     for q in 0..3 {
                         c[q] += t * a * s[q];
                     }
@@ -530,6 +541,37 @@ mod tests {
                     assert!((p[k] - s[k]).abs() < 2e-2, "e {e} v {v}: {p:?} vs {s:?}");
                 }
             }
+        }
+    }
+
+    #[test]
+    fn a_window_that_collapses_in_f32_is_refused() {
+        for w in [[1e8, 1e8 + 1.0], [-1e40, 1e40]] {
+            let mut l = layer("grey");
+            l.window = Some(w);
+            let e = TransferFunction::from_layer(&l, [0.0, 1.0]).unwrap_err();
+            assert!(e.to_string().contains("f32"), "{e}");
+        }
+        let mut l = layer("grey");
+        l.window = Some([1e8, 1e8 + 64.0]);
+        let tf = TransferFunction::from_layer(&l, [0.0, 1.0]).unwrap();
+        assert!(tf
+            .step_table(1.0)
+            .lookup(1e8 + 32.0)
+            .iter()
+            .all(|v| v.is_finite()));
+    }
+
+    /// Over an opaque entry a segment is opaque, however short (the step table's entry is
+    /// 1 for any exponent): half steps and steps of 1/8 had come out 0.867 and 0.982.
+    #[test]
+    fn an_opaque_entry_is_opaque_over_any_part_of_a_step() {
+        let tf = TransferFunction::from_table(0.0, 1.0, vec![[1.0, 1.0, 1.0, 1.0]; 1024]);
+        for e in [0.05f32, 0.125, 0.5, 1.0] {
+            let pre = tf.preintegrated_table(e);
+            assert!((pre.lookup(0.5, 0.5)[3] - 1.0).abs() < 1e-6, "e {e}");
+            assert!((pre.lookup_half(0.5, 0.5)[3] - 1.0).abs() < 1e-6, "e {e}");
+            assert_eq!(tf.step_table(e).lookup(0.5)[3], 1.0);
         }
     }
 
