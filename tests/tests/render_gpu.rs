@@ -502,6 +502,31 @@ fn gpu_hardware_filter_stays_within_its_bound_of_the_cpu() {
     }
 }
 
+/// A wgpu error raised between casts (an earlier write's, reported at the next readback)
+/// fails that frame, and only that frame: the readback buffer is unmapped on the error path
+/// too, so the next frame casts (a buffer left mapped had failed every later frame, and the
+/// engine's GPU with them).
+#[test]
+fn gpu_frames_after_an_error_cast_again() {
+    if !gpu_available() {
+        return;
+    }
+    let dir = TempDir::new().unwrap();
+    let s = survey_with_horizons(dir.path(), 24, 16);
+    let (mut e, view, region, whole) = gpu_batch(&s);
+    e.gpu_raise_an_error();
+    let failed = e.render_frame(&view, &region);
+    let err = format!(
+        "{:#}",
+        failed.as_ref().err().expect("the error is reported")
+    );
+    assert!(err.contains("wgpu error"), "{err}");
+    for _ in 0..2 {
+        let again = e.render_frame(&view, &region).unwrap();
+        assert!(bit_identical(&again.image.pixels, &whole.image.pixels));
+    }
+}
+
 /// A region larger than one dispatch may cast (one storage binding of the adapter: 8.4 M
 /// pixels on lavapipe, about 134 M on NVIDIA) is cast in bands. Here the band is capped far
 /// below the adapter's limit: rows of 8, rows of 3, then columns of 40 in rows of 1. Every

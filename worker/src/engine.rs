@@ -518,6 +518,16 @@ impl Engine {
         }
     }
 
+    /// Test hook: makes the GPU backend raise a real wgpu validation error outside any
+    /// cast (a write past a buffer's end), which the next readback reports. No effect on
+    /// the CPU.
+    #[doc(hidden)]
+    pub fn gpu_raise_an_error(&mut self) {
+        if let Some(g) = self.gpu.as_mut() {
+            g.write_past_a_buffer();
+        }
+    }
+
     /// Regions the GPU backend cast in more than one band (`None` on the CPU).
     pub fn gpu_banded_regions(&self) -> Option<u64> {
         self.gpu.as_ref().map(|g| g.banded_regions())

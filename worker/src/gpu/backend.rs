@@ -166,9 +166,7 @@ impl GpuBackend {
             n += t.entries.len() as u64;
             nl += t.levels.len() as u32;
         }
-        if n >= u32::MAX as u64 / 2 {
-            bail!("the scene's page tables ({n} entries) exceed the GPU caster's u32 indices");
-        }
+        tables_fit(n, caster.max_binding_bytes())?;
         let mut format = PoolFormat::for_types(types.iter().map(|t| t.0));
         if filter == GpuFilter::Hardware {
             // Unsigned-normalized texels, signed values biased; a 16-bit pool the adapter
@@ -219,6 +217,12 @@ impl GpuBackend {
     /// Caps a band's pixels ([`GpuCaster::set_band_pixels`]).
     pub fn set_band_pixels(&mut self, cap: Option<u64>) {
         self.caster.set_band_pixels(cap);
+    }
+
+    /// Test hook: [`GpuCaster::write_past_a_buffer`].
+    #[doc(hidden)]
+    pub fn write_past_a_buffer(&mut self) {
+        self.caster.write_past_a_buffer();
     }
 
     /// Regions cast in more than one band ([`GpuCaster::banded_regions`]).
@@ -671,5 +675,37 @@ mod tests {
         );
         r.update([Some(&[a][..])].into_iter()).unwrap();
         assert_eq!(r.generation, 5);
+    }
+}
+
+/// Checks, when the backend opens, that the scene's `entries` page-table entries fit the
+/// GPU caster's u32 indices and each of their buffers one storage binding of `binding`
+/// bytes: the feedback list, bound whole, takes 8 bytes an entry (the table and the
+/// counters 4). Past it every frame would fail at binding, with no fallback to the CPU.
+fn tables_fit(entries: u64, binding: u64) -> Result<()> {
+    if entries >= u32::MAX as u64 / 2 {
+        bail!("the scene's page tables ({entries} entries) exceed the GPU caster's u32 indices");
+    }
+    let bytes = entries * 8;
+    if bytes > binding {
+        bail!(
+            "the scene's page tables ({entries} entries: {bytes} bytes of feedback list) exceed \
+             the adapter's largest storage binding ({binding} bytes); use larger pages or the CPU \
+             backend"
+        );
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod table_limit_tests {
+    use super::tables_fit;
+
+    #[test]
+    fn page_tables_past_one_binding_are_refused_at_open() {
+        tables_fit(1000, 8000).unwrap();
+        let e = tables_fit(1001, 8000).unwrap_err().to_string();
+        assert!(e.contains("8008 bytes") && e.contains("8000 bytes"), "{e}");
+        assert!(tables_fit(u32::MAX as u64, u64::MAX).is_err());
     }
 }

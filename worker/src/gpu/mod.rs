@@ -514,6 +514,13 @@ impl GpuCaster {
         self.band_cap.map_or(bind, |c| c.min(bind)).max(1)
     }
 
+    /// The largest storage binding the adapter allows, in bytes.
+    pub fn max_binding_bytes(&self) -> u64 {
+        self.limits
+            .max_storage_buffer_binding_size
+            .min(self.limits.max_buffer_size)
+    }
+
     /// Pool slots of `slot_bytes` the adapter can bind in one buffer.
     pub fn max_slots(&self, slot_bytes: u64) -> usize {
         let bind = self
@@ -655,6 +662,15 @@ impl GpuCaster {
         checked(device, "allocating the horizon pool", || {
             pool.ensure(device, bytes);
         })
+    }
+
+    /// Test hook (after a first cast): a write past the end of the readback buffer, a real
+    /// validation error that wgpu reports to the uncaptured-error handler (as it would an
+    /// earlier write's failure), so tests can check that the caster recovers from one.
+    #[doc(hidden)]
+    pub fn write_past_a_buffer(&mut self) {
+        let b = self.read.get();
+        self.queue.write_buffer(b, b.size(), &[0u8; 4]);
     }
 
     /// Writes a horizon tile into its slot of the horizon pool.
@@ -1134,19 +1150,28 @@ impl GpuCaster {
         slice.map_async(wgpu::MapMode::Read, move |r| {
             let _ = tx.send(r);
         });
-        self.device
+        let polled = self
+            .device
             .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| anyhow!("waiting for the device: {e}"))?;
-        self.check_uncaptured()?;
-        rx.recv()
-            .context("map callback did not run")?
-            .context("mapping the readback buffer")?;
-        let out = {
-            let view = slice.get_mapped_range().context("readback mapped range")?;
-            bytemuck::cast_slice::<u8, T>(&view).to_vec()
+            .map_err(|e| anyhow!("waiting for the device: {e}"));
+        // Copied out and unmapped before any error returns: a buffer left mapped fails
+        // every later copy into it, and the buffer is reused at the same size, so one
+        // error (say, an earlier write's, reported here) would end the engine's GPU.
+        let out = match rx.try_recv() {
+            Ok(Ok(())) => {
+                let out = slice
+                    .get_mapped_range()
+                    .context("readback mapped range")
+                    .map(|view| bytemuck::cast_slice::<u8, T>(&view).to_vec());
+                buf.unmap();
+                out
+            }
+            Ok(Err(e)) => Err(anyhow!(e).context("mapping the readback buffer")),
+            Err(_) => Err(anyhow!("the readback buffer's map callback did not run")),
         };
-        buf.unmap();
-        Ok(out)
+        polled?;
+        self.check_uncaptured()?;
+        out
     }
 
     fn check_uncaptured(&self) -> Result<()> {
