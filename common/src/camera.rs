@@ -295,14 +295,19 @@ pub fn default_camera(bounds: &Region, render: &RenderSettings) -> Camera {
 
 /// Frame `i` of `frames` on a circle around the camera's target: the eye turned about the
 /// vertical (world z) axis through the target by `i / frames` of a full turn, counter-
-/// clockwise seen from above; distance, height and `up` are kept. Frame 0 is the camera.
+/// clockwise seen from above; distance and height are kept, and `up` turns with the eye (a
+/// vertical `up`, the usual one, is unchanged; a horizontal one would otherwise come to lie
+/// along the view, or, seen from straight above, leave every frame the same). Frame 0 is
+/// the camera.
 pub fn orbit(camera: &Camera, frames: u32, i: u32) -> Camera {
     let a = std::f64::consts::TAU * i as f64 / frames.max(1) as f64;
     let (s, c) = a.sin_cos();
     let [tx, ty, _] = camera.target;
     let (dx, dy) = (camera.eye[0] - tx, camera.eye[1] - ty);
+    let [ux, uy, uz] = camera.up;
     Camera {
         eye: [tx + c * dx - s * dy, ty + s * dx + c * dy, camera.eye[2]],
+        up: [c * ux - s * uy, s * ux + c * uy, uz],
         ..camera.clone()
     }
 }
@@ -310,6 +315,43 @@ pub fn orbit(camera: &Camera, frames: u32, i: u32) -> Camera {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `up` turns with the orbit: a horizontal `up` never comes to lie along the view, and
+    /// seen from straight above the frames turn; a vertical one is kept exactly.
+    #[test]
+    fn orbit_turns_up_with_the_eye() {
+        let r = RenderSettings {
+            z_down: false,
+            ..Default::default()
+        };
+        let side = Camera {
+            eye: [10.0, 0.0, 0.0],
+            target: [0.0; 3],
+            up: [0.0, 1.0, 0.0],
+            fov_deg: 30.0,
+        };
+        for i in 0..4 {
+            let c = orbit(&side, 4, i);
+            View::new(&c, &r, 64, 48).unwrap_or_else(|e| panic!("frame {i}: {e}"));
+        }
+        let above = Camera {
+            eye: [0.0, 0.0, 10.0],
+            target: [0.0; 3],
+            up: [0.0, 1.0, 0.0],
+            fov_deg: 30.0,
+        };
+        let q = orbit(&above, 4, 1);
+        assert!(
+            (q.up[0] + 1.0).abs() < 1e-12 && q.up[1].abs() < 1e-12,
+            "{:?}",
+            q.up
+        );
+        let vertical = Camera {
+            up: [0.0, 0.0, 1.0],
+            ..side.clone()
+        };
+        assert_eq!(orbit(&vertical, 7, 3).up, [0.0, 0.0, 1.0]);
+    }
 
     fn demo_view(cam: &Camera) -> View {
         let render = RenderSettings {

@@ -28,8 +28,10 @@ use serde::{Deserialize, Serialize};
 pub enum Interpolation {
     /// Straight segments at constant speed between keyframes.
     Linear,
-    /// A C¹ cubic through the keyframes (Catmull-Rom tangents for uneven times), eased in at
-    /// the first keyframe and out at the last.
+    /// A C¹ cubic through the keyframes, each reached at its `time`: Catmull-Rom tangents
+    /// (for uneven times) at the inner keyframes, at rest at the first and the last (eased
+    /// in and out). The field of view stays between each segment's two keyframes' (a cubic
+    /// overshoots a held value).
     #[default]
     Smooth,
 }
@@ -185,12 +187,7 @@ impl CameraPath {
             };
         }
         let (t0, t1) = (k[0].time, k[k.len() - 1].time);
-        let mut t = t.clamp(t0, t1);
-        if self.interpolation == Interpolation::Smooth {
-            // Ease in and out over the whole path: smoothstep of the normalized time.
-            let u = (t - t0) / (t1 - t0);
-            t = t0 + (t1 - t0) * u * u * (3.0 - 2.0 * u);
-        }
+        let t = t.clamp(t0, t1);
         let s = k.partition_point(|f| f.time <= t).clamp(1, k.len() - 1) - 1;
         let (a, b) = (&k[s], &k[s + 1]);
         let h = b.time - a.time;
@@ -214,12 +211,17 @@ impl CameraPath {
         let v: [f64; 10] = match self.interpolation {
             Interpolation::Linear => std::array::from_fn(|c| pa[c] + u * (pb[c] - pa[c])),
             Interpolation::Smooth => {
-                // Catmull-Rom tangents for uneven keyframe times (one-sided at the ends),
-                // as derivatives per unit of path time, scaled to the segment.
+                // Catmull-Rom tangents for uneven keyframe times, as derivatives per unit of
+                // path time, scaled to the segment; zero at the ends: the camera starts and
+                // stops at rest (the ease in and out), and every keyframe is reached at its
+                // time (an ease over the whole path's time had moved them: keyframe 1 of
+                // ten evenly spaced came at 1.95 s instead of 1).
                 let tangent = |i: usize| -> [f64; 10] {
-                    let (l, r) = (i.saturating_sub(1), (i + 1).min(k.len() - 1));
-                    let (pl, pr) = (get(&k[l]), get(&k[r]));
-                    let dt = k[r].time - k[l].time;
+                    if i == 0 || i == k.len() - 1 {
+                        return [0.0; 10];
+                    }
+                    let (pl, pr) = (get(&k[i - 1]), get(&k[i + 1]));
+                    let dt = k[i + 1].time - k[i - 1].time;
                     std::array::from_fn(|c| (pr[c] - pl[c]) / dt)
                 };
                 let (ma, mb) = (tangent(s), tangent(s + 1));
@@ -228,9 +230,13 @@ impl CameraPath {
                 let h10 = u3 - 2.0 * u2 + u;
                 let h01 = -2.0 * u3 + 3.0 * u2;
                 let h11 = u3 - u2;
-                std::array::from_fn(|c| {
+                let mut v: [f64; 10] = std::array::from_fn(|c| {
                     h00 * pa[c] + h10 * h * ma[c] + h01 * pb[c] + h11 * h * mb[c]
-                })
+                });
+                // The field of view within its segment's keyframes' (checked values): a
+                // zoom held after a change would otherwise overshoot, past 179° even.
+                v[9] = v[9].clamp(pa[9].min(pb[9]), pa[9].max(pb[9]));
+                v
             }
         };
         Camera {
@@ -300,6 +306,44 @@ target = [606000.0, 6075000.0, 1200.0]
             let d = (0..3).map(|c| (e[c] - prev[c]).powi(2)).sum::<f64>().sqrt();
             assert!(d < 1.0, "jump of {d} at t = {}", i as f64 * 1e-3);
             prev = e;
+        }
+    }
+
+    /// Every keyframe is reached at its time, and a zoom held after a change stays within
+    /// the keyframes' fields of view (it had overshot to 188° and been refused).
+    #[test]
+    fn smooth_paths_pass_their_keyframes_at_their_times_without_overshooting_the_zoom() {
+        let mut text = String::from("interpolation = \"smooth\"\nfps = 1\n");
+        for (i, (t, fov)) in [(0.0, 30.0), (1.0, 170.0), (10.0, 170.0), (12.0, 40.0)]
+            .iter()
+            .enumerate()
+        {
+            text += &format!(
+                "[[keyframes]]\ntime = {t}\neye = [{}.0, {}.0, 50.0]\ntarget = [0.0, 0.0, 0.0]\nfov_deg = {fov}\n",
+                10 * i + 5,
+                (i * i) as f64
+            );
+        }
+        let p = CameraPath::from_toml(&text).unwrap();
+        for k in &p.keyframes {
+            let c = p.at(k.time);
+            for a in 0..3 {
+                assert!(
+                    (c.eye[a] - k.eye[a]).abs() < 1e-9,
+                    "t {}: {:?}",
+                    k.time,
+                    c.eye
+                );
+            }
+            assert!((c.fov_deg - k.fov_deg).abs() < 1e-9);
+        }
+        for i in 0..=1200 {
+            let f = p.at(i as f64 * 0.01).fov_deg;
+            assert!(
+                (30.0..=170.0).contains(&f),
+                "t {}: fov {f}",
+                i as f64 * 0.01
+            );
         }
     }
 
