@@ -206,6 +206,13 @@ pub struct Decomposition {
 /// "one brick's share" term (see [`Decomposition::balanced`]).
 pub const SNAP_TOLERANCE: f64 = 0.02;
 
+/// The most a snap may move a split's cost fraction from its target, whatever one brick's
+/// share: where a brick holds most of a node's cost (coarse bricks for many workers, one
+/// opaque brick among transparent ones) the split goes through it rather than leave one
+/// side with nearly all the work (snapping had given 0.95 against 0.05, an imbalance of
+/// 1.9 that no re-split could undo).
+pub const MAX_SNAP: f64 = 0.1;
+
 /// A box clipped to a node, with the part of its cost that lies in the node.
 fn clip_box(b: &CostBox, r: &Region) -> Option<CostBox> {
     let mut out = *b;
@@ -370,7 +377,7 @@ impl Builder {
         if let Some(p) = nearest {
             let brick = boxes.iter().map(|b| b.cost).fold(0.0, f64::max) / total;
             let frac = cost_below(boxes, axis, p) / total;
-            if (frac - target).abs() <= SNAP_TOLERANCE.max(brick) {
+            if (frac - target).abs() <= SNAP_TOLERANCE.max(brick.min(MAX_SNAP)) {
                 pos = p;
             }
         }
@@ -399,8 +406,8 @@ impl Decomposition {
     /// **Snapping rule.** Among `planes[axis]` (brick boundaries in world coordinates)
     /// strictly inside the node, the one nearest the balanced position is used instead if
     /// the cost fraction below it differs from the target fraction by at most
-    /// `max(SNAP_TOLERANCE, b)`, where `b` is one brick's share: the largest cost of a
-    /// single box inside the node divided by the node's cost. Otherwise the unsnapped
+    /// `max(SNAP_TOLERANCE, min(b, MAX_SNAP))`, where `b` is one brick's share: the largest
+    /// cost of a single box inside the node divided by the node's cost. Otherwise the unsnapped
     /// position is kept. Snapped planes keep bricks whole, so fewer pages are loaded twice.
     ///
     /// Every split lies strictly inside its node, so no leaf has an empty extent unless
@@ -734,6 +741,41 @@ mod tests {
         );
     }
 
+    /// One brick holding most of a node's cost does not pull the split to its face: the
+    /// plane goes through it, and the two sides cost about the same.
+    #[test]
+    fn a_dominant_brick_is_split_rather_than_left_to_one_side() {
+        let root = Region {
+            lo: [0.0; 3],
+            hi: [2.0, 1.0, 1.0],
+        };
+        let boxes = [(0.0, 1.0, 1.0), (1.0, 2.0, 0.05)].map(|(a, b, cost)| CostBox {
+            region: Region {
+                lo: [a, 0.0, 0.0],
+                hi: [b, 1.0, 1.0],
+            },
+            cost,
+        });
+        let planes = [vec![0.0, 1.0, 2.0], vec![], vec![]];
+        let d = Decomposition::balanced(root, &boxes, 2, 1, &planes);
+        assert!(
+            d.imbalance() < 1.01,
+            "{} at {:?}",
+            d.imbalance(),
+            d.tree.leaves
+        );
+        // A brick's share within MAX_SNAP still snaps (bricks kept whole).
+        let even = [(0.0, 1.0, 1.0), (1.0, 2.0, 0.85)].map(|(a, b, cost)| CostBox {
+            region: Region {
+                lo: [a, 0.0, 0.0],
+                hi: [b, 1.0, 1.0],
+            },
+            cost,
+        });
+        let d = Decomposition::balanced(root, &even, 2, 1, &planes);
+        assert_eq!(d.tree.leaves[0].hi[0], 1.0);
+    }
+
     #[test]
     fn splits_and_order() {
         let r = Region {
@@ -894,11 +936,14 @@ mod tests {
         let (_, pos) = first_split(&d);
         // 12.5 below: 2 per unit of x, plus the flat box's 5 past x = 3 → x = 3.75.
         assert!((pos - 3.75).abs() < 1e-9, "{pos}");
-        // A plane exactly on a flat box puts it on the upper side (half-open); the plane
-        // is used because the big box is one brick worth 80% of the node.
+        // A plane exactly on a flat box puts it on the upper side (half-open).
+        assert_eq!(cost_below(&boxes, 0, 3.0), 6.0);
+        // A plane there is not used although the big box is one brick worth 80% of the
+        // node: its fraction (0.24) is further than MAX_SNAP from the half.
         let d = Decomposition::balanced(r, &boxes, 2, 1, &[vec![3.0], vec![], vec![]]);
-        assert_eq!(first_split(&d), (0, 3.0));
-        assert_eq!(d.leaf_cost, vec![6.0, 19.0]);
+        let (_, pos) = first_split(&d);
+        assert!((pos - 3.75).abs() < 1e-9, "{pos}");
+        assert_eq!(d.leaf_cost, vec![12.5, 12.5]);
         // A jump that overshoots: the closer side of it is taken (just past x = 3: 8 of
         // 15 below, against 3 of 15 just before it).
         let boxes = [
