@@ -61,14 +61,20 @@ impl Affine3 {
         self.rows.iter().flatten().all(|v| v.is_finite())
     }
 
-    /// The inverse map (f64), or `None` if it is singular.
+    /// The inverse map (f64), or `None` if it is singular or nearly so: its determinant
+    /// under 1e-12 of the product of its columns' lengths (a test of shape, whatever the
+    /// scale: a 1e-15 determinant of unit columns is singular, one of 1e-5 columns is not),
+    /// or an inverse that does not come out finite.
     pub fn inverse(&self) -> Option<Affine3> {
         let a = self;
         let m = |r: usize, c: usize| a.rows[r][c];
         let det = m(0, 0) * (m(1, 1) * m(2, 2) - m(1, 2) * m(2, 1))
             - m(0, 1) * (m(1, 0) * m(2, 2) - m(1, 2) * m(2, 0))
             + m(0, 2) * (m(1, 0) * m(2, 1) - m(1, 1) * m(2, 0));
-        if det.abs() < 1e-300 || !det.is_finite() {
+        let norms: f64 = (0..3)
+            .map(|c| (0..3).map(|r| m(r, c) * m(r, c)).sum::<f64>().sqrt())
+            .product();
+        if !(det.is_finite() && norms.is_finite() && det.abs() > 1e-12 * norms) {
             return None;
         }
         let inv = [
@@ -94,7 +100,8 @@ impl Affine3 {
             rows[r][..3].copy_from_slice(&inv[r]);
             rows[r][3] = -(inv[r][0] * t[0] + inv[r][1] * t[1] + inv[r][2] * t[2]);
         }
-        Some(Affine3 { rows })
+        let inv = Affine3 { rows };
+        inv.is_finite().then_some(inv)
     }
 }
 
@@ -224,6 +231,27 @@ pub fn fit_affine2(points: &[([f64; 2], [f64; 2])]) -> Option<AffineFit> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Singularity is judged by shape, not scale: unit columns whose determinant is 1e-15
+    /// are singular, columns of 1e-5 (det 1e-15) are not.
+    #[test]
+    fn inverse_judges_singularity_relative_to_the_columns() {
+        let sheared = Affine3 {
+            rows: [
+                [1.0, 1.0, 0.0, 0.0],
+                [0.0, 1e-15, 0.0, 0.0],
+                [0.0, 0.0, 1.0, 0.0],
+            ],
+        };
+        assert!(sheared.inverse().is_none());
+        let small = Affine3::scale_offset([1e-5; 3], [6e6, 5e5, 0.0]);
+        let inv = small.inverse().expect("a small scale is invertible");
+        let p = inv.apply(small.apply([1.0, 2.0, 3.0]));
+        assert!(
+            (p[0] - 1.0).abs() < 1e-6 && (p[2] - 3.0).abs() < 1e-6,
+            "{p:?}"
+        );
+    }
 
     #[test]
     fn inverse_round_trips() {

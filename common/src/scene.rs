@@ -723,6 +723,17 @@ impl RenderSettings {
                 ));
             }
         }
+        // The display transform scales the stores' z by it; within these bounds that keeps
+        // every accepted store transform invertible in f64.
+        if !(1e-6..=1e6).contains(&self.z_scale) {
+            return Err((
+                "z_scale",
+                format!(
+                    "render.z_scale must lie in [1e-6, 1e6], got {}",
+                    self.z_scale
+                ),
+            ));
+        }
         if self.step < 1e-3 || self.step > 1e3 {
             return Err((
                 "step",

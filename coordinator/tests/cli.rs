@@ -785,6 +785,10 @@ fn outputs_and_values_are_checked_before_any_work() {
             "render.atlas_mb".into(),
         ),
         (
+            render(&["-o", &p("o.png"), "--set", "render.z_scale=1e300"]),
+            "render.z_scale".into(),
+        ),
+        (
             vec![
                 "render".into(),
                 bad_fov.display().to_string(),

@@ -136,7 +136,7 @@ fn raw_with_wrong_dims_names_file_and_sizes() {
 /// transform (every ray and region goes through it) is refused at open, naming the file.
 #[test]
 fn a_store_whose_transform_is_not_finite_or_invertible_is_refused() {
-    for bad in [f64::NAN, 0.0] {
+    for bad in [f64::NAN, 0.0, 1e-100] {
         let dir = tempfile::tempdir().unwrap();
         let p = store(dir.path());
         let mut b = std::fs::read(&p).unwrap();

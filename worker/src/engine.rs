@@ -643,7 +643,7 @@ impl Engine {
                 .collect();
             let inv = rel[i]
                 .inverse()
-                .expect("stores with singular transforms are refused at open, z_scale > 0");
+                .expect("stores are refused at open unless invertible with scales in 1e-30..1e30, z_scale in 1e-6..1e6");
             let (m, c) = rows_f32(&inv);
             let vsize = (0..3).map(|k| col_len(&rel[i], k)).fold(0.0, f64::max);
             let nl = v.pyramid.level_count();
@@ -716,7 +716,7 @@ impl Engine {
             let rel = view.relative_affine(&h.to_world);
             let inv = rel
                 .inverse()
-                .expect("stores with singular transforms are refused at open, z_scale > 0");
+                .expect("stores are refused at open unless invertible with scales in 1e-30..1e30, z_scale in 1e-6..1e6");
             let (m, c) = rows_f32(&inv);
             let cell = col_len(&rel, 0).max(col_len(&rel, 1));
             let nl = h.pyramid.level_count();

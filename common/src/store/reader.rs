@@ -115,10 +115,19 @@ impl PageStore {
         })?;
         // Every ray and region goes through it: a NaN or singular transform would render
         // garbage, not fail.
-        if !header.transform.is_finite() || header.transform.inverse().is_none() {
+        // Columns (index → world scales) of 1e-30..1e30: the display's z scale (at most
+        // 1e6 either way) then keeps the transform invertible in f64.
+        let columns_ok = (0..3).all(|c| {
+            let n = (0..3)
+                .map(|r| header.transform.rows[r][c].powi(2))
+                .sum::<f64>()
+                .sqrt();
+            (1e-30..=1e30).contains(&n)
+        });
+        if !header.transform.is_finite() || !columns_ok || header.transform.inverse().is_none() {
             return Err(fmt(
                 pre.header_offset,
-                "a finite, invertible index→world transform".into(),
+                "a finite, invertible index→world transform with scales in 1e-30..1e30".into(),
                 format!("{:?}", header.transform.rows),
             ));
         }
