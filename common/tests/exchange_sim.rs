@@ -612,3 +612,27 @@ fn a_lost_peer_fails_the_frames_that_include_it_and_only_those() {
     assert!(ex.poll_event().is_none());
     assert_eq!(ex.current_frame(), Some(2));
 }
+
+/// An order of fewer ranks than the compositing plan is refused as a bad frame (the
+/// exchange had indexed past the order and panicked when it advanced).
+#[test]
+fn an_order_that_does_not_fit_the_plan_fails_the_frame() {
+    let t = Instant::now();
+    let limits = ExchangeLimits {
+        frames_ahead: 2,
+        pending_pieces: 4,
+        pending_bytes: 1 << 20,
+    };
+    let plan = Arc::new(build_plan(3, 12, Algorithm::DirectSend, None).unwrap());
+    let img = PartialImage::empty(4, 3);
+    let rc = RankCompositor::new(plan, 0, &img, &Interlace::new(4, 3, 3, false)).unwrap();
+    let mut ex = Exchange::new(0, 3, limits);
+    ex.start_frame(1, vec![0, 1], rc, WireFormat::F32, t, TIMEOUT);
+    match ex.poll_event() {
+        Some(ExchangeEvent::Failed {
+            error: ExchangeError::BadFrame(why),
+            ..
+        }) => assert!(why.contains("plan"), "{why}"),
+        other => panic!("{other:?}"),
+    }
+}

@@ -530,7 +530,7 @@ pub fn seeds() -> Vec<(&'static str, String, Vec<u8>)> {
                 plain,
             ));
             let mut lz = vec![1u8];
-            lz.extend(p.write_lz4());
+            lz.extend(p.write_lz4().unwrap());
             out.push(("sparse_piece", format!("{format:?}-lz4").to_lowercase(), lz));
         }
     }

@@ -1098,13 +1098,18 @@ impl Node {
             return (shm, Vec::new(), false, layout.byte_len(piece.format) as u64);
         }
         let encoded = SparsePiece::encode_with(&piece.pixels, layout, piece.span, piece.format);
-        let bulk: Vec<bytes::Bytes> = if self.lz4 {
-            vec![tokio::task::block_in_place(|| encoded.write_lz4()).into()]
-        } else {
-            encoded.wire_chunks().to_vec()
+        // Compressed in an LZ4 run, unless too large for LZ4's stated length.
+        let lz = self
+            .lz4
+            .then(|| tokio::task::block_in_place(|| encoded.write_lz4()))
+            .flatten();
+        let lz4 = lz.is_some();
+        let bulk: Vec<bytes::Bytes> = match lz {
+            Some(b) => vec![b.into()],
+            None => encoded.wire_chunks().to_vec(),
         };
         let bytes = bulk.iter().map(|b| b.len() as u64).sum();
-        (None, bulk, self.lz4, bytes)
+        (None, bulk, lz4, bytes)
     }
 
     /// Takes the canvas back from the exchange (the frame that used it is over).
@@ -1519,17 +1524,22 @@ impl Node {
             OutgoingPiece::Encoded(piece) => {
                 let te = Instant::now();
                 // The piece's own buffers go to the stream as they are (no joined copy).
-                let chunks = if self.lz4 {
-                    vec![tokio::task::block_in_place(|| piece.write_lz4()).into()]
-                } else {
-                    piece.wire_chunks().to_vec()
+                // Compressed in an LZ4 run, unless too large for LZ4's stated length.
+                let lz = self
+                    .lz4
+                    .then(|| tokio::task::block_in_place(|| piece.write_lz4()))
+                    .flatten();
+                let lz4 = lz.is_some();
+                let chunks = match lz {
+                    Some(b) => vec![b.into()],
+                    None => piece.wire_chunks().to_vec(),
                 };
                 stats.encode_s += te.elapsed().as_secs_f64();
                 let meta = wire::encode_meta(&PeerMsg::Piece {
                     frame: out.frame,
                     round: out.round,
                     from: out.from,
-                    lz4: self.lz4,
+                    lz4,
                 });
                 (meta, chunks)
             }

@@ -418,6 +418,16 @@ impl Exchange {
             let error = error.clone();
             return fail(self, ExchangeError::PeerLost { rank, error });
         }
+        if order.len() != rc.plan().ranks {
+            return fail(
+                self,
+                ExchangeError::BadFrame(format!(
+                    "the visibility order {order:?} has {} ranks, the compositing plan {}",
+                    order.len(),
+                    rc.plan().ranks
+                )),
+            );
+        }
         if order.get(rc.position()) != Some(&self.rank) {
             return fail(
                 self,

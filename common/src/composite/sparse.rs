@@ -633,7 +633,13 @@ impl SparsePiece {
     /// (`u32`, little-endian), then one LZ4 block of the wire form with the pixel data
     /// byte-shuffled (the k-th byte of every channel value together, as the page store
     /// does), which lets LZ4 find the runs in exponents and high mantissa bytes.
-    pub fn write_lz4(&self) -> Vec<u8> {
+    ///
+    /// `None` for a piece whose wire form is 4 GiB or more, which the length cannot state:
+    /// such a piece travels uncompressed.
+    pub fn write_lz4(&self) -> Option<Vec<u8>> {
+        if self.byte_len() > u32::MAX as usize {
+            return None;
+        }
         let mut raw = Vec::with_capacity(self.byte_len());
         for part in &self.wire_parts()[..2] {
             raw.extend_from_slice(part);
@@ -644,7 +650,7 @@ impl SparsePiece {
         let mut out = Vec::with_capacity(4 + block.len());
         out.extend_from_slice(&(raw.len() as u32).to_le_bytes());
         out.extend_from_slice(&block);
-        out
+        Some(out)
     }
 
     /// Parses a piece written by [`write_lz4`](Self::write_lz4) (untrusted input): the
@@ -1035,7 +1041,7 @@ mod tests {
             .collect();
         for format in [WireFormat::F32, WireFormat::F16] {
             let p = SparsePiece::encode(&pixels, Span::new(100, 4100), format);
-            let z = p.write_lz4();
+            let z = p.write_lz4().unwrap();
             assert_eq!(SparsePiece::parse_lz4(&z, 4100).unwrap(), p);
             assert!(
                 z.len() * 2 < p.byte_len(),
@@ -1047,7 +1053,7 @@ mod tests {
             assert!(SparsePiece::parse_lz4(&z, 4099).is_err());
         }
         let p = SparsePiece::encode(&pixels, Span::new(0, 4000), WireFormat::F32);
-        let z = p.write_lz4();
+        let z = p.write_lz4().unwrap();
         // A stated size past what any piece of the limit can take: refused before
         // allocating.
         let mut lie = z.clone();
@@ -1459,7 +1465,7 @@ mod tests {
             let span = Span::new(start, start + pixels.len() as u32);
             let format = if f16 { WireFormat::F16 } else { WireFormat::F32 };
             let p = SparsePiece::encode(&pixels, span, format);
-            prop_assert_eq!(SparsePiece::parse_lz4(&p.write_lz4(), span.end).unwrap(), p);
+            prop_assert_eq!(SparsePiece::parse_lz4(&p.write_lz4().unwrap(), span.end).unwrap(), p);
             let _ = SparsePiece::parse_lz4(&junk, 1 << 20);
         }
 
