@@ -1078,17 +1078,29 @@ impl Cluster {
         let t0 = Instant::now();
         let scene_toml = self.scene_toml.clone();
         let (shm, gather) = self.plan_transport()?;
-        let n = self.workers.len();
-        let shm_pairs = (0..n)
-            .map(|a| (a + 1..n).filter(|&b| shm[a][b]).count())
-            .sum();
-        let shm_gather = gather.iter().filter(|&&g| g).count();
-        self.transport = TransportReport {
-            shm_pairs,
-            quic_pairs: n * n.saturating_sub(1) / 2 - shm_pairs,
-            shm_gather,
-            quic_gather: n - shm_gather,
+        // The ranks in the run only (workers given up on stay in `workers`): counted again
+        // once the set-up is done, since it may give up more.
+        let report = |slots: &[u32]| {
+            let shm_pairs = slots
+                .iter()
+                .enumerate()
+                .map(|(i, &a)| {
+                    slots[i + 1..]
+                        .iter()
+                        .filter(|&&b| shm[a as usize][b as usize])
+                        .count()
+                })
+                .sum();
+            let n = slots.len();
+            let shm_gather = slots.iter().filter(|&&r| gather[r as usize]).count();
+            TransportReport {
+                shm_pairs,
+                quic_pairs: n * n.saturating_sub(1) / 2 - shm_pairs,
+                shm_gather,
+                quic_gather: n - shm_gather,
+            }
         };
+        self.transport = report(&self.slots);
         info!(transport = %self.transport.describe(), "transports chosen");
         loop {
             let (lost, error) = match self.setup_once(&scene_toml, &shm, &gather, fresh).await? {
@@ -1120,6 +1132,7 @@ impl Cluster {
         for l in &mut self.setup_lost {
             l.recovery_s = ready_s - l.detected_after_s;
         }
+        self.transport = report(&self.slots);
         info!(workers = self.slots.len(), "all workers ready");
         Ok(())
     }

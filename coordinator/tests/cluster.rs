@@ -716,6 +716,20 @@ fn check_recovery(
     );
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(stdout.contains(said), "{name}: {stdout}");
+    if lost_phase == "set-up" {
+        // The transport report counts the workers set up, not the one given up on.
+        let summary: serde_json::Value =
+            serde_json::from_str(text.lines().last().unwrap()).unwrap();
+        let t = &summary["transport"];
+        let n = left.len() as u64;
+        let count = |k: &str| t[k].as_u64().unwrap();
+        assert_eq!(
+            count("shm_pairs") + count("quic_pairs"),
+            n * (n - 1) / 2,
+            "{name}: {t}"
+        );
+        assert_eq!(count("shm_gather") + count("quic_gather"), n, "{name}: {t}");
+    }
     if signal == "kill" {
         assert!(
             lost[0]["reason"]
