@@ -23,6 +23,9 @@ pub enum ViewError {
     /// Vertical exaggeration not positive.
     #[error("render.z_scale must be positive, got {0}")]
     ZScale(f64),
+    /// A camera vector with a NaN or infinite component (`"eye"`, `"target"` or `"up"`).
+    #[error("camera.{0} must be three finite numbers")]
+    NotFinite(&'static str),
     /// No viewing direction.
     #[error("camera.eye and camera.target coincide")]
     EyeIsTarget,
@@ -137,6 +140,15 @@ impl View {
         }
         if !(render.z_scale > 0.0 && render.z_scale.is_finite()) {
             return Err(ViewError::ZScale(render.z_scale));
+        }
+        for (key, v) in [
+            ("eye", camera.eye),
+            ("target", camera.target),
+            ("up", camera.up),
+        ] {
+            if !v.iter().all(|c| c.is_finite()) {
+                return Err(ViewError::NotFinite(key));
+            }
         }
         let display = DisplayMap::new(render);
         let eye = display.apply(camera.eye);

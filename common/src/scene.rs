@@ -97,7 +97,8 @@ fn default_tile_size() -> [u32; 2] {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CompositeSettings {
-    /// `direct-send`, `binary-swap` or `radix-k` (default).
+    /// `direct-send`, `binary-swap`, `radix-k` (default) or `gather` (every piece to the
+    /// front rank).
     #[serde(default = "default_algorithm")]
     pub algorithm: crate::composite::Algorithm,
     /// radix-k: a target k (`8`, IceT's default, chooses factors near it) or the exact
@@ -1017,6 +1018,7 @@ impl Scene {
             View::new(c, &scene.render, w, h).map_err(|e| {
                 let (section, key) = match &e {
                     ViewError::Fov(_) => ("camera", "fov_deg"),
+                    ViewError::NotFinite(key) => ("camera", *key),
                     ViewError::EyeIsTarget => ("camera", "target"),
                     ViewError::UpParallel => ("camera", "up"),
                     ViewError::ZScale(_) => ("render", "z_scale"),
@@ -1216,6 +1218,13 @@ mod tests {
         let e = camera("target = [1, 0, 0]\nup = [0, 0, 0]\n").unwrap_err();
         assert_eq!(e.line, 7, "{e}");
         assert!(e.to_string().contains("camera.up"), "{e}");
+        // NaN names its own key (it had been reported as the eye on the target).
+        let e = camera("target = [nan, 0.0, 0.0]\n").unwrap_err();
+        assert_eq!(e.line, 6, "{e}");
+        assert!(
+            e.to_string().contains("camera.target must be three finite"),
+            "{e}"
+        );
         // A key the file does not hold (the default up along the view): its section.
         let e = Scene::parse(
             Path::new("c.toml"),
