@@ -110,9 +110,10 @@ fn load_path(p: &Path) -> Result<strata_common::camera_path::CameraPath> {
     Ok(path)
 }
 
-/// Whether frame outputs already exist complete (a PNG of the right size that decodes, and
-/// the EXR when one is asked for), so a resumed job skips the frame. Outputs are written
-/// atomically, so a killed job leaves no half-written file under these names.
+/// Whether frame outputs already exist complete (a PNG and, when one is asked for, an EXR,
+/// each of the right size and whole), so a resumed job skips the frame. Outputs are written
+/// atomically, so a killed job leaves no half-written file under these names; but an EXR
+/// of an earlier run at another size, or a damaged one, is not complete.
 fn complete(scene: &Scene, f: &FramePlan, width: u32, height: u32) -> bool {
     if let Some(wall) = &scene.wall {
         // Every tile's files, and the preview when one is asked for.
@@ -120,13 +121,22 @@ fn complete(scene: &Scene, f: &FramePlan, width: u32, height: u32) -> bool {
         let (pw, ph) = g.plane_size();
         let tiles = image_out::tile_files(&g, &f.png, f.exr.as_deref());
         return tiles.iter().all(|t| {
-            png_complete(&t.png, g.tile_w, g.tile_h) && t.exr.as_ref().is_none_or(|e| e.is_file())
+            png_complete(&t.png, g.tile_w, g.tile_h)
+                && t
+                    .exr
+                    .as_ref()
+                    .is_none_or(|e| exr_complete(e, g.tile_w, g.tile_h))
         }) && (!wall.preview || png_complete(&f.png, pw, ph));
     }
-    png_complete(&f.png, width, height) && f.exr.as_ref().is_none_or(|e| e.is_file())
+    png_complete(&f.png, width, height)
+        && f
+            .exr
+            .as_ref()
+            .is_none_or(|e| exr_complete(e, width, height))
 }
 
-/// Whether `png` is a PNG of `width × height` that decodes.
+/// Whether `png` is a PNG of `width × height` that decodes, row by row (a wall's preview
+/// may be gigabytes as one buffer).
 fn png_complete(png: &Path, width: u32, height: u32) -> bool {
     (|| -> Option<()> {
         let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(png).ok()?));
@@ -135,8 +145,28 @@ fn png_complete(png: &Path, width: u32, height: u32) -> bool {
         if (info.width, info.height) != (width, height) {
             return None;
         }
-        let mut buf = vec![0; reader.output_buffer_size()?];
-        reader.next_frame(&mut buf).ok()?;
+        let mut rows = 0u32;
+        while reader.next_row().ok()?.is_some() {
+            rows += 1;
+        }
+        (rows == height).then_some(())
+    })()
+    .is_some()
+}
+
+/// Whether `exr` is an EXR of one `width × height` layer whose every chunk is there (read
+/// chunk by chunk, not decompressed).
+fn exr_complete(exr: &Path, width: u32, height: u32) -> bool {
+    (|| -> Option<()> {
+        let file = std::io::BufReader::new(std::fs::File::open(exr).ok()?);
+        let reader = ::exr::block::read(file, true).ok()?;
+        match reader.headers() {
+            [h] if h.layer_size.0 == width as usize && h.layer_size.1 == height as usize => {}
+            _ => return None,
+        }
+        for chunk in reader.all_chunks(true).ok()? {
+            chunk.ok()?;
+        }
         Some(())
     })()
     .is_some()

@@ -1082,3 +1082,51 @@ fn the_readme_demo_command_renders_on_a_fresh_checkout() {
         160 * 90
     );
 }
+
+/// A resumed sequence re-renders a frame whose EXR is damaged, or of an earlier run at
+/// another size, and skips the frames whose PNG and EXR are both whole at this size (an
+/// EXR counted as complete when it merely existed).
+#[test]
+fn resume_checks_the_exr_too() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let survey = small_survey(d);
+    let out = d.join("out");
+    std::fs::create_dir(&out).unwrap();
+    let run = |size: &str, exr: bool| {
+        let mut a: Vec<String> = ["render", survey.join("scene.toml").to_str().unwrap()]
+            .map(String::from)
+            .to_vec();
+        for s in ["--in-process", "--orbit", "3", "--size", size, "-o"] {
+            a.push(s.into());
+        }
+        a.push(out.join("f_%02d.png").display().to_string());
+        if exr {
+            a.push("--exr".into());
+            a.push(out.join("f_%02d.exr").display().to_string());
+        }
+        let refs: Vec<&str> = a.iter().map(String::as_str).collect();
+        let o = coordinator(&refs);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        String::from_utf8_lossy(&o.stdout).into_owned()
+    };
+    let size_of = |n: &str| {
+        let m = exr::meta::MetaData::read_from_file(out.join(n), false).unwrap();
+        let s = m.headers[0].layer_size;
+        (s.0, s.1)
+    };
+    run("24x16", true);
+    // The PNGs at another size, without EXRs: those stay 24 × 16.
+    run("32x20", false);
+    assert_eq!(size_of("f_00.exr"), (24, 16));
+    std::fs::write(out.join("f_01.exr"), b"not an exr").unwrap();
+    // Every EXR is of the wrong size or damaged: all three frames again.
+    let text = run("32x20", true);
+    assert!(!text.contains("skipped"), "{text}");
+    for n in ["f_00.exr", "f_01.exr", "f_02.exr"] {
+        assert_eq!(size_of(n), (32, 20), "{n}");
+    }
+    // Now whole: nothing to render.
+    let text = run("32x20", true);
+    assert!(text.contains("nothing to render"), "{text}");
+}
