@@ -126,7 +126,8 @@ struct AccuracyArgs {
 
 #[derive(Subcommand)]
 enum Ingest {
-    /// SEG-Y rev 0/1/2 post-stack cube (sample formats 1, 2, 3, 5, 6, 8, 10, 11, 16).
+    /// SEG-Y rev 0/1/2 cube (sample formats 1, 2, 3, 5, 6, 7, 8, 9, 10, 11, 12, 15, 16;
+    /// pre-stack with --offset or --stack).
     Segy(SegyArgs),
     /// Headerless raw volume, x fastest, then y, then z.
     Raw(RawArgs),

@@ -122,15 +122,13 @@ fn complete(scene: &Scene, f: &FramePlan, width: u32, height: u32) -> bool {
         let tiles = image_out::tile_files(&g, &f.png, f.exr.as_deref());
         return tiles.iter().all(|t| {
             png_complete(&t.png, g.tile_w, g.tile_h)
-                && t
-                    .exr
+                && t.exr
                     .as_ref()
                     .is_none_or(|e| exr_complete(e, g.tile_w, g.tile_h))
         }) && (!wall.preview || png_complete(&f.png, pw, ph));
     }
     png_complete(&f.png, width, height)
-        && f
-            .exr
+        && f.exr
             .as_ref()
             .is_none_or(|e| exr_complete(e, width, height))
 }
@@ -493,7 +491,10 @@ impl RenderSummary {
             out += &serde_json::to_string(&v)?;
             out.push('\n');
         }
-        for (frame, workers) in self.frames.iter().enumerate() {
+        for (i, workers) in self.frames.iter().enumerate() {
+            // The sequence's frame number, as the frame lines carry it (with `--frames` or a
+            // resume, not the count of frames this run rendered).
+            let frame = self.sequence.get(i).map_or(i as u64, |f| f.frame as u64);
             for w in workers {
                 let mut v = serde_json::to_value(w)?;
                 // The per-page shares fed the re-split (and are dropped after it).
@@ -932,4 +933,47 @@ pub fn display(p: &Path) -> String {
 /// network and may be anything.
 fn saturating_total(counts: impl Iterator<Item = u64>) -> u64 {
     counts.fold(0, u64::saturating_add)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The worker lines of `--stats` carry the sequence's frame numbers, as the frame lines
+    /// do (with `--frames 10..12` they had counted 0, 1).
+    #[test]
+    fn worker_lines_carry_the_sequence_frame_number() {
+        let frame = |n: u32| FrameSummary {
+            frame: n,
+            output: format!("f_{n}.png"),
+            seconds: 0.0,
+            rounds: 1,
+            outcome: "converged".into(),
+            samples: 0,
+            occluded_blocks: 0,
+            fixup_blocks: 0,
+            effects: String::new(),
+            variant: String::new(),
+        };
+        let worker = |rank: u32| WorkerFrameStats {
+            rank,
+            ..Default::default()
+        };
+        let s = RenderSummary {
+            sequence: vec![frame(10), frame(11)],
+            frames: vec![vec![worker(0), worker(1)], vec![worker(0), worker(1)]],
+            ..Default::default()
+        };
+        let lines = s.json_lines().unwrap();
+        let workers: Vec<serde_json::Value> = lines
+            .lines()
+            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+            .filter(|v| v["kind"] == "worker")
+            .collect();
+        let frames: Vec<u64> = workers
+            .iter()
+            .map(|v| v["frame"].as_u64().unwrap())
+            .collect();
+        assert_eq!(frames, [10, 10, 11, 11]);
+    }
 }
