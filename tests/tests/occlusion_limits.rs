@@ -234,4 +234,26 @@ fn the_recast_of_a_regions_first_frame_converges_under_rounds_per_frame() {
     // A later frame of the same region takes the budget of a seen region.
     let r = e.render_batch_limited(&view, &region, None).unwrap();
     assert_eq!(r.rounds, 1);
+
+    // A worker with two leaves casts both, then re-casts the first: its re-cast takes that
+    // leaf's first-frame budget too, not the seen budget the other leaf's cast left behind
+    // (it had stopped at the round limit).
+    let mut e = Engine::new(&s).unwrap();
+    let halves = {
+        let mut t = strata_common::kd::KdTree::single(region);
+        t.split_leaf(0, 0, 0.5 * (region.lo[0] + region.hi[0]));
+        t.leaves
+    };
+    for leaf in &halves {
+        let r = e.render_batch_limited(&view, leaf, Some(first)).unwrap();
+        assert_eq!(r.outcome, Outcome::Converged, "{:?}", r.reports);
+    }
+    let r = e
+        .render_batch_limited(&view, &halves[0], Some(again))
+        .unwrap();
+    assert_eq!(r.outcome, Outcome::Converged, "{:?}", r.reports);
+    assert!(
+        r.rounds > 1,
+        "the re-cast needed no page: the test shows nothing"
+    );
 }

@@ -10,7 +10,7 @@ use crate::horizon::HorFrame;
 use crate::raycast::{Bands, CastStats, FrameSetup};
 use crate::volume::VolFrame;
 use anyhow::{bail, Context, Result};
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 use std::time::{Duration, Instant};
 use strata_common::camera::{default_camera, View};
 use strata_common::effects::{EffectSet, Variant};
@@ -142,10 +142,12 @@ pub struct Engine {
     /// Regions rendered in batch mode so far: a region's first batch converges whatever
     /// `render.rounds_per_frame` says.
     seen_regions: HashSet<[u64; 7]>,
-    /// The last batch's region key and whether it had been seen before it: a re-cast of
-    /// some of its blocks (cross-worker occlusion's fix-up, in the same frame) takes the
-    /// same round budget as the frame's first cast, not the budget of a seen region.
-    last_batch: Option<([u64; 7], bool)>,
+    /// Each region's last first cast (a batch that is not a re-cast) and whether the region
+    /// had been seen before it: a re-cast of some of its blocks (cross-worker occlusion's
+    /// fix-up, in the same frame) takes the same round budget as the frame's first cast of
+    /// that region, not the budget of a seen region, whichever of a worker's leaves was
+    /// cast last.
+    first_casts: HashMap<[u64; 7], bool>,
     gpu: Option<GpuBackend>,
     /// Effects compiled into every frame's code beyond its own (all of them when
     /// `render.variant = "general"`). The feature-cost benchmark sets single effects here
@@ -387,7 +389,7 @@ impl Engine {
             tile_cpu_clock: false,
             frame_no: 0,
             seen_regions: HashSet::new(),
-            last_batch: None,
+            first_casts: HashMap::new(),
             extra_effects: match s.variant {
                 CodePath::Specialised => EffectSet::NONE,
                 CodePath::General => EffectSet::ALL,
@@ -1097,13 +1099,17 @@ impl Engine {
         // a region its first-frame rounds again.)
         if self.seen_regions.len() >= 4096 {
             self.seen_regions.clear();
+            self.first_casts.clear();
         }
         let recast = limits.as_ref().is_some_and(|l| l.only.is_some());
-        let seen = match self.last_batch {
-            Some((k, seen)) if recast && k == key => seen,
-            _ => !self.seen_regions.insert(key),
+        let seen = match self.first_casts.get(&key) {
+            Some(&seen) if recast => seen,
+            _ => {
+                let seen = !self.seen_regions.insert(key);
+                self.first_casts.insert(key, seen);
+                seen
+            }
         };
-        self.last_batch = Some((key, seen));
         let rpf = self.settings.rounds_per_frame;
         let max_rounds = if seen && rpf > 0 {
             rpf.min(self.settings.max_rounds)
