@@ -476,7 +476,10 @@ fn touching(ctx: &Ctx) -> Res<f64> {
 }
 
 fn horizon_in_split_plane(ctx: &Ctx) -> Res<f64> {
-    let v = volume(ctx, "v", [16, 16, 48], Affine3::IDENTITY, 32, smooth);
+    // Four bricks deep, so that the coordinator's split across z snaps to a brick face (an
+    // f32 the horizon can lie on exactly): with two, each brick is more than a split's
+    // snapping allows, and the plane goes through one.
+    let v = volume(ctx, "v", [16, 16, 120], Affine3::IDENTITY, 32, smooth);
     let mk = |h: f32| {
         let p = flat(ctx, &format!("h{h}"), 16, h, |_, _| false);
         let mut r = settings(48, 40);
@@ -485,8 +488,8 @@ fn horizon_in_split_plane(ctx: &Ctx) -> Res<f64> {
             vec![seismic(v.clone(), [-1.0, 1.0])],
             vec![solid(p, [0.9, 0.8, 0.2], 0.6)],
             camera(
-                [-25.0, -20.0, 60.0],
-                [7.5, 7.5, 23.5],
+                [-25.0, -20.0, 96.0],
+                [7.5, 7.5, 59.5],
                 [0.0, 0.0, 1.0],
                 45.0,
             ),

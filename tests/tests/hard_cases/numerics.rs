@@ -11,7 +11,9 @@ pub fn cases() -> Vec<Case> {
         Case {
             no: 14,
             name: "alpha-saturating-to-1",
-            reference: "analytic: alpha exactly 1 and the map's colour, with and without early termination",
+            reference: "analytic: alpha exactly 1 and the map's colour, with and without early termination \
+                        (distributed at t = 0.99: within 1 − t, as regions that each stop at t \
+                        may overshoot when a split cuts the slab)",
             tol: 1e-6,
             why: "1 − (1 − 1)·x is exact; a sum that overshot 1 or a colour above alpha would show",
             long_rays: false,
@@ -126,6 +128,9 @@ fn saturating(ctx: &Ctx) -> Res<f64> {
             let mut s = slab_scene(ctx, &format!("s{a}{ert}"), [32, 32, 32], a, -50.0, 9, 15.0);
             s.render.early_termination = ert;
             let img = ctx.render(&s)?;
+            // Each region stops its rays at t on its own: where a split plane cuts the slab,
+            // the region behind adds up to 1 − t (the distributed bound; exact at t = 1).
+            let allowed = if ctx.in_process() { 0.0 } else { 1.0 - ert };
             for p in &img {
                 let want = if a == 1.0 || ert == 1.0 {
                     [0.5, 0.5, 0.5, 1.0]
@@ -133,7 +138,7 @@ fn saturating(ctx: &Ctx) -> Res<f64> {
                     // Early termination stops once alpha reaches 0.99: 1 - 0.1^2.
                     [0.495, 0.495, 0.495, 0.99]
                 };
-                err = err.max(err4(*p, want));
+                err = err.max((err4(*p, want) - allowed).max(0.0));
             }
         }
     }
