@@ -124,3 +124,58 @@ fn prefetch_never_evicts_real_requests_evict_lru_and_go_first() {
     );
     assert!(cache.contains(*real));
 }
+
+/// A wait that times out reports the loads still out; should one of them fail later, its
+/// error belongs to that wait, not to the next one (which had failed with another round's
+/// message). Asked for again, the page's error is reported again.
+#[test]
+fn a_load_error_after_a_timed_out_wait_does_not_fail_the_next_wait() {
+    use std::os::unix::fs::FileExt;
+    let dir = TempDir::new().unwrap();
+    let (store, _) = store_of_pages(dir.path());
+    let path = dir.path().join("v.strata");
+    let bad = *store
+        .index()
+        .iter()
+        .find(|e| e.has_payload() && e.id.level() == 0)
+        .unwrap();
+    let good = store
+        .index()
+        .iter()
+        .find(|e| e.has_payload() && e.id != bad.id)
+        .unwrap()
+        .id
+        .0;
+    drop(store);
+    let f = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(&path)
+        .unwrap();
+    let mut b = [0u8];
+    f.read_exact_at(&mut b, bad.offset + 7).unwrap();
+    f.write_all_at(&[b[0] ^ 0x40], bad.offset + 7).unwrap();
+    let store = Arc::new(PageStore::open(&path).unwrap());
+    let mut timed_out = false;
+    for _ in 0..50 {
+        let cache = PageCache::new(vec![store.clone()], 1 << 30, 1);
+        cache.request(bad.id.0, Class::Real, 1.0);
+        match cache.wait_real(Duration::ZERO) {
+            Err(e) if e.contains("did not finish") => {}
+            _ => continue, // the load finished first: try again
+        }
+        timed_out = true;
+        cache.request(good, Class::Real, 1.0);
+        cache.wait_real(Duration::from_secs(60)).unwrap();
+        assert!(cache.get(good).is_some());
+        // Asked for again: its own error.
+        cache.request(bad.id.0, Class::Real, 1.0);
+        let e = cache.wait_real(Duration::from_secs(60)).unwrap_err();
+        assert!(e.contains("checksum") || e.contains("crc"), "{e}");
+        break;
+    }
+    assert!(
+        timed_out,
+        "every load finished before a zero wait: the test shows nothing"
+    );
+}

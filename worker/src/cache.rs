@@ -88,6 +88,10 @@ struct State {
     seq: u64,
     stats: CacheStats,
     errors: Vec<String>,
+    /// Real requests outstanding when a wait for them timed out: that wait reported them
+    /// (as the timeout), so their errors, should they fail later, are not a later round's;
+    /// asked for again, a key counts anew.
+    abandoned: HashSet<u64>,
     shutdown: bool,
 }
 
@@ -203,6 +207,9 @@ impl PageCache {
                 return;
             }
         }
+        if class == Class::Real {
+            st.abandoned.remove(&key);
+        }
         if class == Class::Real && st.pending.get(&key) != Some(&Class::Real) {
             st.real_outstanding += 1;
             st.stats.misses += 1;
@@ -261,6 +268,16 @@ impl PageCache {
         while st.real_outstanding > 0 {
             let now = Instant::now();
             if now >= deadline {
+                // This wait reports the loads still out, and every error so far: none of
+                // them is to fail a later wait.
+                let out: Vec<u64> = st
+                    .pending
+                    .iter()
+                    .filter(|&(_, &c)| c == Class::Real)
+                    .map(|(&k, _)| k)
+                    .collect();
+                st.abandoned.extend(out);
+                st.errors.clear();
                 return Err(format!(
                     "page loads did not finish within {:?} ({} outstanding)",
                     timeout, st.real_outstanding
@@ -440,12 +457,13 @@ fn loader(shared: Arc<Shared>) {
                 );
             }
             Err(e) => {
-                if real {
+                if real && !st.abandoned.contains(&job.key) {
                     st.errors.push(format!("{e:#}"));
                 }
             }
         }
         if real {
+            st.abandoned.remove(&job.key);
             st.real_outstanding -= 1;
         }
         drop(st);
