@@ -12,7 +12,7 @@
 #   git apply "$OLDPWD/bench/baseline-c8b4383.patch" &&
 #   ln -s "$OLDPWD/configs/synthetic" configs/synthetic &&
 #   CARGO_TARGET_DIR=/tmp/before-target cargo build --release -p strata-bench
-set -eu
+set -euo pipefail
 BEFORE=${1:?path to the baseline bench-render}
 OUT=${2:-/tmp/strata-caster-side-by-side}
 HERE=$(cd "$(dirname "$0")/.." && pwd)

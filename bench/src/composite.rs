@@ -108,12 +108,8 @@ struct Row {
     icet_ms: f64,
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v[v.len() / 2]
+fn median(v: Vec<f64>) -> f64 {
+    strata_common::stats::median(&v)
 }
 
 /// MiB/s of one QUIC stream between two endpoints on 127.0.0.1 (256 MiB in 1 MiB writes).

@@ -76,9 +76,8 @@ fn cpu_seconds() -> f64 {
 
 /// Median over rounds of `b / a − 1`, in per cent.
 fn paired_cost(a: &Run, b: &Run) -> f64 {
-    let mut r: Vec<f64> = a.times.iter().zip(&b.times).map(|(x, y)| y / x).collect();
-    r.sort_by(|x, y| x.total_cmp(y));
-    100.0 * (r[r.len() / 2] - 1.0)
+    let r: Vec<f64> = a.times.iter().zip(&b.times).map(|(x, y)| y / x).collect();
+    100.0 * (strata_common::stats::median(&r) - 1.0)
 }
 
 /// Converges every engine, then renders `frames` rounds of one frame each, the order
@@ -116,10 +115,8 @@ fn interleaved(configs: &[(&Scene, EffectSet)], frames: usize) -> Result<Vec<Run
         .zip(last)
         .map(|(t, f)| {
             let f = f.expect("every engine rendered");
-            let mut sorted = t.clone();
-            sorted.sort_by(|a, b| a.total_cmp(b));
             Run {
-                median: sorted[sorted.len() / 2],
+                median: strata_common::stats::median(&t),
                 times: t,
                 samples: f.stats.samples,
                 image: f.image.to_full(),

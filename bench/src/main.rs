@@ -182,10 +182,9 @@ pub(crate) fn time_scene(scene: &Scene, frames: usize) -> Result<Timed> {
         times.push(f.seconds);
         last = Some(f);
     }
-    times.sort_by(|a, b| a.total_cmp(b));
     let f = last.unwrap();
     Ok(Timed {
-        median: times[times.len() / 2],
+        median: strata_common::stats::median(&times),
         samples: f.stats.samples,
         skipped: f.stats.skipped,
         rays: f.stats.rays,
@@ -281,7 +280,7 @@ fn bonsai(cli: &Cli) -> Result<()> {
     println!("|---|---|---|---|---|");
     type Tweak = fn(&mut RenderSettings);
     let variants: Vec<(&str, Tweak)> = vec![
-        ("default (step 1, ERT 0.99, adaptive, τ 1)", |_| {}),
+        ("default (step 1, ERT 0.99, adaptive, τ 0.5)", |_| {}),
         ("step 0.5", |s| s.step = 0.5),
         ("step 2", |s| s.step = 2.0),
         ("ERT off (1.0)", |s| s.early_termination = 1.0),
@@ -387,8 +386,7 @@ fn cpu_vs_gpu(cli: &Cli) -> Result<()> {
                     times.push(f.seconds);
                     last = Some(f);
                 }
-                times.sort_by(|a, b| a.total_cmp(b));
-                let med = times[times.len() / 2];
+                let med = strata_common::stats::median(&times);
                 let f = last.unwrap();
                 let img = f.image.to_full();
                 let (diff, speed) = match &cpu_row {

@@ -255,7 +255,11 @@ fn main() -> Result<()> {
             .iter()
             .zip(&b)
             .flat_map(|(p, q)| (0..4).map(move |c| (p[c] - q[c]).abs()))
-            .fold(0.0f32, f32::max);
+            // A NaN difference is a failure (`f32::max` would drop it).
+            .fold(
+                0.0f32,
+                |m, d| if d.is_nan() { f32::INFINITY } else { m.max(d) },
+            );
         worst = worst.max(d);
         if a.len() == b.len() && d <= 1e-5 {
             correct += 1;
@@ -268,9 +272,7 @@ fn main() -> Result<()> {
         .filter(|v| v["kind"] == "frame")
         .filter_map(|v| v["seconds"].as_f64())
         .collect();
-    let mut sorted = frame_s.clone();
-    sorted.sort_by(f64::total_cmp);
-    let median = sorted.get(sorted.len() / 2).copied().unwrap_or(0.0);
+    let median = strata_common::stats::median(&frame_s);
     let summary: serde_json::Value =
         serde_json::from_str(stats.lines().last().context("empty stats")?)?;
     let lost = summary["lost_workers"]

@@ -29,6 +29,20 @@ pub const PERCENTILES: [f64; 7] = [0.5, 1.0, 5.0, 50.0, 95.0, 99.0, 99.5];
 /// Percentiles of the magnitudes stored at ingest.
 pub const ABS_PERCENTILES: [f64; 5] = [50.0, 90.0, 99.0, 99.5, 99.9];
 
+/// The median of `v`: the middle value, or the mean of the two middle values of an even
+/// count (as Python's `statistics.median`, which the baselines' scripts use); `NaN` for
+/// none. NaN entries sort last (`total_cmp`).
+pub fn median(v: &[f64]) -> f64 {
+    let mut v = v.to_vec();
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    match n {
+        0 => f64::NAN,
+        _ if n % 2 == 1 => v[n / 2],
+        _ => 0.5 * (v[n / 2 - 1] + v[n / 2]),
+    }
+}
+
 /// The bin of a finite value: monotone in the value.
 #[inline]
 pub fn bin(v: f32) -> u32 {
@@ -174,6 +188,14 @@ impl ValueStats {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn median_averages_the_middle_pair_of_an_even_count() {
+        assert_eq!(median(&[3.0, 1.0, 2.0]), 2.0);
+        assert_eq!(median(&[4.0, 1.0, 3.0, 2.0]), 2.5);
+        assert!(median(&[]).is_nan());
+        assert_eq!(median(&[7.0]), 7.0);
+    }
     use proptest::prelude::*;
 
     fn nearest_rank(sorted: &[f32], p: f64) -> f64 {

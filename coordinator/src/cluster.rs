@@ -1524,7 +1524,7 @@ impl Cluster {
     /// over the ranks left; returns the new assignment.
     async fn drop_workers(&mut self, lost: &[u32]) -> Vec<Assignment> {
         for &r in lost {
-            let w = &self.workers[r as usize];
+            let w = &mut self.workers[r as usize];
             if self.child_pids.contains(&w.pid) {
                 // SAFETY: a plain syscall on our own child process (it may be stopped).
                 unsafe {
@@ -1532,6 +1532,8 @@ impl Cluster {
                 }
             }
             w.conn.close(7u32.into(), b"lost");
+            // Its gather segment goes with it (the mapping would keep the memory alive).
+            w.shm = None;
         }
         self.slots.retain(|r| !lost.contains(r));
         self.awaiting_replacement = true;

@@ -652,6 +652,7 @@ async fn mesh(
         timeout,
         gather_shm: None,
         canvases: Vec::new(),
+        canvas_used: std::collections::HashMap::new(),
         suspects: Vec::new(),
         deferred: Default::default(),
         front_last: None,
@@ -960,6 +961,8 @@ struct Node {
     gather_shm: Option<ShmWriter>,
     /// The coordinator's canvases this worker has mapped, most recent last.
     canvases: Vec<CanvasWriter>,
+    /// The last frame that asked for each canvas (by name).
+    canvas_used: std::collections::HashMap<String, u64>,
     /// The peers the last failed frame is blamed on (reported to the coordinator).
     suspects: Vec<u32>,
     /// Control messages that arrived during a frame, for after it.
@@ -1040,7 +1043,23 @@ impl Node {
     fn take_canvas(&mut self, req: &FrameRequest, c: &wire::CanvasRef) -> Result<CanvasWriter> {
         /// Canvases kept mapped (the coordinator rotates two while callers hold images).
         const KEEP: usize = 4;
+        /// Frames after which a canvas not asked for is let go: the coordinator uses each
+        /// of its live canvases every other frame or so, and drops a failed attempt's and
+        /// those of another size, which a mapping here would keep from being freed (a
+        /// live one let go is only mapped again).
+        const STALE: u64 = 4;
         let size = (req.width, req.height);
+        let used = &mut self.canvas_used;
+        used.insert(c.name.clone(), req.frame);
+        self.canvases.retain(|w| {
+            let recent = used
+                .get(w.name())
+                .is_some_and(|&f| f.saturating_add(STALE) >= req.frame);
+            w.size() == size && recent
+        });
+        let live: std::collections::HashSet<&str> =
+            self.canvases.iter().map(|w| w.name()).collect();
+        used.retain(|n, _| n == &c.name || live.contains(n.as_str()));
         if let Some(i) = self
             .canvases
             .iter()

@@ -141,9 +141,7 @@ impl Resident {
 }
 
 fn median(v: &[f64]) -> f64 {
-    let mut v = v.to_vec();
-    v.sort_by(|a, b| a.total_cmp(b));
-    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+    strata_common::stats::median(v)
 }
 
 /// Times `frames` frames of `point` interleaved with as many of `defaults` (the machine's
