@@ -74,6 +74,10 @@ pub struct Point {
     /// It rendered the defaults' image bit for bit from as many samples (the same work):
     /// its time cannot put the defaults off the Pareto front.
     pub same_work: bool,
+    /// Its time is a ratio to the defaults' measured side by side (every in-process point);
+    /// a point timed alone (the distributed ones) is shown but left off the Pareto front
+    /// and the verdict.
+    pub side_by_side: bool,
 }
 
 /// An image and how it was made.
@@ -347,6 +351,7 @@ pub fn run(opts: &StudyOptions, progress: &ProgressBar) -> Result<Vec<Point>> {
         backend: r.backend.clone(),
         note: ref_note,
         same_work: false,
+        side_by_side: false,
     }];
     let reference = r.image;
 
@@ -370,6 +375,7 @@ pub fn run(opts: &StudyOptions, progress: &ProgressBar) -> Result<Vec<Point>> {
         backend: d.backend.clone(),
         note: d.note.clone(),
         same_work: true,
+        side_by_side: true,
     });
     let mut ratios: Vec<Option<f64>> = vec![None, Some(1.0)];
     progress.inc(1);
@@ -396,6 +402,7 @@ pub fn run(opts: &StudyOptions, progress: &ProgressBar) -> Result<Vec<Point>> {
                     backend: String::new(),
                     note: format!("skipped: {e:#}"),
                     same_work: false,
+                    side_by_side: false,
                 });
                 ratios.push(None);
                 continue;
@@ -434,6 +441,7 @@ pub fn run(opts: &StudyOptions, progress: &ProgressBar) -> Result<Vec<Point>> {
             backend: m.backend,
             note,
             same_work,
+            side_by_side: m.ratio.is_some(),
         });
         ratios.push(m.ratio);
     }
@@ -442,6 +450,12 @@ pub fn run(opts: &StudyOptions, progress: &ProgressBar) -> Result<Vec<Point>> {
     for (p, r) in out.iter_mut().zip(&ratios) {
         if let Some(r) = r {
             p.seconds = r * base_s;
+        } else if p.seconds.is_finite() && p.knob != "reference" {
+            if !p.note.is_empty() {
+                p.note.push_str("; ");
+            }
+            p.note
+                .push_str("timed alone, not side by side: left off the front and the verdict");
         }
     }
     report::write(opts, &base, &out)?;

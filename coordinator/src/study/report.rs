@@ -61,7 +61,7 @@ fn stem(knob: &str) -> String {
 /// `None` without a measured defaults point.
 fn verdict(points: &[Point]) -> Option<Result<(), usize>> {
     let rivals: Vec<usize> = (1..points.len())
-        .filter(|&i| points[i].seconds.is_finite())
+        .filter(|&i| points[i].seconds.is_finite() && points[i].side_by_side)
         .filter(|&i| points[i].knob == "defaults" || !points[i].same_work)
         .collect();
     let xy: Vec<(f64, f64)> = rivals
@@ -77,7 +77,7 @@ pub(crate) fn write(opts: &StudyOptions, scene: &Scene, points: &[Point]) -> Res
     write_atomic(&opts.out.join("points.csv"), &csv_text(points)?)?;
     // The front over the measured points (the reference is slow by design; it is left out).
     let idx: Vec<usize> = (1..points.len())
-        .filter(|&i| points[i].seconds.is_finite())
+        .filter(|&i| points[i].seconds.is_finite() && points[i].side_by_side)
         .collect();
     let xy: Vec<(f64, f64)> = idx
         .iter()
@@ -138,7 +138,7 @@ pub(crate) fn write(opts: &StudyOptions, scene: &Scene, points: &[Point]) -> Res
          each frame interleaved with one of the defaults (which stay resident all along): its \
          time is the median ratio of its frames to the defaults' frames, times the defaults' \
          median over the whole study (the distributed points are one batch frame timed \
-         alone). Errors are against the reference, in premultiplied linear RGBA (RMSE over \
+         alone, and so are left off the Pareto front and the verdict). Errors are against the reference, in premultiplied linear RGBA (RMSE over \
          all pixels and channels, largest channel error) and as 1 − SSIM of the displayed \
          image (11-tap Gaussian SSIM of the sRGB luma over the background; 0 = identical).\n",
         opts.scene.display(),
@@ -264,6 +264,7 @@ mod tests {
             backend: String::new(),
             note: String::new(),
             same_work,
+            side_by_side: true,
         }
     }
 
@@ -282,6 +283,10 @@ mod tests {
         // Within the slack it does not; the reference never counts.
         p[3].seconds = 9.7;
         p[0].seconds = 1.0;
+        assert_eq!(verdict(&p), Some(Ok(())));
+        // A point timed alone (a distributed one) cannot beat them, however fast.
+        p[3].seconds = 1.0;
+        p[3].side_by_side = false;
         assert_eq!(verdict(&p), Some(Ok(())));
         p.remove(1);
         assert_eq!(verdict(&p), None);
