@@ -75,6 +75,11 @@ enum Sub {
 /// strategy (radix-kr) with ordered float blending at 1920x1080: (p, dense, sparse).
 const ICET: [(usize, f64, f64); 3] = [(2, 20.89, 6.74), (4, 26.82, 9.83), (8, 49.1, 13.79)];
 
+/// The frame IceT's numbers are of, and the sparse coverage compared with them (the
+/// default `--sparse-coverage`): other runs print no IceT column.
+const ICET_SIZE: (u32, u32) = (1920, 1080);
+const ICET_SPARSE_COVERAGE: f32 = 0.2;
+
 #[derive(serde::Serialize, Clone)]
 struct Row {
     procs: usize,
@@ -307,9 +312,12 @@ fn main() -> Result<()> {
                         let n = cli.frames as f64;
                         let image_bytes = (w as f64) * (h as f64) * wire.bytes_per_pixel() as f64;
                         let bound = image_bytes * (1.0 - 1.0 / p as f64);
+                        // IceT's numbers are of its own frame and coverage only.
+                        let comparable = (w, h) == ICET_SIZE
+                            && (coverage >= 1.0 || coverage == ICET_SPARSE_COVERAGE);
                         let icet = ICET
                             .iter()
-                            .find(|i| i.0 == p)
+                            .find(|i| i.0 == p && comparable)
                             .map_or(f64::NAN, |i| if coverage >= 1.0 { i.1 } else { i.2 });
                         let row = Row {
                             procs: p,
@@ -404,7 +412,7 @@ fn main() -> Result<()> {
         }
     }
     if let Some(p) = &cli.svg {
-        std::fs::write(p, svg(&rows))?;
+        std::fs::write(p, svg(&rows, (w, h)))?;
         println!("\nwrote {}", p.display());
     }
     Ok(())
@@ -412,7 +420,7 @@ fn main() -> Result<()> {
 
 /// A grouped bar chart: compositing time (with assembly) of every configuration, with
 /// IceT's as a line.
-fn svg(rows: &[Row]) -> String {
+fn svg(rows: &[Row], (w, h): (u32, u32)) -> String {
     let bar = 9.0;
     let gap = 14.0;
     let left = 60.0;
@@ -431,14 +439,31 @@ fn svg(rows: &[Row]) -> String {
         ("direct-send", _) => "#aec7e8",
         ("binary-swap", "f32") => "#d62728",
         ("binary-swap", _) => "#ff9896",
-        (_, "f32") => "#2ca02c",
-        _ => "#98df8a",
+        ("radix-k", "f32") => "#2ca02c",
+        ("radix-k", _) => "#98df8a",
+        (_, "f32") => "#9467bd",
+        _ => "#c5b0d5",
     };
+    // IceT's line over a group's bars, drawn once the group's width is known.
+    let icet_line = |start: f64, end: f64, icet: f64| {
+        if icet.is_finite() {
+            let y = top + height - icet / max * height;
+            format!(
+                "<line x1='{:.1}' x2='{:.1}' y1='{y:.1}' y2='{y:.1}' stroke='black' stroke-dasharray='3,2'/>\n",
+                start - 2.0,
+                end + 2.0
+            )
+        } else {
+            String::new()
+        }
+    };
+    let mut group_icet = f64::NAN;
     let mut group_start = x;
     let mut last: Option<(usize, &str, &str)> = None;
     for r in rows {
         let key = Some((r.procs, r.transport.as_str(), r.density));
         if last.is_some() && last != key {
+            body += &icet_line(group_start, x, group_icet);
             x += gap;
             group_start = x;
         }
@@ -453,14 +478,7 @@ fn svg(rows: &[Row]) -> String {
                 top + height + 25.0,
                 r.transport
             );
-            if r.icet_ms.is_finite() {
-                let y = top + height - r.icet_ms / max * height;
-                body += &format!(
-                    "<line x1='{:.1}' x2='{:.1}' y1='{y:.1}' y2='{y:.1}' stroke='black' stroke-dasharray='3,2'/>\n",
-                    group_start - 2.0,
-                    group_start + 6.0 * bar + 2.0
-                );
-            }
+            group_icet = r.icet_ms;
         }
         let hgt = r.assembled_ms / max * height;
         body += &format!(
@@ -471,11 +489,12 @@ fn svg(rows: &[Row]) -> String {
             r.algorithm,
             r.wire,
             r.density,
-            r.composite_ms
+            r.assembled_ms
         );
         x += bar;
         last = key;
     }
+    body += &icet_line(group_start, x, group_icet);
     let width = x + 200.0;
     let mut axis = String::new();
     for i in 0..=5 {
@@ -495,6 +514,8 @@ fn svg(rows: &[Row]) -> String {
         ("binary-swap f16", "#ff9896"),
         ("radix-k f32", "#2ca02c"),
         ("radix-k f16", "#98df8a"),
+        ("gather f32", "#9467bd"),
+        ("gather f16", "#c5b0d5"),
     ]
     .iter()
     .enumerate()
@@ -509,9 +530,9 @@ fn svg(rows: &[Row]) -> String {
     })
     .collect();
     format!(
-        "<svg xmlns='http://www.w3.org/2000/svg' width='{width:.0}' height='{:.0}' font-family='sans-serif'>\n<rect width='100%' height='100%' fill='white'/>\n<text x='{left}' y='16' font-size='13'>Compositing time per frame at 1920x1080, ms (dashed: IceT 2.2 radix-kr, float)</text>\n{axis}{body}{legend}<text x='{:.1}' y='{:.1}' font-size='11'>- - IceT</text>\n</svg>\n",
+        "<svg xmlns='http://www.w3.org/2000/svg' width='{width:.0}' height='{:.0}' font-family='sans-serif'>\n<rect width='100%' height='100%' fill='white'/>\n<text x='{left}' y='16' font-size='13'>Compositing time per frame with the assembly at {w}x{h}, ms (dashed: IceT 2.2 radix-kr, float, at 1920x1080)</text>\n{axis}{body}{legend}<text x='{:.1}' y='{:.1}' font-size='11'>- - IceT</text>\n</svg>\n",
         top + height + 30.0,
         x + 20.0,
-        top + 14.0 * 6.0 + 9.0
+        top + 14.0 * 8.0 + 9.0
     )
 }
