@@ -28,6 +28,8 @@ mkdir -p "$OUT"
 for m in $MODES; do
   if [ "$m" = in-process ]; then mode=(--in-process); else mode=(--workers "$m"); fi
   rm -rf "$OUT/$m" && mkdir -p "$OUT/$m"
+  # Every mode's first frame reads its pages cold, not from an earlier mode's page cache.
+  python3 bench/drop-page-cache.py "$SCENE"
   /usr/bin/time -v -o "$OUT/$m.time" "$COORDINATOR" -q render "$SCENE" "${mode[@]}" \
     --size "$SIZE" --orbit "$ORBIT" -o "$OUT/$m/f_%05d.png" --stats "$OUT/$m.jsonl" "$@" >/dev/null 2>&1
 done

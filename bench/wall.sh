@@ -30,6 +30,8 @@ mkdir -p "$OUT"
 for w in 0 $WS; do
   if [ "$w" = 0 ]; then mode=(--in-process); name=in-process; else mode=(--workers "$w"); name="w$w"; fi
   rm -rf "$OUT/$name" && mkdir -p "$OUT/$name"
+  # Every run's first frame reads its pages cold, not from an earlier run's page cache.
+  python3 bench/drop-page-cache.py "$SCENE"
   /usr/bin/time -v -o "$OUT/$name.time" "$COORDINATOR" -q render "$SCENE" "${mode[@]}" \
     --orbit "$ORBIT" --frames "0..$FRAMES" -o "$OUT/$name/f_%05d.png" \
     --stats "$OUT/$name.jsonl" "$@" >/dev/null

@@ -464,7 +464,7 @@ fn survey(cli: &Cli) -> Result<()> {
     println!("| rounds | outcome | batch time | cast time | load time | pages read | MiB read | cache hit rate | last frame | samples | samples/s | peak RSS |");
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
     println!(
-        "| {} | {:?} | {:.2} s | {:.2} s | {:.2} s | {} | {:.0} | {:.1}% | {:.0} ms | {} | {:.0} M/s | {:.0} MiB |",
+        "| {} | {:?} | {:.2} s | {:.2} s | {:.2} s | {} | {:.0} | {:.1}% | {:.0} ms | {} | {:.0} M/s | {} |",
         b.rounds,
         b.outcome,
         total,
@@ -476,7 +476,12 @@ fn survey(cli: &Cli) -> Result<()> {
         b.last_seconds * 1e3,
         b.last.samples,
         b.last.samples as f64 / b.last_seconds / 1e6,
-        peak_rss_mib()
+        // The process's high-water mark: the survey's own only when nothing ran before it.
+        if cli.only_survey {
+            format!("{:.0} MiB", peak_rss_mib())
+        } else {
+            "– (see --only-survey)".to_string()
+        }
     );
     println!();
     println!(
