@@ -195,8 +195,10 @@ mod tests {
         }
 
         #[test]
-        fn morton_order_is_monotone_in_each_axis(x in 0u32..(1 << 14) - 1, y in 0u32..(1 << 14), z in 0u32..(1 << 14)) {
+        fn morton_order_is_monotone_in_each_axis(x in 0u32..(1 << 14) - 1, y in 0u32..(1 << 14) - 1, z in 0u32..(1 << 14) - 1) {
             prop_assert!(morton3_encode(x + 1, y, z) > morton3_encode(x, y, z));
+            prop_assert!(morton3_encode(x, y + 1, z) > morton3_encode(x, y, z));
+            prop_assert!(morton3_encode(x, y, z + 1) > morton3_encode(x, y, z));
         }
 
         #[test]

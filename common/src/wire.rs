@@ -1136,5 +1136,30 @@ mod tests {
                 let _ = decode_header(&h, &Limits::HANDSHAKE);
             }
         }
+
+        /// Sealed headers (magic and CRC right) with arbitrary version, reserved bytes and
+        /// lengths reach every check past the first two: any header that passes holds this
+        /// protocol's version and lengths within the limits.
+        #[test]
+        fn sealed_headers_are_checked_past_the_crc(
+            version in prop_oneof![Just(PROTOCOL_VERSION), any::<u16>()],
+            reserved in any::<[u8; 2]>(),
+            meta in prop_oneof![0u32..64, any::<u32>()],
+            bulk in prop_oneof![0u64..64, any::<u64>()],
+        ) {
+            let mut h = [0u8; HEADER_LEN];
+            h[0..4].copy_from_slice(&MAGIC);
+            h[4..6].copy_from_slice(&version.to_le_bytes());
+            h[6..8].copy_from_slice(&reserved);
+            h[8..12].copy_from_slice(&meta.to_le_bytes());
+            h[12..20].copy_from_slice(&bulk.to_le_bytes());
+            let crc = crc32c::crc32c(&h[0..20]);
+            h[20..24].copy_from_slice(&crc.to_le_bytes());
+            let limits = Limits { max_meta: 32, max_bulk: 32 };
+            if let Ok(f) = decode_header(&h, &limits) {
+                prop_assert_eq!(version, PROTOCOL_VERSION);
+                prop_assert!(f.meta_len <= 32 && f.bulk_len <= 32);
+            }
+        }
     }
 }

@@ -2179,8 +2179,14 @@ fn cross_worker_occlusion_casts_less_and_stays_within_the_termination_bound() {
         );
     }
     assert!(on1_n[1..].iter().all(|f| f.1 > 0), "{on1_n:?}");
-    // GPU workers take the same limits (lavapipe in CI; skipped without an adapter).
+    // GPU workers take the same limits (lavapipe in CI; skipped without an adapter unless
+    // one is required).
     if strata_worker::gpu::list_adapters().is_empty() {
+        assert_ne!(
+            std::env::var("STRATA_REQUIRE_GPU_ADAPTER").as_deref(),
+            Ok("1"),
+            "STRATA_REQUIRE_GPU_ADAPTER=1 but wgpu finds no adapter"
+        );
         eprintln!("NOTICE: GPU workers under occlusion skipped, no wgpu adapter");
         return;
     }

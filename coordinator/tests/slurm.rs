@@ -37,7 +37,14 @@ fn slurm_render_sh_under_sbatch_with_3_workers_equals_in_process() {
         .into_iter()
         .filter(|t| !have(t))
         .collect();
+    // CI (`.ci/run`) requires the test to run: a skip there would pass having tested nothing.
+    let required = std::env::var("STRATA_REQUIRE_SYSTEM_TESTS").as_deref() == Ok("1");
     if !missing.is_empty() {
+        assert!(
+            !required,
+            "STRATA_REQUIRE_SYSTEM_TESTS=1 but {} not installed",
+            missing.join(", ")
+        );
         eprintln!(
             "SKIPPED: {} not installed (apt-get install slurm-wlm munge)",
             missing.join(", ")
@@ -45,6 +52,10 @@ fn slurm_render_sh_under_sbatch_with_3_workers_equals_in_process() {
         return;
     }
     if unsafe { libc::geteuid() } != 0 {
+        assert!(
+            !required,
+            "STRATA_REQUIRE_SYSTEM_TESTS=1 but the test's Slurm daemons need root"
+        );
         eprintln!("SKIPPED: the test's Slurm daemons need root");
         return;
     }

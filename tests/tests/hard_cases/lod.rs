@@ -129,6 +129,13 @@ fn tau_extremes(ctx: &Ctx) -> Res<f64> {
             head_on_camera(),
             r,
         );
+        // The premise: τ picks the level (the constant volume is the same at every level,
+        // so the slab alone could not tell that τ was heeded).
+        let levels = levels_sampled(&s)?;
+        let want_finest = tau < 1.0;
+        if levels.is_empty() || want_finest != (levels.iter().all(|&l| l == 0)) {
+            return Err(format!("τ = {tau:e} sampled levels {levels:?}"));
+        }
         let img = ctx.render(&s)?;
         err = err.max(slab_error(
             &s,
