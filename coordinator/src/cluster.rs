@@ -154,6 +154,44 @@ fn late_ranks(
     }
 }
 
+/// The ranks a worker's `Failed` is blamed on: its suspects in the frame (each once, never
+/// itself), narrowed while occlusion maps are still going out (`waiting_on`: the coverage
+/// by rank of the phase under way). A worker behind the front-most one whose coverage is
+/// missing waits for its map, so its silence is that worker's doing: a peer that names it
+/// (its pieces never came) blames the one it waits on instead. Without the narrowing the
+/// peers of a hung worker blamed the healthy workers stuck behind it, and all were given up.
+fn narrow_suspects(
+    suspects: Vec<u32>,
+    slots: &[u32],
+    order: &[u32],
+    rank: u32,
+    waiting_on: Option<&[Option<Transmittance>]>,
+) -> Vec<u32> {
+    let mut lost: Vec<u32> = suspects
+        .into_iter()
+        .filter(|r| slots.contains(r) && *r != rank)
+        .collect();
+    lost.sort_unstable();
+    lost.dedup();
+    let Some(cov) = waiting_on else {
+        return lost;
+    };
+    // The front-most worker whose coverage is missing (the last sends none).
+    let Some(pb) = order[..order.len().saturating_sub(1)]
+        .iter()
+        .position(|&r| cov.get(r as usize).is_some_and(|c| c.is_none()))
+    else {
+        return lost;
+    };
+    let pos = |r: u32| order.iter().position(|&o| o == r).unwrap_or(usize::MAX);
+    let narrowed: Vec<u32> = lost.iter().copied().filter(|&r| pos(r) <= pb).collect();
+    if narrowed.is_empty() && !lost.is_empty() {
+        vec![order[pb]]
+    } else {
+        narrowed
+    }
+}
+
 /// Whether every rank of `b` has the same ranks in front of it as in `a` (their order among
 /// themselves does not matter to opacity).
 fn same_fronts(a: &[u32], b: &[u32]) -> bool {
@@ -2020,14 +2058,16 @@ impl Cluster {
                             message, suspects, ..
                         }) => {
                             // A worker that failed because peers vanished or stalled blames
-                            // them; only ranks of this frame count.
-                            // Each once: a rank named twice is one loss, not two.
-                            let mut lost: Vec<u32> = suspects
-                                .into_iter()
-                                .filter(|r| slots.contains(r) && *r != rank)
-                                .collect();
-                            lost.sort_unstable();
-                            lost.dedup();
+                            // them; only ranks of this frame count, each once, and not
+                            // those only waiting for an occlusion map.
+                            let waiting_on = if !pre_sent {
+                                Some(&pre_coverage[..])
+                            } else if !maps_sent {
+                                Some(&coverage[..])
+                            } else {
+                                None
+                            };
+                            let lost = narrow_suspects(suspects, &slots, &order, rank, waiting_on);
                             return Err(Failure {
                                 error: anyhow!("frame {frame} failed on {who}: {message}"),
                                 lost,
@@ -2765,6 +2805,43 @@ mod watchdog_tests {
 #[cfg(test)]
 mod blame_tests {
     use super::*;
+
+    /// A worker's suspects while maps are going out: the healthy workers stuck waiting for
+    /// their maps behind a hung one are not given up, the hung one is.
+    #[test]
+    fn suspects_waiting_for_a_map_are_not_blamed_for_it() {
+        let (slots, order) = ([0u32, 1, 2, 3], [0u32, 2, 1, 3]);
+        // Rank 2 (position 1) has not reported its coverage; 1 and 3 wait behind it.
+        let c = cov(&[true, true, false, false]);
+        // Rank 0 names 2, 1 and 3 (no pieces from any): only 2 is blamed.
+        assert_eq!(
+            narrow_suspects(vec![3, 1, 2, 1], &slots, &order, 0, Some(&c)),
+            [2]
+        );
+        // Named without the one they wait on: that one is blamed instead.
+        assert_eq!(
+            narrow_suspects(vec![1, 3], &slots, &order, 0, Some(&c)),
+            [2]
+        );
+        // Once every map went out, the suspects stand as named (each once, never itself).
+        assert_eq!(
+            narrow_suspects(vec![3, 1, 1, 0], &slots, &order, 0, None),
+            [1, 3]
+        );
+        // A suspect in front of the missing coverage is kept (it had its map): rank 1 at
+        // position 2 is missing, 2 (position 1) stays and 3 behind it goes.
+        let c = cov(&[true, false, true, false]);
+        assert_eq!(
+            narrow_suspects(vec![2, 3], &slots, &order, 0, Some(&c)),
+            [2]
+        );
+        // Every coverage in (the last sends none): no narrowing.
+        let c = cov(&[true, true, true, false]);
+        assert_eq!(
+            narrow_suspects(vec![2, 3], &slots, &order, 0, Some(&c)),
+            [2, 3]
+        );
+    }
 
     /// The gather refuses a worker whose final piece is not its part of the plan (an empty
     /// piece would have passed its checks and left a transparent stripe), for every

@@ -196,6 +196,14 @@ const MAX_FRAMES: u32 = 1_000_000;
 /// `coordinator render` makes them before it creates the frames' folder, so a refused
 /// command leaves nothing behind; [`plan_frames`] makes them again.
 pub fn check_sequence(opts: &RenderOptions) -> Result<()> {
+    if opts.mp4 {
+        let scene = overrides::load_scene(&opts.scene, &opts.sets, opts.size)?;
+        anyhow::ensure!(
+            scene.wall.as_ref().is_none_or(|w| w.preview),
+            "--mp4 encodes the -o frames, which a wall writes only with wall.preview = true \
+             (without it each tile is its own file)"
+        );
+    }
     let (n, what) = match (&opts.path, opts.orbit) {
         (Some(p), _) => (
             load_path(p)?.frame_count(),
@@ -271,11 +279,6 @@ fn plan_frames(
             return Ok((vec![one], 0));
         }
     };
-    anyhow::ensure!(
-        !opts.mp4 || scene.wall.as_ref().is_none_or(|w| w.preview),
-        "--mp4 encodes the -o frames, which a wall writes only with wall.preview = true \
-         (without it each tile is its own file)"
-    );
     let (a, b) = opts.frames.unwrap_or((0, n));
     if b > n {
         warn!("--frames {a}..{b}: the sequence has frames 0..{n} ({what}); rendering {a}..{n}");

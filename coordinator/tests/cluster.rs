@@ -838,9 +838,16 @@ fn a_worker_stuck_mid_frame_is_blamed_by_its_peers_before_the_frame_timeout() {
     // connection gives it up. The survivors wait for its pieces until their own frame
     // timeout, shorter than the coordinator's, and blame it; without occlusion nothing
     // else tells the coordinator who hangs (it had blamed all three and ended the run).
-    for occlusion in ["false", "true"] {
-        let out = dir.path().join(format!("stuck_{occlusion}_%03d.exr"));
-        let stats = dir.path().join(format!("stuck_{occlusion}.jsonl"));
+    // With occlusion (the default) each rank in turn, so that one hangs in the middle of
+    // the order: the workers behind it wait for their maps, and the peers that miss their
+    // pieces must not get them given up too.
+    let runs = [("false", 2), ("true", 0), ("true", 1), ("true", 2)];
+    for (occlusion, hung) in runs {
+        let fault = format!("{hung}:hang:render");
+        let out = dir
+            .path()
+            .join(format!("stuck_{occlusion}_{hung}_%03d.exr"));
+        let stats = dir.path().join(format!("stuck_{occlusion}_{hung}.jsonl"));
         let o = render_scene(
             &scene,
             &out,
@@ -856,19 +863,28 @@ fn a_worker_stuck_mid_frame_is_blamed_by_its_peers_before_the_frame_timeout() {
                 "--stats",
                 stats.to_str().unwrap(),
             ],
-            &[("STRATA_TEST_FAULT", "2:hang:render")],
+            &[("STRATA_TEST_FAULT", &fault)],
         );
         let err = String::from_utf8_lossy(&o.stderr);
-        assert!(o.status.success(), "occlusion {occlusion}: {err}");
+        assert!(
+            o.status.success(),
+            "occlusion {occlusion}, rank {hung}: {err}"
+        );
         for i in 0..2 {
             let a = read_exr(&dir.path().join(format!("in_{i:03}.exr")));
-            let b = read_exr(&dir.path().join(format!("stuck_{occlusion}_{i:03}.exr")));
+            let b = read_exr(
+                &dir.path()
+                    .join(format!("stuck_{occlusion}_{hung}_{i:03}.exr")),
+            );
             let d = max_diff(&a, &b);
-            assert!(d <= 1e-5, "occlusion {occlusion}: frame {i} differs by {d}");
+            assert!(
+                d <= 1e-5,
+                "occlusion {occlusion}, rank {hung}: frame {i} differs by {d}"
+            );
         }
         let (text, lost) = lost_workers(&stats);
-        assert_eq!(lost.len(), 1, "{text}");
-        assert_eq!(lost[0]["rank"], 2, "{text}");
+        assert_eq!(lost.len(), 1, "rank {hung}: {text}");
+        assert_eq!(lost[0]["rank"], hung, "{text}");
     }
 }
 

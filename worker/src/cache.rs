@@ -202,13 +202,15 @@ impl PageCache {
             }
             return;
         }
+        // A real request counts its page's error anew, even one still loading for a wait
+        // that timed out (before the early return below, which it may take).
+        if class == Class::Real {
+            st.abandoned.remove(&key);
+        }
         if let Some(&c) = st.pending.get(&key) {
             if c >= class {
                 return;
             }
-        }
-        if class == Class::Real {
-            st.abandoned.remove(&key);
         }
         if class == Class::Real && st.pending.get(&key) != Some(&Class::Real) {
             st.real_outstanding += 1;
@@ -277,11 +279,15 @@ impl PageCache {
                     .map(|(&k, _)| k)
                     .collect();
                 st.abandoned.extend(out);
-                st.errors.clear();
-                return Err(format!(
+                let earlier = std::mem::take(&mut st.errors);
+                let mut msg = format!(
                     "page loads did not finish within {:?} ({} outstanding)",
                     timeout, st.real_outstanding
-                ));
+                );
+                if !earlier.is_empty() {
+                    msg = format!("{msg}; {}", earlier.join("; "));
+                }
+                return Err(msg);
             }
             st = self
                 .shared
