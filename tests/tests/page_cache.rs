@@ -109,20 +109,39 @@ fn prefetch_never_evicts_real_requests_evict_lru_and_go_first() {
     // One loader, many prefetches queued, then one real request: it is read next, not
     // after the prefetches (only what the loader took while the requests were being queued
     // was read before it; a queue in arrival order would read them all first).
-    let cache = PageCache::new(vec![store.clone()], 1 << 30, 1);
+    // (On a loaded machine the loader may read every prefetch before the real request is
+    // even queued, which shows nothing: such rounds are tried again.)
     let (real, rest) = keys.split_last().unwrap();
-    for &k in rest {
-        cache.request(k, Class::Prefetch, 1.0);
+    let mut shown = false;
+    for _ in 0..20 {
+        let cache = PageCache::new(vec![store.clone()], 1 << 30, 1);
+        for &k in rest {
+            cache.request(k, Class::Prefetch, 1.0);
+        }
+        let before = cache.stats().pages_read;
+        cache.request(*real, Class::Real, 1.0);
+        cache.wait_real(Duration::from_secs(30)).unwrap();
+        let read = cache.stats().pages_read;
+        assert!(cache.contains(*real));
+        if before + 4 >= rest.len() as u64 {
+            continue;
+        }
+        // The one in flight when it was queued, the real one, and those the loader read
+        // before this thread looked (a queue in arrival order would have read them all).
+        assert!(
+            read - before < (rest.len() as u64 - before) / 2,
+            "{} pages read after the real request was queued (with {before} read before it, \
+             of {} queued)",
+            read - before,
+            rest.len()
+        );
+        shown = true;
+        break;
     }
-    cache.request(*real, Class::Real, 1.0);
-    cache.wait_real(Duration::from_secs(30)).unwrap();
-    let read = cache.stats().pages_read;
     assert!(
-        read < rest.len() as u64 / 2,
-        "{read} pages read before the real request was done, of {} queued",
-        rest.len()
+        shown,
+        "every prefetch was read before the real request was queued, 20 times"
     );
-    assert!(cache.contains(*real));
 }
 
 /// A wait that times out reports the loads still out; should one of them fail later, its
