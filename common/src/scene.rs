@@ -131,7 +131,10 @@ impl Default for CompositeSettings {
 
 /// `composite.k`: one target or explicit factors.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(untagged)]
+#[serde(
+    untagged,
+    expecting = "a target k (e.g. 8) or exact factors (e.g. [4, 2])"
+)]
 pub enum KSetting {
     /// A target k.
     Target(u32),
@@ -679,7 +682,10 @@ pub enum Backend {
 
 /// `render.gpu_adapter`: an index into the adapter list or a substring of its name.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(untagged)]
+#[serde(
+    untagged,
+    expecting = "an adapter index (e.g. 0) or part of its name (e.g. \"nvidia\")"
+)]
 pub enum AdapterSelector {
     /// The adapter's index in wgpu's list.
     Index(u32),
@@ -907,7 +913,11 @@ pub fn line_col(text: &str, offset: usize) -> (usize, usize) {
     }
     let before = &text[..end];
     let line = before.matches('\n').count() + 1;
-    let col = before.len() - before.rfind('\n').map_or(0, |i| i + 1) + 1;
+    // Characters, not bytes: a non-ASCII name earlier on the line must not shift it.
+    let col = before[before.rfind('\n').map_or(0, |i| i + 1)..]
+        .chars()
+        .count()
+        + 1;
     (line, col)
 }
 
@@ -1062,8 +1072,12 @@ impl Scene {
     }
 
     /// Serializes the scene as TOML.
-    pub fn to_toml(&self) -> String {
-        toml::to_string(self).expect("a scene always serializes")
+    pub fn to_toml(&self) -> Result<String, String> {
+        // Paths are written as TOML strings: one that is not UTF-8 (a folder name in
+        // another encoding) cannot be.
+        toml::to_string(self).map_err(|e| {
+            format!("the scene cannot be written as TOML for the workers ({e}); a path in it is probably not UTF-8")
+        })
     }
 }
 
@@ -1218,6 +1232,14 @@ mod tests {
         let e = camera("target = [1, 0, 0]\nup = [0, 0, 0]\n").unwrap_err();
         assert_eq!(e.line, 7, "{e}");
         assert!(e.to_string().contains("camera.up"), "{e}");
+        // Columns count characters: a non-ASCII value before the error on its line does
+        // not shift it (bytes had put it five further).
+        assert_eq!(line_col("a\nstore = \"ééééé\", x", 24), (2, 18));
+        // Untagged settings say what they expect.
+        let e = Scene::parse(Path::new("k.toml"), "[composite]\nk = \"8\"\n").unwrap_err();
+        assert!(e.to_string().contains("a target k"), "{e}");
+        let e = Scene::parse(Path::new("g.toml"), "[render]\ngpu_adapter = -1\n").unwrap_err();
+        assert!(e.to_string().contains("an adapter index"), "{e}");
         // NaN names its own key (it had been reported as the eye on the target).
         let e = camera("target = [nan, 0.0, 0.0]\n").unwrap_err();
         assert_eq!(e.line, 6, "{e}");
@@ -1266,7 +1288,7 @@ mod tests {
             "[[volume]]\nstore = \"/c.strata\"\nwindow = [-1.0, 1.0]\n",
         )
         .unwrap();
-        let again = Scene::parse(Path::new("a.toml"), &s.to_toml()).unwrap();
+        let again = Scene::parse(Path::new("a.toml"), &s.to_toml().unwrap()).unwrap();
         assert_eq!(s, again);
     }
 }

@@ -836,7 +836,7 @@ impl Cluster {
             slots: (0..n as u32).collect(),
             setup_lost: Vec::new(),
             setup_attempt: 0,
-            scene_toml: scene.to_toml(),
+            scene_toml: scene.to_toml().map_err(|e| anyhow!(e))?,
             lz4: scene.composite.lz4,
             joiners: None,
             acceptor: None,

@@ -62,7 +62,9 @@ struct RenderArgs {
     /// Local mode spawns them; with cluster.spawn = false this many are awaited.
     #[arg(long, value_name = "N")]
     workers: Option<usize>,
-    /// Override a scene setting, e.g. --set render.cache_mb=64 (repeatable).
+    /// Override a scene setting, e.g. --set render.cache_mb=64 (repeatable). A relative
+    /// path in a value (volume.0.store=...) is taken from the scene file's folder, as in
+    /// the file.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     sets: Vec<String>,
     /// Image size, e.g. --size 1920x1080 (overrides render.width and render.height).

@@ -402,7 +402,7 @@ pub fn synth(
         &scene_path,
         format!(
             "# Synthetic survey written by `coordinator synth` (seed {seed}).\n{}",
-            scene.to_toml()
+            scene.to_toml().map_err(|e| anyhow::anyhow!(e))?
         )
         .as_bytes(),
     )?;
