@@ -154,6 +154,23 @@ fn late_ranks(
     }
 }
 
+/// The coverage by rank of the occlusion phase under way (the first pass's until its maps
+/// went out, then the frame's), or `None` once every map went out.
+fn occlusion_phase<'a>(
+    pre_sent: bool,
+    maps_sent: bool,
+    pre_coverage: &'a [Option<Transmittance>],
+    coverage: &'a [Option<Transmittance>],
+) -> Option<&'a [Option<Transmittance>]> {
+    if !pre_sent {
+        Some(pre_coverage)
+    } else if !maps_sent {
+        Some(coverage)
+    } else {
+        None
+    }
+}
+
 /// The ranks a worker's `Failed` is blamed on: its suspects in the frame (each once, never
 /// itself), narrowed while occlusion maps are still going out (`waiting_on`: the coverage
 /// by rank of the phase under way). A worker behind the front-most one whose coverage is
@@ -1854,13 +1871,7 @@ impl Cluster {
         };
         while !missing(&stats).is_empty() {
             let Ok(ev) = self.next_event(deadline).await else {
-                let waiting_on = if !pre_sent {
-                    Some(&pre_coverage[..])
-                } else if !maps_sent {
-                    Some(&coverage[..])
-                } else {
-                    None
-                };
+                let waiting_on = occlusion_phase(pre_sent, maps_sent, &pre_coverage, &coverage);
                 let late = late_ranks(&slots, &order, waiting_on, missing(&stats));
                 return Err(Failure {
                     error: anyhow!(
@@ -2060,13 +2071,8 @@ impl Cluster {
                             // A worker that failed because peers vanished or stalled blames
                             // them; only ranks of this frame count, each once, and not
                             // those only waiting for an occlusion map.
-                            let waiting_on = if !pre_sent {
-                                Some(&pre_coverage[..])
-                            } else if !maps_sent {
-                                Some(&coverage[..])
-                            } else {
-                                None
-                            };
+                            let waiting_on =
+                                occlusion_phase(pre_sent, maps_sent, &pre_coverage, &coverage);
                             let lost = narrow_suspects(suspects, &slots, &order, rank, waiting_on);
                             return Err(Failure {
                                 error: anyhow!("frame {frame} failed on {who}: {message}"),

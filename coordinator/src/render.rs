@@ -191,10 +191,10 @@ fn frame_output(scene: &Scene, f: &FramePlan) -> String {
 /// The most frames one `--orbit` may ask for.
 const MAX_FRAMES: u32 = 1_000_000;
 
-/// The checks of a run's sequence options that need no scene: `--orbit`'s count, the
-/// camera path (read and checked), `--frames` against the sequence, numbered outputs.
+/// The checks of a run's sequence options: [`check_frames`], and that `--mp4` has frames
+/// to encode (a wall writes its `-o` frames only with its preview; this reads the scene).
 /// `coordinator render` makes them before it creates the frames' folder, so a refused
-/// command leaves nothing behind; [`plan_frames`] makes them again.
+/// command leaves nothing behind.
 pub fn check_sequence(opts: &RenderOptions) -> Result<()> {
     if opts.mp4 {
         let scene = overrides::load_scene(&opts.scene, &opts.sets, opts.size)?;
@@ -204,6 +204,13 @@ pub fn check_sequence(opts: &RenderOptions) -> Result<()> {
              (without it each tile is its own file)"
         );
     }
+    check_frames(opts)
+}
+
+/// The checks of a run's sequence options that need no scene: `--orbit`'s count, the
+/// camera path (read and checked), `--frames` against the sequence, numbered outputs.
+/// [`plan_frames`] makes them again.
+fn check_frames(opts: &RenderOptions) -> Result<()> {
     let (n, what) = match (&opts.path, opts.orbit) {
         (Some(p), _) => (
             load_path(p)?.frame_count(),
@@ -249,7 +256,7 @@ fn plan_frames(
     width: u32,
     height: u32,
 ) -> Result<(Vec<FramePlan>, usize)> {
-    check_sequence(opts)?;
+    check_frames(opts)?;
     let (n, what, at): (u32, String, Box<dyn Fn(u32) -> Camera>) = match (&opts.path, opts.orbit) {
         (Some(p), _) => {
             let path =
