@@ -423,7 +423,7 @@ pub struct VolumeLayer {
     /// Value window mapped onto the colour map; the store's range if absent.
     #[serde(default)]
     pub window: Option<[f64; 2]>,
-    /// Opacity scale (multiplies the opacity curve).
+    /// Opacity scale (multiplies the opacity curve): finite and >= 0, above 1 allowed.
     #[serde(default = "one")]
     pub opacity: f64,
     /// Opacity curve: `[position, alpha]` points, position 0..1 across the window, linear
@@ -494,9 +494,117 @@ pub struct HorizonLayer {
     /// With `color_by = "volume"`: which `[[volume]]` (0-based) colours the surface.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub volume: usize,
-    /// Colour map for `color_by = "depth"`.
+    /// Colour map for `color_by = "depth"` (it must name a built-in map whatever `color_by`
+    /// says).
     #[serde(default = "default_depth_map")]
     pub colormap: String,
+}
+
+/// What `color_by` of a horizon may say.
+const COLOR_BY: &[&str] = &["constant", "depth", "volume"];
+
+impl VolumeLayer {
+    /// Checks the values no render can use, which need no store to judge (the worker checks
+    /// the rest, e.g. slices against the grid, when it opens the store); the error names the
+    /// key in the `[[volume]]` table and says what was expected. [`Scene::parse`] points it
+    /// at its line; [`SliceLayer::check`] covers each slice.
+    pub fn check(&self) -> Result<(), (&'static str, String)> {
+        crate::tf::ColorMap::named(&self.colormap)
+            .map_err(|e| ("colormap", format!("colormap: {e}")))?;
+        if let Some(w) = self.window {
+            crate::tf::check_window(w).map_err(|e| ("window", e.to_string()))?;
+        }
+        // A scale of the opacity curve, not an opacity: above 1 is allowed.
+        if !(self.opacity >= 0.0 && self.opacity.is_finite()) {
+            return Err((
+                "opacity",
+                format!(
+                    "opacity {} must be a finite number >= 0 (it scales the opacity curve)",
+                    self.opacity
+                ),
+            ));
+        }
+        if let Some(p) = &self.opacity_points {
+            crate::tf::check_opacity_points(p).map_err(|e| ("opacity_points", e.to_string()))?;
+        }
+        if self.slices.len() > crate::gpu::MAX_SLICES {
+            return Err((
+                "slices",
+                format!(
+                    "{} slices, but at most {} per volume are drawn",
+                    self.slices.len(),
+                    crate::gpu::MAX_SLICES
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl SliceLayer {
+    /// Checks what a slice's own values allow (whether its index lies inside the grid needs
+    /// the store: the worker checks that); the error names the key in the slice's table.
+    pub fn check(&self) -> Result<(), (&'static str, String)> {
+        if !(self.index >= 0.0 && self.index.is_finite()) {
+            return Err((
+                "index",
+                format!(
+                    "index {} must be a finite number >= 0 (level-0 samples from the first)",
+                    self.index
+                ),
+            ));
+        }
+        if !(0.0..=1.0).contains(&self.opacity) {
+            return Err((
+                "opacity",
+                format!("opacity {} must lie in 0..=1", self.opacity),
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl HorizonLayer {
+    /// Checks the values no render can use in a scene of `volumes` volumes; the error names
+    /// the key in the `[[horizon]]` table and says what was expected. The colour map must
+    /// exist whatever `color_by` says, so a misspelt name fails here and not when
+    /// `color_by` later changes to "depth".
+    pub fn check(&self, volumes: usize) -> Result<(), (&'static str, String)> {
+        if !self.color.iter().all(|c| (0.0..=1.0).contains(c)) {
+            return Err(("color", format!("color {:?} must lie in 0..=1", self.color)));
+        }
+        if !(0.0..=1.0).contains(&self.opacity) {
+            return Err((
+                "opacity",
+                format!("opacity {} must lie in 0..=1", self.opacity),
+            ));
+        }
+        if !COLOR_BY.contains(&self.color_by.as_str()) {
+            return Err((
+                "color_by",
+                format!(
+                    "color_by {:?} is unknown (expected \"constant\", \"depth\" or \"volume\")",
+                    self.color_by
+                ),
+            ));
+        }
+        if self.color_by == "volume" && self.volume >= volumes {
+            let has = match volumes {
+                0 => "the scene has no [[volume]]".to_string(),
+                n => format!("the scene has {n} [[volume]], numbered from 0"),
+            };
+            return Err((
+                "volume",
+                format!(
+                    "volume {} (read by color_by = \"volume\") names no [[volume]]: {has}",
+                    self.volume
+                ),
+            ));
+        }
+        crate::tf::ColorMap::named(&self.colormap)
+            .map_err(|e| ("colormap", format!("colormap: {e}")))?;
+        Ok(())
+    }
 }
 
 /// A pinhole camera in world coordinates (f64).
@@ -935,6 +1043,72 @@ pub struct SceneError {
     pub message: String,
 }
 
+/// Runs the layers' own checks ([`VolumeLayer::check`], [`SliceLayer::check`],
+/// [`HorizonLayer::check`]) and points an error at the key in its `[[volume]]` or
+/// `[[horizon]]` table, so that a bad value does not wait for the workers to open the
+/// stores (whose errors have no position).
+fn check_layers(path: &Path, text: &str, scene: &Scene) -> Result<(), SceneError> {
+    let error = |(line, column), message| SceneError {
+        path: path.to_path_buf(),
+        line,
+        column,
+        message,
+    };
+    for (i, v) in scene.volumes.iter().enumerate() {
+        v.check().map_err(|(key, what)| {
+            error(
+                key_position_in(text, "[[volume]]", i, key),
+                format!("volume {i}: {what}"),
+            )
+        })?;
+        for (j, s) in v.slices.iter().enumerate() {
+            s.check().map_err(|(key, what)| {
+                let at = slice_key_position(text, i, j, key)
+                    .unwrap_or_else(|| key_position_in(text, "[[volume]]", i, "slices"));
+                error(at, format!("volume {i}: slice {j}: {what}"))
+            })?;
+        }
+    }
+    for (i, h) in scene.horizons.iter().enumerate() {
+        h.check(scene.volumes.len()).map_err(|(key, what)| {
+            // `volume` defaults to 0: when it is not written, the `color_by` that reads it
+            // is what to change.
+            let key = match key {
+                "volume" if find_key_in(text, "[[horizon]]", i, key).is_none() => "color_by",
+                k => k,
+            };
+            error(
+                key_position_in(text, "[[horizon]]", i, key),
+                format!("horizon {i}: {what}"),
+            )
+        })?;
+    }
+    Ok(())
+}
+
+/// Line and column of `key` in slice `j` of volume `i`. Slices are inline tables (or
+/// `[[volume.slices]]` tables), which the line scan of [`key_position_in`] does not look
+/// into: the value's span in the parsed TOML finds the slice, and the key is the name
+/// before its `=` (the value itself when the key is written otherwise, e.g. quoted).
+/// `None` when the slice or the key is not in `text`.
+fn slice_key_position(text: &str, i: usize, j: usize, key: &str) -> Option<(usize, usize)> {
+    #[derive(Deserialize)]
+    struct Volumes {
+        #[serde(default)]
+        volume: Vec<Slices>,
+    }
+    #[derive(Deserialize)]
+    struct Slices {
+        #[serde(default)]
+        slices: Vec<std::collections::BTreeMap<String, toml::Spanned<toml::Value>>>,
+    }
+    let spans: Volumes = toml::from_str(text).ok()?;
+    let value = spans.volume.get(i)?.slices.get(j)?.get(key)?.span().start;
+    let before = text.get(..value)?.trim_end().strip_suffix('=')?.trim_end();
+    let at = before.strip_suffix(key).map_or(value, str::len);
+    Some(line_col(text, at))
+}
+
 impl Scene {
     /// Parses scene text; `path` names the file in errors and anchors relative store paths.
     pub fn parse(path: &Path, text: &str) -> Result<Scene, SceneError> {
@@ -999,29 +1173,7 @@ impl Scene {
             .render
             .check()
             .map_err(|(key, message)| at("render", key, message))?;
-        for (i, h) in scene.horizons.iter().enumerate() {
-            let bad = |key: &str, what: String| {
-                let (line, column) = key_position_in(text, "[[horizon]]", i, key);
-                SceneError {
-                    path: path.to_path_buf(),
-                    line,
-                    column,
-                    message: format!("horizon {i}: {what}"),
-                }
-            };
-            if !h.color.iter().all(|c| (0.0..=1.0).contains(c)) {
-                return Err(bad(
-                    "color",
-                    format!("color {:?} must lie in 0..=1", h.color),
-                ));
-            }
-            if !(0.0..=1.0).contains(&h.opacity) {
-                return Err(bad(
-                    "opacity",
-                    format!("opacity {} must lie in 0..=1", h.opacity),
-                ));
-            }
-        }
+        check_layers(path, text, &scene)?;
         if let Some(c) = &scene.camera {
             use crate::camera::{View, ViewError};
             let (w, h) = (scene.render.width.max(1), scene.render.height.max(1));
@@ -1092,6 +1244,29 @@ fn key_position(text: &str, section: &str, key: &str) -> (usize, usize) {
 /// `[[horizon]]` for an array of tables): the header's when the key is not written there,
 /// 1, 1 without the table.
 fn key_position_in(text: &str, header: &str, nth: usize, key: &str) -> (usize, usize) {
+    find_key_in(text, header, nth, key)
+        .or_else(|| find_table(text, header, nth))
+        .map_or((1, 1), |at| line_col(text, at))
+}
+
+/// Byte offset of `key` written in the `nth` table headed `header`, if it is.
+fn find_key_in(text: &str, header: &str, nth: usize, key: &str) -> Option<usize> {
+    scan_table(text, header, nth, Some(key)).0
+}
+
+/// Byte offset of the `nth` header `header`, if there is one.
+fn find_table(text: &str, header: &str, nth: usize) -> Option<usize> {
+    scan_table(text, header, nth, None).1
+}
+
+/// Scans `text` line by line for the `nth` table headed `header` and, inside it, a line
+/// that sets `key`: the offsets of that line (`None` if not found) and of the header.
+fn scan_table(
+    text: &str,
+    header: &str,
+    nth: usize,
+    key: Option<&str>,
+) -> (Option<usize>, Option<usize>) {
     let mut offset = 0;
     let mut seen = 0;
     let mut inside: Option<usize> = None;
@@ -1110,17 +1285,19 @@ fn key_position_in(text: &str, header: &str, nth: usize, key: &str) -> (usize, u
             if is_header {
                 if seen == nth {
                     inside = Some(at);
+                    if key.is_none() {
+                        break;
+                    }
                 }
                 seen += 1;
             }
-        } else if inside.is_some()
-            && t.starts_with(key)
-            && t[key.len()..].trim_start().starts_with('=')
-        {
-            return line_col(text, at);
+        } else if let (Some(_), Some(key)) = (inside, key) {
+            if t.starts_with(key) && t[key.len()..].trim_start().starts_with('=') {
+                return (Some(at), inside);
+            }
         }
     }
-    inside.map_or((1, 1), |at| line_col(text, at))
+    (None, inside)
 }
 
 #[cfg(test)]
@@ -1269,6 +1446,186 @@ mod tests {
         )
         .unwrap_err();
         assert_eq!((e.line, e.column), (2, 1), "{e}");
+    }
+
+    /// Parses `text` as `s.toml`, which must fail.
+    fn error(text: &str) -> SceneError {
+        Scene::parse(Path::new("s.toml"), text).unwrap_err()
+    }
+
+    /// Two volumes, the second one's keys after `second` (indented lines keep their column).
+    fn two_volumes(second: &str) -> String {
+        format!("[[volume]]\nstore = \"a\"\n\n[[volume]]\nstore = \"b\"\n{second}")
+    }
+
+    #[test]
+    fn an_unknown_volume_colormap_points_at_its_key() {
+        let e = error(&two_volumes("  colormap = \"virdis\"\n"));
+        assert_eq!((e.line, e.column), (6, 3), "{e}");
+        assert_eq!(
+            e.to_string(),
+            "s.toml:6:3: volume 1: colormap: unknown colour map \"virdis\" (expected one of \
+             seismic, bwr, grey, viridis, bone, hot, or one of them reversed as NAME_r)"
+        );
+        let s = Scene::parse(
+            Path::new("s.toml"),
+            &two_volumes("colormap = \"viridis_r\"\n"),
+        );
+        assert_eq!(s.unwrap().volumes[1].colormap, "viridis_r");
+    }
+
+    #[test]
+    fn a_negative_volume_opacity_points_at_its_key() {
+        for bad in ["-0.5", "nan", "inf"] {
+            let e = error(&two_volumes(&format!(
+                "colormap = \"grey\"\nopacity = {bad}\n"
+            )));
+            assert_eq!((e.line, e.column), (7, 1), "{e}");
+            assert!(
+                e.to_string().starts_with(&format!(
+                    "s.toml:7:1: volume 1: opacity {} must be a finite number >= 0",
+                    bad.parse::<f64>().unwrap()
+                )),
+                "{e}"
+            );
+        }
+        // A scale of the opacity curve: above 1 is fine.
+        let s = Scene::parse(Path::new("s.toml"), &two_volumes("opacity = 4\n")).unwrap();
+        assert_eq!(s.volumes[1].opacity, 4.0);
+    }
+
+    #[test]
+    fn a_reversed_volume_window_points_at_its_key() {
+        let e = error(&two_volumes("window = [1.0, -1.0]\n"));
+        assert_eq!((e.line, e.column), (6, 1), "{e}");
+        assert_eq!(
+            e.to_string(),
+            "s.toml:6:1: volume 1: window must be two finite values lo < hi, got [1, -1]"
+        );
+        let e = error(&two_volumes("window = [1e8, 1.00000001e8]\n"));
+        assert_eq!((e.line, e.column), (6, 1), "{e}");
+        assert!(e.message.contains("distinct finite values in f32"), "{e}");
+    }
+
+    #[test]
+    fn bad_opacity_points_point_at_their_key() {
+        let e = error(&two_volumes(
+            "opacity = 1\nopacity_points = [[0.0, 0.0], [1.0, 1.5]]\n",
+        ));
+        assert_eq!((e.line, e.column), (7, 1), "{e}");
+        assert_eq!(
+            e.to_string(),
+            "s.toml:7:1: volume 1: opacity_points alphas must lie in [0, 1], got 1.5"
+        );
+        let e = error(&two_volumes("opacity_points = [[0.5, 0.0], [0.2, 1.0]]\n"));
+        assert!(
+            e.message.contains("must not decrease (0.2 after 0.5)"),
+            "{e}"
+        );
+        let e = error(&two_volumes("opacity_points = [[inf, 0.0]]\n"));
+        assert!(
+            e.message.contains("positions must be finite, got inf"),
+            "{e}"
+        );
+        let e = error(&two_volumes("opacity_points = []\n"));
+        assert!(e.message.contains("at least one"), "{e}");
+    }
+
+    #[test]
+    fn a_slice_opacity_out_of_range_points_at_its_key() {
+        // Inline tables, the bad one on the third line of the array.
+        let e = error(&two_volumes(
+            "slices = [\n  { axis = \"inline\", index = 3 },\n  { axis = \"time\", index = 2, opacity = 1.5 },\n]\n",
+        ));
+        assert_eq!((e.line, e.column), (8, 31), "{e}");
+        assert_eq!(
+            e.to_string(),
+            "s.toml:8:31: volume 1: slice 1: opacity 1.5 must lie in 0..=1"
+        );
+        // As `[[volume.slices]]` tables.
+        let e = error(&two_volumes(
+            "[[volume.slices]]\naxis = \"inline\"\nindex = 3\n[[volume.slices]]\naxis = \"time\"\nindex = 2\n opacity = -0.5\n",
+        ));
+        assert_eq!((e.line, e.column), (12, 2), "{e}");
+        assert!(
+            e.message.starts_with("volume 1: slice 1: opacity -0.5"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn a_negative_slice_index_points_at_its_key() {
+        let e = error(&two_volumes(
+            "slices = [{ axis = \"crossline\", index = -3 }]\n",
+        ));
+        assert_eq!((e.line, e.column), (6, 33), "{e}");
+        assert_eq!(
+            e.to_string(),
+            "s.toml:6:33: volume 1: slice 0: index -3 must be a finite number >= 0 (level-0 samples from the first)"
+        );
+    }
+
+    #[test]
+    fn too_many_slices_point_at_their_key() {
+        let slices = vec!["{ axis = \"time\", index = 1 }"; crate::gpu::MAX_SLICES + 1].join(", ");
+        let e = error(&two_volumes(&format!(
+            "colormap = \"grey\"\nslices = [{slices}]\n"
+        )));
+        assert_eq!((e.line, e.column), (7, 1), "{e}");
+        assert_eq!(
+            e.to_string(),
+            "s.toml:7:1: volume 1: 17 slices, but at most 16 per volume are drawn"
+        );
+    }
+
+    /// A volume and two horizons, the second one's keys after `second`.
+    fn two_horizons(second: &str) -> String {
+        format!(
+            "[[volume]]\nstore = \"v\"\n\n[[horizon]]\nstore = \"a\"\ncolor_by = \"volume\"\n\n[[horizon]]\nstore = \"b\"\n{second}"
+        )
+    }
+
+    #[test]
+    fn an_unknown_color_by_points_at_its_key() {
+        let e = error(&two_horizons("opacity = 0.5\n    color_by = \"height\"\n"));
+        assert_eq!((e.line, e.column), (11, 5), "{e}");
+        assert_eq!(
+            e.to_string(),
+            "s.toml:11:5: horizon 1: color_by \"height\" is unknown (expected \"constant\", \"depth\" or \"volume\")"
+        );
+    }
+
+    #[test]
+    fn a_horizon_volume_that_names_no_volume_points_at_its_key() {
+        let e = error(&two_horizons("color_by = \"volume\"\nvolume = 1\n"));
+        assert_eq!((e.line, e.column), (11, 1), "{e}");
+        assert_eq!(
+            e.to_string(),
+            "s.toml:11:1: horizon 1: volume 1 (read by color_by = \"volume\") names no [[volume]]: the scene has 1 [[volume]], numbered from 0"
+        );
+        // Without volumes the default `volume = 0` names none either: `color_by` is the key.
+        let e = error("[[horizon]]\nstore = \"a\"\ncolor = [1, 0, 0]\ncolor_by = \"volume\"\n");
+        assert_eq!((e.line, e.column), (4, 1), "{e}");
+        assert!(e.message.ends_with("the scene has no [[volume]]"), "{e}");
+        // Only `color_by = "volume"` reads it.
+        assert!(Scene::parse(Path::new("s.toml"), &two_horizons("volume = 3\n")).is_ok());
+    }
+
+    #[test]
+    fn an_unknown_horizon_colormap_points_at_its_key() {
+        // Refused whatever `color_by` says.
+        let e = error(&two_horizons(
+            "color_by = \"constant\"\n\tcolormap = \"jet\"\n",
+        ));
+        assert_eq!((e.line, e.column), (11, 2), "{e}");
+        assert!(
+            e.to_string().starts_with(
+                "s.toml:11:2: horizon 1: colormap: unknown colour map \"jet\" (expected one of seismic,"
+            ),
+            "{e}"
+        );
+        let s = Scene::parse(Path::new("s.toml"), &two_horizons("colormap = \"hot_r\"\n"));
+        assert_eq!(s.unwrap().horizons[1].colormap, "hot_r");
     }
 
     #[test]

@@ -140,6 +140,50 @@ impl ColorMap {
     }
 }
 
+/// Checks a value window (`window = [lo, hi]` of a volume): two finite values `lo < hi`
+/// that stay two distinct finite values in f32. Shared by [`TransferFunction::from_layer`]
+/// and the scene's own checks, so a bad window in a scene file names its line.
+pub fn check_window([lo, hi]: [f64; 2]) -> Result<()> {
+    if !(lo.is_finite() && hi.is_finite() && hi > lo) {
+        bail!("window must be two finite values lo < hi, got [{lo}, {hi}]");
+    }
+    // The casters map values in f32: the window must stay two distinct finite values
+    // there (1e8 and 1e8 + 1 are one f32; ±1e40 are infinite), or every position is NaN.
+    let (lo32, hi32) = (lo as f32, hi as f32);
+    if !(lo32.is_finite() && hi32.is_finite() && hi32 > lo32) {
+        bail!(
+            "window [{lo}, {hi}] is not two distinct finite values in f32 \
+             (the samples' precision): widen it, or keep it within ±3.4e38"
+        );
+    }
+    Ok(())
+}
+
+/// Checks an opacity curve (`opacity_points` of a volume): at least one `[position, alpha]`
+/// pair, finite positions that do not decrease, alphas in [0, 1]. Shared as
+/// [`check_window`] is.
+pub fn check_opacity_points(p: &[[f64; 2]]) -> Result<()> {
+    if p.is_empty() {
+        bail!("opacity_points must hold at least one [position, alpha] pair");
+    }
+    if let Some(q) = p.iter().find(|q| !q[0].is_finite()) {
+        bail!("opacity_points positions must be finite, got {}", q[0]);
+    }
+    for w in p.windows(2) {
+        if w[1][0] < w[0][0] {
+            bail!(
+                "opacity_points positions must not decrease ({} after {})",
+                w[1][0],
+                w[0][0]
+            );
+        }
+    }
+    if let Some(q) = p.iter().find(|q| !(0.0..=1.0).contains(&q[1])) {
+        bail!("opacity_points alphas must lie in [0, 1], got {}", q[1]);
+    }
+    Ok(())
+}
+
 /// A volume's transfer function over its value window.
 #[derive(Clone, Debug)]
 pub struct TransferFunction {
@@ -162,40 +206,13 @@ impl TransferFunction {
     pub fn from_layer(layer: &VolumeLayer, range: [f64; 2]) -> Result<Self> {
         let cmap = ColorMap::named(&layer.colormap)?;
         let [lo, hi] = layer.window.unwrap_or(range);
-        if !(lo.is_finite() && hi.is_finite() && hi > lo) {
-            bail!("volume window must be two finite values lo < hi, got [{lo}, {hi}]");
-        }
-        // The casters map values in f32: the window must stay two distinct finite values
-        // there (1e8 and 1e8 + 1 are one f32; ±1e40 are infinite), or every position is NaN.
-        let (lo32, hi32) = (lo as f32, hi as f32);
-        if !(lo32.is_finite() && hi32.is_finite() && hi32 > lo32) {
-            bail!(
-                "volume window [{lo}, {hi}] is not two distinct finite values in f32 \
-                 (the samples' precision): widen it, or keep it within ±3.4e38"
-            );
-        }
+        check_window([lo, hi]).map_err(|e| TfError(format!("volume {e}")))?;
         if !(layer.opacity >= 0.0 && layer.opacity.is_finite()) {
             bail!("volume opacity must be >= 0, got {}", layer.opacity);
         }
         let points: Vec<[f64; 2]> = match &layer.opacity_points {
             Some(p) => {
-                if p.is_empty() {
-                    bail!("opacity_points must hold at least one [position, alpha] pair");
-                }
-                for w in p.windows(2) {
-                    if w[1][0] < w[0][0] {
-                        bail!(
-                            "opacity_points positions must not decrease ({} after {})",
-                            w[1][0],
-                            w[0][0]
-                        );
-                    }
-                }
-                if p.iter()
-                    .any(|q| !(0.0..=1.0).contains(&q[1]) || !q[0].is_finite())
-                {
-                    bail!("opacity_points alphas must lie in [0, 1]");
-                }
+                check_opacity_points(p)?;
                 p.clone()
             }
             // Opaque blue-white-red.

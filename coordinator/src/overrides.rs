@@ -2,10 +2,13 @@
 //!
 //! `KEY` is a dotted path into the scene's TOML (`render.cache_mb`, `camera.fov_deg`,
 //! `volume.0.opacity`): a numeric segment indexes an array (`[[volume]]` tables, or the
-//! elements of `camera.eye`), missing intermediate tables are created. `VALUE` is read as a
+//! elements of `camera.eye`) from 0, and one outside it (negative, too large) is refused,
+//! naming the array's length; missing intermediate tables are created. `VALUE` is read as a
 //! TOML value (`x = VALUE`); text that is not one is taken as a string, so
 //! `--set volume.0.colormap=grey` needs no quotes. The overridden table is then checked
-//! against the scene model, and an error names the override that broke it.
+//! against the scene model, and an error names the override that broke it; when that
+//! override's value looked like TOML (an array, a table, a number, a quoted string) but did
+//! not parse, the error says so and why, rather than only that a string does not fit.
 
 use anyhow::{bail, Context, Result};
 use std::path::Path;
@@ -48,11 +51,13 @@ pub fn load_scene(path: &Path, sets: &[String], size: Option<(u32, u32)>) -> Res
             label: label.clone(),
             key: "render.width".into(),
             value: Value::Integer(w.into()),
+            unparsed: None,
         });
         overrides.push(Override {
             label,
             key: "render.height".into(),
             value: Value::Integer(h.into()),
+            unparsed: None,
         });
     }
 
@@ -98,6 +103,9 @@ struct Override {
     label: String,
     key: String,
     value: Value,
+    /// Why the value, which looked like TOML, did not parse as it (it was taken as a
+    /// string).
+    unparsed: Option<String>,
 }
 
 /// Parses `KEY=VALUE` (VALUE as TOML, else as a string).
@@ -113,10 +121,16 @@ fn parse_set(s: &str) -> Result<Override> {
     if key.split('.').any(|seg| seg.trim().is_empty()) {
         bail!("{label}: the key {key:?} has an empty segment");
     }
+    let value = parse_value(raw);
+    let unparsed = match value {
+        Value::String(_) => why_not_toml(raw),
+        _ => None,
+    };
     Ok(Override {
         label,
         key: key.to_string(),
-        value: parse_value(raw),
+        value,
+        unparsed,
     })
 }
 
@@ -134,6 +148,49 @@ fn parse_value(raw: &str) -> Value {
         }
     }
     Value::String(trimmed.to_string())
+}
+
+/// Why `raw`, which starts as a TOML value other than a bare word does (`[`, `{`, a quote, a
+/// digit, a sign or point before one), is not one: the parser's message on one line. `None`
+/// for text that parses or does not look like TOML (`grey`, `radix-k`: plain strings).
+/// Such text stays a string (`cluster.listen=[::1]:7000` is an address), but when the scene
+/// refuses it the error can say it did not parse.
+fn why_not_toml(raw: &str) -> Option<String> {
+    let t = raw.trim();
+    let mut chars = t.chars();
+    let looks_like_toml = match (chars.next()?, chars.next()) {
+        ('[' | '{' | '"' | '\'', _) => true,
+        (c, _) if c.is_ascii_digit() => true,
+        ('+' | '-' | '.', Some(d)) => d.is_ascii_digit(),
+        _ => false,
+    };
+    if !looks_like_toml {
+        return None;
+    }
+    const PREFIX: &str = "x = ";
+    match format!("{PREFIX}{t}").parse::<Table>() {
+        Err(e) => {
+            let what = e
+                .message()
+                .lines()
+                .map(str::trim)
+                .filter(|l| !l.is_empty())
+                .collect::<Vec<_>>()
+                .join(": ");
+            // Where in the value: the parser's messages alone ("expected newline") do not say.
+            let rest = e
+                .span()
+                .and_then(|s| t.get(s.start.checked_sub(PREFIX.len())?..))
+                .map(str::trim_end);
+            Some(match rest {
+                Some("") => format!("{what}, at the end"),
+                Some(r) => format!("{what}, at `{r}`"),
+                None => what,
+            })
+        }
+        Ok(t) if t.len() != 1 => Some("it holds more than one value".into()),
+        Ok(_) => None,
+    }
 }
 
 /// Sets the dotted `key` in `table` to `value`.
@@ -158,7 +215,7 @@ fn set_in(root: &mut Value, segs: &[&str], value: Value) -> Result<()> {
             Value::Table(t) => {
                 if !t.contains_key(*seg) {
                     let next = segs[n + 1];
-                    if seg_index(next).is_some() {
+                    if !matches!(seg_index(next), Index::NotANumber) {
                         // `volume.0.x` with no `volume`: an index into nothing.
                         let mut here = at.clone();
                         push_seg(&mut here, seg);
@@ -197,26 +254,49 @@ fn name(at: &str) -> &str {
     }
 }
 
-fn seg_index(seg: &str) -> Option<usize> {
-    if seg.bytes().all(|b| b.is_ascii_digit()) {
-        seg.parse().ok()
-    } else {
-        None
+/// A key segment read as an array index.
+enum Index {
+    /// A whole number that fits a `usize`.
+    At(usize),
+    /// A whole number no array reaches: negative, or beyond `usize`.
+    Outside,
+    /// Not a whole number.
+    NotANumber,
+}
+
+/// Reads `seg` as an index. Negative and huge numbers are numbers too, so that they are
+/// called out of range rather than "not a number" (or taken as a table's key).
+fn seg_index(seg: &str) -> Index {
+    let digits = seg.strip_prefix('-').unwrap_or(seg);
+    if digits.is_empty() || !digits.bytes().all(|b| b.is_ascii_digit()) {
+        return Index::NotANumber;
+    }
+    match seg.parse::<usize>() {
+        Ok(i) => Index::At(i),
+        Err(_) => Index::Outside,
     }
 }
 
 /// Checks an array index segment `seg` into the array `at` of `len` elements.
 fn index(seg: &str, len: usize, at: &str) -> Result<usize> {
     match seg_index(seg) {
-        None => bail!("{at} is an array: expected a number instead of {seg:?}"),
-        Some(i) if i >= len => Err(out_of_range(seg, len, at)),
-        Some(i) => Ok(i),
+        Index::NotANumber => {
+            bail!("{at} is an array: expected an index (a whole number from 0) instead of {seg:?}")
+        }
+        Index::At(i) if i < len => Ok(i),
+        Index::At(_) | Index::Outside => Err(out_of_range(seg, len, at)),
     }
 }
 
 fn out_of_range(seg: &str, len: usize, at: &str) -> anyhow::Error {
+    // Python's -1 counts from the end; here it is an error like any other.
+    let negative = if seg.starts_with('-') {
+        "; a negative index does not count from the end"
+    } else {
+        ""
+    };
     anyhow::anyhow!(
-        "index {seg} of {at} is out of range: the scene has {len} {at} entr{} (numbered from 0)",
+        "index {seg} of {at} is out of range: the scene has {len} {at} entr{} (numbered from 0){negative}",
         if len == 1 { "y" } else { "ies" }
     )
 }
@@ -246,10 +326,15 @@ fn explain_failure(
     match culprit {
         Some(k) => {
             let o = &overrides[k - 1];
-            let message = results[k]
+            let mut message = results[k]
                 .as_ref()
                 .err()
                 .map_or_else(String::new, |e| e.message.clone());
+            if let Some(why) = &o.unparsed {
+                message = format!(
+                    "the value did not parse as TOML ({why}) and was read as a string: {message}"
+                );
+            }
             anyhow::anyhow!(
                 "{}: after {}: {message} (key {})",
                 path.display(),
@@ -446,6 +531,190 @@ mod tests {
             let e = load_scene(&p, &sets(&[bad]), None).unwrap_err().to_string();
             assert!(e.contains(&format!("--set {bad}")), "{e}");
         }
+    }
+
+    #[test]
+    fn the_layer_checks_run_on_overridden_tables() {
+        let (_d, p) = scene_file(SCENE);
+        let e = load_scene(&p, &sets(&["volume.0.colormap=virdis"]), None)
+            .unwrap_err()
+            .to_string();
+        assert_eq!(
+            e,
+            format!(
+                "{}: after --set volume.0.colormap=virdis: volume 0: colormap: unknown colour map \"virdis\" \
+                 (expected one of seismic, bwr, grey, viridis, bone, hot, or one of them reversed as NAME_r) \
+                 (key volume.0.colormap)",
+                p.display()
+            )
+        );
+        let e = load_scene(&p, &sets(&["volume.1.opacity=-1"]), None)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("after --set volume.1.opacity=-1: volume 1: opacity -1 must be a finite number >= 0"),
+            "{e}"
+        );
+        let e = load_scene(
+            &p,
+            &sets(&["volume.0.slices=[{ axis = \"time\", index = 1, opacity = 2 }]"]),
+            None,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains(": volume 0: slice 0: opacity 2 must lie in 0..=1 (key volume.0.slices)"),
+            "{e}"
+        );
+        let (_d, p) = scene_file("[[horizon]]\nstore = \"h.strata\"\n");
+        let e = load_scene(&p, &sets(&["horizon.0.color_by=volume"]), None)
+            .unwrap_err()
+            .to_string();
+        assert_eq!(
+            e,
+            format!(
+                "{}: after --set horizon.0.color_by=volume: horizon 0: volume 0 (read by color_by = \"volume\") \
+                 names no [[volume]]: the scene has no [[volume]] (key horizon.0.color_by)",
+                p.display()
+            )
+        );
+        let e = load_scene(&p, &sets(&["horizon.0.color_by=height"]), None)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("horizon 0: color_by \"height\" is unknown"),
+            "{e}"
+        );
+        // A file that fails the checks on its own keeps its line and column.
+        let (_d, p) = scene_file("[[volume]]\nstore = \"a\"\ncolormap = \"jet\"\n");
+        let e = load_scene(&p, &sets(&["render.cache_mb=64"]), None)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with(&format!(
+                "{}:3:1: volume 0: colormap: unknown colour map \"jet\"",
+                p.display()
+            )),
+            "{e}"
+        );
+        assert!(e.ends_with("(with --set render.cache_mb=64)"), "{e}");
+        // ... unless an override fixes it.
+        let s = load_scene(&p, &sets(&["volume.0.colormap=bone"]), None).unwrap();
+        assert_eq!(s.volumes[0].colormap, "bone");
+    }
+
+    #[test]
+    fn negative_and_huge_indexes_are_out_of_range() {
+        let (_d, p) = scene_file(SCENE);
+        let err = |set: &str| format!("{:#}", load_scene(&p, &sets(&[set]), None).unwrap_err());
+        assert_eq!(
+            err("volume.-1.opacity=0.5"),
+            format!(
+                "{}: --set volume.-1.opacity=0.5: index -1 of volume is out of range: the scene has 2 volume \
+                 entries (numbered from 0); a negative index does not count from the end",
+                p.display()
+            )
+        );
+        assert_eq!(
+            err("volume.99999999999999999999.opacity=1"),
+            format!(
+                "{}: --set volume.99999999999999999999.opacity=1: index 99999999999999999999 of volume is out \
+                 of range: the scene has 2 volume entries (numbered from 0)",
+                p.display()
+            )
+        );
+        // Into an array the file does not have: out of range too, not a table named "-1".
+        let e = err("horizon.-1.opacity=1");
+        assert!(
+            e.contains("index -1 of horizon is out of range: the scene has 0 horizon entries"),
+            "{e}"
+        );
+        let e = err("horizon.18446744073709551616.opacity=1");
+        assert!(
+            e.contains("index 18446744073709551616 of horizon is out of range"),
+            "{e}"
+        );
+        // Arrays of values too.
+        let e = format!(
+            "{:#}",
+            load_scene(
+                &p,
+                &sets(&["camera.eye=[1, 2, 3]", "camera.eye.-1=0"]),
+                None
+            )
+            .unwrap_err()
+        );
+        assert!(
+            e.contains(
+                "--set camera.eye.-1=0: index -1 of camera.eye is out of range: the scene has 3"
+            ),
+            "{e}"
+        );
+        let e = err("volume.+1.opacity=1");
+        assert!(
+            e.contains(
+                "volume is an array: expected an index (a whole number from 0) instead of \"+1\""
+            ),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn values_that_look_like_toml_but_do_not_parse_say_so() {
+        for plain in [
+            "grey",
+            "radix-k",
+            "[1, 2]",
+            "\"quoted\"",
+            "1.5",
+            "-3",
+            "{ a = 1 }",
+            "",
+        ] {
+            assert_eq!(why_not_toml(plain), None, "{plain}");
+        }
+        for broken in [
+            "[1, 2",
+            "0,5",
+            "{ a = 1",
+            "\"grey",
+            "1.5.",
+            "-0,5",
+            "[::1]:7000",
+        ] {
+            assert!(why_not_toml(broken).is_some(), "{broken}");
+        }
+        let (_d, p) = scene_file(SCENE);
+        let e = load_scene(&p, &sets(&["camera.eye=[1, 2"]), None)
+            .unwrap_err()
+            .to_string();
+        assert_eq!(
+            e,
+            format!(
+                "{}: after --set camera.eye=[1, 2: the value did not parse as TOML (invalid array: \
+                 expected `]`, at the end) and was read as a string: invalid type: string \"[1, 2\", \
+                 expected an array of length 3 (key camera.eye)",
+                p.display()
+            )
+        );
+        let e = load_scene(&p, &sets(&["volume.0.opacity=0,5"]), None)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains(
+                "after --set volume.0.opacity=0,5: the value did not parse as TOML (expected newline, \
+                 `#`, at `,5`) and was read as a string: invalid type: string \"0,5\", expected f64"
+            ),
+            "{e}"
+        );
+        // Text that is a string where the scene wants one stays one.
+        let s = load_scene(&p, &sets(&["cluster.listen=[::1]:7000"]), None).unwrap();
+        assert_eq!(s.cluster.listen, "[::1]:7000");
+        // A plain word that does not fit says only that (it never looked like TOML).
+        let e = load_scene(&p, &sets(&["volume.0.opacity=half"]), None)
+            .unwrap_err()
+            .to_string();
+        assert!(!e.contains("did not parse"), "{e}");
     }
 
     #[test]
