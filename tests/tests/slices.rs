@@ -210,3 +210,47 @@ fn ten_slices_composite_in_order_on_both_casters_and_too_many_are_refused() {
     };
     assert!(e.contains(&format!("{n} slices")), "{e}");
 }
+
+/// More crossings than the GPU caster's list of 32 holds: 16 slices on each axis (one axis
+/// per copy of the volume: at most 16 slices per volume are drawn), seen along the
+/// diagonal, give the centre ray 48 translucent crossings. Both casters composite every
+/// one, nearest first, to the analytic colour (the GPU had kept its nearest 32 and dropped
+/// the rest; it now searches again from its 32nd).
+#[test]
+fn forty_eight_crossings_composite_in_order_on_both_casters() {
+    let dir = TempDir::new().unwrap();
+    let at = |first: f64| (0..16).map(move |k| first + 2.8 * k as f64);
+    let back = 90.0 / 3f64.sqrt();
+    let camera = Camera {
+        eye: [C - back, C - back, C - back],
+        target: [C, C, C],
+        up: [0.0, 0.0, 1.0],
+        fov_deg: 30.0,
+    };
+    let mut s = ramp_scene(dir.path(), vec![], camera);
+    let layer = s.volumes[0].clone();
+    s.volumes.clear();
+    for (axis, first) in [
+        (SliceAxis::Inline, 1.5),
+        (SliceAxis::Crossline, 1.9),
+        (SliceAxis::Time, 2.3),
+    ] {
+        let mut l = layer.clone();
+        l.slices = at(first).map(|i| slice(axis, i, 0.04)).collect();
+        s.volumes.push(l);
+    }
+    let c = centre(&render_on_both(&s, 1e-4, "48 crossings"));
+    // On the diagonal x = y = z, so each slice is crossed where the ramp's value is the
+    // slice's index, in the order of the indexes.
+    let mut idx: Vec<f64> = at(1.5).chain(at(1.9)).chain(at(2.3)).collect();
+    idx.sort_by(f64::total_cmp);
+    let (mut rgb, mut a) = (0.0f64, 0.0f64);
+    for &i in &idx {
+        rgb += (1.0 - a) * 0.04 * i / (N - 1) as f64;
+        a += (1.0 - a) * 0.04;
+    }
+    assert!(
+        (c[0] as f64 - rgb).abs() < 1e-4 && (c[3] as f64 - a).abs() < 1e-4,
+        "{c:?}, want {rgb} / {a}"
+    );
+}

@@ -65,9 +65,29 @@ pub struct Hit {
     pub rgba: [f32; 4],
 }
 
-/// Hits kept per horizon and ray at most (a ray crossing a folded surface more often than
-/// this keeps the nearest ones).
-pub const MAX_HITS: usize = 32;
+/// How far past its cell's exit a crossing is still taken from that cell, relative to its
+/// `t` (eight ulps): a crossing on the edge between two cells is solved in each of them
+/// relative to a different origin, and the two `t` differ by a rounding. Each cell testing
+/// its own `t` against the shared edge could keep such a crossing twice, or (the two
+/// roundings the other way round) lose it, a pinhole in an opaque surface. Instead the
+/// first cell keeps it up to this far past the edge, and the next one drops a crossing this
+/// close to the last one kept ([`Search::last`]).
+const EDGE_REL: f32 = 1.0 / (1 << 20) as f32;
+
+/// [`EDGE_REL`] at `t`.
+#[inline(always)]
+fn edge_tol(t: f32) -> f32 {
+    t.abs() * EDGE_REL
+}
+
+/// The state of one ray's search of one horizon.
+struct Search {
+    /// Nothing at or beyond this `t` is visible: the end of the interval, or the nearest
+    /// opaque crossing found.
+    limit: f32,
+    /// The last crossing kept (NaN before the first).
+    last: f32,
+}
 
 /// `a.min(b)` for numbers that are not NaN, without `f32::min`'s NaN handling (one
 /// instruction instead of four on x86; equal results when neither is NaN).
@@ -162,12 +182,21 @@ fn roots_in(a: f32, b: f32, c: f32, lo: f32, hi: f32, out: &mut [f32; 2]) -> usi
 }
 
 /// Lateral footprint of tile `b` at `level` (tiles of `core` nodes) in level-0 node
-/// coordinates: the cells whose lower node lies in the tile's core.
+/// coordinates: `[b·core·2^level, (b + 1)·core·2^level)` per axis.
+///
+/// The same expression at every level, so a tile's footprint is exactly the union of its
+/// four children's: where neighbouring tiles are drawn at different levels, the surface
+/// has neither a gap nor a strip drawn twice between them. (Level-`l` node `n` lies at
+/// level-0 position `(n + ½)·2^l − ½`, so a footprint bounded by the tile's own nodes, the
+/// cells whose lower node lies in its core, is shifted by `2^l/4 − ¼` against its children's
+/// and leaves half a child cell uncovered on one side and covered twice on the other.) At
+/// level 0 these are the cells whose lower node lies in the tile's core; at a coarser level
+/// the footprint cuts the tile's first and last cells, whose outer nodes are the tile's
+/// border (one node suffices).
 #[inline(always)]
 fn footprint(core: u32, level: usize, b: [u32; 3]) -> ([f32; 2], [f32; 2]) {
-    let s = (1u64 << level) as f32;
-    let core = core as f32;
-    let at = |i: u32| (i as f32 * core + 0.5) * s - 0.5;
+    let w = core as f32 * (1u64 << level) as f32;
+    let at = |i: u32| i as f32 * w;
     ([at(b[0]), at(b[1])], [at(b[0] + 1), at(b[1] + 1)])
 }
 
@@ -202,9 +231,10 @@ pub fn tile_boxes(pyramid: &Pyramid, bounds: &[[f32; 2]]) -> Vec<TileBox> {
                 }
                 let s = (1u64 << level) as f32;
                 let (flo, fhi) = footprint(core, level, b);
-                // Pad by one cell of this level: coarse and fine footprints do not nest
-                // exactly. A flat tile has zmin == zmax: give the box a little thickness so
-                // the slab test cannot lose it to rounding.
+                // Pad by one cell of this level, so that no rounding of this slab test
+                // culls a ray the leaf's exact clip keeps (the level-of-detail choice reads
+                // this padded box's entry). A flat tile has zmin == zmax: give the box a
+                // little thickness so the slab test cannot lose it to rounding.
                 let eps = 1e-4 * (1.0 + zmin.abs().max(zmax.abs()));
                 let split = if level > 0 {
                     footprint(core, level - 1, [2 * x + 1, 2 * y + 1, 0]).0
@@ -242,8 +272,8 @@ impl<'a> HorFrame<'a> {
         l
     }
 
-    /// Lateral footprint of tile `b` at `level` in level-0 node coordinates: the cells whose
-    /// lower node lies in the tile's core.
+    /// Lateral footprint of tile `b` at `level` in level-0 node coordinates (the free
+    /// function [`footprint`]).
     #[inline(always)]
     fn footprint(&self, level: usize, b: [u32; 3]) -> ([f32; 2], [f32; 2]) {
         footprint(self.core, level, b)
@@ -276,16 +306,14 @@ impl<'a> HorFrame<'a> {
     ) -> f32 {
         let md = self.index_dir(d);
         let top = self.pyramid.level_count() - 1;
-        let mut limit = tb;
-        let start = hits.len();
+        let mut search = Search {
+            limit: tb,
+            last: f32::NAN,
+        };
         let inv = md.map(|m| 1.0 / m);
-        self.visit::<LIT>(top, [0, 0, 0], d, md, inv, ta, &mut limit, hits, feedback);
-        // Keep the nearest MAX_HITS.
-        if hits.len() - start > MAX_HITS {
-            hits[start..].sort_by(|a, b| a.t.total_cmp(&b.t));
-            hits.truncate(start + MAX_HITS);
-        }
-        limit
+        // Every crossing is kept, however many (the GPU caster searches again in batches).
+        self.visit::<LIT>(top, [0, 0, 0], d, md, inv, ta, &mut search, hits, feedback);
+        search.limit
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -297,7 +325,7 @@ impl<'a> HorFrame<'a> {
         md: [f32; 3],
         inv: [f32; 3],
         ta: f32,
-        limit: &mut f32,
+        search: &mut Search,
         hits: &mut Vec<Hit>,
         feedback: &mut crate::feedback::Requests,
     ) {
@@ -308,14 +336,14 @@ impl<'a> HorFrame<'a> {
         }
         let tb = &self.boxes[idx];
         let (e0, e1) = slab_inv(self.c, md, inv, tb.lo, tb.hi);
-        if fmax(e0, ta) >= fmin(e1, *limit) || e1 < 0.0 {
+        if fmax(e0, ta) >= fmin(e1, search.limit) || e1 < 0.0 {
             return;
         }
         // The LOD decision uses the unclipped entry, so it does not depend on the region.
         let want = self.level_at(e0.max(0.0));
         if level == 0 || level <= want {
             feedback.push(self.pyramid.id(level, b).with_dataset(self.ds).0);
-            self.leaf::<LIT>(level, b, d, md, ta, limit, hits);
+            self.leaf::<LIT>(level, b, d, md, ta, search, hits);
             return;
         }
         // Children front to back, ordered by where the ray crosses the two split lines
@@ -360,7 +388,7 @@ impl<'a> HorFrame<'a> {
             }
         }
         for &(_, cb) in &kids[..n] {
-            self.visit::<LIT>(level - 1, cb, d, md, inv, ta, limit, hits, feedback);
+            self.visit::<LIT>(level - 1, cb, d, md, inv, ta, search, hits, feedback);
         }
     }
 
@@ -377,7 +405,7 @@ impl<'a> HorFrame<'a> {
         d: [f32; 3],
         md: [f32; 3],
         ta: f32,
-        limit: &mut f32,
+        search: &mut Search,
         hits: &mut Vec<Hit>,
     ) {
         let e = self.table.entries[self.table.index(level, b)];
@@ -407,7 +435,7 @@ impl<'a> HorFrame<'a> {
             [fhi[0], fhi[1], zmax + eps],
         );
         let t_lo = u0.max(ta).max(0.0);
-        let t_hi = u1.min(*limit);
+        let t_hi = u1.min(search.limit);
         if t_lo >= t_hi {
             return;
         }
@@ -486,8 +514,10 @@ impl<'a> HorFrame<'a> {
                                 (bound - cr[a]) / dr[a]
                             }
                         };
+                        // A vertical ray (no lateral component) enters no cell: solve
+                        // relative to its origin, which no region moves either.
                         let t_org = entry(0, i).max(entry(1, j));
-                        let t_org = if t_org.is_finite() { t_org } else { t_cell };
+                        let t_org = if t_org.is_finite() { t_org } else { 0.0 };
                         let z0 = cr[2] + t_org * dr[2];
                         let u0 = cr[0] + t_org * dr[0] - i as f32;
                         let v0 = cr[1] + t_org * dr[1] - j as f32;
@@ -505,10 +535,16 @@ impl<'a> HorFrame<'a> {
                         // adjacent regions compare it with, so exactly one of them keeps it.
                         let mut roots = [0.0f32; 2];
                         let n = roots_in(qa, qb, qc, f32::NEG_INFINITY, f32::INFINITY, &mut roots);
+                        // Crossings of an earlier cell (not this one's: a grazing ray's two).
+                        let prev = search.last;
+                        let end = t_next + edge_tol(t_next);
                         for &sroot in &roots[..n] {
                             let t = t_org + sroot;
-                            if t < t_cell || t >= t_next || t < ta || t >= *limit {
+                            if t < t_cell || t >= end || t < ta || t >= search.limit {
                                 continue;
+                            }
+                            if (t - prev).abs() <= edge_tol(t) {
+                                continue; // the last cell kept it (see EDGE_REL)
                             }
                             let u = (u0 + sroot * dr[0]).clamp(0.0, 1.0);
                             let v = (v0 + sroot * dr[1]).clamp(0.0, 1.0);
@@ -519,9 +555,10 @@ impl<'a> HorFrame<'a> {
                                 t,
                                 rgba: [rgb[0] * al, rgb[1] * al, rgb[2] * al, al],
                             });
+                            search.last = t;
                             if al >= 1.0 {
                                 // Nothing behind an opaque surface is visible.
-                                *limit = limit.min(t);
+                                search.limit = search.limit.min(t);
                             }
                         }
                     }
@@ -590,11 +627,25 @@ mod tests {
     }
 
     fn fixture(n: u64, eye: [f32; 3]) -> Fixture {
+        fixture_of(n, eye, height)
+    }
+
+    /// [`fixture`] of the surface `height(i, j)` (level-0 node coordinates).
+    fn fixture_of(n: u64, eye: [f32; 3], height: fn(f64, f64) -> f32) -> Fixture {
         let pyramid = Pyramid::new(Dim::Two, [n, n, 1], 16, 1).unwrap();
         let (p, core, border) = (16i64, pyramid.core() as i64, 1i64);
         let mut pool = Pool::new(pyramid.page_samples(), 64 << 20);
         let mut bounds = Vec::new();
         let keep = HashSet::new();
+        // The whole surface's range (level-0 nodes), which every tile's bounds hold: a
+        // coarse tile must bound its descendants, whose heights its own nodes need not reach.
+        let (mut all_lo, mut all_hi) = (f32::INFINITY, f32::NEG_INFINITY);
+        for j in 0..n {
+            for i in 0..n {
+                let h = height(i as f64, j as f64);
+                (all_lo, all_hi) = (all_lo.min(h), all_hi.max(h));
+            }
+        }
         for (l, lev) in pyramid.levels().iter().enumerate() {
             let dims = lev.dims;
             for by in 0..lev.bricks[1] {
@@ -616,8 +667,7 @@ mod tests {
                             hi = hi.max(h);
                         }
                     }
-                    // Coarse levels bound their descendants too: widen to the whole surface.
-                    bounds.push([lo.min(7.0), hi.max(16.0)]);
+                    bounds.push([lo.min(all_lo), hi.max(all_hi)]);
                     let key = pyramid.id(l, [bx, by, 0]).with_dataset(0).0;
                     pool.place(key, &page, 0, true, &keep).unwrap();
                 }
@@ -719,6 +769,119 @@ mod tests {
             }
         }
         assert!(crossings > 300 && splits > 2700, "{crossings} crossings");
+    }
+
+    /// Regression: a coarse tile's footprint was shifted against its children's by a
+    /// quarter of its own cell, so where neighbouring tiles were drawn at different levels
+    /// a strip of the surface had no tile (rays through it missed the surface) and the
+    /// strip beside it two (they composited it twice). A flat surface is the same at every
+    /// level, so each ray aimed at it, whatever mix of levels it meets, crosses it once,
+    /// where the plane says.
+    #[test]
+    fn tiles_drawn_at_different_levels_leave_no_gap_and_no_overlap() {
+        let eye = [-10.0f32, 131.0, 34.0];
+        let f = fixture_of(256, eye, |_, _| 10.0);
+        let mut h = f.frame();
+        // Level l from 25·2^l on: four levels change across the view (levels 4 and up stay
+        // unused, so every target below lies inside every used level's nodes).
+        for (l, t) in h.level_t.iter_mut().enumerate().skip(1) {
+            *t = if l <= 3 {
+                25.0 * (1u32 << l) as f32
+            } else {
+                f32::INFINITY
+            };
+        }
+        let mut fb = crate::feedback::Requests::new();
+        let (mut rays, mut bad, mut levels) = (0, Vec::new(), HashSet::new());
+        let mut y = 20.0f32;
+        while y < 236.0 {
+            let mut x = 20.0f32;
+            while x < 236.0 {
+                let d = [x - eye[0], y - eye[1], 10.0 - eye[2]];
+                let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                let d = d.map(|v| v / l);
+                let mut hits = Vec::new();
+                h.intersect(d, 0.0, f32::INFINITY, &mut hits, &mut fb);
+                let near = hits.iter().filter(|k| (k.t - l).abs() < 1e-3 * l).count();
+                if hits.len() != 1 || near != 1 {
+                    bad.push((x, y, hits.len()));
+                    if bad.len() < 4 {
+                        eprintln!("DBG {x} {y} l={l} {hits:?} want {}", h.level_at(l));
+                    }
+                }
+                levels.insert(h.level_at(l));
+                rays += 1;
+                x += 0.37;
+            }
+            y += 1.13;
+        }
+        assert!(
+            rays > 100_000 && levels.len() == 4,
+            "{rays} rays, levels {levels:?}"
+        );
+        assert!(
+            bad.is_empty(),
+            "{} of {rays} rays crossed the plane other than once, e.g. (x, y, hits) {:?}",
+            bad.len(),
+            &bad[..bad.len().min(8)]
+        );
+    }
+
+    /// A vertical ray's crossing is solved relative to its origin, not to where the region
+    /// clipped it: a crossing on a region's face is kept by exactly one of the two regions.
+    #[test]
+    fn a_vertical_ray_keeps_a_crossing_on_a_region_face_in_one_region() {
+        // Above the surface everywhere (its heights are 7 to 53).
+        let f = fixture(64, [0.0, 0.0, 100.0]);
+        let h = f.frame();
+        let mut fb = crate::feedback::Requests::new();
+        let d = [0.0f32, 0.0, -1.0];
+        let mut checked = 0;
+        for k in 0..200 {
+            // The eye above node-space point (x, y), camera-relative space moved with it.
+            let (x, y) = (1.3 + 0.301 * k as f32, 2.1 + 0.287 * k as f32);
+            let mut h = f.frame();
+            h.c = [x, y, 100.0];
+            let mut whole = Vec::new();
+            h.intersect(d, 0.0, f32::INFINITY, &mut whole, &mut fb);
+            assert_eq!(whole.len(), 1, "ray at ({x}, {y})");
+            let t = whole[0].t;
+            for u in -4..=4 {
+                let split = next_f32(t, u);
+                let (mut a, mut b) = (Vec::new(), Vec::new());
+                h.intersect(d, 0.0, split, &mut a, &mut fb);
+                h.intersect(d, split, f32::INFINITY, &mut b, &mut fb);
+                assert_eq!(
+                    a.len() + b.len(),
+                    1,
+                    "ray at ({x}, {y}), crossing at t = {t}, split at {split} ({u} ulps): kept \
+                     {} times in front, {} behind",
+                    a.len(),
+                    b.len()
+                );
+                checked += 1;
+            }
+        }
+        let _ = h;
+        assert_eq!(checked, 1800);
+    }
+
+    /// A ray crossing a surface more than 32 times keeps every crossing (the CPU caster
+    /// kept only a horizon's nearest 32, the GPU a ray's: both now take them all). A
+    /// horizontal ray at height 10 over `10 + 3·sin(1.3·i)` crosses it once in each cell
+    /// whose two nodes lie on either side of 10.
+    #[test]
+    fn a_ray_keeps_every_crossing_however_many() {
+        let wave = |i: f64, _: f64| (10.0 + 3.0 * (1.3 * i).sin()) as f32;
+        let f = fixture_of(128, [-5.0, 40.5, 10.0], wave);
+        let h = f.frame();
+        let want = (0..127)
+            .filter(|&i| (wave(i as f64, 0.0) > 10.0) != (wave(i as f64 + 1.0, 0.0) > 10.0))
+            .count();
+        let (mut hits, mut fb) = (Vec::new(), crate::feedback::Requests::new());
+        h.intersect([1.0, 0.0, 0.0], 0.0, f32::INFINITY, &mut hits, &mut fb);
+        assert!(want > 40, "{want}");
+        assert_eq!(hits.len(), want);
     }
 
     #[test]

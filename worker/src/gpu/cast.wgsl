@@ -201,6 +201,13 @@ struct Cursor {
 
 // A ray's surface crossings, nearest first.
 var<private> n_hits: u32;
+// Whether a crossing was dropped from the full list since the last search began.
+var<private> hits_full: bool;
+// The last crossing the current horizon's search kept (-BIG before the first): a crossing
+// on the edge between two cells is kept by the first of them up to EDGE_REL past the edge
+// and dropped by the next (horizon.rs `EDGE_REL`).
+var<private> h_last: f32;
+const EDGE_REL: f32 = 9.5367431640625e-7; // 2^-20
 var<private> hit_t: array<f32, MAX_HITS>;
 var<private> hit_c: array<vec4<f32>, MAX_HITS>;
 
@@ -976,10 +983,12 @@ fn roots_in(a: f32, b: f32, c: f32, lo: f32, hi: f32) -> Roots {
 }
 
 // Keeps the crossing in the ray's sorted list (after equal ones, as a stable sort would);
-// a full list drops its farthest.
+// a full list drops its farthest and says so in `hits_full` (the ray then searches again
+// from there: cast_rays).
 fn push_hit(t: f32, c: vec4<f32>) {
     var j = n_hits;
     if (j == MAX_HITS) {
+        hits_full = true;
         if (t >= hit_t[MAX_HITS - 1u]) {
             return;
         }
@@ -1088,16 +1097,16 @@ fn h_level_at(hi: u32, t: f32) -> u32 {
     return l;
 }
 
-// Lateral footprint of tile b at `level` in level-0 node coordinates (lo.xy, hi.xy): the
-// cells whose lower node lies in the tile's core.
+// Lateral footprint of tile b at `level` in level-0 node coordinates (lo.xy, hi.xy):
+// [b·core·2^level, (b + 1)·core·2^level), the same at every level, so a tile's footprint
+// is exactly its children's (horizon.rs `footprint`).
 fn footprint(hi: u32, level: u32, b: vec2<u32>) -> vec4<f32> {
-    let s = ldexp(1.0, i32(level));
-    let core = f32(hors[hi].core);
+    let w = f32(hors[hi].core) * ldexp(1.0, i32(level));
     return vec4<f32>(
-        (f32(b.x) * core + 0.5) * s - 0.5,
-        (f32(b.y) * core + 0.5) * s - 0.5,
-        (f32(b.x + 1u) * core + 0.5) * s - 0.5,
-        (f32(b.y + 1u) * core + 0.5) * s - 0.5,
+        f32(b.x) * w,
+        f32(b.y) * w,
+        f32(b.x + 1u) * w,
+        f32(b.y + 1u) * w,
     );
 }
 
@@ -1242,9 +1251,11 @@ fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f3
                     if (dr.y != 0.0) {
                         ey = (f32(select(j + 1, j, dr.y > 0.0)) - cr.y) / dr.y;
                     }
+                    // A vertical ray enters no cell: relative to its origin, which no
+                    // region moves either.
                     var t_org = max(ex, ey);
                     if (!(t_org > -BIG)) {
-                        t_org = t_cell;
+                        t_org = 0.0;
                     }
                     let zo = cr.z + t_org * dr.z;
                     let u0 = cr.x + t_org * dr.x - f32(i);
@@ -1259,11 +1270,17 @@ fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f3
                     // relative to t_org can disagree with t_org + s by a rounding, and a
                     // crossing on a region face was lost to both regions).
                     let roots = roots_in(qa, qb, qc, -BIG, BIG);
+                    // Crossings of an earlier cell (not this one's: a grazing ray's two).
+                    let prev = h_last;
+                    let end = t_next + abs(t_next) * EDGE_REL;
                     for (var q = 0u; q < roots.n; q = q + 1u) {
                         let sroot = roots.r[q];
                         let t = t_org + sroot;
-                        if (t < t_cell || t >= t_next || t < ta || t >= *limit) {
+                        if (t < t_cell || t >= end || t < ta || t >= *limit) {
                             continue;
+                        }
+                        if (abs(t - prev) <= abs(t) * EDGE_REL) {
+                            continue; // the last cell kept it
                         }
                         let uu = clamp(u0 + sroot * dr.x, 0.0, 1.0);
                         let vv = clamp(v0 + sroot * dr.y, 0.0, 1.0);
@@ -1281,6 +1298,7 @@ fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f3
                             hc = hc * vec4<f32>(vc.xyz, 1.0);
                         }
                         push_hit(t, hc);
+                        h_last = t;
                         if (opacity >= 1.0) {
                             // Nothing behind an opaque surface is visible.
                             *limit = min(*limit, t);
@@ -1309,6 +1327,7 @@ fn intersect_horizon(hi: u32, d: vec3<f32>, ta: f32, tb: f32) -> f32 {
     let inv = vec3<f32>(1.0) / select(md, vec3<f32>(1.0), md == vec3<f32>(0.0));
     let c = (*hz).c;
     var limit = tb;
+    h_last = -BIG;
     var stack: array<vec3<u32>, STACK>;
     stack[0] = vec3<u32>((*hz).n_levels - 1u, 0u, 0u);
     var sp = 1u;
@@ -1324,8 +1343,9 @@ fn intersect_horizon(hi: u32, d: vec3<f32>, ta: f32, tb: f32) -> f32 {
         }
         let s = ldexp(1.0, i32(level));
         let fp = footprint(hi, level, b);
-        // Pad by one cell of this level: coarse and fine footprints do not nest exactly. A
-        // flat tile gets a little thickness so the slab test cannot lose it to rounding.
+        // Pad by one cell of this level (horizon.rs `tile_boxes`): no rounding of this test
+        // culls what the leaf's exact clip keeps. A flat tile gets a little thickness so the
+        // slab test cannot lose it to rounding.
         let eps = 1e-4 * (1.0 + max(abs(zb.x), abs(zb.y)));
         let e = slab_inv(c, md, inv, vec3<f32>(fp.x - s, fp.y - s, zb.x - eps), vec3<f32>(fp.z + s, fp.w + s, zb.y + eps));
         if (max(e.x, ta) >= min(e.y, limit) || e.y < 0.0) {
@@ -1453,74 +1473,102 @@ fn cast_rays(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
                 curs[i].vol_start = iv.x;
                 curs[i].vol_end = iv.y;
             }
-            var nh = 0u;
-            if (HORIZONS || SLICES) {
-                n_hits = 0u;
-                // Slices first, then each horizon only up to the nearest opaque surface
-                // found so far (raycast.rs `start`).
-                var limit = tt.y;
-                if (SLICES) {
-                    for (var i = 0u; i < F.n_vols; i = i + 1u) {
-                        slice_hits(i, mds[i], tt.x, tt.y);
-                    }
-                    for (var k = 0u; k < n_hits; k = k + 1u) {
-                        if (hit_c[k].w >= 1.0) {
-                            limit = min(limit, hit_t[k]);
-                        }
-                    }
-                }
-                if (HORIZONS) {
-                    for (var h = 0u; h < F.n_hors; h = h + 1u) {
-                        limit = min(limit, intersect_horizon(h, d, tt.x, limit));
-                    }
-                }
-                nh = n_hits;
-            }
-            // March the volumes up to each crossing, composite it, go on.
+            // The surfaces' crossings in batches of at most MAX_HITS, nearest first: a
+            // search whose list overflowed ends its batch before its farthest crossing, and
+            // the next batch searches again from there. Every crossing is composited, as on
+            // the CPU, however many the ray meets (only more than MAX_HITS at one t would
+            // be cut to MAX_HITS).
+            var search_from = tt.x;
             var cur_t = tt.x;
-            var next = 0u;
             loop {
-                var next_hit = BIG;
-                if ((HORIZONS || SLICES) && next < nh) {
-                    next_hit = hit_t[next];
-                }
-                let seg_end = min(next_hit, tt.y);
-                if (seg_end > cur_t) {
-                    if (MULTI) {
-                        march_fragments(&spans, &curs, &mds, d, cur_t, seg_end, &ray);
-                    } else if (F.n_vols == 1u) {
-                        let a = max(spans[0].x, cur_t);
-                        let b = min(spans[0].y, seg_end);
-                        if (a < b) {
-                            var cur = curs[0];
-                            march_one(0u, &cur, mds[0], d, a, b, &ray);
-                            curs[0] = cur;
-                        }
-                    }
-                    cur_t = seg_end;
-                }
-                if (ray.done) { break; }
-                if ((HORIZONS || SLICES) && next < nh && next_hit < tt.y && seg_end >= next_hit) {
-                    // Pre-integrated spans end at the surface (an opaque one ends the ray).
-                    if (PRE) {
+                var nh = 0u;
+                var batch_end = tt.y;
+                if (HORIZONS || SLICES) {
+                    n_hits = 0u;
+                    hits_full = false;
+                    // Slices first, then each horizon only up to the nearest opaque surface
+                    // found so far (raycast.rs `start`).
+                    var limit = tt.y;
+                    if (SLICES) {
                         for (var i = 0u; i < F.n_vols; i = i + 1u) {
-                            var cur = curs[i];
-                            end_pre_span(i, &cur, next_hit, &ray);
-                            curs[i] = cur;
+                            slice_hits(i, mds[i], search_from, tt.y);
+                        }
+                        for (var k = 0u; k < n_hits; k = k + 1u) {
+                            if (hit_c[k].w >= 1.0) {
+                                limit = min(limit, hit_t[k]);
+                            }
                         }
                     }
-                    ray.acc = blend(ray.acc, hit_c[next]);
-                    ray.hits = ray.hits + 1u;
-                    next = next + 1u;
-                    if (ray.acc.w >= ray.ert) {
-                        ray.done = true;
-                        ray.terminated = 1u;
-                        break;
+                    if (HORIZONS) {
+                        for (var h = 0u; h < F.n_hors; h = h + 1u) {
+                            limit = min(limit, intersect_horizon(h, d, search_from, limit));
+                        }
                     }
-                    cur_t = max(cur_t, next_hit);
-                    continue;
+                    nh = n_hits;
+                    if (hits_full) {
+                        // This batch ends at its farthest crossing, which (with any equal to
+                        // it) the next batch finds again; unless every crossing kept lies
+                        // there, and then they are all this batch's.
+                        let far = hit_t[nh - 1u];
+                        var m = nh;
+                        loop {
+                            if (m > 0u && hit_t[m - 1u] >= far) { m = m - 1u; } else { break; }
+                        }
+                        if (m > 0u) {
+                            nh = m;
+                            batch_end = far;
+                        } else {
+                            batch_end = bitcast<f32>(bitcast<u32>(far) + 1u);
+                        }
+                    }
                 }
-                break;
+                // March the volumes up to each crossing, composite it, go on.
+                var next = 0u;
+                loop {
+                    var next_hit = BIG;
+                    if ((HORIZONS || SLICES) && next < nh) {
+                        next_hit = hit_t[next];
+                    }
+                    let seg_end = min(min(next_hit, tt.y), batch_end);
+                    if (seg_end > cur_t) {
+                        if (MULTI) {
+                            march_fragments(&spans, &curs, &mds, d, cur_t, seg_end, &ray);
+                        } else if (F.n_vols == 1u) {
+                            let a = max(spans[0].x, cur_t);
+                            let b = min(spans[0].y, seg_end);
+                            if (a < b) {
+                                var cur = curs[0];
+                                march_one(0u, &cur, mds[0], d, a, b, &ray);
+                                curs[0] = cur;
+                            }
+                        }
+                        cur_t = seg_end;
+                    }
+                    if (ray.done) { break; }
+                    if ((HORIZONS || SLICES) && next < nh && next_hit < tt.y && seg_end >= next_hit) {
+                        // Pre-integrated spans end at the surface (an opaque one ends the ray).
+                        if (PRE) {
+                            for (var i = 0u; i < F.n_vols; i = i + 1u) {
+                                var cur = curs[i];
+                                end_pre_span(i, &cur, next_hit, &ray);
+                                curs[i] = cur;
+                            }
+                        }
+                        ray.acc = blend(ray.acc, hit_c[next]);
+                        ray.hits = ray.hits + 1u;
+                        next = next + 1u;
+                        if (ray.acc.w >= ray.ert) {
+                            ray.done = true;
+                            ray.terminated = 1u;
+                            break;
+                        }
+                        cur_t = max(cur_t, next_hit);
+                        continue;
+                    }
+                    break;
+                }
+                if (ray.done || !(batch_end < tt.y)) { break; }
+                search_from = batch_end;
             }
         }
         atomicAdd(&wg_samples, ray.samples);
