@@ -22,7 +22,8 @@
 //! * [`engine`]: frames, feedback → loads → atlas updates, batch convergence.
 //! * [`dataset`]: open stores with their transforms and per-page value bounds.
 //! * [`node`]: the worker as a cluster node (coordinator link, peer mesh, the compositing
-//!   exchange per frame); [`cli`]: its `--connect` command line.
+//!   exchange per frame); [`canvas_cache`]: the coordinator's canvases it keeps mapped;
+//!   [`cli`]: its `--connect` command line.
 //! * [`image_out`]: PNG (sRGB, flattened) and OpenEXR (float RGBA) writers, atomic; a
 //!   wall's tile files and its preview mosaic.
 #![deny(missing_docs)]
@@ -30,6 +31,7 @@
 pub mod affinity;
 pub mod atlas;
 pub mod cache;
+pub mod canvas_cache;
 pub mod cli;
 pub mod dataset;
 pub mod engine;

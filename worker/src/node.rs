@@ -651,8 +651,7 @@ async fn mesh(
         plans: HashMap::new(),
         timeout,
         gather_shm: None,
-        canvases: Vec::new(),
-        canvas_used: std::collections::HashMap::new(),
+        canvases: Default::default(),
         suspects: Vec::new(),
         deferred: Default::default(),
         front_last: None,
@@ -959,10 +958,8 @@ struct Node {
     timeout: Duration,
     /// The segment for the final pieces (a coordinator on this host).
     gather_shm: Option<ShmWriter>,
-    /// The coordinator's canvases this worker has mapped, most recent last.
-    canvases: Vec<CanvasWriter>,
-    /// The last frame that asked for each canvas (by name).
-    canvas_used: std::collections::HashMap<String, u64>,
+    /// The coordinator's canvases this worker has mapped.
+    canvases: crate::canvas_cache::CanvasCache<CanvasWriter>,
     /// The peers the last failed frame is blamed on (reported to the coordinator).
     suspects: Vec<u32>,
     /// Control messages that arrived during a frame, for after it.
@@ -1041,31 +1038,9 @@ impl Node {
     /// The coordinator's canvas `c` for `req`'s frame, mapped on first use (the last few
     /// stay mapped), taken out of the cache until [`put_canvas`](Self::put_canvas).
     fn take_canvas(&mut self, req: &FrameRequest, c: &wire::CanvasRef) -> Result<CanvasWriter> {
-        /// Canvases kept mapped (the coordinator rotates two while callers hold images).
-        const KEEP: usize = 4;
-        /// Frames after which a canvas not asked for is let go: the coordinator uses each
-        /// of its live canvases every other frame or so, and drops a failed attempt's and
-        /// those of another size, which a mapping here would keep from being freed (a
-        /// live one let go is only mapped again).
-        const STALE: u64 = 4;
         let size = (req.width, req.height);
-        let used = &mut self.canvas_used;
-        used.insert(c.name.clone(), req.frame);
-        self.canvases.retain(|w| {
-            let recent = used
-                .get(w.name())
-                .is_some_and(|&f| f.saturating_add(STALE) >= req.frame);
-            w.size() == size && recent
-        });
-        let live: std::collections::HashSet<&str> =
-            self.canvases.iter().map(|w| w.name()).collect();
-        used.retain(|n, _| n == &c.name || live.contains(n.as_str()));
-        if let Some(i) = self
-            .canvases
-            .iter()
-            .position(|w| w.name() == c.name && w.size() == size)
-        {
-            return Ok(self.canvases.remove(i));
+        if let Some(w) = self.canvases.take(&c.name, size, req.frame) {
+            return Ok(w);
         }
         let id = SegmentId {
             name: c.name.clone(),
@@ -1074,15 +1049,13 @@ impl Node {
         };
         let w = CanvasWriter::open(&id, req.width, req.height)
             .context("opening the coordinator's canvas")?;
-        while self.canvases.len() >= KEEP {
-            self.canvases.remove(0);
-        }
+        self.canvases.make_room();
         Ok(w)
     }
 
     /// Returns a canvas to the cache (most recent last).
     fn put_canvas(&mut self, w: CanvasWriter) {
-        self.canvases.push(w);
+        self.canvases.put(w);
     }
 
     /// The final piece for the coordinator when it is not in its canvas: encoded straight
