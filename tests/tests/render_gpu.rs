@@ -699,3 +699,51 @@ fn scenes_past_the_gpu_casters_limits_are_refused_by_gpu_and_go_to_the_cpu_under
         assert!(!render_whole(&on(&s, Backend::Auto)).is_empty());
     }
 }
+
+/// A ray crossing one translucent horizon more often than the GPU's list of 32 holds: a
+/// horizontal ray at height 10 over `10 + 3·sin(1.3·i + 0.4)` crosses it in every cell whose
+/// two nodes lie on either side of 10, 52 times over 128 nodes. Both casters composite every
+/// crossing (the CPU had kept 32 per horizon, the GPU 32 per ray; the GPU now searches again
+/// from its 32nd), so the centre ray's alpha is `1 − 0.97^52`, and GPU == CPU.
+#[test]
+fn a_horizon_crossed_52_times_composites_every_crossing_on_both_casters() {
+    use strata_common::scene::Camera;
+    let dir = TempDir::new().unwrap();
+    let (nx, ny) = (128u64, 64u64);
+    let wave = |i: u64| (10.0 + 3.0 * (1.3 * i as f64 + 0.4).sin()) as f32;
+    let heights: Vec<f32> = (0..nx * ny).map(|k| wave(k % nx)).collect();
+    let crossings = (0..nx - 1)
+        .filter(|&i| (wave(i) > 10.0) != (wave(i + 1) > 10.0))
+        .count();
+    assert_eq!(crossings, 52);
+    let p = horizon_store(
+        dir.path(),
+        "wave",
+        [nx, ny],
+        heights,
+        strata_common::geo::Affine3::IDENTITY,
+        32,
+    );
+    let mut r = exact_settings(33, 33);
+    r.lighting = false;
+    let s = scene(
+        vec![],
+        vec![horizon_layer(p, [0.2, 0.6, 0.3], 0.03)],
+        Camera {
+            eye: [-20.0, 31.5, 10.0],
+            target: [127.0, 31.5, 10.0],
+            up: [0.0, 0.0, 1.0],
+            fov_deg: 10.0,
+        },
+        r,
+    );
+    let px = render_on_both(&s, 1e-4, "a horizon crossed 52 times");
+    let c = px[(16 * 33 + 16) as usize];
+    let a = 1.0 - 0.97f64.powi(crossings as i32);
+    assert!((c[3] as f64 - a).abs() < 1e-4, "{c:?}, want alpha {a}");
+    assert!(
+        (c[1] as f64 - 0.6 * a).abs() < 1e-4,
+        "{c:?}, want green {}",
+        0.6 * a
+    );
+}

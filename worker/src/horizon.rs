@@ -419,8 +419,15 @@ impl<'a> HorFrame<'a> {
         // Clip to this tile's own footprint (exact, not padded), within the data.
         let (mut flo, mut fhi) = self.footprint(level, b);
         for a in 0..2 {
+            let last = self.dims[a] as f32 - 1.0;
+            // A ray with no motion along this axis is in the tile or not: half-open, so one
+            // lying on the edge between two tiles is walked by one of them (the slab test
+            // below is closed; tiles drawn at different levels would give two crossings).
+            if md[a] == 0.0 && fhi[a] < last && self.c[a] >= fhi[a] {
+                return;
+            }
             flo[a] = flo[a].max(0.0);
-            fhi[a] = fhi[a].min(self.dims[a] as f32 - 1.0);
+            fhi[a] = fhi[a].min(last);
         }
         // Also clip to the height range of the data used, so steep rays walk few cells.
         let [zmin, zmax] = self.bounds[self.table.index(r, [br[0], br[1], 0])];
@@ -514,10 +521,16 @@ impl<'a> HorFrame<'a> {
                                 (bound - cr[a]) / dr[a]
                             }
                         };
-                        // A vertical ray (no lateral component) enters no cell: solve
-                        // relative to its origin, which no region moves either.
+                        // Never before the ray's origin, which no region moves either: a
+                        // vertical ray (no lateral component) enters no cell, and a nearly
+                        // vertical one enters its cells far behind the eye, so t = t_org + s
+                        // would carry that large t's rounding.
                         let t_org = entry(0, i).max(entry(1, j));
-                        let t_org = if t_org.is_finite() { t_org } else { 0.0 };
+                        let t_org = if t_org.is_finite() {
+                            t_org.max(0.0)
+                        } else {
+                            0.0
+                        };
                         let z0 = cr[2] + t_org * dr[2];
                         let u0 = cr[0] + t_org * dr[0] - i as f32;
                         let v0 = cr[1] + t_org * dr[1] - j as f32;
@@ -632,6 +645,16 @@ mod tests {
 
     /// [`fixture`] of the surface `height(i, j)` (level-0 node coordinates).
     fn fixture_of(n: u64, eye: [f32; 3], height: fn(f64, f64) -> f32) -> Fixture {
+        fixture_without(n, eye, height, &[])
+    }
+
+    /// [`fixture_of`] with the tiles `(level, x, y)` of `missing` not resident.
+    fn fixture_without(
+        n: u64,
+        eye: [f32; 3],
+        height: fn(f64, f64) -> f32,
+        missing: &[(usize, u32, u32)],
+    ) -> Fixture {
         let pyramid = Pyramid::new(Dim::Two, [n, n, 1], 16, 1).unwrap();
         let (p, core, border) = (16i64, pyramid.core() as i64, 1i64);
         let mut pool = Pool::new(pyramid.page_samples(), 64 << 20);
@@ -669,7 +692,9 @@ mod tests {
                     }
                     bounds.push([lo.min(all_lo), hi.max(all_hi)]);
                     let key = pyramid.id(l, [bx, by, 0]).with_dataset(0).0;
-                    pool.place(key, &page, 0, true, &keep).unwrap();
+                    if !missing.contains(&(l, bx, by)) {
+                        pool.place(key, &page, 0, true, &keep).unwrap();
+                    }
                 }
             }
         }
@@ -882,6 +907,44 @@ mod tests {
         h.intersect([1.0, 0.0, 0.0], 0.0, f32::INFINITY, &mut hits, &mut fb);
         assert!(want > 40, "{want}");
         assert_eq!(hits.len(), want);
+    }
+
+    /// A ray with no motion along an axis that lies on the edge between two tiles is walked
+    /// by one of them. Here the tile on one side is drawn from its parent's data (its own
+    /// is not resident), so the two tiles' crossings differ and both were kept.
+    #[test]
+    fn a_vertical_ray_on_a_tile_edge_crosses_once() {
+        // Level-0 tiles are 14 nodes wide: x = 28 is the edge between tiles 1 and 2.
+        let f = fixture_without(64, [28.0, 20.3, 100.0], height, &[(0, 1, 1)]);
+        let h = f.frame();
+        let mut fb = crate::feedback::Requests::new();
+        for d in [[0.0f32, 0.0, -1.0], [0.0, 0.2, -0.98]] {
+            let mut hits = Vec::new();
+            h.intersect(d, 0.0, f32::INFINITY, &mut hits, &mut fb);
+            assert_eq!(hits.len(), 1, "direction {d:?}: {hits:?}");
+        }
+    }
+
+    /// A nearly vertical ray enters its cells far behind the eye: solved from there, its
+    /// crossing carried that large t's rounding (hundredths of a node here).
+    #[test]
+    fn a_nearly_vertical_ray_crosses_where_the_plane_says() {
+        let plane = |i: f64, j: f64| (10.0 + 0.3 * i + 0.2 * j) as f32;
+        let eye = [31.3f32, 30.7, 100.0];
+        let f = fixture_of(64, eye, plane);
+        let h = f.frame();
+        let mut fb = crate::feedback::Requests::new();
+        for tilt in [1e-6f32, -3e-7, 2e-5, 7e-4] {
+            let d = [tilt, -0.5 * tilt, -1.0];
+            let mut hits = Vec::new();
+            h.intersect(d, 0.0, f32::INFINITY, &mut hits, &mut fb);
+            // 100 − t = 10 + 0.3·(x + t·dx) + 0.2·(y + t·dy), in f64.
+            let (x, y, dx, dy) = (eye[0] as f64, eye[1] as f64, d[0] as f64, d[1] as f64);
+            let want = (90.0 - 0.3 * x - 0.2 * y) / (1.0 + 0.3 * dx + 0.2 * dy);
+            assert_eq!(hits.len(), 1, "tilt {tilt}");
+            let err = (hits[0].t as f64 - want).abs();
+            assert!(err < 1e-4, "tilt {tilt}: t = {}, want {want}", hits[0].t);
+        }
     }
 
     #[test]

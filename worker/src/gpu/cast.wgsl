@@ -201,7 +201,7 @@ struct Cursor {
 
 // A ray's surface crossings, nearest first.
 var<private> n_hits: u32;
-// Whether a crossing was dropped from the full list since the last search began.
+// Whether the list filled since the last search began (crossings may lie beyond it).
 var<private> hits_full: bool;
 // The last crossing the current horizon's search kept (-BIG before the first): a crossing
 // on the edge between two cells is kept by the first of them up to EDGE_REL past the edge
@@ -983,8 +983,8 @@ fn roots_in(a: f32, b: f32, c: f32, lo: f32, hi: f32) -> Roots {
 }
 
 // Keeps the crossing in the ray's sorted list (after equal ones, as a stable sort would);
-// a full list drops its farthest and says so in `hits_full` (the ray then searches again
-// from there: cast_rays).
+// a full list drops its farthest. `hits_full` says the list filled (the ray then searches
+// again from its farthest crossing: cast_rays).
 fn push_hit(t: f32, c: vec4<f32>) {
     var j = n_hits;
     if (j == MAX_HITS) {
@@ -1007,6 +1007,10 @@ fn push_hit(t: f32, c: vec4<f32>) {
     }
     hit_t[j] = t;
     hit_c[j] = c;
+    // Full: the searches now stop at the farthest crossing (h_leaf), so there may be more.
+    if (n_hits == MAX_HITS) {
+        hits_full = true;
+    }
 }
 
 // Volume `vi`'s straight transfer-function colour of a (non-NaN) value.
@@ -1165,9 +1169,11 @@ fn h_node(base: u32, p: i32, off: vec2<i32>, i: i32, j: i32) -> f32 {
     return hpool[base + u32(lj * p + li)];
 }
 
-// Walks the cells of tile b at `level`, using the finest resident data; crossings go to the
-// hit list, an opaque one lowers `limit`.
-fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f32, limit: ptr<function, f32>) {
+// Walks the cells of tile b at `level` from `ta` on, using the finest resident data;
+// crossings from `keep_from` on go to the hit list (those before it were composited by an
+// earlier batch: they only set `h_last`), an opaque one lowers `limit`, and so does a full
+// list (to its farthest crossing: anything beyond is dropped until the next batch).
+fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f32, keep_from: f32, limit: ptr<function, f32>) {
     let hz = &hors[hi];
     let e = table[(*hz).table_base + h_index(hi, level, b)];
     if (e == NOT_RESIDENT) {
@@ -1180,8 +1186,15 @@ fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f3
     // Clip to this tile's own footprint (exact, not padded), within the data.
     let fp = footprint(hi, level, b);
     let dims = (*hz).dims;
+    let last = vec2<f32>(f32(dims.x) - 1.0, f32(dims.y) - 1.0);
+    // A ray with no motion along an axis is in the tile or not: half-open, so one on the
+    // edge between two tiles is walked by one of them (horizon.rs `leaf`).
+    let c0 = (*hz).c;
+    if ((md.x == 0.0 && fp.z < last.x && c0.x >= fp.z) || (md.y == 0.0 && fp.w < last.y && c0.y >= fp.w)) {
+        return;
+    }
     let flo = vec2<f32>(max(fp.x, 0.0), max(fp.y, 0.0));
-    let fhi = vec2<f32>(min(fp.z, f32(dims.x) - 1.0), min(fp.w, f32(dims.y) - 1.0));
+    let fhi = vec2<f32>(min(fp.z, last.x), min(fp.w, last.y));
     // Also clip to the height range of the data used, so steep rays walk few cells.
     let zb = hbounds[(*hz).bounds_base + h_index(hi, r, br)];
     if (!(zb.x <= zb.y)) {
@@ -1251,12 +1264,10 @@ fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f3
                     if (dr.y != 0.0) {
                         ey = (f32(select(j + 1, j, dr.y > 0.0)) - cr.y) / dr.y;
                     }
-                    // A vertical ray enters no cell: relative to its origin, which no
-                    // region moves either.
-                    var t_org = max(ex, ey);
-                    if (!(t_org > -BIG)) {
-                        t_org = 0.0;
-                    }
+                    // Never before the ray's origin, which no region moves either: a
+                    // vertical ray enters no cell (-BIG), a nearly vertical one enters its
+                    // cells far behind the eye (horizon.rs).
+                    let t_org = max(max(ex, ey), 0.0);
                     let zo = cr.z + t_org * dr.z;
                     let u0 = cr.x + t_org * dr.x - f32(i);
                     let v0 = cr.y + t_org * dr.y - f32(j);
@@ -1282,6 +1293,10 @@ fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f3
                         if (abs(t - prev) <= abs(t) * EDGE_REL) {
                             continue; // the last cell kept it
                         }
+                        h_last = t;
+                        if (t < keep_from) {
+                            continue; // an earlier batch's
+                        }
                         let uu = clamp(u0 + sroot * dr.x, 0.0, 1.0);
                         let vv = clamp(v0 + sroot * dr.y, 0.0, 1.0);
                         let h = h00 + a * uu + bb * vv + cc * uu * vv;
@@ -1298,10 +1313,12 @@ fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f3
                             hc = hc * vec4<f32>(vc.xyz, 1.0);
                         }
                         push_hit(t, hc);
-                        h_last = t;
                         if (opacity >= 1.0) {
                             // Nothing behind an opaque surface is visible.
                             *limit = min(*limit, t);
+                        }
+                        if (n_hits == MAX_HITS) {
+                            *limit = min(*limit, hit_t[MAX_HITS - 1u]);
                         }
                     }
                 }
@@ -1316,17 +1333,21 @@ fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f3
     }
 }
 
-// All crossings of the ray t·d, t in [ta, tb), with horizon `hi`: a front-to-back descent
-// of the min-max tile tree to the level the footprint calls for; the tiles reached are
-// counted in the feedback. Returns the nearest opaque crossing, or tb (horizon.rs
-// `intersect`).
-fn intersect_horizon(hi: u32, d: vec3<f32>, ta: f32, tb: f32) -> f32 {
+// All crossings of the ray t·d, t in [keep_from, tb), with horizon `hi`, walked from ta
+// (≤ keep_from: a later batch walks from a little before its start, see cast_rays): a
+// front-to-back descent of the min-max tile tree to the level the footprint calls for; the
+// tiles reached are counted in the feedback. Returns the nearest opaque crossing, the
+// farthest of a full list, or tb (horizon.rs `intersect`).
+fn intersect_horizon(hi: u32, d: vec3<f32>, ta: f32, keep_from: f32, tb: f32) -> f32 {
     let hz = &hors[hi];
     let md = mul_rows((*hz).m0, (*hz).m1, (*hz).m2, d);
     // Components where md is 0 are never used (slab_inv tests d == 0 first).
     let inv = vec3<f32>(1.0) / select(md, vec3<f32>(1.0), md == vec3<f32>(0.0));
     let c = (*hz).c;
     var limit = tb;
+    if (n_hits == MAX_HITS) {
+        limit = min(limit, hit_t[MAX_HITS - 1u]);
+    }
     h_last = -BIG;
     var stack: array<vec3<u32>, STACK>;
     stack[0] = vec3<u32>((*hz).n_levels - 1u, 0u, 0u);
@@ -1355,7 +1376,7 @@ fn intersect_horizon(hi: u32, d: vec3<f32>, ta: f32, tb: f32) -> f32 {
         let want = h_level_at(hi, max(e.x, 0.0));
         if (level == 0u || level <= want) {
             atomicAdd(&feedback[(*hz).table_base + idx], 1u);
-            h_leaf(hi, level, b, d, md, ta, &limit);
+            h_leaf(hi, level, b, d, md, ta, keep_from, &limit);
             continue;
         }
         // Children sorted front to back (stable) by where the ray crosses the split lines
@@ -1500,8 +1521,16 @@ fn cast_rays(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
                         }
                     }
                     if (HORIZONS) {
+                        // A later batch walks the cells from a little before its start, so
+                        // that a crossing on a cell edge the last batch ended at is solved
+                        // in the same cell as before (h_leaf keeps only those from
+                        // search_from on, and drops the next cell's copy).
+                        var walk_from = search_from;
+                        if (search_from > tt.x) {
+                            walk_from = max(tt.x, search_from - 2.0 * abs(search_from) * EDGE_REL);
+                        }
                         for (var h = 0u; h < F.n_hors; h = h + 1u) {
-                            limit = min(limit, intersect_horizon(h, d, search_from, limit));
+                            limit = min(limit, intersect_horizon(h, d, walk_from, search_from, limit));
                         }
                     }
                     nh = n_hits;
@@ -1567,7 +1596,9 @@ fn cast_rays(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
                     }
                     break;
                 }
-                if (ray.done || !(batch_end < tt.y)) { break; }
+                // (The second test only guards against a GPU that flushes the denormal one
+                // ulp past 0 to 0.)
+                if (ray.done || !(batch_end < tt.y) || !(batch_end > search_from)) { break; }
                 search_from = batch_end;
             }
         }
