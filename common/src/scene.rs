@@ -281,7 +281,7 @@ pub struct ClusterSettings {
     /// pixels), so a moving camera leaves fewer blocks to cast again afterwards, at the cost
     /// of casting more behind the edges of what is in front. Off by default: on the demo
     /// orbit at 8 workers it cast 7 % more samples and the frame took 6 % longer once
-    /// re-casts had become cheap (docs/BENCHMARKS.md).
+    /// re-casts had become cheap (docs/BENCHMARKS.md). Not applied to a `[wall]`'s frames.
     #[serde(default)]
     pub occlusion_motion: bool,
 }

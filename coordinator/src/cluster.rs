@@ -1765,9 +1765,13 @@ impl Cluster {
             && !self.occlusion_last.as_ref().is_some_and(|(w, h, last, _)| {
                 (*w, *h) == (width, height) && same_fronts(last, &order)
             });
-        // How far the scene moved on screen since the frame the workers predict from.
+        // How far the scene moved on screen since the frame the workers predict from. Not
+        // for a wall's frames: their image is the tiles stacked, so neither a plain view's
+        // motion nor a dilation that crosses from one tile into the next fits them.
         let motion = match &self.occlusion_last {
-            Some((.., last)) if occlusion && !prepass && self.opts.occlusion_motion => {
+            Some((.., last))
+                if occlusion && !prepass && wall.is_none() && self.opts.occlusion_motion =>
+            {
                 let view = |c: &Camera| View::new(c, &self.render, width, height).ok();
                 match (view(last), view(camera)) {
                     (Some(a), Some(b)) => {

@@ -179,3 +179,35 @@ fn a_missing_scene_is_a_clear_error() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("/nonexistent/scene.toml"), "{err}");
 }
+
+/// A scene with a `[wall]` is refused before anything renders: the study renders one image
+/// (its distributed points had failed on the wall's tile files, each noted as skipped).
+#[test]
+fn a_wall_scene_is_refused_naming_the_wall() {
+    let tmp = tempfile::tempdir().unwrap();
+    let survey = common::survey_in("study-survey");
+    let text = std::fs::read_to_string(survey.join("scene.toml")).unwrap();
+    // Beside the survey's scene, so its relative store paths hold.
+    let scene_in = survey.join("wall-study.toml");
+    std::fs::write(
+        &scene_in,
+        format!("{text}\n[wall]\ntiles = [2, 1]\ntile_size = [24, 16]\nmullion = [0, 0]\n"),
+    )
+    .unwrap();
+    let out = Command::new(BIN)
+        .args(["-q", "study", "accuracy"])
+        .arg(&scene_in)
+        .arg("-o")
+        .arg(tmp.path().join("o"))
+        .args(["--size", "48x32", "--no-gpu"])
+        .output()
+        .unwrap();
+    let _ = std::fs::remove_file(&scene_in);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("[wall]") && err.contains("wall-study.toml"),
+        "{err}"
+    );
+    assert!(!tmp.path().join("o").join("points.csv").exists());
+}

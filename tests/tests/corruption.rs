@@ -162,12 +162,21 @@ fn a_store_whose_transform_is_not_finite_or_invertible_is_refused() {
 
 /// A sealed store (checksums right) whose header claims more valid samples than it has
 /// samples, or a survey grid without lines, is refused at open naming the file: `inspect`
-/// subtracted and indexed by them (an overflow panic in checked builds).
+/// subtracted and indexed by them (an overflow panic in checked builds). So is a page of
+/// one sample per axis.
 #[test]
 fn a_store_whose_counts_do_not_fit_its_dimensions_is_refused() {
     type Patch = fn(&mut strata_common::store::StoreHeader);
-    let patches: [(Patch, &str); 2] = [
+    let patches: [(Patch, &str); 3] = [
         (|h| h.valid_samples = u64::MAX, "valid samples"),
+        // A page of one sample (the worker's caster panicked on it).
+        (
+            |h| {
+                h.page_size = 1;
+                h.border = 0
+            },
+            "at least 2 samples",
+        ),
         (
             |h| {
                 h.survey = Some(strata_common::geo::SurveyGrid {

@@ -241,6 +241,21 @@ fn gpu_out_of_core_converges_to_the_unlimited_atlas_image() {
     assert!(uploaded > 0 && r.uploaded_bytes > uploaded as u64 * 34 * 34 * 34 * 4 / 2);
     let (used, _) = e.atlas_usage();
     assert!(used <= slots, "{used} of {slots} slots");
+    // A batch cut short by the round limit counts the pages its last update wrote: they
+    // had gone to the next batch's count, here one of a region off the data, which casts
+    // and uploads nothing.
+    s.render.max_rounds = 2;
+    let mut e = Engine::new(&s).unwrap();
+    let r = e.render_batch(&view, &region).unwrap();
+    assert_eq!(r.outcome, Outcome::RoundLimit, "{:?}", r.reports);
+    assert!(r.reports.last().unwrap().uploaded > 0, "{:?}", r.reports);
+    let away = strata_common::kd::Region {
+        lo: [region.hi[0] + 1e6; 3],
+        hi: [region.hi[0] + 2e6; 3],
+    };
+    let empty = e.render_batch(&view, &away).unwrap();
+    assert_eq!(empty.outcome, Outcome::Converged, "{:?}", empty.reports);
+    assert_eq!(empty.uploaded_bytes, 0, "{:?}", empty.reports);
 }
 
 /// The synthetic survey as generated: a seismic volume and three horizons.

@@ -370,7 +370,11 @@ impl Pool {
                     .iter()
                     .enumerate()
                     .filter(|(_, s)| s.pinned == 0 && !keep.contains(&s.page()))
-                    .min_by_key(|(_, s)| s.last_used)
+                    // Among pages used as recently (every page of a round is touched in the
+                    // same frame), the finest first: a coarse page is its children's
+                    // fallback, and rounds place parents first, in lower slots, so by slot
+                    // order they had gone first and left rays the root to fall back on.
+                    .min_by_key(|(_, s)| (s.last_used, PageId(s.page()).level()))
                     .map(|(i, _)| i as u32)
                     .ok_or(PlaceError::Full)?;
                 let old = self.slots[victim as usize].page();
@@ -481,6 +485,29 @@ mod tests {
         assert_eq!(t.entries[t.index(0, [2, 1, 0])], 3);
         assert_eq!(t.entries[t.index(0, [0, 0, 0])], 7 | (top as u32) << 24);
         assert_eq!(t.entries[t.index(1, [1, 0, 0])], 7 | (top as u32) << 24);
+    }
+
+    /// Pages touched in the same frame go finest first: a parent placed before its child
+    /// (as rounds place them, so in a lower slot) outlives it.
+    #[test]
+    fn among_pages_used_as_recently_the_finest_is_evicted_first() {
+        let p = Pyramid::new(Dim::Three, [128, 128, 128], 34, 1).unwrap(); // core 32
+        let key = |l: usize, b: [u32; 3]| page_key(1, &p, l, b);
+        let mut pool = Pool::new(8, 8 * 4 * 3);
+        let none = HashSet::new();
+        for (l, b) in [(2, [0, 0, 0]), (1, [0, 0, 0]), (0, [1, 0, 0])] {
+            pool.place(key(l, b), &[1.0; 8], 5, false, &none).unwrap();
+        }
+        pool.place(key(0, [2, 0, 0]), &[2.0; 8], 6, false, &none)
+            .unwrap();
+        assert!(
+            pool.slot_of(key(0, [1, 0, 0])).is_none(),
+            "the level-0 page goes"
+        );
+        pool.place(key(0, [3, 0, 0]), &[3.0; 8], 6, false, &none)
+            .unwrap();
+        assert!(pool.slot_of(key(1, [0, 0, 0])).is_none(), "then level 1");
+        assert!(pool.slot_of(key(2, [0, 0, 0])).is_some(), "the root stays");
     }
 
     #[test]

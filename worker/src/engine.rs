@@ -1175,6 +1175,9 @@ impl Engine {
                 }
             }
             if let Some(outcome) = outcome {
+                // The last round's update wrote after its cast: its pages and tables are
+                // this batch's too (the next batch's first cast had counted them).
+                uploaded_bytes += self.gpu.as_mut().map_or(0, GpuBackend::take_uploaded);
                 return Ok(BatchResult {
                     image: f.image,
                     rounds,

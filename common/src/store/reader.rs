@@ -113,6 +113,15 @@ impl PageStore {
                 e.to_string(),
             )
         })?;
+        // A page of one sample per axis has no interval to interpolate in: the casters'
+        // clamps to [0, page − 1) would be empty (ingest writes 32 to 128).
+        if header.page_size < 2 {
+            return Err(fmt(
+                pre.header_offset,
+                "pages of at least 2 samples per axis".into(),
+                format!("page size {}", header.page_size),
+            ));
+        }
         // Every ray and region goes through it: a NaN or singular transform would render
         // garbage, not fail.
         // Columns (index → world scales) of 1e-30..1e30: the display's z scale (at most

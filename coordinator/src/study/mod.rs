@@ -186,13 +186,12 @@ pub(crate) fn measure_in_process(scene: &Scene, frames: usize) -> Result<Measure
     Ok(m)
 }
 
-/// Bytes of the level-0 pages of every volume of the scene (what a level-0-only frame may
-/// need resident).
-fn level0_bytes(scene: &Scene) -> Result<u64> {
+/// Bytes of the level-0 pages of the stores (what a level-0-only frame may need
+/// resident; the atlases hold f32 samples).
+fn level0_bytes<'a>(stores: impl IntoIterator<Item = &'a std::path::Path>) -> Result<u64> {
     let mut total = 0u64;
-    for v in &scene.volumes {
-        let s =
-            PageStore::open(&v.store).with_context(|| format!("opening {}", v.store.display()))?;
+    for path in stores {
+        let s = PageStore::open(path).with_context(|| format!("opening {}", path.display()))?;
         let p = s.pyramid();
         total += p.level(0).page_count() * p.page_samples() as u64 * 4;
     }
@@ -200,10 +199,16 @@ fn level0_bytes(scene: &Scene) -> Result<u64> {
 }
 
 /// The reference's overrides: CPU, step/16, no early termination, fixed step, a τ so small
-/// that every sample is taken from level 0, and an atlas and cache that hold level 0.
+/// that every sample (and every horizon tile) is taken from level 0, and atlases and a
+/// cache that hold level 0 of the volumes and of the horizons (a horizon atlas of the
+/// default size left a large horizon's reference at coarser levels than the points it
+/// judged).
 fn reference_sets(scene: &Scene) -> Result<Vec<String>> {
-    let mib = level0_bytes(scene)?.div_ceil(1 << 20) + 64;
+    let mib = level0_bytes(scene.volumes.iter().map(|v| v.store.as_path()))?.div_ceil(1 << 20) + 64;
+    let hmib =
+        level0_bytes(scene.horizons.iter().map(|h| h.store.as_path()))?.div_ceil(1 << 20) + 16;
     let r = &scene.render;
+    let cache = mib + hmib;
     Ok(vec![
         "render.backend=cpu".into(),
         format!("render.step={}", r.step / 16.0),
@@ -211,7 +216,11 @@ fn reference_sets(scene: &Scene) -> Result<Vec<String>> {
         "render.adaptive_step=false".into(),
         "render.tau=1e-6".into(),
         format!("render.atlas_mb={}", r.atlas_mb.max(mib + mib / 4)),
-        format!("render.cache_mb={}", r.cache_mb.max(mib + mib / 4)),
+        format!(
+            "render.horizon_atlas_mb={}",
+            r.horizon_atlas_mb.max(hmib + hmib / 4)
+        ),
+        format!("render.cache_mb={}", r.cache_mb.max(cache + cache / 4)),
         format!("render.max_rounds={}", r.max_rounds.max(64)),
         "render.f64_accumulation=true".into(),
     ])
@@ -290,6 +299,13 @@ pub fn run(opts: &StudyOptions, progress: &ProgressBar) -> Result<Vec<Point>> {
     std::fs::create_dir_all(&opts.out)
         .with_context(|| format!("creating {}", opts.out.display()))?;
     let base = load_scene(&opts.scene, &opts.sets, opts.size)?;
+    if base.wall.is_some() {
+        bail!(
+            "{}: the study renders one image of render.width × render.height, not a [wall]'s \
+             tiles; study a copy of the scene without its [wall] table",
+            opts.scene.display()
+        );
+    }
     if let Some(spec) = &base.synthetic {
         crate::demo::ensure_synthetic(spec, progress)?;
     }
@@ -307,6 +323,15 @@ pub fn run(opts: &StudyOptions, progress: &ProgressBar) -> Result<Vec<Point>> {
     ref_sets.extend(reference_sets(&base)?);
     let ref_scene = load_scene(&opts.scene, &ref_sets, opts.size)?;
     let r = measure_in_process(&ref_scene, 1).context("the reference render")?;
+    // Every point is judged against it: a reference that stopped short (an atlas too small,
+    // the round limit) is not the most accurate image.
+    if !r.note.is_empty() {
+        bail!(
+            "the reference render did not converge ({}): its overrides are {}",
+            r.note,
+            ref_sets.join(" ")
+        );
+    }
     info!(
         seconds = r.seconds,
         samples = r.samples,

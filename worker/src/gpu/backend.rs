@@ -301,6 +301,12 @@ impl GpuBackend {
         self.caster.sync_table(&self.global)
     }
 
+    /// Bytes written to the device since the last cast (or the last call): pages and
+    /// tables of the updates after it.
+    pub fn take_uploaded(&mut self) -> u64 {
+        self.caster.take_uploaded()
+    }
+
     /// Casts the frame on the GPU: the same image, feedback and counters as
     /// [`FrameSetup::render`] gives on the CPU.
     pub fn render(

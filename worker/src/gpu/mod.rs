@@ -521,12 +521,15 @@ impl GpuCaster {
             .min(self.limits.max_buffer_size)
     }
 
-    /// Pool slots of `slot_bytes` the adapter can bind in one buffer.
+    /// Pool slots of `slot_bytes` the adapter can bind in one buffer, and whose elements
+    /// the shader can index: it addresses them in u32 (an 8-bit element per byte), and an
+    /// adapter may bind more than 4 GiB (Metal reports its buffer size).
     pub fn max_slots(&self, slot_bytes: u64) -> usize {
         let bind = self
             .limits
             .max_storage_buffer_binding_size
-            .min(self.limits.max_buffer_size);
+            .min(self.limits.max_buffer_size)
+            .min(u32::MAX as u64);
         (bind / slot_bytes.max(1)) as usize
     }
 
