@@ -156,6 +156,16 @@ pub fn check_window([lo, hi]: [f64; 2]) -> Result<()> {
              (the samples' precision): widen it, or keep it within ±3.4e38"
         );
     }
+    // Nor so narrow that the value → table-position map overflows f32 (a width under
+    // about 1e-35): every value would then map to an end of the table, and 0 to NaN.
+    let scale = (TF_SIZE - 1) as f64 / (hi32 as f64 - lo32 as f64);
+    let (s32, o32) = (scale as f32, (-(lo32 as f64) * scale) as f32);
+    if !(s32.is_finite() && o32.is_finite()) {
+        bail!(
+            "window [{lo}, {hi}] is too narrow for f32 positions (width {:e}): widen it",
+            hi - lo
+        );
+    }
     Ok(())
 }
 
@@ -563,12 +573,23 @@ mod tests {
 
     #[test]
     fn a_window_that_collapses_in_f32_is_refused() {
-        for w in [[1e8, 1e8 + 1.0], [-1e40, 1e40]] {
+        // Distinct values, but too close, too far apart, or too narrow a window for the
+        // position map (1023/1e-40 overflows f32: every value went to an end, 0 to NaN).
+        for w in [
+            [1e8, 1e8 + 1.0],
+            [-1e40, 1e40],
+            [0.0, 1e-40],
+            [1e-38, 1.5e-38],
+        ] {
             let mut l = layer("grey");
             l.window = Some(w);
             let e = TransferFunction::from_layer(&l, [0.0, 1.0]).unwrap_err();
-            assert!(e.to_string().contains("f32"), "{e}");
+            assert!(e.to_string().contains("f32"), "{w:?}: {e}");
         }
+        let mut l = layer("grey");
+        l.window = Some([0.0, 1e-30]);
+        let tf = TransferFunction::from_layer(&l, [0.0, 1.0]).unwrap();
+        assert!(tf.step_table(1.0).lookup(0.0).iter().all(|v| v.is_finite()));
         let mut l = layer("grey");
         l.window = Some([1e8, 1e8 + 64.0]);
         let tf = TransferFunction::from_layer(&l, [0.0, 1.0]).unwrap();

@@ -121,17 +121,19 @@ fn prefetch_never_evicts_real_requests_evict_lru_and_go_first() {
         let before = cache.stats().pages_read;
         cache.request(*real, Class::Real, 1.0);
         cache.wait_real(Duration::from_secs(30)).unwrap();
-        let read = cache.stats().pages_read;
+        // Counted when the real page was read: the loader goes on with the prefetches
+        // while this thread wakes up (on a loaded machine, dozens of them).
+        let read = cache.stats().pages_read_at_last_real;
         assert!(cache.contains(*real));
         if before + 4 >= rest.len() as u64 {
             continue;
         }
-        // The one in flight when it was queued, the real one, and those the loader read
-        // before this thread looked (a queue in arrival order would have read them all).
+        // The one in flight when it was queued and the real one (a queue in arrival order
+        // would have read every prefetch first).
         assert!(
             read - before < (rest.len() as u64 - before) / 2,
-            "{} pages read after the real request was queued (with {before} read before it, \
-             of {} queued)",
+            "{} pages read from the real request's queueing to its read (with {before} read \
+             before it, of {} queued)",
             read - before,
             rest.len()
         );

@@ -43,6 +43,9 @@ pub struct CacheStats {
     pub bytes_read: u64,
     /// Prefetched pages dropped for lack of free budget.
     pub prefetch_dropped: u64,
+    /// `pages_read` just after the last real request's page was read: what it waited
+    /// behind, whatever the loaders read after it.
+    pub pages_read_at_last_real: u64,
 }
 
 #[derive(PartialEq)]
@@ -454,6 +457,9 @@ fn loader(shared: Arc<Shared>) {
             Ok((data, stored)) => {
                 st.stats.pages_read += 1;
                 st.stats.bytes_read += stored;
+                if real {
+                    st.stats.pages_read_at_last_real = st.stats.pages_read;
+                }
                 insert(
                     &shared,
                     &mut st,
