@@ -839,7 +839,8 @@ pub struct WorkerFrameStats {
     pub rounds: u32,
     /// Feedback rounds of the renderer.
     pub render_rounds: u32,
-    /// Ray samples of the last render round (and of the occlusion fix-up's last round).
+    /// Ray samples of the last render round, of the occlusion fix-up's last round and of
+    /// the occlusion first pass when the frame had one: the work the frame's image took.
     pub samples: u64,
     /// Rays of the last render round (and of the occlusion fix-up's last round): every
     /// pixel of each leaf's screen rectangle that was cast, whether or not it met the leaf.

@@ -2292,37 +2292,31 @@ impl Cluster {
                 }
             }
         }
-        let damping = self.opts.rebalance_damping;
         let by_pages = self.opts.rebalance_model == RebalanceModel::Pages && !work.is_empty();
-        // Kept only with the split it gives: the next re-split compares its measurement
-        // with the costs of the leaves in force, which were computed from the field in
-        // force (a field re-weighted again and again under unchanged leaves compounds the
-        // correction past the damping).
-        let boxes = if by_pages {
-            decompose::reweighted_by_pages(
-                &self.estimate,
-                &self.costs.boxes,
-                d,
-                &measured,
-                &work,
-                damping,
-            )
-        } else {
-            d.reweighted(&self.costs.boxes, &measured, damping)
-        };
-        let new = Decomposition::balanced(
-            self.costs.root,
-            &boxes,
+        if !by_pages {
+            work.clear();
+        }
+        // The field is kept only with the split it gives: the next re-split compares its
+        // measurement with the costs of the leaves in force, which were computed from the
+        // field in force (a field re-weighted again and again under unchanged leaves
+        // compounds the correction past the damping).
+        let Some((new, boxes)) = decompose::resplit(
+            &self.estimate,
+            &self.costs,
+            d,
+            &decompose::Measurement {
+                times: &measured,
+                work: &work,
+            },
+            self.opts.rebalance_damping,
             self.slots.len(),
             self.opts.leaves_per_worker,
-            &self.costs.planes,
-        );
-        if new.tree.leaves == d.tree.leaves && new.owner == d.owner {
-            // The split planes snapped back to the same brick boundaries: nothing to send,
-            // and the field in force stays.
+        ) else {
+            // The split planes snapped back to the same brick boundaries, damped and not:
+            // nothing to send, and the field in force stays.
             debug!(frame, "re-split leaves the regions as they are");
             return None;
-        }
+        };
         self.costs.boxes = boxes;
         let r = Rebalance {
             after_frame: frame,

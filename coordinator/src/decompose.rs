@@ -493,6 +493,52 @@ pub fn measured_leaf_times(
     (by(false), "wall")
 }
 
+/// What a frame measured for a re-split: each leaf's time (`NaN`: no report) and, for the
+/// page model, where it went (`(leaf, page key, share)`; empty for the per-leaf model).
+pub struct Measurement<'a> {
+    /// Seconds per leaf of the decomposition in force.
+    pub times: &'a [f64],
+    /// Page work records.
+    pub work: &'a [(usize, u64, f32)],
+}
+
+/// A re-split from a frame's measurement: the cost field in force (`field`, whose
+/// `root` and `planes` are the scene's) re-weighted, damped, and the scene balanced over
+/// `workers × leaves_per_worker` leaves again. Returns the new decomposition and the field
+/// it came from, or `None` when the planes come out where they are.
+///
+/// A damped field whose planes snap back to the same brick faces is tried once undamped:
+/// an imbalance above the threshold whose damped correction stayed within a brick's
+/// snapping tolerance (`MAX_SNAP`) was otherwise left for good, the same tree computed
+/// again every frame.
+pub fn resplit(
+    estimate: &SceneCosts,
+    field: &SceneCosts,
+    d: &Decomposition,
+    m: &Measurement<'_>,
+    damping: f64,
+    workers: usize,
+    leaves_per_worker: usize,
+) -> Option<(Decomposition, Vec<CostBox>)> {
+    let attempt = |damping: f64| {
+        let boxes = if m.work.is_empty() {
+            d.reweighted(&field.boxes, m.times, damping)
+        } else {
+            reweighted_by_pages(estimate, &field.boxes, d, m.times, m.work, damping)
+        };
+        let new = Decomposition::balanced(
+            field.root,
+            &boxes,
+            workers,
+            leaves_per_worker,
+            &field.planes,
+        );
+        let moved = new.tree.leaves != d.tree.leaves || new.owner != d.owner;
+        moved.then_some((new, boxes))
+    };
+    attempt(damping).or_else(|| (damping < 1.0).then(|| attempt(1.0)).flatten())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -502,6 +548,53 @@ mod tests {
     use std::path::{Path, PathBuf};
     use strata_common::kd::KdNode;
     use strata_common::sample::SampleType;
+
+    /// A measured imbalance whose damped correction stays within the snapping tolerance of
+    /// the brick face in force is corrected undamped (the same tree had been computed again
+    /// every frame, the imbalance left for good).
+    #[test]
+    fn a_damped_re_split_that_snaps_back_is_tried_undamped() {
+        let root = Region {
+            lo: [0.0; 3],
+            hi: [100.0, 10.0, 10.0],
+        };
+        // Four bricks of 25 along x: the estimate splits at the face x = 50.
+        let boxes = (0..4)
+            .map(|i| CostBox {
+                region: Region {
+                    lo: [25.0 * i as f64, 0.0, 0.0],
+                    hi: [25.0 * (i + 1) as f64, 10.0, 10.0],
+                },
+                cost: 1.0,
+            })
+            .collect();
+        let field = SceneCosts {
+            boxes,
+            planes: [vec![0.0, 25.0, 50.0, 75.0, 100.0], vec![], vec![]],
+            root,
+            datasets: Vec::new(),
+        };
+        let d = Decomposition::balanced(root, &field.boxes, 2, 1, &field.planes);
+        assert_eq!(d.tree.leaves[0].hi[0], 50.0);
+        // 0.62 against 0.38: damped by half, 56 % of the cost lies left of x = 50, within a
+        // brick's tolerance of half: the face holds (the premise).
+        let m = Measurement {
+            times: &[0.62, 0.38],
+            work: &[],
+        };
+        let damped = d.reweighted(&field.boxes, m.times, 0.5);
+        let again = Decomposition::balanced(root, &damped, 2, 1, &field.planes);
+        assert_eq!(again.tree.leaves, d.tree.leaves);
+        let (new, _) = resplit(&field, &field, &d, &m, 0.5, 2, 1).expect("a new split");
+        let x = new.tree.leaves[0].hi[0];
+        assert!((x - 50.0 / 1.24).abs() < 0.5, "split at {x}");
+        // Balanced measurements leave the tree as it is.
+        let even = Measurement {
+            times: &[0.5, 0.5],
+            work: &[],
+        };
+        assert!(resplit(&field, &field, &d, &even, 0.5, 2, 1).is_none());
+    }
 
     fn volume_store(dir: &Path, name: &str, dims: [u64; 3], data: Vec<f32>, t: Affine3) -> PathBuf {
         let path = dir.join(format!("{name}.strata"));

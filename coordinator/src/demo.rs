@@ -33,13 +33,20 @@ pub fn ensure_synthetic(spec: &SyntheticSpec, progress: &ProgressBar) -> Result<
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
         _ => PathBuf::from("."),
     };
+    let want = marker_text(spec);
+    let marker = dir.join(MARKER);
+    // The survey is there: nothing to write, so no lock to take (a survey shared read-only,
+    // where the lock file cannot be created, serves every run). A folder is only ever
+    // renamed into place whole, marker included.
+    if std::fs::read_to_string(&marker).is_ok_and(|have| have.trim() == want) {
+        tracing::info!(dir = %dir.display(), "reusing the synthetic survey ({want})");
+        return Ok(false);
+    }
     std::fs::create_dir_all(&parent)
         .with_context(|| format!("{}: cannot create folder", parent.display()))?;
     let lock_path = parent.join(format!("{name}.lock"));
     let _lock = Lock::exclusive(&lock_path)?;
 
-    let want = marker_text(spec);
-    let marker = dir.join(MARKER);
     match std::fs::read_to_string(&marker) {
         Ok(have) if have.trim() == want => {
             tracing::info!(dir = %dir.display(), "reusing the synthetic survey ({want})");
@@ -74,11 +81,21 @@ pub fn ensure_synthetic(spec: &SyntheticSpec, progress: &ProgressBar) -> Result<
         check_removable(dir)?;
     }
 
-    let tmp = parent.join(format!(".{name}.tmp{}", std::process::id()));
-    if tmp.exists() {
-        std::fs::remove_dir_all(&tmp)
-            .with_context(|| format!("{}: cannot remove a stale temporary", tmp.display()))?;
+    // Under the lock no other run generates: every temporary of this folder is one an
+    // interrupted run left (each a survey's worth of bytes).
+    let prefix = format!(".{name}.tmp");
+    if let Ok(entries) = std::fs::read_dir(&parent) {
+        for e in entries.flatten() {
+            let n = e.file_name().to_string_lossy().into_owned();
+            if n.starts_with(&prefix) && n[prefix.len()..].bytes().all(|b| b.is_ascii_digit()) {
+                let stale = e.path();
+                std::fs::remove_dir_all(&stale).with_context(|| {
+                    format!("{}: cannot remove a stale temporary", stale.display())
+                })?;
+            }
+        }
     }
+    let tmp = parent.join(format!("{prefix}{}", std::process::id()));
     tracing::info!(
         dir = %dir.display(),
         "generating the synthetic survey ({want}); later runs reuse it"
@@ -214,6 +231,11 @@ mod tests {
         std::thread::sleep(std::time::Duration::from_millis(20));
         assert!(!ensure_synthetic(&s, &ProgressBar::hidden()).unwrap());
         assert_eq!(mtime(&cube), before);
+        // An interrupted run's temporary (another process's) goes with the next generation.
+        let stale = root.path().join("cache/.demo.tmp4242");
+        std::fs::create_dir_all(stale.join("x")).unwrap();
+        assert!(ensure_synthetic(&spec(&dir, 4), &ProgressBar::hidden()).unwrap());
+        assert!(!stale.exists());
         // Only the survey and its lock are left: no temporaries.
         let mut names: Vec<String> = std::fs::read_dir(root.path().join("cache"))
             .unwrap()
