@@ -409,7 +409,7 @@ enum Event {
 pub struct FrameResult {
     /// The composited image, premultiplied, row-major.
     pub image: FrameImage,
-    /// Per-worker stats, by rank.
+    /// Per-worker stats, in slot order (the decomposition's workers).
     pub stats: Vec<WorkerFrameStats>,
     /// Coordinator's wall time for the frame.
     pub wall_s: f64,

@@ -837,8 +837,17 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
 
 /// The worst of some outcomes: "converged" unless one is not.
 fn worst_outcome<'a>(outcomes: impl Iterator<Item = &'a str>) -> String {
+    // An atlas too small for the working set is worse than rounds that ran out (more
+    // rounds would not help it); a name this build does not know (a newer worker's) is
+    // worst of all.
+    let rank = |o: &str| match o {
+        "converged" => 0,
+        "round-limit" => 1,
+        "atlas-full" => 2,
+        _ => 3,
+    };
     outcomes
-        .fold("converged", |a, b| if b != "converged" { b } else { a })
+        .fold("converged", |a, b| if rank(b) > rank(a) { b } else { a })
         .to_string()
 }
 
@@ -948,6 +957,18 @@ fn saturating_total(counts: impl Iterator<Item = u64>) -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The frame's outcome is its workers' worst, whatever their order (the last one not
+    /// converged had been taken).
+    #[test]
+    fn the_worst_outcome_is_taken_in_any_order() {
+        let w = |v: &[&str]| worst_outcome(v.iter().copied());
+        assert_eq!(w(&["converged", "converged"]), "converged");
+        assert_eq!(w(&["atlas-full", "round-limit"]), "atlas-full");
+        assert_eq!(w(&["round-limit", "atlas-full", "converged"]), "atlas-full");
+        assert_eq!(w(&["round-limit", "converged"]), "round-limit");
+        assert_eq!(w(&[]), "converged");
+    }
 
     /// The worker lines of `--stats` carry the sequence's frame numbers, as the frame lines
     /// do (with `--frames 10..12` they had counted 0, 1).
