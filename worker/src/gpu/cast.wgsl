@@ -567,20 +567,15 @@ fn shade(vi: u32, cur: ptr<function, Cursor>, q: vec3<f32>, d: vec3<f32>, rgba: 
     return apply_light(rgba, light(vi, cur, q, d));
 }
 
-// Premultiplied RGBA of a segment from value `front` to value `back` in band b (bilinear
-// between entries; tf.rs `PreintTable::lookup_in`); `half`: a segment half a step long.
-fn pre_lookup(vi: u32, band: u32, half: bool, front: f32, back: f32) -> vec4<f32> {
-    let base = vols[vi].pre_base;
-    let map = tf[base];
+// The pre-integrated table between entries at positions (pf, pb), clamped into it.
+fn pre_bilinear(o: u32, last: f32, pf0: f32, pb0: f32) -> vec4<f32> {
     let n = PREINT_SIZE;
-    let pf = clamp(front * map.x + map.y, 0.0, map.z);
-    let pb = clamp(back * map.x + map.y, 0.0, map.z);
+    let pf = clamp(pf0, 0.0, last);
+    let pb = clamp(pb0, 0.0, last);
     let i = min(u32(pf), n - 2u);
     let j = min(u32(pb), n - 2u);
     let u = pf - f32(i);
     let v = pb - f32(j);
-    var o = base + 1u + band * 2u * n * n;
-    if (half) { o = o + n * n; }
     let a = tf[o + i * n + j];
     let b = tf[o + i * n + j + 1u];
     let c = tf[o + (i + 1u) * n + j];
@@ -588,6 +583,70 @@ fn pre_lookup(vi: u32, band: u32, half: bool, front: f32, back: f32) -> vec4<f32
     let top = a + v * (b - a);
     let bottom = c + v * (e - c);
     return top + u * (bottom - top);
+}
+
+// A premultiplied segment over a share w of its length (tf.rs `scaled`).
+fn pre_scaled(rgba: vec4<f32>, w: f32) -> vec4<f32> {
+    let a = rgba.w;
+    if (a >= 1.0 || w >= 1.0) {
+        return rgba;
+    }
+    if (a <= 0.0 || w <= 0.0) {
+        return vec4<f32>(0.0);
+    }
+    let aw = 1.0 - pow(1.0 - a, w);
+    let k = aw / a;
+    return vec4<f32>(rgba.xyz * k, aw);
+}
+
+// Premultiplied RGBA of a segment from value `front` to value `back` in band b (bilinear
+// between entries; tf.rs `PreintTable::lookup_in`); `half`: a segment half a step long. A
+// segment that leaves the window is cut at its edges, each piece scaled to its share.
+fn pre_lookup(vi: u32, band: u32, half: bool, front: f32, back: f32) -> vec4<f32> {
+    let base = vols[vi].pre_base;
+    let map = tf[base];
+    let n = PREINT_SIZE;
+    var o = base + 1u + band * 2u * n * n;
+    if (half) { o = o + n * n; }
+    let last = map.z;
+    let pf = front * map.x + map.y;
+    let pb = back * map.x + map.y;
+    let inside = pf >= 0.0 && pf <= last && pb >= 0.0 && pb <= last;
+    if (inside || !is_finite(pf - pb)) {
+        return pre_bilinear(o, last, pf, pb);
+    }
+    var cuts = array<f32, 4>(pf, 0.0, 0.0, pb);
+    var m = 1u;
+    let lo = min(pf, pb);
+    let hi = max(pf, pb);
+    var edges = vec2<f32>(0.0, last);
+    if (pf > pb) {
+        edges = vec2<f32>(last, 0.0);
+    }
+    for (var q = 0u; q < 2u; q = q + 1u) {
+        let x = edges[q];
+        if (lo < x && x < hi) {
+            cuts[m] = x;
+            m = m + 1u;
+        }
+    }
+    cuts[m] = pb;
+    let len = hi - lo;
+    var acc = vec4<f32>(0.0);
+    for (var k = 0u; k < m; k = k + 1u) {
+        let x1 = cuts[k];
+        let x2 = cuts[k + 1u];
+        if (x1 == x2) {
+            continue;
+        }
+        var w = 1.0;
+        if (len > 0.0) {
+            w = abs(x2 - x1) / len;
+        }
+        let piece = pre_scaled(pre_bilinear(o, last, x1, x2), w);
+        acc = acc + (1.0 - acc.w) * piece;
+    }
+    return acc;
 }
 
 // Ends a span of samples (raycast.rs `end_span`): the half step after its last sample joins
