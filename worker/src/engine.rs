@@ -626,9 +626,8 @@ impl Engine {
             dt: vec![base],
         };
         for b in 1..nb {
-            bands
-                .start
-                .push((vmin * (1u64 << b) as f64 / (s.tau * pa as f64)) as f32);
+            let start = (vmin * (1u64 << b) as f64 / (s.tau * pa as f64)) as f32;
+            bands.start.push(band_start(start, bands.dt[b - 1]));
             bands.dt.push(base * (1u64 << b) as f32);
         }
         for (i, v) in self.data.volumes.iter().enumerate() {
@@ -1213,6 +1212,20 @@ impl Engine {
     }
 }
 
+/// Where a band of step `2·dt` begins, for the wanted start `start` and the finer band's
+/// step `dt`: half a fine step past an even multiple of `dt` (at or below `start`). The
+/// finer band's last sample is then that even multiple and the coarser band's first the
+/// next one, a coarse step later, which is what its tables are corrected for: a
+/// pre-integrated segment across the boundary had been composited as a coarse step over a
+/// fine step's length wherever the wanted start fell after an odd multiple (one step's worth
+/// of extra opacity on a shell at that distance). Half a step clear of both lattice points,
+/// the boundary is not moved by rounding.
+fn band_start(start: f32, dt: f32) -> f32 {
+    let pair = 2.0 * dt as f64;
+    let j = (start as f64 / pair).floor().max(0.0);
+    (j * pair + 0.5 * dt as f64) as f32
+}
+
 /// This machine's physical memory in MiB (`None` where the system will not say).
 fn physical_memory_mb() -> Option<u64> {
     // SAFETY: `sysconf` only reads system parameters.
@@ -1373,4 +1386,49 @@ fn feedback_of(tiles: &[crate::raycast::TileOut]) -> Feedback {
         feedback.add(&t.feedback);
     }
     feedback
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::volume::first_k;
+
+    /// Across every band boundary the finer band's last sample and the coarser band's
+    /// first lie one coarse step apart, as the coarser band's tables assume, in the casters'
+    /// own f32 lattice arithmetic, and the boundary moves by at most two fine steps.
+    #[test]
+    fn a_band_begins_one_coarse_step_after_the_finer_bands_last_sample() {
+        let mut rng = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = || {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            (rng >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let mut odd_before = 0;
+        for _ in 0..20_000 {
+            let dt = (0.01 + 3.0 * next()) as f32;
+            let start = (dt as f64 * (0.3 + 5000.0 * next())) as f32;
+            let s = band_start(start, dt);
+            assert!(
+                s > 0.0 && (s - start).abs() <= 2.0 * dt,
+                "{start} → {s} (dt {dt})"
+            );
+            // The finer band's samples are k·dt < s; the coarser band's k'·2dt ≥ s.
+            let last = (first_k(s, dt) - 1) as f32 * dt;
+            let first = first_k(s, 2.0 * dt) as f32 * (2.0 * dt);
+            let gap = first - last;
+            assert!(
+                (gap - 2.0 * dt).abs() <= 1e-3 * dt.max(first.abs() * 1e-6),
+                "start {start} → {s}, dt {dt}: last fine sample {last}, first coarse {first}"
+            );
+            // Without the snap, half the starts had left a single fine step.
+            let raw_last = (first_k(start, dt) - 1) as f32 * dt;
+            let raw_first = first_k(start, 2.0 * dt) as f32 * (2.0 * dt);
+            if (raw_first - raw_last) < 1.5 * dt {
+                odd_before += 1;
+            }
+        }
+        assert!(odd_before > 5_000, "{odd_before}");
+    }
 }
