@@ -568,7 +568,7 @@ impl PreintTable {
 /// colour keeps its ratio to alpha (exact for a constant value). An opaque segment stays
 /// opaque. (In f32 with `powf`, as the GPU caster computes it.)
 #[inline]
-pub fn scaled(rgba: [f32; 4], w: f32) -> [f32; 4] {
+fn scaled(rgba: [f32; 4], w: f32) -> [f32; 4] {
     let a = rgba[3];
     if a >= 1.0 || w >= 1.0 {
         return rgba;

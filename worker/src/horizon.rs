@@ -454,8 +454,6 @@ impl<'a> HorFrame<'a> {
             self.c[2],
         ];
         let dr = [md[0] * sr, md[1] * sr, md[2]];
-        let dims_r = self.table.levels[r].bricks; // only for bounds of tiles
-        let _ = dims_r;
         let nodes_r = [
             self.pyramid.level(r).dims[0] as i64,
             self.pyramid.level(r).dims[1] as i64,
@@ -858,14 +856,13 @@ mod tests {
     fn a_vertical_ray_keeps_a_crossing_on_a_region_face_in_one_region() {
         // Above the surface everywhere (its heights are 7 to 53).
         let f = fixture(64, [0.0, 0.0, 100.0]);
-        let h = f.frame();
+        let mut h = f.frame();
         let mut fb = crate::feedback::Requests::new();
         let d = [0.0f32, 0.0, -1.0];
         let mut checked = 0;
         for k in 0..200 {
             // The eye above node-space point (x, y), camera-relative space moved with it.
             let (x, y) = (1.3 + 0.301 * k as f32, 2.1 + 0.287 * k as f32);
-            let mut h = f.frame();
             h.c = [x, y, 100.0];
             let mut whole = Vec::new();
             h.intersect(d, 0.0, f32::INFINITY, &mut whole, &mut fb);
@@ -887,7 +884,6 @@ mod tests {
                 checked += 1;
             }
         }
-        let _ = h;
         assert_eq!(checked, 1800);
     }
 

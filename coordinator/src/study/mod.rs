@@ -319,8 +319,10 @@ pub fn run(opts: &StudyOptions, progress: &ProgressBar) -> Result<Vec<Point>> {
     progress.set_length(vars.len() as u64 + 2);
     progress.set_message("reference");
 
+    // Opens every store to size the atlases: once.
+    let reference_overrides = reference_sets(&base)?;
     let mut ref_sets = opts.sets.clone();
-    ref_sets.extend(reference_sets(&base)?);
+    ref_sets.extend(reference_overrides.iter().cloned());
     let ref_scene = load_scene(&opts.scene, &ref_sets, opts.size)?;
     let r = measure_in_process(&ref_scene, 1).context("the reference render")?;
     // Every point is judged against it: a reference that stopped short (an atlas too small,
@@ -369,7 +371,7 @@ pub fn run(opts: &StudyOptions, progress: &ProgressBar) -> Result<Vec<Point>> {
     let mut out = vec![Point {
         knob: "reference".into(),
         label: "reference".into(),
-        sets: reference_sets(&base)?,
+        sets: reference_overrides,
         seconds: r.seconds,
         samples: r.samples,
         errors: zero,

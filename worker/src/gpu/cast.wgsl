@@ -1047,7 +1047,6 @@ fn roots_in(a: f32, b: f32, c: f32, lo: f32, hi: f32) -> Roots {
 fn push_hit(t: f32, c: vec4<f32>) {
     var j = n_hits;
     if (j == MAX_HITS) {
-        hits_full = true;
         if (t >= hit_t[MAX_HITS - 1u]) {
             return;
         }
@@ -1248,8 +1247,8 @@ fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f3
     let last = vec2<f32>(f32(dims.x) - 1.0, f32(dims.y) - 1.0);
     // A ray with no motion along an axis is in the tile or not: half-open, so one on the
     // edge between two tiles is walked by one of them (horizon.rs `leaf`).
-    let c0 = (*hz).c;
-    if ((md.x == 0.0 && fp.z < last.x && c0.x >= fp.z) || (md.y == 0.0 && fp.w < last.y && c0.y >= fp.w)) {
+    let c = (*hz).c;
+    if ((md.x == 0.0 && fp.z < last.x && c.x >= fp.z) || (md.y == 0.0 && fp.w < last.y && c.y >= fp.w)) {
         return;
     }
     let flo = vec2<f32>(max(fp.x, 0.0), max(fp.y, 0.0));
@@ -1259,7 +1258,6 @@ fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f3
     if (!(zb.x <= zb.y)) {
         return;
     }
-    let c = (*hz).c;
     let eps = 1e-4 * (1.0 + max(abs(zb.x), abs(zb.y)));
     let u = slab(c, md, vec3<f32>(flo, zb.x - eps), vec3<f32>(fhi, zb.y + eps));
     let t_lo = max(max(u.x, ta), 0.0);
