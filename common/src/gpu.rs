@@ -10,7 +10,8 @@
 //!   first, bricks x fastest. An entry is `slot | level << 24` ([`page_entry`]): the slot of
 //!   the page itself if resident, otherwise of its nearest resident ancestor and that
 //!   ancestor's level. [`NOT_RESIDENT`] marks a page with no resident ancestor (never the
-//!   case once a data set's root is pinned).
+//!   case once a data set's root is pinned). A horizon tile's own entry may also carry
+//!   [`ENTRY_FRAGMENTED`] (its level's cells are too broken up to draw it there).
 //! * [`LevelInfo`]: where a level's entries start and its bricks per axis.
 //! * [`SlotInfo`]: which page a pool slot holds, for eviction (host side only).
 //! * [`FrameParams`], [`VolumeParams`], [`HorizonParams`]: one frame's camera, region,
@@ -26,6 +27,14 @@ use std::mem::{offset_of, size_of};
 pub const NOT_RESIDENT: u32 = u32::MAX;
 /// Bits of a page-table entry that hold the slot.
 pub const SLOT_MASK: u32 = (1 << 24) - 1;
+/// Bits of a page-table entry (after `>> 24`) that hold the level.
+pub const LEVEL_MASK: u32 = 0x7f;
+/// Flag of a horizon tile's own entry (set only where the tile itself is resident, never
+/// inherited): the tile's level has lost most of its cells to holes (a coarse cell is a
+/// hole wherever one of its fine nodes is, so regular lines of holes leave coarse tiles with
+/// isolated nodes and no cell). Both casters then descend to its children instead of
+/// drawing it ([`horizon_tile_fragmented`]). Volume entries never carry it.
+pub const ENTRY_FRAGMENTED: u32 = 1 << 31;
 /// Largest number of slots a pool may have.
 pub const MAX_SLOTS: usize = SLOT_MASK as usize;
 /// Entries of a transfer-function table.
@@ -39,6 +48,42 @@ pub const MAX_LEVELS: usize = 16;
 #[inline]
 pub const fn page_entry(slot: u32, level: u32) -> u32 {
     slot | level << 24
+}
+
+/// The level an entry's slot holds (the entry's own page's, or its nearest resident
+/// ancestor's), without the [`ENTRY_FRAGMENTED`] flag.
+#[inline]
+pub const fn entry_level(e: u32) -> u32 {
+    (e >> 24) & LEVEL_MASK
+}
+
+/// Whether a horizon tile of `side × side` nodes (`NaN` = hole) is too broken up to be drawn
+/// at its own level: the fraction of its cells that are whole (four valid nodes) is under ¾
+/// of the fraction of its nodes that are valid, or none of its nodes is. A surface whose
+/// holes are lines `p` nodes apart keeps `(p − 2)/(p − 1)` of that, so lines 2–4 apart (and
+/// those coarsening leaves as isolated lines of nodes, with no cell between them) send the
+/// casters to the finer level, where more of the surface is whole; isolated holes cost four
+/// cells each, and keep a tile at its level while they are under 1/13 of its nodes.
+pub fn horizon_tile_fragmented(nodes: &[f32], side: usize) -> bool {
+    assert_eq!(nodes.len(), side * side, "a horizon tile of {side}² nodes");
+    let valid = nodes.iter().filter(|h| !h.is_nan()).count();
+    if valid == 0 || side < 2 {
+        return true;
+    }
+    let mut cells = 0usize;
+    for j in 0..side - 1 {
+        let (a, b) = (
+            &nodes[j * side..(j + 1) * side],
+            &nodes[(j + 1) * side..(j + 2) * side],
+        );
+        for i in 0..side - 1 {
+            if !(a[i].is_nan() || a[i + 1].is_nan() || b[i].is_nan() || b[i + 1].is_nan()) {
+                cells += 1;
+            }
+        }
+    }
+    // cells / (side − 1)² < ¾ · valid / side², in integers.
+    4 * cells * side * side < 3 * valid * (side - 1) * (side - 1)
 }
 
 /// Per-level layout of a page table.
@@ -549,6 +594,52 @@ mod tests {
         assert_eq!(SlotInfo::free().page(), u64::MAX);
         assert_eq!(page_entry(5, 3) & SLOT_MASK, 5);
         assert_eq!(page_entry(5, 3) >> 24, 3);
+        assert_eq!(entry_level(page_entry(5, 3) | ENTRY_FRAGMENTED), 3);
+        assert_eq!(
+            (page_entry(5, 3) | ENTRY_FRAGMENTED) & SLOT_MASK,
+            5,
+            "the flag leaves the slot alone"
+        );
+        // The largest level and slot with the flag is still not NOT_RESIDENT.
+        let top = page_entry(SLOT_MASK - 1, MAX_LEVELS as u32 - 1) | ENTRY_FRAGMENTED;
+        assert_ne!(top, NOT_RESIDENT);
+    }
+
+    /// Whole tiles and isolated holes are drawn at their level; lines of holes that leave
+    /// no cell, or few, and all-hole tiles are not.
+    #[test]
+    fn horizon_tiles_are_fragmented_by_lines_of_holes_not_by_isolated_ones() {
+        let side = 18;
+        let tile = |hole: &dyn Fn(usize, usize) -> bool| -> Vec<f32> {
+            (0..side * side)
+                .map(|k| {
+                    if hole(k % side, k / side) {
+                        f32::NAN
+                    } else {
+                        1.0
+                    }
+                })
+                .collect()
+        };
+        assert!(!horizon_tile_fragmented(&tile(&|_, _| false), side));
+        // One hole in 36 nodes: 4 cells in 36 lost.
+        assert!(!horizon_tile_fragmented(
+            &tile(&|i, j| i % 6 == 2 && j % 6 == 3),
+            side
+        ));
+        // A tile half beyond the grid's edge.
+        assert!(!horizon_tile_fragmented(&tile(&|i, _| i >= 9), side));
+        // Every other column, every third: isolated lines of nodes, no cell.
+        assert!(horizon_tile_fragmented(&tile(&|i, _| i % 2 == 1), side));
+        assert!(horizon_tile_fragmented(&tile(&|i, _| i % 3 != 0), side));
+        // Lines of holes every third column: 2 of 3 columns valid, 1 of 3 cells.
+        assert!(horizon_tile_fragmented(&tile(&|i, _| i % 3 == 2), side));
+        // Every fourth: ⅔ of the node fraction; every fifth (¾) stays.
+        assert!(horizon_tile_fragmented(&tile(&|i, _| i % 4 == 3), side));
+        assert!(!horizon_tile_fragmented(&tile(&|i, _| i % 5 == 4), side));
+        // One line of nodes along the edge (a tile just past the grid's last column).
+        assert!(horizon_tile_fragmented(&tile(&|i, _| i != 0), side));
+        assert!(horizon_tile_fragmented(&tile(&|_, _| true), side));
     }
 
     /// Every sample type's decoded values survive the pool encoding bit for bit, in every

@@ -465,6 +465,74 @@ fn a_horizon_with_lines_of_holes_is_found_under_its_all_hole_tiles() {
     assert!(hit > 40, "{hit} of 81 pixels of the horizon were drawn");
 }
 
+/// The same kind of horizon seen from far away, where its footprint calls for coarse
+/// levels: those levels are holes (level 1 keeps isolated lines of nodes, no cell; level 2
+/// up keeps nothing), so both casters descend past them to level 0 (`ENTRY_FRAGMENTED`)
+/// and the frame is the one drawn with level 0 forced, pixel for pixel. It had drawn
+/// nothing: a horizon picked on every fourth line vanished from every distant view.
+#[test]
+fn a_distant_horizon_with_lines_of_holes_is_drawn_from_its_finest_level() {
+    use strata_common::scene::Camera;
+    use strata_tests::scenes::{
+        bit_identical, exact_settings, horizon_layer, horizon_store, max_diff, render_on_both,
+        scene,
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let n = 1200u64;
+    let heights: Vec<f32> = (0..n * n)
+        .map(|i| {
+            let (x, y) = ((i % n) as f32, (i / n) as f32);
+            if (i / n) % 4 == 3 {
+                f32::NAN
+            } else {
+                5.0 + 0.01 * x + 0.02 * y
+            }
+        })
+        .collect();
+    let p = horizon_store(
+        dir.path(),
+        "picked",
+        [n, n],
+        heights,
+        strata_common::geo::Affine3::IDENTITY,
+        32,
+    );
+    let levels = PageStore::open(&p).unwrap().pyramid().level_count();
+    assert!(levels >= 5, "{levels} levels");
+    // 96² pixels of 30°: 16 nodes per pixel at the surface, so level 3 is what τ = 0.5
+    // calls for.
+    let view = |tau: f64| {
+        let mut r = exact_settings(96, 96);
+        r.lighting = false;
+        r.tau = tau;
+        scene(
+            vec![],
+            vec![horizon_layer(p.clone(), [0.2, 0.6, 0.3], 1.0)],
+            Camera {
+                eye: [600.0, 600.5, 2866.0],
+                target: [600.0, 600.5, 0.0],
+                up: [0.0, 1.0, 0.0],
+                fov_deg: 30.0,
+            },
+            r,
+        )
+    };
+    let far = render_on_both(&view(0.5), 1e-5, "lines of holes, far");
+    let finest = render_on_both(&view(1e-3), 1e-5, "lines of holes, level 0 forced");
+    assert!(
+        bit_identical(&far, &finest),
+        "the distant frame differs from level 0's by {}",
+        max_diff(&far, &finest)
+    );
+    // Half of the surface's cells are whole (rows 0–1 and 1–2 of every four): about half of
+    // the ~75² pixels over it are drawn.
+    let hit = far.iter().filter(|p| p[3] > 0.5).count();
+    assert!(
+        (1800..3900).contains(&hit),
+        "{hit} pixels of the horizon drawn"
+    );
+}
+
 proptest! {
     #![proptest_config(ProptestConfig { cases: 12, .. ProptestConfig::default() })]
     #[test]

@@ -17,7 +17,9 @@
 //!   counts in [`LevelInfo`]. An entry is `slot | level << 24`: the slot of the page itself
 //!   if resident, otherwise of its nearest resident ancestor and that ancestor's level.
 //!   [`NOT_RESIDENT`] marks a page with no resident ancestor (never the case once a data
-//!   set's root is pinned).
+//!   set's root is pinned). A resident horizon tile whose own cells are too broken up by
+//!   holes to draw it at its level carries [`ENTRY_FRAGMENTED`] in its own entry (computed
+//!   as it enters its slot; descendants that inherit the entry do not inherit the flag).
 //!
 //! One pool holds volume bricks and another horizon tiles, each with its own budget.
 
@@ -27,7 +29,9 @@ use strata_common::ids::PageId;
 use strata_common::pyramid::Pyramid;
 use strata_common::sample::SampleType;
 
-pub use strata_common::gpu::{LevelInfo, SlotInfo, MAX_SLOTS, NOT_RESIDENT, SLOT_MASK};
+pub use strata_common::gpu::{
+    entry_level, LevelInfo, SlotInfo, ENTRY_FRAGMENTED, MAX_SLOTS, NOT_RESIDENT, SLOT_MASK,
+};
 
 /// A data set's page table.
 #[derive(Clone, Debug)]
@@ -69,8 +73,9 @@ impl PageTable {
         li.offset as usize + ((b[2] * li.bricks[1] + b[1]) * li.bricks[0] + b[0]) as usize
     }
 
-    /// Fills every entry from the set of resident pages (`slot_of(level, brick)`), top-down
-    /// so each page inherits its parent's entry when it is not resident itself.
+    /// Fills every entry from the set of resident pages (`slot_of(level, brick)`: the slot,
+    /// with [`ENTRY_FRAGMENTED`] where it applies), top-down so each page inherits its
+    /// parent's entry, less the flag, when it is not resident itself.
     pub fn rebuild(&mut self, mut slot_of: impl FnMut(usize, [u32; 3]) -> Option<u32>) {
         let nl = self.levels.len();
         for level in (0..nl).rev() {
@@ -82,7 +87,10 @@ impl PageTable {
                         let e = match slot_of(level, b) {
                             Some(s) => s | (level as u32) << 24,
                             None if level + 1 < nl => {
-                                self.entries[self.index(level + 1, [x / 2, y / 2, z / 2])]
+                                match self.entries[self.index(level + 1, [x / 2, y / 2, z / 2])] {
+                                    NOT_RESIDENT => NOT_RESIDENT,
+                                    up => up & !ENTRY_FRAGMENTED,
+                                }
                             }
                             None => NOT_RESIDENT,
                         };
@@ -251,6 +259,9 @@ pub struct Pool {
     data: SlotData,
     /// Value ranges and visibility of the slots' macrocells (volume pools on the CPU).
     cells: Option<MacroCells>,
+    /// Horizon pools: nodes per tile side, and per slot whether its tile is fragmented
+    /// ([`strata_common::gpu::horizon_tile_fragmented`]).
+    tiles: Option<(usize, Vec<bool>)>,
     /// Slot records.
     pub slots: Vec<SlotInfo>,
     map: HashMap<u64, u32>,
@@ -292,6 +303,15 @@ impl Pool {
         self
     }
 
+    /// Makes this a pool of horizon tiles of `side × side` nodes: each tile's fragmentation
+    /// is computed as it enters its slot and shows in its page-table entry
+    /// ([`ENTRY_FRAGMENTED`], through [`resident_of`](Self::resident_of)).
+    pub fn with_tiles(mut self, side: usize) -> Self {
+        assert_eq!(side * side, self.page_samples, "horizon tiles are square");
+        self.tiles = Some((side, vec![false; self.capacity()]));
+        self
+    }
+
     /// Slots of `page_samples` f32 samples that fit `budget_bytes` (at least one).
     pub fn slots_for(page_samples: usize, budget_bytes: u64) -> usize {
         Self::slots_of(page_samples, budget_bytes, 4)
@@ -309,6 +329,7 @@ impl Pool {
             page_samples,
             data: SlotData::F32(Vec::new()),
             cells: None,
+            tiles: None,
             slots: vec![SlotInfo::free(); n],
             map: HashMap::new(),
             free: (0..n as u32).rev().collect(),
@@ -388,6 +409,9 @@ impl Pool {
                 c.compute(slot, |i| samples[i]);
             }
         }
+        if let Some((side, f)) = self.tiles.as_mut() {
+            f[slot as usize] = strata_common::gpu::horizon_tile_fragmented(samples, *side);
+        }
         self.slots[slot as usize] = SlotInfo::new(key, frame, pinned);
         self.map.insert(key, slot);
         Ok(slot)
@@ -433,7 +457,9 @@ impl Pool {
         self.page_samples * self.samples().elem_bytes()
     }
 
-    /// Resident pages of one data set, as a lookup for [`PageTable::rebuild`].
+    /// Resident pages of one data set, as a lookup for [`PageTable::rebuild`]: the slot,
+    /// with [`ENTRY_FRAGMENTED`] for a fragmented horizon tile above level 0 (level 0 is
+    /// drawn whatever its holes: there is nothing finer).
     pub fn resident_of(
         &self,
         dataset: u16,
@@ -442,7 +468,14 @@ impl Pool {
         let p = pyramid.clone();
         move |level, b| {
             let key = p.id(level, b).with_dataset(dataset).0;
-            self.map.get(&key).copied()
+            let slot = *self.map.get(&key)?;
+            let fragmented =
+                level > 0 && self.tiles.as_ref().is_some_and(|(_, f)| f[slot as usize]);
+            Some(if fragmented {
+                slot | ENTRY_FRAGMENTED
+            } else {
+                slot
+            })
         }
     }
 }
@@ -485,6 +518,45 @@ mod tests {
         assert_eq!(t.entries[t.index(0, [2, 1, 0])], 3);
         assert_eq!(t.entries[t.index(0, [0, 0, 0])], 7 | (top as u32) << 24);
         assert_eq!(t.entries[t.index(1, [1, 0, 0])], 7 | (top as u32) << 24);
+    }
+
+    /// A fragmented horizon tile's own entry carries the flag; the children that fall back
+    /// on it do not (they are drawn with its data until their own arrive), and a slot
+    /// reused for a whole tile loses it. Level 0 never carries it.
+    #[test]
+    fn only_a_fragmented_tiles_own_entry_carries_the_flag() {
+        let p = Pyramid::new(Dim::Two, [40, 40, 1], 6, 1).unwrap(); // core 4
+        let top = p.level_count() - 1;
+        let mut pool = Pool::new(36, 36 * 4 * 4).with_tiles(6);
+        let none = HashSet::new();
+        let lines: Vec<f32> = (0..36)
+            .map(|k| if k % 2 == 1 { f32::NAN } else { 1.0 })
+            .collect();
+        let whole = [1.0f32; 36];
+        let (root, l1, l0) = (
+            page_key(0, &p, top, [0, 0, 0]),
+            page_key(0, &p, 1, [0, 0, 0]),
+            page_key(0, &p, 0, [0, 0, 0]),
+        );
+        pool.place(root, &whole, 0, true, &none).unwrap();
+        let s1 = pool.place(l1, &lines, 0, false, &none).unwrap();
+        let s0 = pool.place(l0, &lines, 0, false, &none).unwrap();
+        let mut t = PageTable::new(&p);
+        t.rebuild(pool.resident_of(0, &p));
+        assert_eq!(
+            t.entries[t.index(1, [0, 0, 0])],
+            s1 | 1 << 24 | ENTRY_FRAGMENTED
+        );
+        assert_eq!(t.entries[t.index(0, [1, 0, 0])], s1 | 1 << 24, "inherited");
+        assert_eq!(t.entries[t.index(0, [0, 0, 0])], s0, "level 0 is drawn");
+        assert_eq!(entry_level(t.entries[t.index(1, [0, 0, 0])]), 1);
+        // The slot taken over by a whole tile.
+        let mut pool2 = Pool::new(36, 36 * 4).with_tiles(6);
+        pool2.place(l1, &lines, 0, false, &none).unwrap();
+        let s = pool2.place(root, &whole, 1, true, &none).unwrap();
+        assert_eq!(pool2.slot_of(l1), None);
+        t.rebuild(pool2.resident_of(0, &p));
+        assert_eq!(t.entries[t.index(top, [0, 0, 0])], s | (top as u32) << 24);
     }
 
     /// Pages touched in the same frame go finest first: a parent placed before its child

@@ -357,17 +357,22 @@ impl Engine {
                 Some(Pool::bookkeeping(n, slots))
             }
         };
+        // Both kinds of pool mark fragmented tiles in the page tables both casters read.
+        let side = data
+            .horizons
+            .first()
+            .map_or(0, |h| h.pyramid.page() as usize);
         let hpool = match (hps, gpu.as_mut()) {
             (None, _) => None,
             (Some(n), None) => {
                 cpu_atlas_fits("horizon_atlas_mb", s.horizon_atlas_mb)?;
-                Some(Pool::new(n, s.horizon_atlas_mb.saturating_mul(1 << 20)))
+                Some(Pool::new(n, s.horizon_atlas_mb.saturating_mul(1 << 20)).with_tiles(side))
             }
             (Some(n), Some(g)) => {
                 let slots = Pool::slots_for(n, s.horizon_atlas_mb.saturating_mul(1 << 20))
                     .min(g.max_horizon_slots(n));
                 g.alloc_horizon_pool(slots, n)?;
-                Some(Pool::bookkeeping(n, slots))
+                Some(Pool::bookkeeping(n, slots).with_tiles(side))
             }
         };
         let tables = (0..data.volumes.len() + data.horizons.len())

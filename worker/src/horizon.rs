@@ -4,14 +4,15 @@
 //! The quadtree is the horizon's own page tree: every tile's `[min, max]` in the store index
 //! bounds its heights, its border and all its descendants, so it is known for every tile
 //! without loading one. A ray descends front to back into tiles whose box (lateral footprint
-//! × height range) it crosses, down to the tile level its footprint calls for, and then
+//! × height range) it crosses, down to the tile level its footprint calls for (or finer,
+//! where that level's tile is resident and fragmented by holes: `ENTRY_FRAGMENTED`), and then
 //! walks that tile's cells (of the finest resident level) with a 2D DDA. In each cell the
 //! height is the bilinear patch through its four nodes, so `ray_z(t) − H(u(t), v(t))` is a
 //! quadratic in `t`: solving it exactly finds every crossing, even two within one cell
 //! (a grazing ray). A cell with any hole among its four nodes never produces a hit, so holes
 //! neither hit nor leave cracks between valid cells (valid neighbours share edge heights).
 
-use crate::atlas::{PageTable, Pool, NOT_RESIDENT, SLOT_MASK};
+use crate::atlas::{entry_level, PageTable, Pool, ENTRY_FRAGMENTED, NOT_RESIDENT, SLOT_MASK};
 use strata_common::pyramid::Pyramid;
 use strata_common::tf::ColorMap;
 
@@ -343,8 +344,12 @@ impl<'a> HorFrame<'a> {
         let want = self.level_at(e0.max(0.0));
         if level == 0 || level <= want {
             feedback.push(self.pyramid.id(level, b).with_dataset(self.ds).0);
-            self.leaf::<LIT>(level, b, d, md, ta, search, hits);
-            return;
+            // A tile whose own cells are mostly holes is not drawn at its level: its
+            // children are (it stays requested, so that its flag stays known).
+            if level == 0 || self.table.entries[idx] & ENTRY_FRAGMENTED == 0 {
+                self.leaf::<LIT>(level, b, d, md, ta, search, hits);
+                return;
+            }
         }
         // Children front to back, ordered by where the ray crosses the two split lines
         // (two divisions instead of a slab per child; the order only decides how soon an
@@ -412,7 +417,7 @@ impl<'a> HorFrame<'a> {
         if e == NOT_RESIDENT {
             return;
         }
-        let r = (e >> 24) as usize;
+        let r = entry_level(e) as usize;
         let data = self.pool.slot_data(e & SLOT_MASK);
         let k = (r - level) as u32;
         let br = [b[0] >> k, b[1] >> k];

@@ -92,6 +92,8 @@ fn shader_constants_match_the_host() {
         ("MAX_VOLS", strata_worker::gpu::MAX_VOLUMES as u64),
         ("NOT_RESIDENT", gpu::NOT_RESIDENT as u64),
         ("SLOT_MASK", gpu::SLOT_MASK as u64),
+        ("LEVEL_MASK", gpu::LEVEL_MASK as u64),
+        ("ENTRY_FRAGMENTED", gpu::ENTRY_FRAGMENTED as u64),
         ("MAX_HORS", gpu::MAX_HORIZONS as u64),
         ("HORIZON_DEPTH_MAP", gpu::HORIZON_DEPTH_MAP as u64),
         ("HORIZON_LIGHTING", gpu::HORIZON_LIGHTING as u64),

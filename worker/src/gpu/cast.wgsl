@@ -25,6 +25,8 @@ const TF_SIZE: u32 = 1024u;
 const MAX_VOLS: u32 = 4u;
 const NOT_RESIDENT: u32 = 0xffffffffu;
 const SLOT_MASK: u32 = 0xffffffu;
+const LEVEL_MASK: u32 = 0x7fu;
+const ENTRY_FRAGMENTED: u32 = 0x80000000u;
 const BIG: f32 = 3.0e38; // stands in for +infinity (WGSL has no infinity literal)
 const MAX_HORS: u32 = 16u;
 const HORIZON_DEPTH_MAP: u32 = 1u;
@@ -1237,7 +1239,7 @@ fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f3
     if (e == NOT_RESIDENT) {
         return;
     }
-    let r = e >> 24u;
+    let r = (e >> 24u) & LEVEL_MASK;
     let slot = e & SLOT_MASK;
     let k = r - level;
     let br = vec2<u32>(b.x >> k, b.y >> k);
@@ -1433,8 +1435,12 @@ fn intersect_horizon(hi: u32, d: vec3<f32>, ta: f32, keep_from: f32, tb: f32) ->
         let want = h_level_at(hi, max(e.x, 0.0));
         if (level == 0u || level <= want) {
             atomicAdd(&feedback[(*hz).table_base + idx], 1u);
-            h_leaf(hi, level, b, d, md, ta, keep_from, &limit);
-            continue;
+            // A tile whose own cells are mostly holes is drawn by its children (horizon.rs
+            // `visit`; it stays requested, so its flag stays known).
+            if (level == 0u || (table[(*hz).table_base + idx] & ENTRY_FRAGMENTED) == 0u) {
+                h_leaf(hi, level, b, d, md, ta, keep_from, &limit);
+                continue;
+            }
         }
         // Children sorted front to back (stable) by where the ray crosses the split lines
         // (horizon.rs `visit`: a far-side child is entered at its split line), pushed
