@@ -305,14 +305,6 @@ impl TransferFunction {
         [0, 1, 2, 3].map(|k| a[k] + f * (b[k] - a[k]))
     }
 
-    /// Table position of a value (clamped).
-    #[inline]
-    fn pos(&self, v: f32) -> f32 {
-        let n = (self.table.len() - 1) as f64;
-        (((v as f64 - self.lo as f64) / (self.hi as f64 - self.lo as f64)).clamp(0.0, 1.0) * n)
-            as f32
-    }
-
     /// Whether a page with value bounds `[min, max]` contributes nothing: no valid value
     /// (NaN bounds), or (with empty-space skipping) only values this function makes
     /// transparent. Both casters skip such bricks and the decomposition weighs them down.
@@ -325,12 +317,25 @@ impl TransferFunction {
     }
 
     /// Largest alpha any value in `[vmin, vmax]` can map to (interpolation included).
+    ///
+    /// The entries are those the casters' own lookups read: the position is their f32
+    /// `v · scale + offset` ([`position_map`](Self::position_map); monotonic in `v`), and a
+    /// position within 1/256 of an entry also takes that entry in, so that a lookup that
+    /// rounds otherwise (a fused multiply-add on the GPU) is covered too. Positions taken
+    /// exactly in f64 had left the lookups' blend of a neighbouring entry out: 255 under the
+    /// window [0, 255] is entry 1023 exactly, but 1022.99994 in f32, which reads 6·10⁻⁵ of
+    /// entry 1022, so a macrocell of 255s under a function clear only at 255 was skipped
+    /// while its samples were not clear.
     pub fn max_alpha(&self, vmin: f32, vmax: f32) -> f32 {
         if !(vmin <= vmax) {
             return 0.0; // empty or NaN range: no valid sample
         }
-        let i0 = self.pos(vmin).floor() as usize;
-        let i1 = (self.pos(vmax).ceil() as usize).min(self.table.len() - 1);
+        let n = (self.table.len() - 1) as f32;
+        let (scale, offset) = self.position_map();
+        let at = |v: f32| (v * scale + offset).clamp(0.0, n);
+        const SLACK: f32 = 1.0 / 256.0;
+        let i0 = (at(vmin) - SLACK).max(0.0).floor() as usize;
+        let i1 = ((at(vmax) + SLACK).ceil() as usize).min(self.table.len() - 1);
         let mut m = 0.0f32;
         let mut i = i0;
         while i <= i1 {
@@ -827,6 +832,36 @@ mod tests {
                 assert!(t.lookup(v)[3] <= m + 1e-7, "{a} {b} {v}");
             }
         }
+    }
+
+    /// Values that land on an entry exactly in f64 but a hair off it in the lookup's f32
+    /// (the window's top under [0, 255], [0, 100], [−128, 127], [1000, 1100]) are bounded
+    /// with the entry the lookup blends in; a function clear only at the window's top is
+    /// not clear there.
+    #[test]
+    fn max_alpha_bounds_lookups_that_round_off_an_entry() {
+        for (lo, hi) in [
+            (0.0f32, 255.0f32),
+            (0.0, 100.0),
+            (-128.0, 127.0),
+            (1000.0, 1100.0),
+        ] {
+            let mut table = vec![[1.0f32, 1.0, 1.0, 0.5]; TF_SIZE];
+            table[TF_SIZE - 1][3] = 0.0;
+            let tf = TransferFunction::from_table(lo, hi, table);
+            let got = tf.step_table(1.0).lookup(hi)[3];
+            assert!(
+                got <= tf.max_alpha(hi, hi),
+                "[{lo}, {hi}]: the lookup of {hi} gives alpha {got}, max_alpha {}",
+                tf.max_alpha(hi, hi)
+            );
+        }
+        // Away from entries nothing is taken in: a range inside the clear end stays clear.
+        let mut table = vec![[0.0f32; 4]; TF_SIZE];
+        table[0][3] = 1.0;
+        let tf = TransferFunction::from_table(0.0, 1023.0, table);
+        assert_eq!(tf.max_alpha(1.5, 1023.0), 0.0);
+        assert!(tf.max_alpha(0.9, 1023.0) > 0.0);
     }
 
     #[test]

@@ -153,6 +153,43 @@ fn a_preintegrated_span_ends_at_a_surface() {
     }
 }
 
+/// The same with adaptive steps (1 voxel, then 2 from the second band on), the surface
+/// moved across the second band's start: at z = 40.3 it lies in the first band, at 41.0 and
+/// 41.9 past the second band's start (z = 40.5) but before that band's first lattice point
+/// (z = 42). All three see the same samples (the last at z = 40, a fine one), so the span
+/// must end alike: its last half step is half a fine step. The band at the surface's
+/// distance had been used past the start, whose table is for steps twice as long: half a
+/// coarse step, twice the opacity.
+#[test]
+fn a_preintegrated_span_ends_alike_on_either_side_of_a_band_start() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let with_bands = |at: f32| {
+        let mut s = ramp_onto_surface(d, 1.0, true, at);
+        s.render.adaptive_step = true;
+        // The second band's start, vmin · 2 / (τ · pixel angle), 297 from the eye (which
+        // sits at z = −256), 0.1° over 3 pixels; bands begin half a fine step past an even
+        // multiple of it: at 296.5, z = 40.5.
+        s.render.tau = 2.0 / (297.0 * (2.0 * 0.05f64.to_radians().tan() / 3.0));
+        s
+    };
+    let before = centre(&pre_both(&with_bands(40.3), "surface at 40.3, bands"));
+    for at in [41.0f32, 41.9] {
+        let past = centre(&pre_both(
+            &with_bands(at),
+            &format!("surface at {at}, bands"),
+        ));
+        assert!(before[3] > 0.999, "the surface is opaque");
+        assert_eq!(
+            before, past,
+            "the surface at z = 40.3 and at {at} follow the same samples"
+        );
+    }
+    // The premise: a surface past the second band's first lattice point does see more.
+    let later = centre(&render_whole(&with_bands(42.1)));
+    assert_ne!(before, later);
+}
+
 /// A second, all but transparent volume overlapping the back of the ramp from between two
 /// samples on: where the two overlap their mix is post-classified, so the ramp's
 /// pre-integrated span ends where the overlap begins (its half step after the last sample

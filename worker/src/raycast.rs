@@ -293,6 +293,22 @@ pub fn clip_region(lo: [f32; 3], hi: [f32; 3], d: [f32; 3]) -> (f32, f32) {
     (t0, t1)
 }
 
+/// The band of the last lattice sample before `t`: the band `t` lies in, unless its first
+/// lattice point is not before `t` (a band begins between lattice points of its own step,
+/// half a finer step past one of the finer band's), and then the band before. A span's
+/// last half step is a half step of its last sample's band: the band at a surface just
+/// past a band's start had pre-integrated it as half a coarse step, twice its length.
+fn band_before(bands: &Bands, t: f32) -> usize {
+    let mut band = 0;
+    while band + 1 < bands.start.len() && t >= bands.start[band + 1] {
+        band += 1;
+    }
+    while band > 0 && (first_k(bands.start[band], bands.dt[band]) as f32) * bands.dt[band] >= t {
+        band -= 1;
+    }
+    band
+}
+
 struct RayCtx<'s, 'a, A: Accum> {
     f: &'s FrameSetup<'a>,
     d: [f32; 3],
@@ -312,12 +328,12 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
         if cur.prev.is_nan() || self.done {
             return;
         }
-        let bands = &self.f.bands;
-        let mut band = 0;
-        while band + 1 < bands.start.len() && t >= bands.start[band + 1] {
-            band += 1;
-        }
-        end_span(Some(&*pre[band]), cur, &mut self.acc, false);
+        end_span(
+            Some(&*pre[band_before(&self.f.bands, t)]),
+            cur,
+            &mut self.acc,
+            false,
+        );
     }
 
     /// Marches one volume over `[ta, tb)` on the lattice.

@@ -698,7 +698,21 @@ fn end_pre_span(vi: u32, cur: ptr<function, Cursor>, t: f32, ray: ptr<function, 
     if (!PRE || (vols[vi].flags & VOLUME_PREINTEGRATED) == 0u || !(*cur).has_prev || (*ray).done) {
         return;
     }
-    (*ray).acc = end_span(vi, first_band(t), cur, (*ray).acc, false);
+    (*ray).acc = end_span(vi, band_before(t), cur, (*ray).acc, false);
+}
+
+// The band of the last lattice sample before t (raycast.rs `band_before`): t's band unless
+// its first lattice point is not before t.
+fn band_before(t: f32) -> u32 {
+    var band = first_band(t);
+    loop {
+        if (band > 0u && f32(first_k(band_start(band), band_dt(band))) * band_dt(band) >= t) {
+            band = band - 1u;
+        } else {
+            break;
+        }
+    }
+    return band;
 }
 
 struct Ray {
