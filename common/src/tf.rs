@@ -332,10 +332,14 @@ impl TransferFunction {
         }
         let n = (self.table.len() - 1) as f32;
         let (scale, offset) = self.position_map();
-        let at = |v: f32| (v * scale + offset).clamp(0.0, n);
-        const SLACK: f32 = 1.0 / 256.0;
-        let i0 = (at(vmin) - SLACK).max(0.0).floor() as usize;
-        let i1 = ((at(vmax) + SLACK).ceil() as usize).min(self.table.len() - 1);
+        // The slack before the clamp: a value clamped to an end reads that end's entry
+        // whatever the rounding. A fused multiply-add differs from the rounded product and
+        // sum by up to half an ulp of the product: relative slack beyond 2^16.
+        let slack =
+            |v: f32| 1.0 / 256.0 + (v * scale).abs().max(offset.abs()) * (1.0 / 4_194_304.0);
+        let i0 = (vmin * scale + offset - slack(vmin)).clamp(0.0, n).floor() as usize;
+        let i1 = ((vmax * scale + offset + slack(vmax)).clamp(0.0, n).ceil() as usize)
+            .min(self.table.len() - 1);
         let mut m = 0.0f32;
         let mut i = i0;
         while i <= i1 {
@@ -862,6 +866,44 @@ mod tests {
         let tf = TransferFunction::from_table(0.0, 1023.0, table);
         assert_eq!(tf.max_alpha(1.5, 1023.0), 0.0);
         assert!(tf.max_alpha(0.9, 1023.0) > 0.0);
+        // Values clamped to an end read that end's entry alone: a ramp from the window's
+        // bottom is clear below it, and one falling to its top clear above it (the window's
+        // ends themselves may round a hair inside).
+        let mut table = vec![[0.0f32; 4]; TF_SIZE];
+        table[1][3] = 1.0;
+        table[TF_SIZE - 2][3] = 1.0;
+        let tf = TransferFunction::from_table(0.0, 1023.0, table);
+        assert_eq!(tf.max_alpha(-50.0, -0.1), 0.0);
+        assert_eq!(tf.max_alpha(1023.1, 5000.0), 0.0);
+        // Every entry a lookup reads with a weight, rounded as the CPU rounds (product, then
+        // sum) or fused as a GPU may, is bounded, near zero and far from it (products of
+        // 2^17 and 2^25, where half an ulp is 1/256 and more).
+        for (lo, hi) in [
+            (0.0f32, 255.0f32),
+            (5000.0, 5050.0),
+            (-1.0e6, -1.0e6 + 10.0),
+        ] {
+            let probe = TransferFunction::from_table(lo, hi, vec![[0.0; 4]; TF_SIZE]);
+            let (scale, offset) = probe.position_map();
+            let n = (TF_SIZE - 1) as f32;
+            for j in 0..400 {
+                let v = lo + (hi - lo) * j as f32 / 399.0;
+                for x in [v * scale + offset, v.mul_add(scale, offset)] {
+                    let x = x.clamp(0.0, n);
+                    let i = (x as usize).min(TF_SIZE - 2);
+                    let weighted = [(i, x - (i as f32) < 1.0), (i + 1, x > i as f32)];
+                    for (k, _) in weighted.into_iter().filter(|&(_, w)| w) {
+                        let mut table = vec![[0.0f32; 4]; TF_SIZE];
+                        table[k][3] = 1.0;
+                        let tf = TransferFunction::from_table(lo, hi, table);
+                        assert!(
+                            tf.max_alpha(v, v) > 0.0,
+                            "[{lo}, {hi}]: {v} reads entry {k} at {x}, max_alpha leaves it out"
+                        );
+                    }
+                }
+            }
+        }
     }
 
     #[test]

@@ -339,7 +339,9 @@ pub struct FrameSummary {
     /// The PNG written (a wall frame without its preview mosaic: its first tile, column 0
     /// and row 0).
     pub output: String,
-    /// Wall time of the frame (render, composite, write).
+    /// Wall time of the frame: its render and composite, and whatever wait remained for the
+    /// previous frame's files (a frame's files are written while the next frame renders, so
+    /// its own write shows in the next frame's time, and the last frame's in the run's).
     pub seconds: f64,
     /// Feedback rounds (the most of any worker).
     pub rounds: u32,

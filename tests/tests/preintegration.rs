@@ -263,13 +263,20 @@ fn a_span_after_a_no_data_brick_starts_alike_in_every_region_without_skipping() 
         })
         .collect();
     let store = volume_store(d, "holey", [4, 4, N], data, Affine3::IDENTITY, 32);
-    for step in [1.0f64] {
+    // Step 1 on the ramp's lattice (z = 0, 1, …: 30 is a no-data sample of page 1 that
+    // ends the span itself); step 2 with the lattice on odd z, so that the sample before
+    // the first valid one (z = 31) lies in page 0 and the span's lead is a whole step only
+    // because that page is skipped.
+    for (step, shift) in [(1.0f64, 0.0), (2.0, -1.5)] {
         let mut s = ramp(d, step, true);
         s.volumes[0].store = store.clone();
         s.render.empty_space_skipping = false;
+        if let Some(c) = s.camera.as_mut() {
+            c.eye[2] += shift;
+        }
         let whole = render_whole(&s);
         assert!(centre(&whole)[3] > 0.05, "step {step}: nothing visible");
-        for face in [29.5, 29.7, 30.5, 31.5] {
+        for face in [29.5, 29.7, 30.0, 30.5, 31.5] {
             let mut tree = KdTree::single(scene_region(&s));
             tree.split_leaf(0, 2, face);
             let split = render_split(&s, &tree);

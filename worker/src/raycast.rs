@@ -293,17 +293,23 @@ pub fn clip_region(lo: [f32; 3], hi: [f32; 3], d: [f32; 3]) -> (f32, f32) {
     (t0, t1)
 }
 
-/// The band of the last lattice sample before `t`: the band `t` lies in, unless its first
-/// lattice point is not before `t` (a band begins between lattice points of its own step,
-/// half a finer step past one of the finer band's), and then the band before. A span's
-/// last half step is a half step of its last sample's band: the band at a surface just
-/// past a band's start had pre-integrated it as half a coarse step, twice its length.
+/// The band of the last lattice sample before `t`: the band `t` lies in, unless it has no
+/// lattice point before `t` (a band begins between lattice points of its own step, half a
+/// finer step past one of the finer band's), and then the latest band before it that has
+/// one within itself (bands narrower than their step have none). A span's last half step
+/// is a half step of its last sample's band: the band at a surface just past a band's start
+/// had pre-integrated it as half a coarse step, twice its length.
 fn band_before(bands: &Bands, t: f32) -> usize {
     let mut band = 0;
     while band + 1 < bands.start.len() && t >= bands.start[band + 1] {
         band += 1;
     }
-    while band > 0 && (first_k(bands.start[band], bands.dt[band]) as f32) * bands.dt[band] >= t {
+    while band > 0 {
+        let first = (first_k(bands.start[band], bands.dt[band]) as f32) * bands.dt[band];
+        let end = bands.start.get(band + 1).copied().unwrap_or(f32::INFINITY);
+        if first < t && first < end {
+            break;
+        }
         band -= 1;
     }
     band
@@ -502,8 +508,10 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
                             // undivided region would have skipped it, and this span's lead
                             // is a whole step whichever region the point lies in.
                             cur.entered = true;
+                            // (Whatever `skipping` says: without it, a brick of no data
+                            // is still skipped, and the bits `hidden_at` reads say so.)
                             let tp = t - dt;
-                            if !cur.gap && tp >= cur.vol_start && f.skipping {
+                            if !cur.gap && tp >= cur.vol_start {
                                 let qp = v.point(tp, md);
                                 cur.gap = v.hidden_at(tp, qp);
                             }
@@ -518,7 +526,15 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
                                 trilinear_at(data, cur.off, p, v.local(cur, qb)),
                             )
                         };
-                        let slope = (sb - sa) / (2.0 * e) * dt;
+                        // One-sided where a tap falls on no data (the edge of a no-data
+                        // region): a value linear up to it is still extrapolated exactly.
+                        let slope = if sa.is_nan() {
+                            (sb - s) / e * dt
+                        } else if sb.is_nan() {
+                            (s - sa) / e * dt
+                        } else {
+                            (sb - sa) / (2.0 * e) * dt
+                        };
                         cur.slope = if slope.is_finite() { slope } else { 0.0 };
                     } else {
                         if cur.lead {
@@ -604,7 +620,7 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
                 // Past the region, were the next lattice point inside the volume and hidden,
                 // an undivided region would skip it: the span ends with a whole step.
                 let tn = k as f32 * dt;
-                let skip = f.skipping && !cur.prev.is_nan() && tn < cur.vol_end && {
+                let skip = !cur.prev.is_nan() && tn < cur.vol_end && {
                     let qn = v.point(tn, md);
                     v.hidden_at(tn, qn)
                 };

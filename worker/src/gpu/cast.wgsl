@@ -702,15 +702,14 @@ fn end_pre_span(vi: u32, cur: ptr<function, Cursor>, t: f32, ray: ptr<function, 
 }
 
 // The band of the last lattice sample before t (raycast.rs `band_before`): t's band unless
-// its first lattice point is not before t.
+// it has no lattice point before t, then the latest band before it with one within itself.
 fn band_before(t: f32) -> u32 {
     var band = first_band(t);
     loop {
-        if (band > 0u && f32(first_k(band_start(band), band_dt(band))) * band_dt(band) >= t) {
-            band = band - 1u;
-        } else {
-            break;
-        }
+        if (band == 0u) { break; }
+        let first = f32(first_k(band_start(band), band_dt(band))) * band_dt(band);
+        if (first < t && first < band_end(band)) { break; }
+        band = band - 1u;
     }
     return band;
 }
@@ -792,7 +791,13 @@ fn march_one(vi: u32, cur: ptr<function, Cursor>, md: vec3<f32>, d: vec3<f32>, t
                     let e = 0.5 / max(abs(md.x), max(abs(md.y), abs(md.z)));
                     let sa = sample_at(vi, cur, q - e * md);
                     let sb = sample_at(vi, cur, q + e * md);
-                    let g = (sb - sa) / (2.0 * e) * dt;
+                    // One-sided where a tap falls on no data (raycast.rs).
+                    var g = (sb - sa) / (2.0 * e) * dt;
+                    if (is_nan(sa)) {
+                        g = (sb - s) / e * dt;
+                    } else if (is_nan(sb)) {
+                        g = (s - sa) / e * dt;
+                    }
                     (*cur).slope = select(0.0, g, is_finite(g));
                 } else {
                     if ((*cur).lead) {
