@@ -35,7 +35,28 @@ pub enum ViewError {
     /// A wall layout out of range.
     #[error("{0}")]
     Wall(String),
+    /// Pixels narrower than f32 ray directions resolve.
+    #[error(
+        "camera.fov_deg = {fov} over {height} pixels makes pixels of {pixel:.2e} rad, finer \
+         than the casters' f32 ray directions resolve ({MIN_PIXEL_ANGLE:.2e} rad: neighbouring \
+         pixels would share rays); at this height use at least {min_fov:.3}°"
+    )]
+    TooNarrow {
+        /// The field of view asked for.
+        fov: f64,
+        /// Image (or wall plane) height in pixels.
+        height: u32,
+        /// Its pixel angle.
+        pixel: f64,
+        /// The narrowest field of view this height allows.
+        min_fov: f64,
+    },
 }
+
+/// Narrowest pixel a view may have, in radians: a ray direction is summed in f32 from unit
+/// vectors (`dir00 + x·du + y·dv`), so it carries about 6·10⁻⁸ rad of rounding; pixels of
+/// 2⁻²⁰ rad keep that under a sixteenth of a pixel. (1920×1080: fov_deg ≥ 0.06.)
+pub const MIN_PIXEL_ANGLE: f64 = 1.0 / 1_048_576.0;
 
 /// Display-space transform of world points: `(x, y, ±z · z_scale)`.
 #[derive(Copy, Clone, Debug, PartialEq)]
@@ -158,6 +179,15 @@ impl View {
         let r = norm(cross(f, up)).ok_or(ViewError::UpParallel)?;
         let u = cross(r, f);
         let tan = (camera.fov_deg.to_radians() / 2.0).tan();
+        let pixel = 2.0 * tan / height as f64;
+        if pixel < MIN_PIXEL_ANGLE {
+            return Err(ViewError::TooNarrow {
+                fov: camera.fov_deg,
+                height,
+                pixel,
+                min_fov: 2.0 * (MIN_PIXEL_ANGLE * height as f64 / 2.0).atan().to_degrees(),
+            });
+        }
         let aspect = width as f64 / height as f64;
         let dir00 = [0, 1, 2].map(|a| f[a] - tan * aspect * r[a] + tan * u[a]);
         let du = [0, 1, 2].map(|a| 2.0 * tan * aspect / width as f64 * r[a]);

@@ -1179,7 +1179,7 @@ impl Scene {
             let (w, h) = (scene.render.width.max(1), scene.render.height.max(1));
             View::new(c, &scene.render, w, h).map_err(|e| {
                 let (section, key) = match &e {
-                    ViewError::Fov(_) => ("camera", "fov_deg"),
+                    ViewError::Fov(_) | ViewError::TooNarrow { .. } => ("camera", "fov_deg"),
                     ViewError::NotFinite(key) => ("camera", *key),
                     ViewError::EyeIsTarget => ("camera", "target"),
                     ViewError::UpParallel => ("camera", "up"),
@@ -1403,6 +1403,11 @@ mod tests {
         let e = camera("target = [1, 0, 0]\nfov_deg = 0.0\n").unwrap_err();
         assert_eq!((e.line, e.column), (7, 1), "{e}");
         assert!(e.to_string().contains("camera.fov_deg"), "{e}");
+        // Pixels finer than f32 ray directions resolve (720 pixels high: at least 0.039°).
+        let e = camera("target = [1, 0, 0]\nfov_deg = 0.02\n").unwrap_err();
+        assert_eq!((e.line, e.column), (7, 1), "{e}");
+        assert!(e.to_string().contains("at least 0.039"), "{e}");
+        camera("target = [1, 0, 0]\nfov_deg = 0.04\n").unwrap();
         let e = camera("target = [0, 0, 0]\n").unwrap_err();
         assert_eq!(e.line, 6, "{e}");
         assert!(e.to_string().contains("coincide"), "{e}");

@@ -780,14 +780,15 @@ pub struct WorkerFrameStats {
     /// Seconds of the final round's cast (all leaves): the converged frame's cost, what the
     /// in-process summary calls the last frame.
     pub last_round_s: f64,
-    /// Pages read from disk since this worker opened the scene (its root pages included),
-    /// as the in-process engine counts them.
+    /// Pages read from disk since this worker first opened the scene (its root pages
+    /// included; the engines of earlier set-ups too, after a lost worker's re-mesh), as the
+    /// in-process engine counts them.
     pub pages_read: u64,
-    /// Stored bytes read from disk since this worker opened the scene.
+    /// Stored bytes read from disk, counted as `pages_read`.
     pub bytes_read: u64,
-    /// Page-cache lookups that hit since this worker opened the scene.
+    /// Page-cache lookups that hit, counted as `pages_read`.
     pub cache_hits: u64,
-    /// Page-cache lookups since this worker opened the scene.
+    /// Page-cache lookups, counted as `pages_read`.
     pub cache_lookups: u64,
     /// Seconds from the end of rendering to the final piece written for the coordinator
     /// (encode, exchange, blend, final encode), on this worker's clock.

@@ -160,8 +160,11 @@ fn roots_in(a: f32, b: f32, c: f32, lo: f32, hi: f32, out: &mut [f32; 2]) -> usi
             n += 1;
         }
     };
-    let scale = b.abs().max(c.abs()).max(1e-30);
-    if a.abs() <= 1e-7 * scale {
+    // Linear only when it is: the stable pair below is exact however small `a` is against
+    // `b` (its far root `q/a` overflows or falls out of range), while dropping a small `a`
+    // drops `a·s²`, which over a long step (a nearly vertical ray crossing a twisted cell)
+    // is not small.
+    if a == 0.0 {
         if b != 0.0 {
             push(-c / b, out);
         }
@@ -337,7 +340,9 @@ impl<'a> HorFrame<'a> {
         }
         let tb = &self.boxes[idx];
         let (e0, e1) = slab_inv(self.c, md, inv, tb.lo, tb.hi);
-        if fmax(e0, ta) >= fmin(e1, search.limit) || e1 < 0.0 {
+        // Strict: a flat tile's box seen from far away has a slab of no thickness in t
+        // (its padding below the rounding of the eye's height), which must not cull it.
+        if fmax(e0, ta) > fmin(e1, search.limit) || e1 < 0.0 {
             return;
         }
         // The LOD decision uses the unclipped entry, so it does not depend on the region.
@@ -439,7 +444,10 @@ impl<'a> HorFrame<'a> {
         if !(zmin <= zmax) {
             return;
         }
-        let eps = 1e-4 * (1.0 + zmin.abs().max(zmax.abs()));
+        // Padded past the rounding of heights relative to the eye too (8 ulps of its
+        // height): a flat tile far below the eye is otherwise a clip of no thickness, which
+        // holds no crossing.
+        let eps = 1e-4 * (1.0 + zmin.abs().max(zmax.abs())) + self.c[2].abs() * (1.0 / 1_048_576.0);
         let (u0, u1) = slab(
             self.c,
             md,
@@ -448,7 +456,8 @@ impl<'a> HorFrame<'a> {
         );
         let t_lo = u0.max(ta).max(0.0);
         let t_hi = u1.min(search.limit);
-        if t_lo >= t_hi {
+        // Strict, as in `visit` (a flat tile far below the eye: a clip of no thickness).
+        if t_lo > t_hi {
             return;
         }
         // Ray in level-r node coordinates.
@@ -945,6 +954,70 @@ mod tests {
             assert_eq!(hits.len(), 1, "tilt {tilt}");
             let err = (hits[0].t as f64 - want).abs();
             assert!(err < 1e-4, "tilt {tilt}: t = {}, want {want}", hits[0].t);
+        }
+    }
+
+    /// A twisted surface (h = 10 + k·(i − 32)·(j − 32): bilinear in every cell, each cell
+    /// twisted by k) seen nearly straight down from high above: the ray's quadratic term
+    /// is tiny against its linear one, yet over a step of hundreds of nodes along the ray
+    /// it moves the crossing by a node. Solved as linear below a relative threshold, the
+    /// crossings were off by up to 0.9 and some were lost to both cells beside an edge, or
+    /// kept by both (pinholes and double hits in a map view).
+    #[test]
+    fn nearly_vertical_rays_cross_a_twisted_surface_where_it_says() {
+        const K: f64 = 0.05;
+        let twisted = |i: f64, j: f64| (10.0 + K * (i - 32.0) * (j - 32.0)) as f32;
+        let eye = [31.3f32, 30.7, 500.0];
+        let f = fixture_of(64, eye, twisted);
+        let h = f.frame();
+        let mut fb = crate::feedback::Requests::new();
+        let (mut worst, mut bad) = (0.0f64, Vec::new());
+        for a in -12..=12 {
+            for b in -12..=12 {
+                let d = [a as f32 * 4e-3 + 1e-4, b as f32 * 4e-3 - 3e-5, -1.0f32];
+                // 500 − t = 10 + K·(x + t·dx − 32)·(y + t·dy − 32), in f64: the nearest root.
+                let (x, y, dx, dy) = (
+                    eye[0] as f64 - 32.0,
+                    eye[1] as f64 - 32.0,
+                    d[0] as f64,
+                    d[1] as f64,
+                );
+                let (qa, qb, qc) = (K * dx * dy, K * (x * dy + y * dx) + 1.0, K * x * y - 490.0);
+                let q = -0.5 * (qb + qb.signum() * (qb * qb - 4.0 * qa * qc).sqrt());
+                let want = [q / qa, qc / q]
+                    .into_iter()
+                    .filter(|t| t.is_finite() && *t > 0.0)
+                    .fold(f64::INFINITY, f64::min);
+                let mut hits = Vec::new();
+                h.intersect(d, 0.0, f32::INFINITY, &mut hits, &mut fb);
+                if hits.len() != 1 {
+                    bad.push((d, hits.len()));
+                    continue;
+                }
+                worst = worst.max((hits[0].t as f64 - want).abs());
+            }
+        }
+        assert!(
+            bad.is_empty(),
+            "{} rays crossed other than once: {bad:?}",
+            bad.len()
+        );
+        assert!(worst < 1e-3, "a crossing off by {worst} (t ≈ 490)");
+    }
+
+    /// A flat surface at height 0 seen straight down from 5000 above: its tiles' boxes,
+    /// padded by 1e-4, are flat to within the rounding of the eye's height, so their slabs
+    /// have no thickness in t. They had been culled, and the whole surface vanished.
+    #[test]
+    fn a_flat_surface_far_below_the_eye_is_found() {
+        let f = fixture_of(64, [31.3, 30.7, 5000.0], |_, _| 0.0);
+        let h = f.frame();
+        let mut fb = crate::feedback::Requests::new();
+        for (dx, dy) in [(0.0f32, 0.0f32), (1e-3, -2e-3), (-4e-3, 3e-3)] {
+            let mut hits = Vec::new();
+            h.intersect([dx, dy, -1.0], 0.0, f32::INFINITY, &mut hits, &mut fb);
+            assert_eq!(hits.len(), 1, "direction ({dx}, {dy})");
+            assert!((hits[0].t - 5000.0).abs() < 1e-3, "t = {}", hits[0].t);
         }
     }
 

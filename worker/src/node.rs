@@ -197,6 +197,9 @@ async fn node(opts: NodeOptions) -> Result<()> {
     let server_config = strata_net::tls::server_config(&id, net.transport()?, net.client_auth)?;
     // A set-up, then frames until shutdown; a new set-up (the coordinator lost a worker
     // before the run was ready) replaces the mesh, whatever state it is in.
+    // Reads and cache lookups of the engines of earlier set-ups: the stats count them
+    // since this worker first opened the scene, whatever set-ups came between.
+    let mut earlier = crate::cache::CacheStats::default();
     'setup: loop {
         let rank = setup.rank;
         info!(rank, name = %opts.name, peers = setup.peers.len(), absent = ?setup.absent, "set up");
@@ -222,7 +225,10 @@ async fn node(opts: NodeOptions) -> Result<()> {
             e = conn.closed() => Err(anyhow!("lost the coordinator during set-up: {e}")),
         };
         let (mut node, mut ev_rx) = match meshed {
-            Ok(m) => m,
+            Ok((mut node, ev_rx)) => {
+                node.earlier = earlier;
+                (node, ev_rx)
+            }
             Err(e) => {
                 // Tell the coordinator why, and whom it blames, so it can give up on a
                 // lost peer and set the run up again without it.
@@ -362,6 +368,7 @@ async fn node(opts: NodeOptions) -> Result<()> {
                 // The coordinator lost a worker before the run was ready: mesh again.
                 CoordMsg::Setup(s) => {
                     node.close_peers(8, b"new set-up");
+                    earlier = node.cache_totals();
                     setup = *s;
                     continue 'setup;
                 }
@@ -656,6 +663,7 @@ async fn mesh(
         deferred: Default::default(),
         front_last: None,
         lz4: false,
+        earlier: Default::default(),
         cpus: crate::affinity::allowed()
             .map(|c| crate::affinity::format_list(&c))
             .unwrap_or_default(),
@@ -948,6 +956,8 @@ const MAX_DEFERRED: usize = 64;
 const MAX_PLANS: usize = 16;
 
 struct Node {
+    /// The cache counters of the engines of this worker's earlier set-ups.
+    earlier: crate::cache::CacheStats,
     rank: u32,
     setup: Setup,
     peers: Vec<Option<quinn::Connection>>,
@@ -1033,6 +1043,21 @@ fn test_fault(rank: u32, frame: u64, phase: &str) {
 const PEER_EVENTS: usize = 64;
 
 impl Node {
+    /// The cache counters since this worker first opened the scene: this set-up's engine's
+    /// and its earlier ones'.
+    fn cache_totals(&self) -> crate::cache::CacheStats {
+        let (a, b) = (self.engine.cache_stats(), self.earlier);
+        crate::cache::CacheStats {
+            hits: a.hits.saturating_add(b.hits),
+            misses: a.misses.saturating_add(b.misses),
+            evictions: a.evictions.saturating_add(b.evictions),
+            pages_read: a.pages_read.saturating_add(b.pages_read),
+            bytes_read: a.bytes_read.saturating_add(b.bytes_read),
+            prefetch_dropped: a.prefetch_dropped.saturating_add(b.prefetch_dropped),
+            pages_read_at_last_real: a.pages_read_at_last_real.saturating_add(b.pages_read),
+        }
+    }
+
     /// Renders (or draws) this worker's image and runs its part of the exchange; returns
     /// the stats and the encoded final piece.
     /// The coordinator's canvas `c` for `req`'s frame, mapped on first use (the last few
@@ -1307,7 +1332,7 @@ impl Node {
         );
         stats.render_end_us = strata_net::unix_us();
         stats.render_cpu_s = process_cpu_s() - cpu_start;
-        let cache = self.engine.cache_stats();
+        let cache = self.cache_totals();
         stats.pages_read = cache.pages_read;
         stats.bytes_read = cache.bytes_read;
         stats.cache_hits = cache.hits;

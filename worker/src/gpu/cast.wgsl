@@ -1030,8 +1030,8 @@ fn roots_in(a: f32, b: f32, c: f32, lo: f32, hi: f32) -> Roots {
     var out = Roots(0u, vec2<f32>(0.0));
     var cand = vec2<f32>(0.0);
     var nc = 0u;
-    let scale = max(max(abs(b), abs(c)), 1e-30);
-    if (abs(a) <= 1e-7 * scale) {
+    // Linear only when it is (horizon.rs `roots_in`).
+    if (a == 0.0) {
         if (b != 0.0) {
             cand[0] = -c / b;
             nc = 1u;
@@ -1279,11 +1279,13 @@ fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f3
     if (!(zb.x <= zb.y)) {
         return;
     }
-    let eps = 1e-4 * (1.0 + max(abs(zb.x), abs(zb.y)));
+    // Padded past the rounding of heights relative to the eye too (horizon.rs `leaf`).
+    let eps = 1e-4 * (1.0 + max(abs(zb.x), abs(zb.y))) + abs(c.z) * (1.0 / 1048576.0);
     let u = slab(c, md, vec3<f32>(flo, zb.x - eps), vec3<f32>(fhi, zb.y + eps));
     let t_lo = max(max(u.x, ta), 0.0);
     let t_hi = min(u.y, *limit);
-    if (t_lo >= t_hi) {
+    // Strict, as in horizon.rs (a flat tile far below the eye: a clip of no thickness).
+    if (t_lo > t_hi) {
         return;
     }
     // Ray in level-r node coordinates.
@@ -1447,7 +1449,8 @@ fn intersect_horizon(hi: u32, d: vec3<f32>, ta: f32, keep_from: f32, tb: f32) ->
         // slab test cannot lose it to rounding.
         let eps = 1e-4 * (1.0 + max(abs(zb.x), abs(zb.y)));
         let e = slab_inv(c, md, inv, vec3<f32>(fp.x - s, fp.y - s, zb.x - eps), vec3<f32>(fp.z + s, fp.w + s, zb.y + eps));
-        if (max(e.x, ta) >= min(e.y, limit) || e.y < 0.0) {
+        // Strict (horizon.rs `visit`: a flat tile's slab of no thickness seen from afar).
+        if (max(e.x, ta) > min(e.y, limit) || e.y < 0.0) {
             continue;
         }
         // The LOD decision uses the unclipped entry, so it does not depend on the region.
