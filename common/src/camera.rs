@@ -185,7 +185,12 @@ impl View {
                 fov: camera.fov_deg,
                 height,
                 pixel,
-                min_fov: 2.0 * (MIN_PIXEL_ANGLE * height as f64 / 2.0).atan().to_degrees(),
+                // Rounded up to the thousandth it is printed with, so that it is accepted.
+                min_fov: (2.0
+                    * (MIN_PIXEL_ANGLE * height as f64 / 2.0).atan().to_degrees()
+                    * 1000.0)
+                    .ceil()
+                    / 1000.0,
             });
         }
         let aspect = width as f64 / height as f64;

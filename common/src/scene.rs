@@ -1403,11 +1403,12 @@ mod tests {
         let e = camera("target = [1, 0, 0]\nfov_deg = 0.0\n").unwrap_err();
         assert_eq!((e.line, e.column), (7, 1), "{e}");
         assert!(e.to_string().contains("camera.fov_deg"), "{e}");
-        // Pixels finer than f32 ray directions resolve (720 pixels high: at least 0.039°).
-        let e = camera("target = [1, 0, 0]\nfov_deg = 0.02\n").unwrap_err();
+        // Pixels finer than f32 ray directions resolve (720 pixels high: at least 0.03934°,
+        // suggested rounded up).
+        let e = camera("target = [1, 0, 0]\nfov_deg = 0.039\n").unwrap_err();
         assert_eq!((e.line, e.column), (7, 1), "{e}");
-        assert!(e.to_string().contains("at least 0.039"), "{e}");
-        camera("target = [1, 0, 0]\nfov_deg = 0.04\n").unwrap();
+        assert!(e.to_string().contains("at least 0.040"), "{e}");
+        camera("target = [1, 0, 0]\nfov_deg = 0.040\n").unwrap();
         let e = camera("target = [0, 0, 0]\n").unwrap_err();
         assert_eq!(e.line, 6, "{e}");
         assert!(e.to_string().contains("coincide"), "{e}");

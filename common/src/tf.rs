@@ -318,28 +318,29 @@ impl TransferFunction {
 
     /// Largest alpha any value in `[vmin, vmax]` can map to (interpolation included).
     ///
-    /// The entries are those the casters' own lookups read: the position is their f32
-    /// `v · scale + offset` ([`position_map`](Self::position_map); monotonic in `v`), and a
-    /// position within 1/256 of an entry also takes that entry in, so that a lookup that
-    /// rounds otherwise (a fused multiply-add on the GPU) is covered too. Positions taken
-    /// exactly in f64 had left the lookups' blend of a neighbouring entry out: 255 under the
-    /// window [0, 255] is entry 1023 exactly, but 1022.99994 in f32, which reads 6·10⁻⁵ of
-    /// entry 1022, so a macrocell of 255s under a function clear only at 255 was skipped
-    /// while its samples were not clear.
+    /// The entries are exactly those the casters' own lookups read: the position is their
+    /// f32 `v · scale + offset` ([`position_map`](Self::position_map)), rounded as the CPU
+    /// rounds it (product, then sum) or as a GPU may (one fused multiply-add); either is
+    /// monotonic in `v`, so the range's ends bound every value's entries. Positions taken
+    /// exactly in f64 had left out the neighbour a lookup a hair off an entry blends in:
+    /// 255 under the window [0, 255] is entry 1023 exactly, but 1022.99994 in f32, which
+    /// reads 6·10⁻⁵ of entry 1022, so a macrocell of 255s under a function clear only at
+    /// 255 was skipped while its samples were not clear.
     pub fn max_alpha(&self, vmin: f32, vmax: f32) -> f32 {
         if !(vmin <= vmax) {
             return 0.0; // empty or NaN range: no valid sample
         }
         let n = (self.table.len() - 1) as f32;
         let (scale, offset) = self.position_map();
-        // The slack before the clamp: a value clamped to an end reads that end's entry
-        // whatever the rounding. A fused multiply-add differs from the rounded product and
-        // sum by up to half an ulp of the product: relative slack beyond 2^16.
-        let slack =
-            |v: f32| 1.0 / 256.0 + (v * scale).abs().max(offset.abs()) * (1.0 / 4_194_304.0);
-        let i0 = (vmin * scale + offset - slack(vmin)).clamp(0.0, n).floor() as usize;
-        let i1 = ((vmax * scale + offset + slack(vmax)).clamp(0.0, n).ceil() as usize)
-            .min(self.table.len() - 1);
+        let (lo, hi) = {
+            let at = |v: f32| {
+                let (a, b) = (v * scale + offset, v.mul_add(scale, offset));
+                (a.min(b), a.max(b))
+            };
+            (at(vmin).0, at(vmax).1)
+        };
+        let i0 = lo.clamp(0.0, n).floor() as usize;
+        let i1 = (hi.clamp(0.0, n).ceil() as usize).min(self.table.len() - 1);
         let mut m = 0.0f32;
         let mut i = i0;
         while i <= i1 {
@@ -867,14 +868,13 @@ mod tests {
         assert_eq!(tf.max_alpha(1.5, 1023.0), 0.0);
         assert!(tf.max_alpha(0.9, 1023.0) > 0.0);
         // Values clamped to an end read that end's entry alone: a ramp from the window's
-        // bottom is clear below it, and one falling to its top clear above it (the window's
-        // ends themselves may round a hair inside).
+        // bottom is clear below it, and one falling to its top clear above it.
         let mut table = vec![[0.0f32; 4]; TF_SIZE];
         table[1][3] = 1.0;
         table[TF_SIZE - 2][3] = 1.0;
         let tf = TransferFunction::from_table(0.0, 1023.0, table);
-        assert_eq!(tf.max_alpha(-50.0, -0.1), 0.0);
-        assert_eq!(tf.max_alpha(1023.1, 5000.0), 0.0);
+        assert_eq!(tf.max_alpha(-50.0, 0.0), 0.0);
+        assert_eq!(tf.max_alpha(1023.0, 5000.0), 0.0);
         // Every entry a lookup reads with a weight, rounded as the CPU rounds (product, then
         // sum) or fused as a GPU may, is bounded, near zero and far from it (products of
         // 2^17 and 2^25, where half an ulp is 1/256 and more).

@@ -88,6 +88,9 @@ struct Search {
     limit: f32,
     /// The last crossing kept (NaN before the first).
     last: f32,
+    /// Padding of tile heights past the rounding of heights relative to the eye
+    /// ([`HorFrame::z_pad`]).
+    z_pad: f32,
 }
 
 /// `a.min(b)` for numbers that are not NaN, without `f32::min`'s NaN handling (one
@@ -175,7 +178,13 @@ fn roots_in(a: f32, b: f32, c: f32, lo: f32, hi: f32, out: &mut [f32; 2]) -> usi
         }
         // The numerically stable pair (no cancellation between b and the root).
         let q = -0.5 * (b + b.signum() * disc.sqrt());
-        let (s1, s2) = if q != 0.0 { (q / a, c / q) } else { (0.0, 0.0) };
+        let (s1, s2) = if q != 0.0 {
+            (q / a, c / q)
+        } else if c == 0.0 {
+            (0.0, 0.0)
+        } else {
+            return 0; // b = 0 and a·c underflowed: roots ±√(−c/a), far out of any cell
+        };
         let (s1, s2) = if s1 <= s2 { (s1, s2) } else { (s2, s1) };
         push(s1, out);
         if s2 != s1 {
@@ -268,6 +277,14 @@ impl<'a> HorFrame<'a> {
         ]
     }
 
+    /// 8 ulps of the eye's height in index space: heights relative to the eye round by
+    /// up to half an ulp of it, so tile boxes and clips padded by this keep a thickness in t
+    /// however far the eye is (a flat tile seen from far above had a slab of none).
+    #[inline]
+    fn z_pad(&self) -> f32 {
+        self.c[2].abs() * (1.0 / 1_048_576.0)
+    }
+
     fn level_at(&self, t: f32) -> usize {
         let mut l = 0;
         while l + 1 < self.level_t.len() && t >= self.level_t[l + 1] {
@@ -313,6 +330,7 @@ impl<'a> HorFrame<'a> {
         let mut search = Search {
             limit: tb,
             last: f32::NAN,
+            z_pad: self.z_pad(),
         };
         let inv = md.map(|m| 1.0 / m);
         // Every crossing is kept, however many (the GPU caster searches again in batches).
@@ -339,7 +357,14 @@ impl<'a> HorFrame<'a> {
             return; // all holes
         }
         let tb = &self.boxes[idx];
-        let (e0, e1) = slab_inv(self.c, md, inv, tb.lo, tb.hi);
+        // The box's heights padded past the rounding of heights relative to the eye too
+        // (as the leaf's clip): the leaf's crossing, computed otherwise, then lies inside
+        // the slab whatever the eye's height, and a region face between the two cannot
+        // lose it to both regions.
+        let (mut lo, mut hi) = (tb.lo, tb.hi);
+        lo[2] -= search.z_pad;
+        hi[2] += search.z_pad;
+        let (e0, e1) = slab_inv(self.c, md, inv, lo, hi);
         // Strict: a flat tile's box seen from far away has a slab of no thickness in t
         // (its padding below the rounding of the eye's height), which must not cull it.
         if fmax(e0, ta) > fmin(e1, search.limit) || e1 < 0.0 {
@@ -444,10 +469,9 @@ impl<'a> HorFrame<'a> {
         if !(zmin <= zmax) {
             return;
         }
-        // Padded past the rounding of heights relative to the eye too (8 ulps of its
-        // height): a flat tile far below the eye is otherwise a clip of no thickness, which
-        // holds no crossing.
-        let eps = 1e-4 * (1.0 + zmin.abs().max(zmax.abs())) + self.c[2].abs() * (1.0 / 1_048_576.0);
+        // Padded past the rounding of heights relative to the eye too: a flat tile far
+        // below the eye is otherwise a clip of no thickness, which holds no crossing.
+        let eps = 1e-4 * (1.0 + zmin.abs().max(zmax.abs())) + self.z_pad();
         let (u0, u1) = slab(
             self.c,
             md,
@@ -456,8 +480,7 @@ impl<'a> HorFrame<'a> {
         );
         let t_lo = u0.max(ta).max(0.0);
         let t_hi = u1.min(search.limit);
-        // Strict, as in `visit` (a flat tile far below the eye: a clip of no thickness).
-        if t_lo > t_hi {
+        if t_lo >= t_hi {
             return;
         }
         // Ray in level-r node coordinates.
@@ -763,6 +786,24 @@ mod tests {
     #[test]
     fn a_crossing_on_a_region_face_is_kept_by_exactly_one_region() {
         let f = fixture(64, [-20.0, -13.0, 40.0]);
+        let (crossings, splits) = each_crossing_kept_once_at_any_face(&f, 10.0);
+        assert!(crossings > 300 && splits > 2700, "{crossings} crossings");
+    }
+
+    /// The same for a flat surface at height 0 seen from 5000 above (nearly straight down):
+    /// its tiles' slabs are padded by 8 ulps of the eye's height, so the leaf's crossing,
+    /// rounded otherwise, lies inside them and a face between the two cannot lose it.
+    #[test]
+    fn a_crossing_of_a_flat_surface_far_below_is_kept_by_exactly_one_region() {
+        let f = fixture_of(64, [31.3, 30.7, 5000.0], |_, _| 0.0);
+        let (crossings, splits) = each_crossing_kept_once_at_any_face(&f, 0.0);
+        assert!(crossings == 400 && splits == 3600, "{crossings} crossings");
+    }
+
+    /// Rays from the eye to 400 random points of the grid at height `z`: each crossing of
+    /// the whole ray is kept exactly once by the two halves of the ray split at every face
+    /// within 4 ulps of it. Returns the crossings and splits checked.
+    fn each_crossing_kept_once_at_any_face(f: &Fixture, z: f64) -> (usize, usize) {
         let h = f.frame();
         let mut rng = 0x2545_f491_4f6c_dd1du64;
         let mut next = || {
@@ -774,7 +815,7 @@ mod tests {
         let (mut crossings, mut splits) = (0, 0);
         for _ in 0..400 {
             // A ray from the eye towards a random point of the grid.
-            let target = [next() * 63.0, next() * 63.0, 10.0];
+            let target = [next() * 63.0, next() * 63.0, z];
             let d = [
                 target[0] as f32 - f.eye[0],
                 target[1] as f32 - f.eye[1],
@@ -791,7 +832,11 @@ mod tests {
                     let (mut a, mut b) = (Vec::new(), Vec::new());
                     h.intersect(d, 0.0, split, &mut a, &mut fb);
                     h.intersect(d, split, f32::INFINITY, &mut b, &mut fb);
-                    let near = |v: &[Hit]| v.iter().filter(|x| (x.t - hit.t).abs() < 1e-3).count();
+                    let near = |v: &[Hit]| {
+                        v.iter()
+                            .filter(|x| (x.t - hit.t).abs() < 1e-3 * (1.0 + hit.t))
+                            .count()
+                    };
                     assert_eq!(
                         near(&a) + near(&b),
                         near(&whole),
@@ -805,7 +850,7 @@ mod tests {
                 }
             }
         }
-        assert!(crossings > 300 && splits > 2700, "{crossings} crossings");
+        (crossings, splits)
     }
 
     /// Regression: a coarse tile's footprint was shifted against its children's by a

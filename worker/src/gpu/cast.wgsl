@@ -1048,6 +1048,8 @@ fn roots_in(a: f32, b: f32, c: f32, lo: f32, hi: f32) -> Roots {
         if (q != 0.0) {
             s1 = q / a;
             s2 = c / q;
+        } else if (c != 0.0) {
+            return out; // b = 0 and a·c underflowed (horizon.rs `roots_in`)
         }
         cand = vec2<f32>(min(s1, s2), max(s1, s2));
         nc = select(2u, 1u, cand[1] == cand[0]);
@@ -1284,8 +1286,7 @@ fn h_leaf(hi: u32, level: u32, b: vec2<u32>, d: vec3<f32>, md: vec3<f32>, ta: f3
     let u = slab(c, md, vec3<f32>(flo, zb.x - eps), vec3<f32>(fhi, zb.y + eps));
     let t_lo = max(max(u.x, ta), 0.0);
     let t_hi = min(u.y, *limit);
-    // Strict, as in horizon.rs (a flat tile far below the eye: a clip of no thickness).
-    if (t_lo > t_hi) {
+    if (t_lo >= t_hi) {
         return;
     }
     // Ray in level-r node coordinates.
@@ -1447,7 +1448,8 @@ fn intersect_horizon(hi: u32, d: vec3<f32>, ta: f32, keep_from: f32, tb: f32) ->
         // Pad by one cell of this level (horizon.rs `tile_boxes`): no rounding of this test
         // culls what the leaf's exact clip keeps. A flat tile gets a little thickness so the
         // slab test cannot lose it to rounding.
-        let eps = 1e-4 * (1.0 + max(abs(zb.x), abs(zb.y)));
+        // Plus 8 ulps of the eye's height (horizon.rs `z_pad`).
+        let eps = 1e-4 * (1.0 + max(abs(zb.x), abs(zb.y))) + abs(c.z) * (1.0 / 1048576.0);
         let e = slab_inv(c, md, inv, vec3<f32>(fp.x - s, fp.y - s, zb.x - eps), vec3<f32>(fp.z + s, fp.w + s, zb.y + eps));
         // Strict (horizon.rs `visit`: a flat tile's slab of no thickness seen from afar).
         if (max(e.x, ta) > min(e.y, limit) || e.y < 0.0) {
