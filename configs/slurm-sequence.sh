@@ -27,6 +27,10 @@ case "$CAMERA" in
   *) SEQ=(--path "$CAMERA") ;;
 esac
 mkdir -p "$(dirname "$OUT")"
-# One worker process per 2 cores of the node; frames past the sequence's end are ignored.
+# One worker process per 2 cores of the node (at least one). A range that runs past the
+# sequence's end is cut there (with a warning); a task whose first frame is past the end
+# fails, so submit no more tasks than the sequence fills.
+CPUS=${SLURM_CPUS_PER_TASK:-2}
+W=$(( CPUS / 2 > 0 ? CPUS / 2 : 1 ))
 exec coordinator render "$SCENE" "${SEQ[@]}" --frames "$FIRST..$LAST" -o "$OUT" \
-    --workers $(( ${SLURM_CPUS_PER_TASK:-2} / 2 )) --stats "${OUT%%_%*}_task$TASK.jsonl"
+    --workers "$W" --stats "${OUT%%_%*}_task$TASK.jsonl"

@@ -27,7 +27,7 @@
 //!   pool's element format), with size assertions.
 //! * [`image`]: premultiplied RGBA partial images and the OVER operator.
 //! * [`composite`]: the sans-IO sort-last compositing plans (direct send, binary swap,
-//!   radix-k), active-pixel encoding and the rank state machine that runs a plan.
+//!   radix-k, gather), active-pixel encoding and the rank state machine that runs a plan.
 //! * [`wire`]: the cluster protocol: frame header, limits and messages (no I/O).
 //! * [`kd`]: half-open regions, k-d trees and their visibility order.
 //! * [`occlusion`]: per-block transmittance of partial images and the blocks each position

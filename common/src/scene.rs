@@ -162,8 +162,8 @@ impl KSetting {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ClusterSettings {
-    /// Workers to spawn (local mode) or to wait for (cluster mode); 0 = one per core
-    /// (at least 2, at most 8).
+    /// Workers to spawn (local mode) or to wait for (cluster mode), 1..=256; 0 = one per
+    /// core (at least 2, at most 8).
     #[serde(default)]
     pub workers: u32,
     /// `true`: spawn the workers on this machine. `false`: wait for workers started by a
@@ -173,7 +173,7 @@ pub struct ClusterSettings {
     /// UDP address the coordinator listens on (port 0: any free port).
     #[serde(default = "default_listen")]
     pub listen: String,
-    /// k-d leaves per worker (each worker renders one subtree of this many leaves).
+    /// k-d leaves per worker, 1..=64 (each worker renders one subtree of this many leaves).
     #[serde(default = "default_one_u32")]
     pub leaves_per_worker: u32,
     /// Seconds to wait for all workers to connect and set up.
@@ -192,7 +192,8 @@ pub struct ClusterSettings {
     /// never come up.
     #[serde(default = "default_quic_mtu")]
     pub quic_mtu: u16,
-    /// Rayon threads per spawned worker; 0 = the cores divided among the workers.
+    /// Rayon threads per spawned worker, at most 1024; 0 = the cores divided among the
+    /// workers.
     #[serde(default)]
     pub worker_threads: u32,
     /// Local mode (`spawn = true`): bind each spawned worker process to its own block of
@@ -212,7 +213,7 @@ pub struct ClusterSettings {
     pub fingerprint_file: Option<PathBuf>,
     /// Between the frames of a sequence, re-split the k-d tree from the measured per-leaf
     /// render times when the workers' imbalance (slowest / mean) exceeds
-    /// `rebalance_threshold`. 0 turns re-splitting off.
+    /// `rebalance_threshold`. 0 turns re-splitting off; otherwise it must be at least 1.
     #[serde(default = "default_rebalance_threshold")]
     pub rebalance_threshold: f64,
     /// How far a re-split follows the measurement, in (0, 1] (1: all the way; smaller:
@@ -420,15 +421,17 @@ pub struct VolumeLayer {
     /// Colour map name (e.g. "seismic", "grey").
     #[serde(default = "default_colormap")]
     pub colormap: String,
-    /// Value window mapped onto the colour map; the store's range if absent.
+    /// Value window mapped onto the colour map. If absent: under a diverging map ("seismic",
+    /// "bwr" or one of them reversed) over signed data, ±the 99.5th percentile of |value|;
+    /// otherwise the store's range (see the worker's `dataset` module).
     #[serde(default)]
     pub window: Option<[f64; 2]>,
     /// Opacity scale (multiplies the opacity curve): finite and >= 0, above 1 allowed.
     #[serde(default = "one")]
     pub opacity: f64,
     /// Opacity curve: `[position, alpha]` points, position 0..1 across the window, linear
-    /// in between. Default: a V (|amplitude|) for the diverging "seismic" map, a ramp
-    /// from 0.1 otherwise.
+    /// in between. Default: a V (|amplitude|) for "seismic" and "seismic_r", opaque for
+    /// "bwr" and "bwr_r", a ramp from 0.1 otherwise.
     #[serde(default)]
     pub opacity_points: Option<Vec<[f64; 2]>>,
     /// Inline, crossline and time slices through the volume, drawn opaque (by default) in
@@ -618,7 +621,10 @@ pub struct Camera {
     /// Up direction.
     #[serde(default = "default_up")]
     pub up: [f64; 3],
-    /// Vertical field of view in degrees.
+    /// Vertical field of view in degrees, in (0, 179), and wide enough that a pixel spans
+    /// at least 2⁻²⁰ rad (`camera::MIN_PIXEL_ANGLE`: finer pixels than the casters' f32 ray
+    /// directions resolve): at least 0.040° at 720 pixels high, 0.059° at 1080 (a wall's
+    /// whole plane, mullions included, counts as its height).
     #[serde(default = "default_fov")]
     pub fov_deg: f64,
 }
@@ -627,10 +633,10 @@ pub struct Camera {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RenderSettings {
-    /// Image width.
+    /// Image width, 1..=[`MAX_IMAGE_SIDE`].
     #[serde(default = "default_w")]
     pub width: u32,
-    /// Image height.
+    /// Image height, 1..=[`MAX_IMAGE_SIDE`].
     #[serde(default = "default_h")]
     pub height: u32,
     /// Host page-cache budget in MiB.
@@ -663,7 +669,8 @@ pub struct RenderSettings {
     pub empty_space_skipping: bool,
     /// With empty-space skipping, the CPU caster also skips 16³-sample macrocells inside a
     /// brick whose value range maps to zero opacity (ranges computed as a page enters the
-    /// atlas). The image is the same either way.
+    /// atlas). The image is the same either way (under `preintegrated`, where a cell is
+    /// crossed rather than skipped, within 1e-6).
     #[serde(default = "yes")]
     pub macrocells: bool,
     /// The CPU caster's atlas keeps volume samples in the data's own type (`u8`, `i8`, `u16`,
@@ -671,8 +678,11 @@ pub struct RenderSettings {
     /// a quarter of the memory for 8-bit data, and the same image.
     #[serde(default = "yes")]
     pub compact_slots: bool,
-    /// The CPU caster marches rays in SIMD packets where the CPU has AVX2 (one volume, no
-    /// gradient shading); false forces the scalar march. The image is the same.
+    /// The CPU caster marches rays in SIMD packets where the CPU has AVX2 (or AVX-512) and
+    /// the frame has one volume, visible under its transfer function, no gradient shading,
+    /// no `preintegrated`, no `f64_accumulation`, and an atlas small enough for 32-bit
+    /// gather indices; otherwise, or with false, the scalar march runs. The image is the
+    /// same.
     #[serde(default = "yes")]
     pub simd: bool,
     /// Lanes per SIMD packet: 0 (default) for the widest the CPU runs (16 with AVX-512, 8
@@ -714,7 +724,7 @@ pub struct RenderSettings {
     /// the next frame, so each frame starts from the previous one's feedback.
     #[serde(default)]
     pub rounds_per_frame: u32,
-    /// Page-loader threads.
+    /// Page-loader threads, 1..=256.
     #[serde(default = "default_loaders")]
     pub loader_threads: u32,
     /// Background colour (linear RGB) under the image when it is flattened to PNG.
@@ -1177,7 +1187,15 @@ impl Scene {
         if let Some(c) = &scene.camera {
             use crate::camera::{View, ViewError};
             let (w, h) = (scene.render.width.max(1), scene.render.height.max(1));
-            View::new(c, &scene.render, w, h).map_err(|e| {
+            // A wall's view is its whole plane's (what its frames use); a wall layout out of
+            // range is reported below, at its own key.
+            let view = match &scene.wall {
+                Some(wall) if wall.geometry().check().is_ok() => {
+                    View::wall(c, &scene.render, &wall.geometry())
+                }
+                _ => View::new(c, &scene.render, w, h),
+            };
+            view.map_err(|e| {
                 let (section, key) = match &e {
                     ViewError::Fov(_) | ViewError::TooNarrow { .. } => ("camera", "fov_deg"),
                     ViewError::NotFinite(key) => ("camera", *key),
@@ -1335,6 +1353,14 @@ mod tests {
         let e =
             Scene::parse(Path::new("w.toml"), "[wall]\ntiles = [2, 1]\nbezel = 3\n").unwrap_err();
         assert_eq!(e.line, 3, "{e}");
+        // The field of view is checked against the wall's plane (2 × 1080 + 60 pixels high:
+        // at least 0.122°), not render.height (720: 0.040°).
+        let camera = "[camera]\neye = [0, 0, 0]\ntarget = [1, 0, 0]\nfov_deg = 0.1\n";
+        let wall = "[wall]\ntiles = [3, 2]\nmullion = [40, 60]\n";
+        Scene::parse(Path::new("w.toml"), camera).unwrap();
+        let e = Scene::parse(Path::new("w.toml"), &format!("{camera}{wall}")).unwrap_err();
+        assert_eq!((e.line, e.column), (4, 1), "{e}");
+        assert!(e.to_string().contains("2220 pixels"), "{e}");
     }
 
     #[test]

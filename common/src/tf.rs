@@ -75,7 +75,8 @@ fn map_points(name: &str) -> Option<&'static [[f32; 3]]> {
 /// Names of the built-in colour maps; each also exists reversed as `NAME_r`.
 /// `seismic` and `bwr` share the diverging blue-white-red colours (white exactly at the
 /// window's middle); `seismic` defaults to opacity rising with |amplitude| ("bright spots"),
-/// `bwr` to opaque.
+/// `bwr` to opaque. `gray` and `blue-white-red` are accepted as other names of `grey` and
+/// `bwr`.
 pub const COLORMAPS: &[&str] = &["seismic", "bwr", "grey", "viridis", "bone", "hot"];
 
 /// Whether a colour map is diverging (white at the middle of its window), so a signed
@@ -203,7 +204,8 @@ pub struct TransferFunction {
     pub hi: f32,
     /// Straight RGBA, alpha per reference step.
     pub table: Vec<[f32; 4]>,
-    /// `prefix_max[i]`: largest alpha among entries `i..` within a block (see `max_alpha`).
+    /// `block_max[b]`: largest alpha among the `BLOCK` (16) entries of block `b` (the last
+    /// block may be shorter); `max_alpha` takes whole blocks from it.
     block_max: Vec<f32>,
 }
 

@@ -6,9 +6,11 @@
 //! in this process over the whole scene as one region, in batch mode (frame → feedback →
 //! load until converged). It is the reference that distributed rendering must match.
 //!
-//! `--orbit N` renders a sequence of N frames around the scene's target with the same
-//! workers (or the same in-process engine) throughout, so stores stay open and resident pages
-//! stay resident between frames; each frame's output path is numbered by its `%05d`.
+//! `--orbit N` renders a sequence of N frames around the scene's target, and `--path FILE`
+//! the frames of a camera path, with the same workers (or the same in-process engine)
+//! throughout, so stores stay open and resident pages stay resident between frames; each
+//! frame's output path is numbered by its `%05d`. `--frames A..B` renders only part of a
+//! sequence (the outputs keep the sequence's frame numbers).
 
 use crate::cluster::{Cluster, ClusterOptions};
 use crate::{demo, image_out, overrides};

@@ -12,7 +12,7 @@
 //!   tables, in the `#[repr(C)]` layout of `strata_common::gpu` that both backends read.
 //! * [`feedback`]: per-ray page requests, reduced to priorities.
 //! * [`volume`], [`horizon`], [`raycast`]: the CPU ray caster; [`macrocell`]: its
-//!   empty-space skipping inside bricks; [`packet`]: its SIMD ray packets (AVX2).
+//!   empty-space skipping inside bricks; [`packet`]: its SIMD ray packets (AVX2 or AVX-512).
 //! * [`gpu`]: the wgpu backend: atlas pools and page tables in GPU buffers, the WGSL caster
 //!   of volumes and horizons, feedback counted and compacted on the GPU (`render.backend`).
 //!

@@ -4,9 +4,11 @@
 //! the coordinator spawns workers this way on one machine, and a launcher (`srun`, `ssh`)
 //! does on a cluster (see `configs/slurm-render.sh`).
 //!
-//! The data layer is in place: a worker reads pages of any store concurrently through
-//! positional reads. `worker read-bench` measures that path (random page reads from N
-//! threads), which is what the page cache's loader threads will do.
+//! The render engine is the library (`strata_worker`). A worker reads pages of any store
+//! concurrently through positional reads, on the page cache's loader threads
+//! (`render.loader_threads`). `worker read-bench` measures the loader threads' read path
+//! on its own: random page reads (read, checksum, decode) from N threads, without the
+//! cache or the render.
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};

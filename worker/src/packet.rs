@@ -22,9 +22,10 @@
 //! same order with the same roundings (no fused multiply-adds, truncating conversions as
 //! `as` does), so a packet of either width gives exactly the pixels, counters and page
 //! requests the scalar march gives; tests compare them bit for bit. The packet path needs
-//! AVX2 (detected at run time); without it, with gradient shading, with several volumes,
-//! or with an atlas too large for 32-bit gather indices, the scalar march runs
-//! (`render.simd = false` forces it).
+//! AVX2 (detected at run time); without it, with gradient shading, pre-integration or f64
+//! accumulation, with several volumes, or with an atlas or transfer-function table too
+//! large for 32-bit gather indices, the scalar march runs (`render.simd = false` forces
+//! it). A single volume invisible under its transfer function is not marched at all.
 
 use crate::atlas::Samples;
 use crate::feedback::Requests;
