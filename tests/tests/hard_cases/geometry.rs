@@ -99,6 +99,61 @@ pub fn cases() -> Vec<Case> {
     ]
 }
 
+/// Cases added after the suite's numbering reached the last group (numbered on).
+pub fn later_cases() -> Vec<Case> {
+    vec![Case {
+        no: 36,
+        name: "flat-horizon-5-km-below-the-eye",
+        reference: "analytic: the plane z = 0 under a camera 5000 above it, straight down; \
+                    inside the grid (0.5 in from its edge) the horizon's colour, outside nothing",
+        tol: 1e-6,
+        why: "an opaque unlit surface is its colour exactly; the tiles' boxes are padded by \
+              8 ulps of the eye's height (their 1e-4 alone is under the rounding of 5000, so \
+              each slab had no thickness in t and the horizon vanished), and a crossing on a \
+              region face is kept by one region",
+        long_rays: false,
+        run: flat_far_below,
+    }]
+}
+
+fn flat_far_below(ctx: &Ctx) -> Res<f64> {
+    let h = flat(ctx, "sea-level", 32, 0.0, |_, _| false);
+    let w = 33;
+    // 32 nodes seen from 5000 fill about 0.4° of view.
+    let s = scene(
+        vec![],
+        vec![solid(h, [0.2, 0.7, 0.4], 1.0)],
+        camera(
+            [15.5, 15.5, 5000.0],
+            [15.5, 15.5, 0.0],
+            [0.0, 1.0, 0.0],
+            0.45,
+        ),
+        settings(w, w),
+    );
+    let img = ctx.render(&s)?;
+    let (mut err, mut inside_px) = (0.0f64, 0);
+    for y in 0..w {
+        for x in 0..w {
+            let Some((_, q)) = plane_hit(&s, x, y, 0.0) else {
+                continue;
+            };
+            match inside(q, 32.0, 0.5) {
+                Some(true) => {
+                    inside_px += 1;
+                    err = err.max(err4(at(&img, w, x, y), [0.2, 0.7, 0.4, 1.0]));
+                }
+                Some(false) => err = err.max(err4(at(&img, w, x, y), [0.0; 4])),
+                None => {}
+            }
+        }
+    }
+    if inside_px < 500 {
+        return Err(format!("{inside_px} pixels over the grid: mis-built"));
+    }
+    Ok(err)
+}
+
 /// A flat horizon of height `z` over a `n`×`n` grid (holes where `hole(i, j)`).
 fn flat(
     ctx: &Ctx,

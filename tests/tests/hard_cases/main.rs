@@ -50,6 +50,7 @@ fn all_cases() -> Vec<Case> {
     v.extend(compositing::cases());
     v.extend(lod::cases());
     v.extend(classification::cases());
+    v.extend(geometry::later_cases());
     v
 }
 
