@@ -542,6 +542,28 @@ fn gpu_frames_after_an_error_cast_again() {
     }
 }
 
+/// A buffer allocation the device refuses (past its largest buffer here; out of memory on a
+/// GPU shared by several workers) does not break the engine's GPU: the next frame allocates
+/// again. wgpu's invalid buffer reports the size asked for, so it had been taken as large
+/// enough for good, and every later frame failed binding it.
+#[test]
+fn gpu_frames_after_a_refused_allocation_cast_again() {
+    if !gpu_available() {
+        return;
+    }
+    let dir = TempDir::new().unwrap();
+    let s = survey_with_horizons(dir.path(), 24, 16);
+    let (mut e, view, region, whole) = gpu_batch(&s);
+    assert!(
+        e.gpu_fail_an_allocation(),
+        "the device took a buffer past its limit"
+    );
+    for _ in 0..2 {
+        let again = e.render_frame(&view, &region).unwrap();
+        assert!(bit_identical(&again.image.pixels, &whole.image.pixels));
+    }
+}
+
 /// A region larger than one dispatch may cast (one storage binding of the adapter: 8.4 M
 /// pixels on lavapipe, about 134 M on NVIDIA) is cast in bands. Here the band is capped far
 /// below the adapter's limit: rows of 8, rows of 3, then columns of 40 in rows of 1. Every

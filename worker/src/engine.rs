@@ -535,6 +535,13 @@ impl Engine {
         }
     }
 
+    /// Test hook: makes the GPU backend's image buffer an allocation the device refuses;
+    /// true if it did. False on the CPU.
+    #[doc(hidden)]
+    pub fn gpu_fail_an_allocation(&mut self) -> bool {
+        self.gpu.as_mut().is_some_and(|g| g.fail_an_allocation())
+    }
+
     /// Regions the GPU backend cast in more than one band (`None` on the CPU).
     pub fn gpu_banded_regions(&self) -> Option<u64> {
         self.gpu.as_ref().map(|g| g.banded_regions())

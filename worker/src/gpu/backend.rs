@@ -219,6 +219,12 @@ impl GpuBackend {
         self.caster.set_band_pixels(cap);
     }
 
+    /// Test hook: [`GpuCaster::fail_an_allocation`].
+    #[doc(hidden)]
+    pub fn fail_an_allocation(&mut self) -> bool {
+        self.caster.fail_an_allocation()
+    }
+
     /// Test hook: [`GpuCaster::write_past_a_buffer`].
     #[doc(hidden)]
     pub fn write_past_a_buffer(&mut self) {

@@ -82,6 +82,12 @@ struct Grow {
     label: &'static str,
     usage: wgpu::BufferUsages,
     buf: Option<wgpu::Buffer>,
+    /// Bytes of `buf` when it was made without error; 0 after a failed allocation, whose
+    /// buffer (invalid, but reporting the size asked for) is then made again next time
+    /// instead of being taken as large enough for good.
+    size: u64,
+    /// Why the last allocation was refused.
+    refused: Option<String>,
 }
 
 impl Grow {
@@ -90,23 +96,47 @@ impl Grow {
             label,
             usage,
             buf: None,
+            size: 0,
+            refused: None,
         }
     }
 
-    /// Makes room for `bytes`; true if the buffer was (re)created.
+    /// Makes room for `bytes`; true if the buffer was (re)created. An allocation the device
+    /// refuses (out of memory, past its largest buffer) is logged, and the frame that binds
+    /// the invalid buffer fails; the next call allocates again.
     fn ensure(&mut self, device: &wgpu::Device, bytes: u64) -> bool {
         let bytes = bytes.max(16).next_multiple_of(16);
-        if self.buf.as_ref().is_some_and(|b| b.size() >= bytes) {
+        if self.buf.is_some() && self.size >= bytes {
             return false;
         }
         self.buf = None; // free before allocating the new one
-        self.buf = Some(device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some(self.label),
-            size: bytes,
-            usage: self.usage,
-            mapped_at_creation: false,
-        }));
+        let mut made = None;
+        let ok = checked(device, self.label, || {
+            made = Some(device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(self.label),
+                size: bytes,
+                usage: self.usage,
+                mapped_at_creation: false,
+            }));
+        });
+        self.size = match &ok {
+            Ok(()) => bytes,
+            Err(e) => {
+                tracing::warn!(buffer = self.label, bytes, "GPU allocation refused: {e:#}");
+                0
+            }
+        };
+        self.refused = ok.err().map(|e| format!("{e:#}"));
+        self.buf = made;
         true
+    }
+
+    /// Fails with the device's message if the last allocation was refused.
+    fn check(&self, what: &str) -> Result<()> {
+        match &self.refused {
+            Some(e) => bail!("{what}: {e}"),
+            None => Ok(()),
+        }
     }
 
     fn get(&self) -> &wgpu::Buffer {
@@ -542,10 +572,8 @@ impl GpuCaster {
         let bytes = slots as u64 * slot_bytes;
         self.page_bytes = slot_bytes;
         self.pool_bits = bits;
-        let (device, pool) = (&self.device, &mut self.pool);
-        checked(device, "allocating the atlas pool", || {
-            pool.ensure(device, bytes);
-        })
+        self.pool.ensure(&self.device, bytes);
+        self.pool.check("allocating the atlas pool")
     }
 
     /// Writes a page, encoded in the pool's format, into its slot.
@@ -661,10 +689,8 @@ impl GpuCaster {
     pub fn alloc_horizon_pool(&mut self, slots: usize, page_samples: usize) -> Result<()> {
         let bytes = slots as u64 * page_samples as u64 * 4;
         self.hpage_bytes = page_samples as u64 * 4;
-        let (device, pool) = (&self.device, &mut self.hpool);
-        checked(device, "allocating the horizon pool", || {
-            pool.ensure(device, bytes);
-        })
+        self.hpool.ensure(&self.device, bytes);
+        self.hpool.check("allocating the horizon pool")
     }
 
     /// Test hook (after a first cast): a write past the end of the readback buffer, a real
@@ -674,6 +700,15 @@ impl GpuCaster {
     pub fn write_past_a_buffer(&mut self) {
         let b = self.read.get();
         self.queue.write_buffer(b, b.size(), &[0u8; 4]);
+    }
+
+    /// Test hook: asks for an image buffer past the device's largest buffer (an allocation
+    /// it refuses, as it would one past free memory). Returns whether it was refused.
+    #[doc(hidden)]
+    pub fn fail_an_allocation(&mut self) -> bool {
+        let too_big = self.device.limits().max_buffer_size.saturating_add(16);
+        self.out.ensure(&self.device, too_big);
+        self.out.size == 0
     }
 
     /// Writes a horizon tile into its slot of the horizon pool.
@@ -899,8 +934,18 @@ impl GpuCaster {
             if frame.occl_block == 0 {
                 bail!("GPU caster: per-ray limits without a block size");
             }
-            self.occl
-                .ensure(&self.device, std::mem::size_of_val(o) as u64);
+            // Bound whole (the image is banded, its block rows are not): past the adapter's
+            // largest storage binding, the frame would fail binding it without saying why.
+            let bytes = std::mem::size_of_val(o) as u64;
+            let max = self.device.limits().max_storage_buffer_binding_size;
+            if bytes > max {
+                bail!(
+                    "GPU caster: occlusion's per-block limits for this frame take {bytes} bytes, \
+                     past the adapter's largest storage binding ({max}): raise \
+                     cluster.occlusion_block, or render this size on the CPU"
+                );
+            }
+            self.occl.ensure(&self.device, bytes);
             self.queue
                 .write_buffer(self.occl.get(), 0, bytemuck::cast_slice(o));
             self.uploaded += std::mem::size_of_val(o) as u64;
