@@ -293,27 +293,24 @@ pub fn clip_region(lo: [f32; 3], hi: [f32; 3], d: [f32; 3]) -> (f32, f32) {
     (t0, t1)
 }
 
-/// The band of the segment a span ending at `t` cuts: the band of the first lattice point at
-/// or after `t` (the sample that would follow). A span's last half step is half of that
-/// segment, and the segment from the last sample of a band to the first of the next is one
-/// step of the next band (`band_start`): a span ending between them (a surface, another
-/// volume, a region's face) takes half a step of the next band, on either side of the band's
-/// start, as the whole ray's segment does. (The band at `t` had been taken: half a fine step
-/// before the band's start, half a coarse one past it, so two surfaces behind the same
-/// samples gave different frames, and a region face there split the segment into half a
-/// fine step and half a coarse one.)
-fn segment_band(bands: &Bands, t: f32) -> usize {
+/// The band of the last lattice sample before `t`: the band `t` lies in, unless it has no
+/// lattice point before `t` (a band begins between lattice points of its own step, half a
+/// finer step past one of the finer band's), and then the latest band before it that has
+/// one within itself (bands narrower than their step have none). A span's last half step
+/// is a half step of its last sample's band: the band at a surface just past a band's start
+/// had pre-integrated it as half a coarse step, twice its length.
+fn band_before(bands: &Bands, t: f32) -> usize {
     let mut band = 0;
     while band + 1 < bands.start.len() && t >= bands.start[band + 1] {
         band += 1;
     }
-    while band + 1 < bands.start.len() {
-        let dt = bands.dt[band];
-        let next = (first_k(t.max(bands.start[band]), dt) as f32) * dt;
-        if next < bands.start[band + 1] {
+    while band > 0 {
+        let first = (first_k(bands.start[band], bands.dt[band]) as f32) * bands.dt[band];
+        let end = bands.start.get(band + 1).copied().unwrap_or(f32::INFINITY);
+        if first < t && first < end {
             break;
         }
-        band += 1;
+        band -= 1;
     }
     band
 }
@@ -338,7 +335,7 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
             return;
         }
         end_span(
-            Some(&*pre[segment_band(&self.f.bands, t)]),
+            Some(&*pre[band_before(&self.f.bands, t)]),
             cur,
             &mut self.acc,
             false,
@@ -627,13 +624,7 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
                     let qn = v.point(tn, md);
                     v.hidden_at(tn, qn)
                 };
-                // Half a step of the segment it cuts (`segment_band`), which past a band's
-                // last lattice point is the next band's.
-                let pre_end = pre.map(|_| {
-                    let p = v.pre.as_ref().expect("pre-integrated");
-                    &*p[segment_band(bands, cur.span_end)]
-                });
-                end_span(pre_end, cur, &mut acc, skip);
+                end_span(pre, cur, &mut acc, skip);
             }
             self.acc = acc;
             self.stats.samples += samples;

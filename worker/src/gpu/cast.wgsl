@@ -698,19 +698,18 @@ fn end_pre_span(vi: u32, cur: ptr<function, Cursor>, t: f32, ray: ptr<function, 
     if (!PRE || (vols[vi].flags & VOLUME_PREINTEGRATED) == 0u || !(*cur).has_prev || (*ray).done) {
         return;
     }
-    (*ray).acc = end_span(vi, segment_band(t), cur, (*ray).acc, false);
+    (*ray).acc = end_span(vi, band_before(t), cur, (*ray).acc, false);
 }
 
-// The band of the segment a span ending at t cuts (raycast.rs `segment_band`): the band of
-// the first lattice point at or after t.
-fn segment_band(t: f32) -> u32 {
+// The band of the last lattice sample before t (raycast.rs `band_before`): t's band unless
+// it has no lattice point before t, then the latest band before it with one within itself.
+fn band_before(t: f32) -> u32 {
     var band = first_band(t);
     loop {
-        if (band + 1u >= F.n_bands) { break; }
-        let dt = band_dt(band);
-        let next = f32(first_k(max(t, band_start(band)), dt)) * dt;
-        if (next < band_start(band + 1u)) { break; }
-        band = band + 1u;
+        if (band == 0u) { break; }
+        let first = f32(first_k(band_start(band), band_dt(band))) * band_dt(band);
+        if (first < t && first < band_end(band)) { break; }
+        band = band - 1u;
     }
     return band;
 }
@@ -848,8 +847,7 @@ fn march_one(vi: u32, cur: ptr<function, Cursor>, md: vec3<f32>, d: vec3<f32>, t
             if ((*cur).has_prev && tn < (*cur).vol_end) {
                 skip = hidden_at(vi, tn, c + tn * md);
             }
-            // Half a step of the segment it cuts (raycast.rs `segment_band`).
-            (*ray).acc = end_span(vi, segment_band((*cur).span_end), cur, (*ray).acc, skip);
+            (*ray).acc = end_span(vi, band, cur, (*ray).acc, skip);
         }
         t_start = seg_end;
         band = band + 1u;
