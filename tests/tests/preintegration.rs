@@ -156,10 +156,13 @@ fn a_preintegrated_span_ends_at_a_surface() {
 /// The same with adaptive steps (1 voxel, then 2 from the second band on), the surface
 /// moved across the second band's start: at z = 40.3 it lies in the first band, at 41.0 and
 /// 41.9 past the second band's start (z = 40.5) but before that band's first lattice point
-/// (z = 42). All three see the same samples (the last at z = 40, a fine one), so the span
-/// must end alike: its last half step is half a fine step. The band at the surface's
-/// distance had been used past the start, whose table is for steps twice as long: half a
-/// coarse step, twice the opacity.
+/// (z = 42). All three cut the same segment, from the last fine sample (z = 40) to the first
+/// coarse one, which is one coarse step (`band_start`): the span ends with half of it in each
+/// case, and the three frames are one. The band at the surface's distance had been used:
+/// half a fine step at 40.3, half a coarse one at 41.0. And the ramp without a surface, split
+/// into two regions at the same places, equals the undivided ramp: region faces cut that
+/// segment into halves of it too (a face before the band's start had ended its region's span
+/// with half a fine step, its neighbour's began with half a coarse one).
 #[test]
 fn a_preintegrated_span_ends_alike_on_either_side_of_a_band_start() {
     let dir = tempfile::tempdir().unwrap();
@@ -188,6 +191,29 @@ fn a_preintegrated_span_ends_alike_on_either_side_of_a_band_start() {
     // The premise: a surface past the second band's first lattice point does see more.
     let later = centre(&render_whole(&with_bands(42.1)));
     assert_ne!(before, later);
+    // Region faces at the same places, without a surface.
+    use strata_common::kd::KdTree;
+    use strata_tests::scenes::{render_split, scene_region};
+    let mut s = with_bands(40.3);
+    s.horizons.clear();
+    let whole = centre(&render_whole(&s));
+    for faces in [&[40.3f64][..], &[41.0], &[41.9], &[39.7, 41.0]] {
+        // (39.7 and 41.0: the middle region holds one sample, z = 40, the first band's
+        // last: its lead is half a fine step, its end half the coarse segment.)
+        let mut tree = KdTree::single(scene_region(&s));
+        let mut leaf = 0;
+        for &f in faces {
+            leaf = tree.split_leaf(leaf, 2, f);
+        }
+        let face = faces;
+        let split = centre(&render_split(&s, &tree));
+        // The halves are extrapolated lookups of the 256² table where the whole ray looks
+        // the segment up at once: its bilinear interpolation differs by 5·10⁻⁵ here.
+        assert!(
+            err(split, whole) < 2e-4,
+            "split at z = {face:?}: {split:?} against {whole:?}"
+        );
+    }
 }
 
 /// A second, all but transparent volume overlapping the back of the ramp from between two

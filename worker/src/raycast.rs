@@ -293,24 +293,24 @@ pub fn clip_region(lo: [f32; 3], hi: [f32; 3], d: [f32; 3]) -> (f32, f32) {
     (t0, t1)
 }
 
-/// The band of the last lattice sample before `t`: the band `t` lies in, unless it has no
-/// lattice point before `t` (a band begins between lattice points of its own step, half a
-/// finer step past one of the finer band's), and then the latest band before it that has
-/// one within itself (bands narrower than their step have none). A span's last half step
-/// is a half step of its last sample's band: the band at a surface just past a band's start
-/// had pre-integrated it as half a coarse step, twice its length.
-fn band_before(bands: &Bands, t: f32) -> usize {
+/// The band of the segment a span ending at `t` cuts: the band of the first lattice point at
+/// or after `t` (the sample that would follow the span's last). The segment from one band's
+/// last sample to the next band's first is one step of the next band (`band_start`), so a
+/// span ending anywhere on it (a surface, another volume, a region's face) ends with half of
+/// that coarse segment, whichever side of the band's start it ends on, as the whole ray's
+/// segment and the next region's lead do ([`end_span`]).
+fn segment_band(bands: &Bands, t: f32) -> usize {
     let mut band = 0;
     while band + 1 < bands.start.len() && t >= bands.start[band + 1] {
         band += 1;
     }
-    while band > 0 {
-        let first = (first_k(bands.start[band], bands.dt[band]) as f32) * bands.dt[band];
-        let end = bands.start.get(band + 1).copied().unwrap_or(f32::INFINITY);
-        if first < t && first < end {
+    while band + 1 < bands.start.len() {
+        let dt = bands.dt[band];
+        let next = (first_k(t.max(bands.start[band]), dt) as f32) * dt;
+        if next < bands.start[band + 1] {
             break;
         }
-        band -= 1;
+        band += 1;
     }
     band
 }
@@ -335,7 +335,8 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
             return;
         }
         end_span(
-            Some(&*pre[band_before(&self.f.bands, t)]),
+            Some(pre),
+            segment_band(&self.f.bands, t),
             cur,
             &mut self.acc,
             false,
@@ -413,11 +414,8 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
             let band_end = bands.start.get(band + 1).copied().unwrap_or(f32::INFINITY);
             let seg_end = tb.min(band_end);
             let table = &v.tables[band];
-            let pre = if has(S, PRE) {
-                v.pre.as_ref().map(|p| &*p[band])
-            } else {
-                None
-            };
+            let pres = if has(S, PRE) { v.pre.as_deref() } else { None };
+            let pre = pres.map(|p| &*p[band]);
             let mut k = first_k(t_start, dt);
             let inv_dt = 1.0 / dt;
             // Hot loop: accumulate in locals, write back once.
@@ -447,7 +445,7 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
                     let nk = first_k_near(cur.t_exit.min(seg_end), dt, inv_dt).max(k + 1);
                     skipped += (nk - k) as u64;
                     k = nk;
-                    end_span(pre, cur, &mut acc, true);
+                    end_span(pres, band, cur, &mut acc, true);
                     continue;
                 }
                 let q = v.point(t, md);
@@ -486,7 +484,7 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
                 samples += 1;
                 k += 1;
                 if s.is_nan() {
-                    end_span(pre, cur, &mut acc, false);
+                    end_span(pres, band, cur, &mut acc, false);
                     continue; // no data: transparent
                 }
                 if let (true, Some(pre)) = (has(S, PRE), pre) {
@@ -558,6 +556,7 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
                     }
                     cur.before = cur.prev;
                     cur.prev = s;
+                    cur.prev_band = band as u8;
                     cur.prev_light = light;
                     if acc.reached(ert) {
                         terminated = true;
@@ -573,7 +572,7 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
                         skipped += (j - k) as u64;
                         k = j + 1;
                         if sj.is_nan() {
-                            end_span(Some(pre), cur, &mut acc, false);
+                            end_span(pres, band, cur, &mut acc, false);
                             continue;
                         }
                         // Steps from `s` to `sj`: the value's slope across the cell.
@@ -591,6 +590,7 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
                         }
                         cur.before = sj - g;
                         cur.prev = sj;
+                        cur.prev_band = band as u8;
                         cur.prev_light = if shading {
                             self::light(v, cur, qj, self.d)
                         } else {
@@ -619,12 +619,16 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
             if has(S, PRE) && !terminated && seg_end >= cur.span_end {
                 // Past the region, were the next lattice point inside the volume and hidden,
                 // an undivided region would skip it: the span ends with a whole step.
-                let tn = k as f32 * dt;
+                // It cuts the segment to the lattice point that would follow (the next
+                // band's first past this band's last sample): half a step of its band.
+                let seg = segment_band(bands, cur.span_end);
+                let tn = first_k(cur.span_end.max(bands.start[seg]), bands.dt[seg]) as f32
+                    * bands.dt[seg];
                 let skip = !cur.prev.is_nan() && tn < cur.vol_end && {
                     let qn = v.point(tn, md);
                     v.hidden_at(tn, qn)
                 };
-                end_span(pre, cur, &mut acc, skip);
+                end_span(pres, seg, cur, &mut acc, skip);
             }
             self.acc = acc;
             self.stats.samples += samples;
@@ -733,25 +737,47 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
 /// between the two values), and the extrapolation integrates it exactly for a linear
 /// value. A one-sample span has no neighbour to extrapolate from: its value's slope along
 /// the ray (`Cursor::slope`) stands in. The cursor then has no sample before the next.
+///
+/// `seg` is the band of the segment after the last sample (the band of the lattice point
+/// that would follow it): past a band's last sample it is the next band, whose step is
+/// `2^(seg − prev_band)` of the sample's own, and the half step after is half of it,
+/// extrapolated that far. The lead of a one-sample span is its own band's.
 #[inline(always)]
-fn end_span<A: Accum>(pre: Option<&PreintTable>, cur: &mut Cursor, acc: &mut A, skip: bool) {
-    if let Some(pre) = pre {
+fn end_span<A: Accum>(
+    pres: Option<&[std::sync::Arc<PreintTable>]>,
+    seg: usize,
+    cur: &mut Cursor,
+    acc: &mut A,
+    skip: bool,
+) {
+    if let Some(pres) = pres {
         let p = cur.prev;
         if !p.is_nan() {
-            // The value half a step and a step past the last sample.
+            let own = cur.prev_band as usize;
+            let (lead_table, pre) = (&*pres[own], &*pres[seg]);
+            // The segment's step in steps of the sample's own band.
+            let ratio = (1u32 << seg.saturating_sub(own).min(16)) as f32;
+            // The value half a step and a step of the segment past the last sample.
             let (half, whole) = if cur.lead {
                 // A one-sample span: the step before it too, both by its slope.
                 let g = cur.slope;
                 let mut rgba = if cur.gap {
-                    pre.lookup(p - g, p)
+                    lead_table.lookup(p - g, p)
                 } else {
-                    pre.lookup_half(p - 0.5 * g, p)
+                    lead_table.lookup_half(p - 0.5 * g, p)
                 };
                 apply_light(&mut rgba, cur.prev_light);
                 acc.blend(rgba);
-                (p + 0.5 * g, p + g)
-            } else {
+                if ratio == 1.0 {
+                    (p + 0.5 * g, p + g)
+                } else {
+                    (p + 0.5 * ratio * g, p + ratio * g)
+                }
+            } else if ratio == 1.0 {
                 (1.5 * p - 0.5 * cur.before, 2.0 * p - cur.before)
+            } else {
+                let g = p - cur.before;
+                (p + 0.5 * ratio * g, p + ratio * g)
             };
             let mut rgba = if skip {
                 pre.lookup(p, whole)

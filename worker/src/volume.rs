@@ -121,6 +121,8 @@ pub struct Cursor {
     pub prev_light: [f32; 2],
     /// The sample before `prev` (NaN: `prev` began its span).
     pub before: f32,
+    /// The sampling band `prev` was taken in (its step is the band's).
+    pub prev_band: u8,
     /// `prev` began its span and the half step before it is still to be composited.
     pub lead: bool,
     /// The span (or the next one) begins after skipped empty space: its lead is a whole
@@ -156,6 +158,7 @@ impl Default for Cursor {
             prev: f32::NAN,
             prev_light: NO_LIGHT,
             before: f32::NAN,
+            prev_band: 0,
             lead: false,
             gap: false,
             slope: 0.0,

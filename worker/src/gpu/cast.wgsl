@@ -157,6 +157,8 @@ struct Cursor {
     has_prev: bool,
     prev: f32,
     before: f32,
+    // The sampling band `prev` was taken in.
+    prev_band: u32,
     lead: bool,
     // The span (or the next) begins after skipped empty space: its lead is a whole step.
     gap: bool,
@@ -659,6 +661,9 @@ fn end_span(vi: u32, band: u32, cur: ptr<function, Cursor>, acc: vec4<f32>, skip
     var out = acc;
     if ((*cur).has_prev) {
         let p = (*cur).prev;
+        // The segment's band (`band`) against the sample's own (raycast.rs `end_span`).
+        let own = (*cur).prev_band;
+        let ratio = f32(1u << min(select(0u, band - own, band > own), 16u));
         // The value half a step and a step past the last sample.
         var half: f32;
         var whole: f32;
@@ -667,16 +672,25 @@ fn end_span(vi: u32, band: u32, cur: ptr<function, Cursor>, acc: vec4<f32>, skip
             let g = (*cur).slope;
             var h: vec4<f32>;
             if ((*cur).gap) {
-                h = pre_lookup(vi, band, false, p - g, p);
+                h = pre_lookup(vi, own, false, p - g, p);
             } else {
-                h = pre_lookup(vi, band, true, p - 0.5 * g, p);
+                h = pre_lookup(vi, own, true, p - 0.5 * g, p);
             }
             out = blend(out, apply_light(h, (*cur).prev_light));
-            half = p + 0.5 * g;
-            whole = p + g;
-        } else {
+            if (ratio == 1.0) {
+                half = p + 0.5 * g;
+                whole = p + g;
+            } else {
+                half = p + 0.5 * ratio * g;
+                whole = p + ratio * g;
+            }
+        } else if (ratio == 1.0) {
             half = 1.5 * p - 0.5 * (*cur).before;
             whole = 2.0 * p - (*cur).before;
+        } else {
+            let g = p - (*cur).before;
+            half = p + 0.5 * ratio * g;
+            whole = p + ratio * g;
         }
         var rgba: vec4<f32>;
         if (skip) {
@@ -698,18 +712,19 @@ fn end_pre_span(vi: u32, cur: ptr<function, Cursor>, t: f32, ray: ptr<function, 
     if (!PRE || (vols[vi].flags & VOLUME_PREINTEGRATED) == 0u || !(*cur).has_prev || (*ray).done) {
         return;
     }
-    (*ray).acc = end_span(vi, band_before(t), cur, (*ray).acc, false);
+    (*ray).acc = end_span(vi, segment_band(t), cur, (*ray).acc, false);
 }
 
-// The band of the last lattice sample before t (raycast.rs `band_before`): t's band unless
-// it has no lattice point before t, then the latest band before it with one within itself.
-fn band_before(t: f32) -> u32 {
+// The band of the segment a span ending at t cuts (raycast.rs `segment_band`): the band of
+// the first lattice point at or after t.
+fn segment_band(t: f32) -> u32 {
     var band = first_band(t);
     loop {
-        if (band == 0u) { break; }
-        let first = f32(first_k(band_start(band), band_dt(band))) * band_dt(band);
-        if (first < t && first < band_end(band)) { break; }
-        band = band - 1u;
+        if (band + 1u >= F.n_bands) { break; }
+        let dt = band_dt(band);
+        let next = f32(first_k(max(t, band_start(band)), dt)) * dt;
+        if (next < band_start(band + 1u)) { break; }
+        band = band + 1u;
     }
     return band;
 }
@@ -818,6 +833,7 @@ fn march_one(vi: u32, cur: ptr<function, Cursor>, md: vec3<f32>, d: vec3<f32>, t
                 }
                 (*cur).before = (*cur).prev;
                 (*cur).prev = s;
+                (*cur).prev_band = band;
                 (*cur).has_prev = true;
                 (*cur).prev_light = l;
                 if ((*ray).acc.w >= (*ray).ert) {
@@ -841,13 +857,15 @@ fn march_one(vi: u32, cur: ptr<function, Cursor>, md: vec3<f32>, d: vec3<f32>, t
         }
         // The ray leaves the volume: its span ends half a step after its last sample.
         if (pre && seg_end >= (*cur).span_end) {
-            // Past the region, a hidden lattice point inside the volume: a whole step.
-            let tn = f32(k) * dt;
+            // Past the region, a hidden lattice point inside the volume: a whole step. It
+            // cuts the segment to the lattice point that would follow (raycast.rs).
+            let seg = segment_band((*cur).span_end);
+            let tn = f32(first_k(max((*cur).span_end, band_start(seg)), band_dt(seg))) * band_dt(seg);
             var skip = false;
             if ((*cur).has_prev && tn < (*cur).vol_end) {
                 skip = hidden_at(vi, tn, c + tn * md);
             }
-            (*ray).acc = end_span(vi, band, cur, (*ray).acc, skip);
+            (*ray).acc = end_span(vi, seg, cur, (*ray).acc, skip);
         }
         t_start = seg_end;
         band = band + 1u;
@@ -1528,7 +1546,7 @@ fn add64(lo: u32, v: u32) {
 }
 
 fn new_cursor() -> Cursor {
-    return Cursor(0u, -BIG, true, 0u, 1.0, vec3<f32>(0.0), vec3<f32>(0.0), false, 0.0, 0.0, false, false, 0.0, vec2<f32>(1.0, 0.0), BIG, -BIG, BIG, false);
+    return Cursor(0u, -BIG, true, 0u, 1.0, vec3<f32>(0.0), vec3<f32>(0.0), false, 0.0, 0.0, 0u, false, false, 0.0, vec2<f32>(1.0, 0.0), BIG, -BIG, BIG, false);
 }
 
 @compute @workgroup_size(8, 8, 1)
