@@ -197,9 +197,10 @@ fn a_preintegrated_span_ends_alike_on_either_side_of_a_band_start() {
     let mut s = with_bands(40.3);
     s.horizons.clear();
     let whole = centre(&render_whole(&s));
-    for faces in [&[40.3f64][..], &[41.0], &[41.9], &[39.7, 41.0]] {
-        // (39.7 and 41.0: the middle region holds one sample, z = 40, the first band's
-        // last: its lead is half a fine step, its end half the coarse segment.)
+    for faces in [&[40.3f64][..], &[41.0], &[41.9], &[39.7], &[39.7, 41.0]] {
+        // (39.7: the second region's first sample, z = 40, is the first band's last, and
+        // its next the second band's first: its lead is half a fine step. 39.7 and 41.0:
+        // the middle region holds that one sample: its end is half the coarse segment.)
         let mut tree = KdTree::single(scene_region(&s));
         let mut leaf = 0;
         for &f in faces {

@@ -539,10 +539,26 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
                             // The half step before the span's first sample (a whole step
                             // after skipped empty space), the value extrapolated linearly
                             // to its front.
-                            let mut rgba = if cur.gap {
-                                pre.lookup(2.0 * cur.prev - s, cur.prev)
+                            // In the first sample's own band: a band's last sample
+                            // followed by the next band's first is a coarse step away, and
+                            // its lead is a step of its own band, by the value's change
+                            // over that step.
+                            let own = cur.prev_band as usize;
+                            let mut rgba = if own == band {
+                                if cur.gap {
+                                    pre.lookup(2.0 * cur.prev - s, cur.prev)
+                                } else {
+                                    pre.lookup_half(1.5 * cur.prev - 0.5 * s, cur.prev)
+                                }
                             } else {
-                                pre.lookup_half(1.5 * cur.prev - 0.5 * s, cur.prev)
+                                let lt = &*pres.expect("pre-integrated")[own];
+                                let r = (1u32 << (band - own).min(16)) as f32;
+                                let g = (s - cur.prev) / r;
+                                if cur.gap {
+                                    lt.lookup(cur.prev - g, cur.prev)
+                                } else {
+                                    lt.lookup_half(cur.prev - 0.5 * g, cur.prev)
+                                }
                             };
                             apply_light(&mut rgba, cur.prev_light);
                             acc.blend(rgba);

@@ -818,11 +818,23 @@ fn march_one(vi: u32, cur: ptr<function, Cursor>, md: vec3<f32>, d: vec3<f32>, t
                     if ((*cur).lead) {
                         // The half step before the span's first sample (a whole step after
                         // skipped empty space), extrapolated linearly to its front.
+                        // In the first sample's own band (raycast.rs).
+                        let own = (*cur).prev_band;
                         var h: vec4<f32>;
-                        if ((*cur).gap) {
-                            h = pre_lookup(vi, band, false, 2.0 * (*cur).prev - s, (*cur).prev);
+                        if (own == band) {
+                            if ((*cur).gap) {
+                                h = pre_lookup(vi, band, false, 2.0 * (*cur).prev - s, (*cur).prev);
+                            } else {
+                                h = pre_lookup(vi, band, true, 1.5 * (*cur).prev - 0.5 * s, (*cur).prev);
+                            }
                         } else {
-                            h = pre_lookup(vi, band, true, 1.5 * (*cur).prev - 0.5 * s, (*cur).prev);
+                            let r = f32(1u << min(band - own, 16u));
+                            let g = (s - (*cur).prev) / r;
+                            if ((*cur).gap) {
+                                h = pre_lookup(vi, own, false, (*cur).prev - g, (*cur).prev);
+                            } else {
+                                h = pre_lookup(vi, own, true, (*cur).prev - 0.5 * g, (*cur).prev);
+                            }
                         }
                         (*ray).acc = blend((*ray).acc, apply_light(h, (*cur).prev_light));
                         (*cur).lead = false;
