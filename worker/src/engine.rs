@@ -807,7 +807,6 @@ impl Engine {
             bands,
             ert: (s.early_termination as f32).min(1.0),
             volume_shading: s.volume_shading,
-            skipping: s.empty_space_skipping,
             // (A single volume invisible under its transfer function is never marched.)
             packets: s.simd
                 && vols_n == 1

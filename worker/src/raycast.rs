@@ -65,8 +65,6 @@ pub struct FrameSetup<'a> {
     pub ert: f32,
     /// Gradient shading of volumes.
     pub volume_shading: bool,
-    /// Volume-skipping enabled.
-    pub skipping: bool,
     /// Only the tiles marked here are cast (row-major over `rect`, [`TILE`]² pixels each);
     /// the others' pixels stay transparent and they ask for nothing. `None`: every tile.
     pub only_tiles: Option<&'a [bool]>,
