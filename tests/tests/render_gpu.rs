@@ -564,6 +564,38 @@ fn gpu_frames_after_a_refused_allocation_cast_again() {
     }
 }
 
+/// After one large frame (over 16 MiB of image buffer), a run of small ones makes the image
+/// buffer again at their size, and frames before, at and after that point equal a fresh
+/// engine's, bit for bit.
+#[test]
+fn gpu_image_buffer_shrinks_after_a_run_of_small_frames() {
+    if !gpu_available() {
+        return;
+    }
+    let dir = TempDir::new().unwrap();
+    let s = survey_with_horizons(dir.path(), 24, 16);
+    let (mut e, small, region, whole) = gpu_batch(&s);
+    let big = e.view(1400, 1200).unwrap();
+    e.render_frame(&big, &region).unwrap();
+    let big_bytes = e.gpu_image_buffer_bytes().unwrap();
+    assert!(big_bytes > 20 << 20, "{big_bytes}");
+    let mut shrunk_at = None;
+    for call in 0..40 {
+        let again = e.render_frame(&small, &region).unwrap();
+        assert!(
+            bit_identical(&again.image.pixels, &whole.image.pixels),
+            "frame {call} after the large one"
+        );
+        if shrunk_at.is_none() && e.gpu_image_buffer_bytes().unwrap() < big_bytes {
+            shrunk_at = Some(call);
+        }
+    }
+    // Not at once (a sequence that alternates sizes keeps its buffer), but within the run.
+    let at = shrunk_at.expect("the image buffer kept the large frame's size");
+    assert!(at >= 16, "shrank after {at} small frames");
+    assert!(e.gpu_image_buffer_bytes().unwrap() <= 24 * 16 * 16 + 16);
+}
+
 /// A region larger than one dispatch may cast (one storage binding of the adapter: 8.4 M
 /// pixels on lavapipe, about 134 M on NVIDIA) is cast in bands. Here the band is capped far
 /// below the adapter's limit: rows of 8, rows of 3, then columns of 40 in rows of 1. Every

@@ -542,6 +542,12 @@ impl Engine {
         self.gpu.as_mut().is_some_and(|g| g.fail_an_allocation())
     }
 
+    /// Bytes of the GPU backend's image buffer (`None` on the CPU, 0 before a frame).
+    #[doc(hidden)]
+    pub fn gpu_image_buffer_bytes(&self) -> Option<u64> {
+        self.gpu.as_ref().map(|g| g.image_buffer_bytes())
+    }
+
     /// Regions the GPU backend cast in more than one band (`None` on the CPU).
     pub fn gpu_banded_regions(&self) -> Option<u64> {
         self.gpu.as_ref().map(|g| g.banded_regions())

@@ -171,11 +171,7 @@ impl Lane {
     /// The lane of ray `w.ray` over its pending interval.
     fn new(f: &FrameSetup<'_>, r: &RayState<'_, '_>, w: &Pending) -> Lane {
         let md = r.md0();
-        let bands = &f.bands;
-        let mut band = 0;
-        while band + 1 < bands.start.len() && w.ta >= bands.start[band + 1] {
-            band += 1;
-        }
+        let band = f.bands.at(w.ta);
         Lane {
             ray: w.ray,
             live: true,

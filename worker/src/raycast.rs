@@ -35,6 +35,18 @@ pub struct Bands {
     pub dt: Vec<f32>,
 }
 
+impl Bands {
+    /// The band that distance `t` lies in: the last whose start is at or before `t` (band 0
+    /// before the first start, and for NaN).
+    pub fn at(&self, t: f32) -> usize {
+        let mut band = 0;
+        while band + 1 < self.start.len() && t >= self.start[band + 1] {
+            band += 1;
+        }
+        band
+    }
+}
+
 /// Everything a frame's rays read.
 pub struct FrameSetup<'a> {
     /// Image width.
@@ -298,10 +310,7 @@ pub fn clip_region(lo: [f32; 3], hi: [f32; 3], d: [f32; 3]) -> (f32, f32) {
 /// that coarse segment, whichever side of the band's start it ends on, as the whole ray's
 /// segment and the next region's lead do ([`end_span`]).
 fn segment_band(bands: &Bands, t: f32) -> usize {
-    let mut band = 0;
-    while band + 1 < bands.start.len() && t >= bands.start[band + 1] {
-        band += 1;
-    }
+    let mut band = bands.at(t);
     while band + 1 < bands.start.len() {
         let dt = bands.dt[band];
         let next = (first_k(t.max(bands.start[band]), dt) as f32) * dt;
@@ -393,10 +402,7 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
     ) {
         let f = self.f;
         let bands = &f.bands;
-        let mut band = 0;
-        while band + 1 < bands.start.len() && ta >= bands.start[band + 1] {
-            band += 1;
-        }
+        let mut band = bands.at(ta);
         // Without macrocells no sample ever reaches the cell test.
         let no_cell = if v.cells.is_some() {
             f32::NEG_INFINITY
@@ -670,10 +676,7 @@ impl<'s, 'a, A: Accum> RayCtx<'s, 'a, A> {
     ) {
         let f = self.f;
         let bands = &f.bands;
-        let mut band = 0;
-        while band + 1 < bands.start.len() && ta >= bands.start[band + 1] {
-            band += 1;
-        }
+        let mut band = bands.at(ta);
         let mut t_start = ta;
         while t_start < tb && !self.done {
             let dt = bands.dt[band];

@@ -231,6 +231,12 @@ impl GpuBackend {
         self.caster.write_past_a_buffer();
     }
 
+    /// Bytes of the image buffer ([`GpuCaster::image_buffer_bytes`]).
+    #[doc(hidden)]
+    pub fn image_buffer_bytes(&self) -> u64 {
+        self.caster.image_buffer_bytes()
+    }
+
     /// Regions cast in more than one band ([`GpuCaster::banded_regions`]).
     pub fn banded_regions(&self) -> u64 {
         self.caster.banded_regions()

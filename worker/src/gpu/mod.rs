@@ -88,6 +88,37 @@ struct Grow {
     size: u64,
     /// Why the last allocation was refused.
     refused: Option<String>,
+    /// Whether a run of calls that need much less makes it again at their size (the image
+    /// and readback buffers, sized by the frame; not the pools and tables, which other
+    /// calls only make sure exist).
+    shrinks: bool,
+    /// Calls in a row that needed at most a quarter of `size` (see [`shrink_after`]).
+    small_calls: u32,
+}
+
+/// Calls in a row that need at most a quarter of a buffer before it is made again at the
+/// size asked for: one large frame (a powerwall's, a study's 8K) should not hold its
+/// buffers on a GPU that other workers share for the rest of the run, while a sequence
+/// that alternates sizes (occlusion's first pass at a fraction of the frame) should not
+/// reallocate every frame.
+const SHRINK_AFTER: u32 = 32;
+
+/// Buffers under this many bytes are never shrunk (not worth an allocation).
+const SHRINK_FLOOR: u64 = 16 << 20;
+
+/// Whether a buffer of `size` bytes, asked for `bytes` after `small_calls` earlier calls in
+/// a row that needed at most a quarter of it, is made again at `bytes`; returns the new
+/// count of small calls.
+fn shrink_after(size: u64, bytes: u64, small_calls: u32) -> (bool, u32) {
+    if size <= SHRINK_FLOOR || bytes > size / 4 {
+        return (false, 0);
+    }
+    let n = small_calls + 1;
+    if n >= SHRINK_AFTER {
+        (true, 0)
+    } else {
+        (false, n)
+    }
 }
 
 impl Grow {
@@ -98,6 +129,17 @@ impl Grow {
             buf: None,
             size: 0,
             refused: None,
+            shrinks: false,
+            small_calls: 0,
+        }
+    }
+
+    /// A buffer sized by each frame, made again at a run of frames' size when they need much
+    /// less (see [`shrink_after`]).
+    fn shrinking(label: &'static str, usage: wgpu::BufferUsages) -> Self {
+        Grow {
+            shrinks: true,
+            ..Grow::new(label, usage)
         }
     }
 
@@ -107,8 +149,22 @@ impl Grow {
     fn ensure(&mut self, device: &wgpu::Device, bytes: u64) -> bool {
         let bytes = bytes.max(16).next_multiple_of(16);
         if self.buf.is_some() && self.size >= bytes {
-            return false;
+            if !self.shrinks {
+                return false;
+            }
+            let (shrink, n) = shrink_after(self.size, bytes, self.small_calls);
+            self.small_calls = n;
+            if !shrink {
+                return false;
+            }
+            tracing::debug!(
+                buffer = self.label,
+                from = self.size,
+                to = bytes,
+                "shrinking a GPU buffer"
+            );
         }
+        self.small_calls = 0;
         self.buf = None; // free before allocating the new one
         let mut made = None;
         let ok = checked(device, self.label, || {
@@ -499,8 +555,8 @@ impl GpuCaster {
             fb_list: Grow::new("feedback list", STORAGE_SRC_DST),
             fb_len,
             stats,
-            out: Grow::new("image", STORAGE_SRC_DST),
-            read: Grow::new(
+            out: Grow::shrinking("image", STORAGE_SRC_DST),
+            read: Grow::shrinking(
                 "readback",
                 wgpu::BufferUsages::MAP_READ.union(wgpu::BufferUsages::COPY_DST),
             ),
@@ -700,6 +756,12 @@ impl GpuCaster {
     pub fn write_past_a_buffer(&mut self) {
         let b = self.read.get();
         self.queue.write_buffer(b, b.size(), &[0u8; 4]);
+    }
+
+    /// Bytes of the image buffer (0 before a frame).
+    #[doc(hidden)]
+    pub fn image_buffer_bytes(&self) -> u64 {
+        self.out.size
     }
 
     /// Test hook: asks for an image buffer past the device's largest buffer (an allocation
@@ -1263,7 +1325,35 @@ fn checked<T>(device: &wgpu::Device, what: &str, f: impl FnOnce() -> T) -> Resul
 
 #[cfg(test)]
 mod tests {
-    use super::{band_shape, WORKGROUP};
+    use super::{band_shape, shrink_after, SHRINK_AFTER, SHRINK_FLOOR, WORKGROUP};
+
+    #[test]
+    fn buffers_shrink_only_after_a_run_of_small_frames() {
+        let big = 256 << 20;
+        // Small buffers stay, however little is asked.
+        assert_eq!(shrink_after(SHRINK_FLOOR, 16, 1000), (false, 0));
+        // Needing more than a quarter resets the run.
+        assert_eq!(
+            shrink_after(big, big / 4 + 16, SHRINK_AFTER - 1),
+            (false, 0)
+        );
+        // A run of small calls shrinks at its end, and only there.
+        let mut n = 0;
+        for call in 1..=SHRINK_AFTER {
+            let (shrink, next) = shrink_after(big, big / 4, n);
+            assert_eq!(shrink, call == SHRINK_AFTER, "call {call}");
+            n = next;
+        }
+        assert_eq!(n, 0);
+        // Alternating sizes (occlusion's first pass, then the frame) never shrink.
+        let mut n = 0;
+        for call in 0..10 * SHRINK_AFTER {
+            let bytes = if call % 2 == 0 { big / 16 } else { big };
+            let (shrink, next) = shrink_after(big, bytes, n);
+            assert!(!shrink);
+            n = next;
+        }
+    }
 
     #[test]
     fn bands_fit_one_binding_and_one_dispatch() {
