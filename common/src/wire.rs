@@ -1140,12 +1140,13 @@ mod tests {
         }
 
         /// Sealed headers (magic and CRC right) with arbitrary version, reserved bytes and
-        /// lengths reach every check past the first two: any header that passes holds this
-        /// protocol's version and lengths within the limits.
+        /// lengths reach every check past the first two: a header passes exactly when it
+        /// holds this protocol's version, zero reserved bytes and lengths within the limits,
+        /// and is refused by the first check it fails, with that check's error.
         #[test]
         fn sealed_headers_are_checked_past_the_crc(
             version in prop_oneof![Just(PROTOCOL_VERSION), any::<u16>()],
-            reserved in any::<[u8; 2]>(),
+            reserved in prop_oneof![Just([0u8; 2]), any::<[u8; 2]>()],
             meta in prop_oneof![0u32..64, any::<u32>()],
             bulk in prop_oneof![0u64..64, any::<u64>()],
         ) {
@@ -1158,9 +1159,18 @@ mod tests {
             let crc = crc32c::crc32c(&h[0..20]);
             h[20..24].copy_from_slice(&crc.to_le_bytes());
             let limits = Limits { max_meta: 32, max_bulk: 32 };
-            if let Ok(f) = decode_header(&h, &limits) {
-                prop_assert_eq!(version, PROTOCOL_VERSION);
-                prop_assert!(f.meta_len <= 32 && f.bulk_len <= 32);
+            let r = decode_header(&h, &limits);
+            if version != PROTOCOL_VERSION {
+                prop_assert!(matches!(r, Err(WireError::Version { got }) if got == version), "{:?}", r);
+            } else if reserved != [0, 0] {
+                prop_assert!(matches!(r, Err(WireError::Reserved(v)) if v == u16::from_le_bytes(reserved)), "{:?}", r);
+            } else if meta > 32 {
+                prop_assert!(matches!(r, Err(WireError::MetaTooLarge { len, limit: 32 }) if len == meta), "{:?}", r);
+            } else if bulk > 32 {
+                prop_assert!(matches!(r, Err(WireError::BulkTooLarge { len, limit: 32 }) if len == bulk), "{:?}", r);
+            } else {
+                let f = r.unwrap();
+                prop_assert_eq!((f.meta_len, f.bulk_len), (meta, bulk));
             }
         }
     }

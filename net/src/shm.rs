@@ -884,9 +884,17 @@ mod tests {
         assert!(ShmReader::open(&id).is_ok());
     }
 
+    /// On Linux there is always a host id (without one shared memory turns itself off, and
+    /// every test comparing it with QUIC would pass on QUIC alone).
     #[test]
     fn the_host_id_is_stable_and_names_the_namespace() {
-        if let Some(id) = host_id() {
+        let id = host_id();
+        #[cfg(target_os = "linux")]
+        assert!(
+            id.is_some(),
+            "no host id: /proc/sys/kernel/random/boot_id or /proc/self/ns/pid unreadable"
+        );
+        if let Some(id) = id {
             assert_eq!(host_id().as_deref(), Some(id.as_str()));
             assert!(id.contains("pid:["), "{id}");
         }

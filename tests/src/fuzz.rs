@@ -119,10 +119,11 @@ pub fn segy(data: &[u8]) {
     }
 }
 
-/// Horizon text in each layout (the first byte picks the layout and a null value).
+/// Horizon text in each layout (the first byte picks the layout; the text is the rest: with
+/// the byte in the file every seed had failed at its first number).
 pub fn horizon_text(data: &[u8]) {
     use strata_coordinator::horizon_text::{parse_horizon, HorizonFormat, HorizonParseOptions};
-    let p = scratch("in.txt", data);
+    let p = scratch("in.txt", data.get(1..).unwrap_or_default());
     let format = match data.first().map(|b| b % 4) {
         Some(1) => HorizonFormat::Grid,
         Some(2) => HorizonFormat::IlXlZ,

@@ -409,13 +409,17 @@ pub mod scenes {
                 .all(|(p, q)| p.iter().zip(q).all(|(x, y)| x.to_bits() == y.to_bits()))
     }
 
-    /// Largest absolute channel difference.
+    /// Largest absolute channel difference; infinite where either image holds a NaN (a
+    /// plain `f32::max` fold skips NaN, so a NaN pixel would pass every tolerance).
     pub fn max_diff(a: &[Rgba], b: &[Rgba]) -> f32 {
         assert_eq!(a.len(), b.len());
         a.iter()
             .zip(b)
             .flat_map(|(p, q)| (0..4).map(move |c| (p[c] - q[c]).abs()))
-            .fold(0.0, f32::max)
+            .fold(
+                0.0,
+                |m: f32, d: f32| if d.is_nan() { f32::INFINITY } else { m.max(d) },
+            )
     }
 
     /// Asserts that no pixel holds NaN/Inf and alpha stays within [0, 1].
@@ -427,5 +431,22 @@ pub mod scenes {
                 assert!(p[c] >= 0.0 && p[c] <= 1.0 + 1e-5, "pixel {i} = {p:?}");
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::scenes::max_diff;
+
+    #[test]
+    fn a_nan_pixel_is_an_infinite_difference() {
+        let a = [[0.5, 0.25, 0.0, 1.0]; 3];
+        let mut b = a;
+        assert_eq!(max_diff(&a, &b), 0.0);
+        b[1][2] = 0.125;
+        assert_eq!(max_diff(&a, &b), 0.125);
+        b[2][0] = f32::NAN;
+        assert_eq!(max_diff(&a, &b), f32::INFINITY);
+        assert_eq!(max_diff(&b, &a), f32::INFINITY);
     }
 }

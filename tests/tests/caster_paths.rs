@@ -438,6 +438,15 @@ fn macrocells_follow_slot_reuse() {
 #[test]
 fn packets_and_the_scalar_march_agree_bit_for_bit() {
     let widest = strata_worker::packet::widest();
+    // CI names the width its CPU runs (.ci/run, from /proc/cpuinfo): the run detection must
+    // find it, or the 16-lane march would silently be the 8-lane one (or both scalar).
+    if let Ok(lanes) = std::env::var("STRATA_REQUIRE_SIMD_LANES") {
+        assert_eq!(
+            widest.to_string(),
+            lanes,
+            "STRATA_REQUIRE_SIMD_LANES: this CPU's flags promise {lanes}-lane packets"
+        );
+    }
     if widest < 16 {
         eprintln!("NOTICE: no AVX-512 here: 16-lane packets run as {widest} lanes (0: scalar)");
     }

@@ -89,7 +89,10 @@ fn centre(img: &[Rgba]) -> Rgba {
 }
 
 fn err(a: Rgba, b: Rgba) -> f32 {
-    (0..4).map(|c| (a[c] - b[c]).abs()).fold(0.0, f32::max)
+    (0..4).map(|c| (a[c] - b[c]).abs()).fold(
+        0.0,
+        |m: f32, d: f32| if d.is_nan() { f32::INFINITY } else { m.max(d) },
+    )
 }
 
 #[test]

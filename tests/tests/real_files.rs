@@ -1,5 +1,5 @@
 //! Real third-party files from `../shared/data/real`: SEG-Y in both byte orders and IBM
-//! float, interpreted horizons with holes, CT and MRI volumes as raw.
+//! float, interpreted horizons with holes, CT and MRI volumes as raw (u8, i16 and u16).
 
 use indicatif::ProgressBar;
 use strata_common::sample::SampleType;
@@ -173,6 +173,28 @@ fn ct_volumes_ingest_as_raw() {
     assert!((mean - 13.465).abs() < 1e-3, "{mean}");
     // Bonsai's empty background becomes constant pages that store no payload.
     assert!(s.index().iter().any(|e| !e.has_payload()));
+}
+
+/// The MRI series (12-bit values in u16, 63 MB): the only real unsigned 16-bit file. Level 0
+/// equals the file (in `ingest_raw`); range, mean and non-zero fraction are the README's.
+#[test]
+fn mri_volume_ingests_as_raw_u16() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = ingest_raw(
+        "volumes/vs_seg_001_t1_mri/vs_seg_001_t1_512x512x120_uint16le.raw",
+        [512, 512, 120],
+        SampleType::U16,
+        dir.path(),
+    );
+    assert_eq!(s.header().dims, [512, 512, 120]);
+    assert_eq!(s.header().value_range, [0.0, 1826.0]);
+    let v = level_grid(&s, 0).unwrap();
+    let (mn, mx, mean, _) = stats(&v);
+    assert_eq!((mn, mx), (0.0, 1826.0));
+    assert!((mean - 204.61).abs() < 5e-3, "{mean}");
+    let nonzero = v.iter().filter(|&&x| x != 0.0).count() as f64 / v.len() as f64;
+    assert!((nonzero - 0.996).abs() < 5e-4, "{nonzero}");
+    check_coarse_levels(&s).unwrap();
 }
 
 /// Ingest stores mean, RMS and percentiles of the level-0 values; on F3 they match a direct

@@ -168,7 +168,10 @@ mod tests {
         a.iter()
             .zip(b)
             .flat_map(|(x, y)| (0..4).map(move |c| (x[c] - y[c]).abs()))
-            .fold(0.0, f32::max)
+            .fold(
+                0.0,
+                |m: f32, d: f32| if d.is_nan() { f32::INFINITY } else { m.max(d) },
+            )
     }
 
     /// 0 direct send, 1 binary swap, 2 radix-k auto, 3 radix-k target, 4 radix-k with

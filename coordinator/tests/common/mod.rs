@@ -50,13 +50,17 @@ pub(crate) fn read_exr(p: &Path) -> Vec<[f32; 4]> {
     read_exr_sized(p, 96)
 }
 
-/// The largest difference of any channel of any pixel.
+/// The largest difference of any channel of any pixel; infinite where either image holds a
+/// NaN (a plain `f32::max` fold skips NaN).
 pub(crate) fn max_diff(a: &[[f32; 4]], b: &[[f32; 4]]) -> f32 {
     assert_eq!(a.len(), b.len());
     a.iter()
         .zip(b)
         .flat_map(|(p, q)| (0..4).map(move |c| (p[c] - q[c]).abs()))
-        .fold(0.0, f32::max)
+        .fold(
+            0.0,
+            |m: f32, d: f32| if d.is_nan() { f32::INFINITY } else { m.max(d) },
+        )
 }
 
 /// `s` without ANSI colour codes.

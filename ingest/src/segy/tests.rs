@@ -1204,3 +1204,32 @@ fn rev2_extended_sample_count_overrides_a_saturated_16_bit_one() {
     v.read_trace(tr, &mut out).unwrap();
     assert_eq!(out[ns - 1], (3 * 100_000 + ns - 1) as f32);
 }
+
+#[test]
+fn three_byte_integers_decode_from_literal_bytes() {
+    // Bytes written by hand, not by this crate's writer: a byte-order mistake made alike in
+    // the writer and the reader would pass the round trip above.
+    use super::samples::{decode_strided, Format};
+    let big: [u8; 12] = [
+        0x80, 0x00, 0x01, 0xFF, 0xFF, 0xFF, 0x01, 0x02, 0x03, 0x7F, 0xFF, 0xFF,
+    ];
+    let little: [u8; 12] = [
+        0x01, 0x00, 0x80, 0xFF, 0xFF, 0xFF, 0x03, 0x02, 0x01, 0xFF, 0xFF, 0x7F,
+    ];
+    for (fmt, want) in [
+        (Format::I24, [-8_388_607.0f32, -1.0, 66_051.0, 8_388_607.0]),
+        (
+            Format::U24,
+            [8_388_609.0f32, 16_777_215.0, 66_051.0, 8_388_607.0],
+        ),
+    ] {
+        for (endian, bytes) in [(Endian::Big, &big), (Endian::Little, &little)] {
+            // Every other element, from the second: the stride and start are honoured too.
+            let mut out = [f32::NAN; 9];
+            decode_strided(fmt, endian, bytes, &mut out, 1, 2);
+            let got: Vec<f32> = out.iter().skip(1).step_by(2).copied().collect();
+            assert_eq!(got, want, "{fmt:?} {endian:?}");
+            assert!(out.iter().step_by(2).all(|v| v.is_nan()), "{out:?}");
+        }
+    }
+}
