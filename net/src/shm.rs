@@ -471,13 +471,11 @@ impl ShmReader {
                 return Ok(m.clone());
             }
         }
-        let size = self.file.metadata().map_err(io_error(&self.path))?.len();
+        let meta = self.file.metadata().map_err(io_error(&self.path))?;
+        let size = meta.len();
         if end > size {
             return Err(ShmError::PastEnd { offset, len, size });
         }
-        // SAFETY: the segment is sealed against shrinking (checked at open), so every
-        // byte below `size` stays mapped and readable; see the module docs for what a
-        // peer writing while this reads can and cannot do.
         // Up to what this record needs (rounded up, so that growth remaps rarely), not
         // the whole file: a peer that grew its segment far costs nothing until a record
         // lies there.
@@ -486,9 +484,22 @@ impl ShmReader {
             .unwrap_or(end)
             .max(MIN_SIZE)
             .min(size);
+        // Faulted in up front where the memory is there (a sender allocates its segment as
+        // it grows it), so that blending from it takes no page faults; a segment with holes
+        // (grown by `ftruncate`, not by a sender) is mapped lazily, or mapping it would
+        // allocate every hole up to the record: only the pages read then cost memory.
+        let allocated = meta.blocks().saturating_mul(512);
+        let populate = allocated >= want;
         let want = usize::try_from(want).map_err(|_| ShmError::PastEnd { offset, len, size })?;
-        let map = unsafe { MmapOptions::new().len(want).populate().map(&self.file) }
-            .map_err(io_error(&self.path))?;
+        let mut options = MmapOptions::new();
+        options.len(want);
+        if populate {
+            options.populate();
+        }
+        // SAFETY: the segment is sealed against shrinking (checked at open), so every
+        // byte below `size` stays mapped and readable; see the module docs for what a
+        // peer writing while this reads can and cannot do.
+        let map = unsafe { options.map(&self.file) }.map_err(io_error(&self.path))?;
         let map = Arc::new(map);
         self.map = Some(map.clone());
         Ok(map)
@@ -752,6 +763,36 @@ mod tests {
         let long = ShmRef { len: 101, ..a };
         let e = read(&mut r, long, 1 << 20, 1, 0, 0).unwrap_err();
         assert!(matches!(e, ShmError::Header { .. }), "{e}");
+    }
+
+    /// A peer that grows its segment with holes (`ftruncate`, where a sender allocates)
+    /// and announces a record far into it costs the reader the pages it reads, not every
+    /// hole up to the record (a populated mapping allocated them all: 48 MiB here).
+    #[test]
+    fn a_segment_with_holes_is_not_allocated_by_its_reader() {
+        use std::os::unix::fs::FileExt;
+        let (w, mut r) = pair();
+        let limit = 1u64 << 20;
+        let offset = 48u64 << 20;
+        let len = 4096u64;
+        w.file.set_len(offset + 64 << 10).unwrap();
+        let header = strata_common::wire::encode_shm_record(1, 0, 0, len);
+        w.file.write_all_at(&header, offset).unwrap();
+        w.file
+            .write_all_at(&[7u8; 4096], offset + SHM_RECORD_HEADER as u64)
+            .unwrap();
+        let allocated = |f: &File| f.metadata().unwrap().blocks() * 512;
+        let before = allocated(&w.file);
+        assert!(before < 8 << 20, "{before}");
+        let at = ShmRef { offset, len };
+        let got = read(&mut r, at, limit, 1, 0, 0).unwrap();
+        assert_eq!(got, vec![7u8; 4096]);
+        let after = allocated(&w.file);
+        assert!(
+            after < before + (1 << 20),
+            "reading one record allocated {} bytes of the segment",
+            after - before
+        );
     }
 
     #[test]

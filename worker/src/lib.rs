@@ -22,7 +22,8 @@
 //! * [`engine`]: frames, feedback → loads → atlas updates, batch convergence.
 //! * [`dataset`]: open stores with their transforms and per-page value bounds.
 //! * [`node`]: the worker as a cluster node (coordinator link, peer mesh, the compositing
-//!   exchange per frame); [`canvas_cache`]: the coordinator's canvases it keeps mapped;
+//!   exchange per frame); [`peer_budget`]: the bytes of pieces queued between its peer
+//!   readers and its frame loop; [`canvas_cache`]: the coordinator's canvases it keeps mapped;
 //!   [`cli`]: its `--connect` command line.
 //! * [`image_out`]: PNG (sRGB, flattened) and OpenEXR (float RGBA) writers, atomic; a
 //!   wall's tile files and its preview mosaic.
@@ -42,5 +43,6 @@ pub mod image_out;
 pub mod macrocell;
 pub mod node;
 pub mod packet;
+pub mod peer_budget;
 pub mod raycast;
 pub mod volume;

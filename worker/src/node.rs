@@ -19,6 +19,7 @@
 
 use crate::engine::{Engine, Outcome};
 use crate::image_out::write_tiles;
+use crate::peer_budget::PieceBudget;
 use anyhow::{anyhow, bail, Context, Result};
 use std::collections::HashMap;
 use std::net::SocketAddr;
@@ -104,6 +105,8 @@ enum PeerEvent {
         from: u32,
         piece: SparsePiece,
         wire_len: u64,
+        /// The piece's bytes of the readers' budget, given back once the exchange has it.
+        _budget: tokio::sync::OwnedSemaphorePermit,
     },
     Lost {
         rank: u32,
@@ -613,9 +616,11 @@ async fn mesh(
         quic_peers = n as usize - 1 - shm_count,
         "peer transports"
     );
-    // Bounded: a peer that floods pieces stalls its own reader (and through QUIC flow
-    // control, itself) instead of growing this worker's memory.
+    // Bounded in count and in bytes: a peer that floods pieces stalls its own reader (and
+    // through QUIC flow control, itself) instead of growing this worker's memory.
     let (ev_tx, ev_rx) = mpsc::channel(PEER_EVENTS);
+    let budget =
+        PieceBudget::new(ExchangeLimits::for_ranks(n as usize, limits.max_bulk).pending_bytes);
     for (r, c) in peers.iter().enumerate() {
         if let Some(c) = c {
             let what = describe(&setup.peers, r as u32);
@@ -628,6 +633,7 @@ async fn mesh(
                 setup.shm_peers[r],
                 scene.composite.lz4,
                 timeout,
+                budget.clone(),
                 ev_tx.clone(),
             ));
         }
@@ -706,10 +712,17 @@ async fn accept_peers(
             // Held until this connection is accepted or refused.
             let _permit = permit;
             let remote = incoming.remote_address();
-            let conn = match incoming.await {
+            // Bounded, as the coordinator bounds its own: QUIC's idle timer restarts with
+            // every packet, so a stranger that keeps sending could hold the permit for good.
+            let handshake = with_timeout(
+                Duration::from_secs(10),
+                "peer handshake",
+                std::future::IntoFuture::into_future(incoming),
+            );
+            let conn = match handshake.await {
                 Ok(c) => c,
                 Err(e) => {
-                    warn!(%remote, "peer handshake failed: {e}");
+                    warn!(%remote, "peer handshake failed: {e:#}");
                     return;
                 }
             };
@@ -782,6 +795,7 @@ async fn read_peer(
     shm_allowed: bool,
     lz4_allowed: bool,
     stream_timeout: Duration,
+    budget: PieceBudget,
     out: mpsc::Sender<PeerEvent>,
 ) {
     let mut shm: Option<ShmReader> = None;
@@ -810,93 +824,112 @@ async fn read_peer(
             }
         };
         let wire_len = f.wire_len();
-        let (frame, round, from, piece, wire_len) = match wire::decode_meta::<PeerMsg>(&f.meta) {
-            Ok(PeerMsg::Piece {
-                frame,
-                round,
-                from,
-                lz4,
-            }) => {
-                if lz4 && !lz4_allowed {
-                    conn.close(3u32.into(), b"unasked compression");
-                    break format!(
-                        "a compressed piece from {what}, in a run without composite.lz4"
-                    );
-                }
-                // The piece keeps the buffer it arrived in (no copy of its pixels).
-                let parsed = tokio::task::block_in_place(|| {
-                    if lz4 {
-                        SparsePiece::parse_lz4(&f.bulk, max_pixels)
-                    } else {
-                        SparsePiece::parse_shared(std::mem::take(&mut f.bulk).into(), max_pixels)
-                    }
-                });
-                match parsed {
-                    Ok(p) => (frame, round, from, p, wire_len),
-                    Err(e) => {
-                        conn.close(3u32.into(), b"malformed piece");
-                        break format!("a malformed piece from {what}: {e}");
-                    }
-                }
-            }
-            Ok(PeerMsg::ShmSegment { name, pid, fd }) if shm_allowed && shm.is_none() => {
-                let id = SegmentId { name, pid, fd };
-                match tokio::task::block_in_place(|| ShmReader::open(&id)) {
-                    Ok(r) => {
-                        debug!(peer = rank, "shared-memory segment open");
-                        shm = Some(r);
-                        continue;
-                    }
-                    Err(e) => {
-                        conn.close(3u32.into(), b"bad segment");
-                        break format!("cannot use the shared-memory segment of {what}: {e}");
-                    }
-                }
-            }
-            Ok(PeerMsg::ShmPiece {
-                frame,
-                round,
-                from,
-                at,
-            }) if shm.is_some() => {
-                let reader = shm.as_mut().unwrap();
-                match tokio::task::block_in_place(|| {
-                    reader.read_piece(at, limits.max_bulk, frame, round, from, max_pixels)
-                }) {
-                    Ok(b) => (
-                        frame,
-                        round,
-                        from,
-                        b,
-                        wire_len + wire::SHM_RECORD_HEADER as u64 + at.len,
-                    ),
-                    // A record that does not hold what its announcement says was overwritten:
-                    // after a failed attempt at a frame the sender starts its segment over,
-                    // and announcements of the old attempt may still be queued here. The
-                    // piece is dropped, not trusted; if it was needed after all, the
-                    // exchange's deadline reports the missing piece.
-                    Err(e @ strata_net::shm::ShmError::Header { .. }) => {
-                        warn!(
-                            peer = rank,
-                            "dropped a stale or bad shared-memory piece: {e}"
+        let (frame, round, from, piece, wire_len, reserved) =
+            match wire::decode_meta::<PeerMsg>(&f.meta) {
+                Ok(PeerMsg::Piece {
+                    frame,
+                    round,
+                    from,
+                    lz4,
+                }) => {
+                    if lz4 && !lz4_allowed {
+                        conn.close(3u32.into(), b"unasked compression");
+                        break format!(
+                            "a compressed piece from {what}, in a run without composite.lz4"
                         );
-                        continue;
                     }
-                    Err(e) => {
-                        conn.close(3u32.into(), b"bad shared-memory record");
-                        break format!("a piece in the shared-memory segment of {what}: {e}");
+                    // What the parsed piece will hold, reserved before it is made: an LZ4
+                    // block's stated size (checked against the largest piece as it is parsed),
+                    // else the buffer it arrived in.
+                    let holds = if lz4 {
+                        f.bulk
+                            .first_chunk::<4>()
+                            .map_or(0, |l| u32::from_le_bytes(*l) as u64)
+                            .min(wire::max_piece_bytes(max_pixels as u64))
+                    } else {
+                        f.bulk.len() as u64
+                    };
+                    let reserved = budget.reserve(holds).await;
+                    // The piece keeps the buffer it arrived in (no copy of its pixels).
+                    let parsed = tokio::task::block_in_place(|| {
+                        if lz4 {
+                            SparsePiece::parse_lz4(&f.bulk, max_pixels)
+                        } else {
+                            SparsePiece::parse_shared(
+                                std::mem::take(&mut f.bulk).into(),
+                                max_pixels,
+                            )
+                        }
+                    });
+                    match parsed {
+                        Ok(p) => (frame, round, from, p, wire_len, reserved),
+                        Err(e) => {
+                            conn.close(3u32.into(), b"malformed piece");
+                            break format!("a malformed piece from {what}: {e}");
+                        }
                     }
                 }
-            }
-            Ok(other) => {
-                conn.close(3u32.into(), b"unexpected message");
-                break format!("unexpected message {other:?}");
-            }
-            Err(e) => {
-                conn.close(3u32.into(), b"malformed message");
-                break format!("malformed message: {e}");
-            }
-        };
+                Ok(PeerMsg::ShmSegment { name, pid, fd }) if shm_allowed && shm.is_none() => {
+                    let id = SegmentId { name, pid, fd };
+                    match tokio::task::block_in_place(|| ShmReader::open(&id)) {
+                        Ok(r) => {
+                            debug!(peer = rank, "shared-memory segment open");
+                            shm = Some(r);
+                            continue;
+                        }
+                        Err(e) => {
+                            conn.close(3u32.into(), b"bad segment");
+                            break format!("cannot use the shared-memory segment of {what}: {e}");
+                        }
+                    }
+                }
+                Ok(PeerMsg::ShmPiece {
+                    frame,
+                    round,
+                    from,
+                    at,
+                }) if shm.is_some() => {
+                    // The record is copied out of the segment: its bytes, reserved first.
+                    let reserved = budget.reserve(at.len).await;
+                    let reader = shm.as_mut().unwrap();
+                    match tokio::task::block_in_place(|| {
+                        reader.read_piece(at, limits.max_bulk, frame, round, from, max_pixels)
+                    }) {
+                        Ok(b) => (
+                            frame,
+                            round,
+                            from,
+                            b,
+                            wire_len + wire::SHM_RECORD_HEADER as u64 + at.len,
+                            reserved,
+                        ),
+                        // A record that does not hold what its announcement says was overwritten:
+                        // after a failed attempt at a frame the sender starts its segment over,
+                        // and announcements of the old attempt may still be queued here. The
+                        // piece is dropped, not trusted; if it was needed after all, the
+                        // exchange's deadline reports the missing piece.
+                        Err(e @ strata_net::shm::ShmError::Header { .. }) => {
+                            warn!(
+                                peer = rank,
+                                "dropped a stale or bad shared-memory piece: {e}"
+                            );
+                            continue;
+                        }
+                        Err(e) => {
+                            conn.close(3u32.into(), b"bad shared-memory record");
+                            break format!("a piece in the shared-memory segment of {what}: {e}");
+                        }
+                    }
+                }
+                Ok(other) => {
+                    conn.close(3u32.into(), b"unexpected message");
+                    break format!("unexpected message {other:?}");
+                }
+                Err(e) => {
+                    conn.close(3u32.into(), b"malformed message");
+                    break format!("malformed message: {e}");
+                }
+            };
         let piece = PeerEvent::Piece {
             rank,
             frame,
@@ -904,6 +937,7 @@ async fn read_peer(
             from,
             piece,
             wire_len,
+            _budget: reserved,
         };
         if out.send(piece).await.is_err() {
             return;
@@ -1434,7 +1468,8 @@ impl Node {
                 .unwrap_or_else(|| Instant::now() + self.timeout);
             tokio::select! {
                 ev = events.recv() => match ev {
-                    Some(PeerEvent::Piece { rank, frame, round, from, piece, wire_len }) => {
+                    // (The piece's budget is given back at the end of this arm.)
+                    Some(PeerEvent::Piece { rank, frame, round, from, piece, wire_len, .. }) => {
                         tokio::task::block_in_place(|| {
                             self.exchange.handle_piece(rank, frame, round, from, piece, wire_len)
                         });
