@@ -775,7 +775,7 @@ mod tests {
         let limit = 1u64 << 20;
         let offset = 48u64 << 20;
         let len = 4096u64;
-        w.file.set_len(offset + 64 << 10).unwrap();
+        w.file.set_len(offset + (64 << 10)).unwrap();
         let header = strata_common::wire::encode_shm_record(1, 0, 0, len);
         w.file.write_all_at(&header, offset).unwrap();
         w.file
