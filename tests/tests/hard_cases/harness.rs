@@ -53,6 +53,9 @@ pub const WORKERS: usize = 3;
 /// A case's view of its backend, with a scratch folder of its own.
 pub struct Ctx {
     pub backend: Backend,
+    /// The backend stops long shader loops (llvmpipe): a case with `long_rays` keeps its
+    /// rays under 16 000 samples.
+    pub short_loops: bool,
     dir: TempDir,
     rt: Arc<tokio::runtime::Runtime>,
 }
@@ -67,6 +70,7 @@ impl Ctx {
     pub fn new(backend: Backend, rt: Arc<tokio::runtime::Runtime>) -> Self {
         Ctx {
             backend,
+            short_loops: false,
             dir: TempDir::new().expect("temporary folder"),
             rt,
         }

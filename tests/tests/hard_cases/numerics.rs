@@ -146,14 +146,17 @@ fn saturating(ctx: &Ctx) -> Res<f64> {
 }
 
 fn tiny_alpha(ctx: &Ctx) -> Res<f64> {
-    // Per-sample alpha 1e-6 at a step of 0.01 voxel: 1e-4 per voxel.
+    // Per-sample alpha 1e-6 at a step of 0.01 voxel: 1e-4 per voxel. Where shader loops are
+    // cut short, 12 000 samples (120 voxels) instead of 100 000.
     let step = 0.01;
     let a = 1.0 - (1.0f64 - 1e-6).powf(1.0 / step);
-    let mut s = slab_scene(ctx, "long", [4, 4, 1000], a, -10.0, 3, 1.0);
+    let depth = if ctx.short_loops { 120 } else { 1000 };
+    let mut s = slab_scene(ctx, "long", [4, 4, depth], a, -10.0, 3, 1.0);
     s.render.step = step;
     let img = ctx.render(&s)?;
-    let n = lattice_count(9.5, 1009.5, step as f32);
-    if !(99_000..=101_000).contains(&n) {
+    let n = lattice_count(9.5, 9.5 + depth as f32, step as f32);
+    let expected = depth * 100;
+    if !(expected * 99 / 100..=expected * 101 / 100).contains(&n) {
         return Err(format!("{n} samples: mis-built"));
     }
     let a32 = a as f32 as f64;
@@ -169,6 +172,10 @@ fn steps(ctx: &Ctx) -> Res<f64> {
     let mut err = 0.0f64;
     // The box spans t in [989, 1021): every step has a lattice point in it.
     for step in [1e-3, 1e-2, 0.37, 1.0, 7.3, 1e2, 1e3] {
+        // 32 000 samples: past what llvmpipe's loops allow.
+        if ctx.short_loops && step < 1e-2 {
+            continue;
+        }
         let mut s = slab_scene(ctx, &format!("st{step}"), [32, 32, 32], a, -989.5, 3, 0.5);
         s.render.step = step;
         let img = ctx.render(&s)?;
