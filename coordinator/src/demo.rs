@@ -245,6 +245,28 @@ mod tests {
         assert_eq!(names, ["demo", "demo.lock"]);
     }
 
+    /// A complete survey is reused without taking the lock: a survey shared read-only
+    /// (where the lock file cannot be created) serves every run. The lock file's absence
+    /// after reuse shows it (root may create files in a read-only folder, so a read-only
+    /// folder alone would not).
+    #[test]
+    fn a_complete_survey_is_reused_without_its_lock() {
+        use std::os::unix::fs::PermissionsExt;
+        let root = tempfile::tempdir().unwrap();
+        let cache = root.path().join("cache");
+        let dir = cache.join("demo");
+        let s = spec(&dir, 3);
+        assert!(ensure_synthetic(&s, &ProgressBar::hidden()).unwrap());
+        let lock = cache.join("demo.lock");
+        std::fs::remove_file(&lock).unwrap();
+        let ro = std::fs::Permissions::from_mode(0o555);
+        std::fs::set_permissions(&cache, ro).unwrap();
+        let reused = ensure_synthetic(&s, &ProgressBar::hidden());
+        std::fs::set_permissions(&cache, std::fs::Permissions::from_mode(0o755)).unwrap();
+        assert!(!reused.unwrap(), "regenerated a complete survey");
+        assert!(!lock.exists(), "took the lock to reuse a complete survey");
+    }
+
     #[test]
     fn concurrent_callers_generate_once() {
         let root = tempfile::tempdir().unwrap();
