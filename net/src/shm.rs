@@ -438,6 +438,18 @@ pub struct ShmReader {
     map: Option<Arc<Mmap>>,
 }
 
+/// Whether `file` has fewer bytes of memory than `end`: then it has holes below `end`
+/// (tmpfs counts the pages `fallocate` gave it; its SEEK_HOLE reports those as holes until
+/// written, so it cannot tell a sender's segment from a sparse one). A file with memory
+/// elsewhere and holes below `end` passes: populating it then allocates at most as much
+/// again as its owner did.
+fn hole_below(file: &File, end: u64) -> bool {
+    let allocated = file
+        .metadata()
+        .map_or(0, |m| m.blocks().saturating_mul(512));
+    allocated < end
+}
+
 /// Payload bytes of a mapping, owned by a piece.
 struct MapSlice {
     map: Arc<Mmap>,
@@ -471,8 +483,7 @@ impl ShmReader {
                 return Ok(m.clone());
             }
         }
-        let meta = self.file.metadata().map_err(io_error(&self.path))?;
-        let size = meta.len();
+        let size = self.file.metadata().map_err(io_error(&self.path))?.len();
         if end > size {
             return Err(ShmError::PastEnd { offset, len, size });
         }
@@ -485,11 +496,11 @@ impl ShmReader {
             .max(MIN_SIZE)
             .min(size);
         // Faulted in up front where the memory is there (a sender allocates its segment as
-        // it grows it), so that blending from it takes no page faults; a segment with holes
-        // (grown by `ftruncate`, not by a sender) is mapped lazily, or mapping it would
-        // allocate every hole up to the record: only the pages read then cost memory.
-        let allocated = meta.blocks().saturating_mul(512);
-        let populate = allocated >= want;
+        // it grows it), so that blending from it takes no page faults; a segment with less
+        // memory than `want` (holes: grown by `ftruncate`, not by a sender) is mapped
+        // lazily, or mapping it would allocate every hole up to the record: only the pages
+        // read then cost memory.
+        let populate = !hole_below(&self.file, want);
         let want = usize::try_from(want).map_err(|_| ShmError::PastEnd { offset, len, size })?;
         let mut options = MmapOptions::new();
         options.len(want);
@@ -781,6 +792,7 @@ mod tests {
         w.file
             .write_all_at(&[7u8; 4096], offset + SHM_RECORD_HEADER as u64)
             .unwrap();
+        assert!(hole_below(&w.file, offset + 64));
         let allocated = |f: &File| f.metadata().unwrap().blocks() * 512;
         let before = allocated(&w.file);
         assert!(before < 8 << 20, "{before}");
@@ -793,6 +805,16 @@ mod tests {
             "reading one record allocated {} bytes of the segment",
             after - before
         );
+    }
+
+    /// A sender's segment has its memory (`fallocate`): it is mapped populated.
+    #[test]
+    fn a_senders_segment_has_no_hole() {
+        let (mut w, _r) = pair();
+        let a = w.write(1, 0, 0, &[5u8; 100_000]).unwrap();
+        let size = w.file.metadata().unwrap().len();
+        assert!(size >= a.offset + a.len, "{size}");
+        assert!(!hole_below(&w.file, size));
     }
 
     #[test]

@@ -564,11 +564,12 @@ fn gpu_frames_after_a_refused_allocation_cast_again() {
     }
 }
 
-/// After one large frame (over 16 MiB of image buffer), a run of small ones makes the image
-/// buffer again at their size, and frames before, at and after that point equal a fresh
-/// engine's, bit for bit.
+/// After one large frame (over 16 MiB of image buffer), a window of small ones makes the
+/// image buffer again at their size, exactly at the window's end, and frames before, at and
+/// after that point equal a fresh engine's, bit for bit.
 #[test]
-fn gpu_image_buffer_shrinks_after_a_run_of_small_frames() {
+fn gpu_image_buffer_shrinks_after_a_window_of_small_frames() {
+    use strata_worker::gpu::SHRINK_WINDOW;
     if !gpu_available() {
         return;
     }
@@ -580,7 +581,7 @@ fn gpu_image_buffer_shrinks_after_a_run_of_small_frames() {
     let big_bytes = e.gpu_image_buffer_bytes().unwrap();
     assert!(big_bytes > 20 << 20, "{big_bytes}");
     let mut shrunk_at = None;
-    for call in 0..40 {
+    for call in 0..SHRINK_WINDOW + 8 {
         let again = e.render_frame(&small, &region).unwrap();
         assert!(
             bit_identical(&again.image.pixels, &whole.image.pixels),
@@ -590,10 +591,9 @@ fn gpu_image_buffer_shrinks_after_a_run_of_small_frames() {
             shrunk_at = Some(call);
         }
     }
-    // Not at once (a sequence that alternates sizes keeps its buffer), but within the run.
-    let at = shrunk_at.expect("the image buffer kept the large frame's size");
-    assert!(at >= 16, "shrank after {at} small frames");
-    assert!(e.gpu_image_buffer_bytes().unwrap() <= 24 * 16 * 16 + 16);
+    // One image-buffer call per small frame (one band): the window closes at its last.
+    assert_eq!(shrunk_at, Some(SHRINK_WINDOW - 1));
+    assert!(e.gpu_image_buffer_bytes().unwrap() <= 24 * 16 * 16);
 }
 
 /// A region larger than one dispatch may cast (one storage binding of the adapter: 8.4 M

@@ -105,6 +105,19 @@ struct Shared {
     done: Condvar,
     stores: Vec<Arc<PageStore>>,
     budget: u64,
+    /// Loader threads running (one that panicked outside a page's read has stopped).
+    loaders: std::sync::atomic::AtomicUsize,
+}
+
+/// Counts its loader out of [`Shared::loaders`] when the loader ends, by return or panic.
+struct LoaderAlive<'a>(&'a Shared);
+
+impl Drop for LoaderAlive<'_> {
+    fn drop(&mut self) {
+        self.0
+            .loaders
+            .fetch_sub(1, std::sync::atomic::Ordering::SeqCst);
+    }
 }
 
 /// The cache and its loader threads.
@@ -127,6 +140,7 @@ impl PageCache {
             done: Condvar::new(),
             stores,
             budget,
+            loaders: std::sync::atomic::AtomicUsize::new(threads.max(1)),
         });
         let threads = (0..threads.max(1))
             .map(|i| {
@@ -143,6 +157,15 @@ impl PageCache {
     /// The budget in bytes.
     pub fn budget(&self) -> u64 {
         self.shared.budget
+    }
+
+    /// Loader threads still running (all of them until the cache drops, unless one panicked
+    /// outside a page's read: a bug this lets tests see).
+    #[doc(hidden)]
+    pub fn loaders_running(&self) -> usize {
+        self.shared
+            .loaders
+            .load(std::sync::atomic::Ordering::SeqCst)
     }
 
     /// Decoded bytes held now.
@@ -399,6 +422,7 @@ fn insert(shared: &Shared, st: &mut State, key: u64, data: PageData, class: Clas
 }
 
 fn loader(shared: Arc<Shared>) {
+    let _alive = LoaderAlive(&shared);
     loop {
         let job = {
             let mut st = shared.state.lock().unwrap_or_else(PoisonError::into_inner);

@@ -616,11 +616,13 @@ async fn mesh(
         quic_peers = n as usize - 1 - shm_count,
         "peer transports"
     );
-    // Bounded in count and in bytes: a peer that floods pieces stalls its own reader (and
-    // through QUIC flow control, itself) instead of growing this worker's memory.
+    // Bounded in count and in bytes (`peer_budget`): a peer that floods pieces stalls the
+    // readers (and through QUIC flow control, itself) instead of growing this worker's memory.
     let (ev_tx, ev_rx) = mpsc::channel(PEER_EVENTS);
-    let budget =
-        PieceBudget::new(ExchangeLimits::for_ranks(n as usize, limits.max_bulk).pending_bytes);
+    // Four of the largest pieces, whatever the run's size (the exchange holds what it has
+    // taken under its own limit): a reservation past it takes the whole budget, so the
+    // largest piece always gets through once the queue drains.
+    let budget = PieceBudget::new(limits.max_bulk.saturating_mul(4));
     for (r, c) in peers.iter().enumerate() {
         if let Some(c) = c {
             let what = describe(&setup.peers, r as u32);
@@ -889,8 +891,11 @@ async fn read_peer(
                     from,
                     at,
                 }) if shm.is_some() => {
-                    // The record is copied out of the segment: its bytes, reserved first.
-                    let reserved = budget.reserve(at.len).await;
+                    // The piece's pixels stay in the mapping (its header and runs are
+                    // copied out), which it keeps alive while queued: its bytes are
+                    // reserved like a received buffer's. (A length past the limit is
+                    // refused by `read_piece`; it reserves no more than the limit.)
+                    let reserved = budget.reserve(at.len.min(limits.max_bulk)).await;
                     let reader = shm.as_mut().unwrap();
                     match tokio::task::block_in_place(|| {
                         reader.read_piece(at, limits.max_bulk, frame, round, from, max_pixels)

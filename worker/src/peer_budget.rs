@@ -3,9 +3,12 @@
 //! A reader reserves a piece's bytes before it decompresses or parses the piece, and the
 //! reservation travels with the piece until the frame loop has handed it to the exchange
 //! (which bounds what it holds itself, `ExchangeLimits::pending_bytes`). So a peer that
-//! floods pieces, or sends small LZ4 blocks that state large pieces, stalls its own reader
-//! (and through QUIC flow control, itself) once the budget is spent, instead of growing this
-//! worker's memory; a queue bounded only by its count of pieces held 64 of the largest.
+//! floods pieces, or sends small LZ4 blocks that state large pieces, stalls the readers
+//! (all of them: the budget is shared, and served first come, first served) once the
+//! budget is spent, and through QUIC flow control itself, instead of growing this worker's
+//! memory; a queue bounded only by its count of pieces held 64 of the largest. Every
+//! reservation is granted once the frame loop drains the queue, which it does whenever a
+//! frame runs.
 
 use std::sync::Arc;
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};

@@ -88,36 +88,44 @@ struct Grow {
     size: u64,
     /// Why the last allocation was refused.
     refused: Option<String>,
-    /// Whether a run of calls that need much less makes it again at their size (the image
-    /// and readback buffers, sized by the frame; not the pools and tables, which other
-    /// calls only make sure exist).
-    shrinks: bool,
-    /// Calls in a row that needed at most a quarter of `size` (see [`shrink_after`]).
-    small_calls: u32,
+    /// Whether the buffer is made again, smaller, when a window of calls needed much less
+    /// (the image and readback buffers, sized by the frame; not the pools and tables, which
+    /// other calls only make sure exist). See [`ShrinkWindow`].
+    shrink: Option<ShrinkWindow>,
 }
 
-/// Calls in a row that need at most a quarter of a buffer before it is made again at the
-/// size asked for: one large frame (a powerwall's, a study's 8K) should not hold its
-/// buffers on a GPU that other workers share for the rest of the run, while a sequence
-/// that alternates sizes (occlusion's first pass at a fraction of the frame) should not
-/// reallocate every frame.
-const SHRINK_AFTER: u32 = 32;
+/// Calls in a window of the buffer's use (see [`ShrinkWindow`]). A frame calls once per
+/// leaf, band and feedback round (the readback buffer twice), so a window spans several
+/// frames of a worker with a few leaves.
+pub const SHRINK_WINDOW: u32 = 128;
 
 /// Buffers under this many bytes are never shrunk (not worth an allocation).
 const SHRINK_FLOOR: u64 = 16 << 20;
 
-/// Whether a buffer of `size` bytes, asked for `bytes` after `small_calls` earlier calls in
-/// a row that needed at most a quarter of it, is made again at `bytes`; returns the new
-/// count of small calls.
-fn shrink_after(size: u64, bytes: u64, small_calls: u32) -> (bool, u32) {
-    if size <= SHRINK_FLOOR || bytes > size / 4 {
-        return (false, 0);
-    }
-    let n = small_calls + 1;
-    if n >= SHRINK_AFTER {
-        (true, 0)
-    } else {
-        (false, n)
+/// When a buffer sized by each call is made again, smaller: after a window of
+/// [`SHRINK_WINDOW`] calls since it was made (or last looked at) whose largest need is at
+/// most a quarter of it, at that largest need. One large frame (a powerwall's, a study's
+/// 8K) then stops holding its memory on a GPU that other workers share, while sizes that
+/// alternate within a window (a worker's large and small leaves, occlusion's first pass at
+/// a fraction of the frame) keep the buffer at the largest of them and never reallocate.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct ShrinkWindow {
+    calls: u32,
+    largest: u64,
+}
+
+impl ShrinkWindow {
+    /// Records a call needing `bytes` of a buffer of `size`: the smaller size to make it
+    /// at, when this call closes a window that needed at most a quarter of it.
+    fn observe(&mut self, size: u64, bytes: u64) -> Option<u64> {
+        self.calls += 1;
+        self.largest = self.largest.max(bytes);
+        if self.calls < SHRINK_WINDOW {
+            return None;
+        }
+        let largest = self.largest;
+        *self = ShrinkWindow::default();
+        (size > SHRINK_FLOOR && largest <= size / 4).then_some(largest)
     }
 }
 
@@ -129,16 +137,15 @@ impl Grow {
             buf: None,
             size: 0,
             refused: None,
-            shrinks: false,
-            small_calls: 0,
+            shrink: None,
         }
     }
 
-    /// A buffer sized by each frame, made again at a run of frames' size when they need much
-    /// less (see [`shrink_after`]).
+    /// A buffer sized by each call, made again smaller when a window of calls needed much
+    /// less (see [`ShrinkWindow`]).
     fn shrinking(label: &'static str, usage: wgpu::BufferUsages) -> Self {
         Grow {
-            shrinks: true,
+            shrink: Some(ShrinkWindow::default()),
             ..Grow::new(label, usage)
         }
     }
@@ -149,22 +156,48 @@ impl Grow {
     fn ensure(&mut self, device: &wgpu::Device, bytes: u64) -> bool {
         let bytes = bytes.max(16).next_multiple_of(16);
         if self.buf.is_some() && self.size >= bytes {
-            if !self.shrinks {
+            let Some(smaller) = self
+                .shrink
+                .as_mut()
+                .and_then(|w| w.observe(self.size, bytes))
+            else {
                 return false;
-            }
-            let (shrink, n) = shrink_after(self.size, bytes, self.small_calls);
-            self.small_calls = n;
-            if !shrink {
-                return false;
-            }
-            tracing::debug!(
-                buffer = self.label,
-                from = self.size,
-                to = bytes,
-                "shrinking a GPU buffer"
-            );
+            };
+            // Made before the large one is freed: a refusal keeps the buffer that works.
+            let mut made = None;
+            let ok = checked(device, self.label, || {
+                made = Some(device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some(self.label),
+                    size: smaller,
+                    usage: self.usage,
+                    mapped_at_creation: false,
+                }));
+            });
+            return match ok {
+                Ok(()) => {
+                    tracing::debug!(
+                        buffer = self.label,
+                        from = self.size,
+                        to = smaller,
+                        "shrank a GPU buffer"
+                    );
+                    self.buf = made;
+                    self.size = smaller;
+                    true
+                }
+                Err(e) => {
+                    tracing::warn!(
+                        buffer = self.label,
+                        smaller,
+                        "GPU allocation refused, keeping the larger buffer: {e:#}"
+                    );
+                    false
+                }
+            };
         }
-        self.small_calls = 0;
+        if let Some(w) = &mut self.shrink {
+            *w = ShrinkWindow::default();
+        }
         self.buf = None; // free before allocating the new one
         let mut made = None;
         let ok = checked(device, self.label, || {
@@ -1325,33 +1358,40 @@ fn checked<T>(device: &wgpu::Device, what: &str, f: impl FnOnce() -> T) -> Resul
 
 #[cfg(test)]
 mod tests {
-    use super::{band_shape, shrink_after, SHRINK_AFTER, SHRINK_FLOOR, WORKGROUP};
+    use super::{band_shape, ShrinkWindow, SHRINK_FLOOR, SHRINK_WINDOW, WORKGROUP};
 
     #[test]
-    fn buffers_shrink_only_after_a_run_of_small_frames() {
+    fn buffers_shrink_to_a_windows_largest_need() {
         let big = 256 << 20;
+        let mut w = ShrinkWindow::default();
         // Small buffers stay, however little is asked.
-        assert_eq!(shrink_after(SHRINK_FLOOR, 16, 1000), (false, 0));
-        // Needing more than a quarter resets the run.
-        assert_eq!(
-            shrink_after(big, big / 4 + 16, SHRINK_AFTER - 1),
-            (false, 0)
-        );
-        // A run of small calls shrinks at its end, and only there.
-        let mut n = 0;
-        for call in 1..=SHRINK_AFTER {
-            let (shrink, next) = shrink_after(big, big / 4, n);
-            assert_eq!(shrink, call == SHRINK_AFTER, "call {call}");
-            n = next;
+        for _ in 0..3 * SHRINK_WINDOW {
+            assert_eq!(w.observe(SHRINK_FLOOR, 16), None);
         }
-        assert_eq!(n, 0);
-        // Alternating sizes (occlusion's first pass, then the frame) never shrink.
-        let mut n = 0;
-        for call in 0..10 * SHRINK_AFTER {
-            let bytes = if call % 2 == 0 { big / 16 } else { big };
-            let (shrink, next) = shrink_after(big, bytes, n);
-            assert!(!shrink);
-            n = next;
+        // A window of small calls shrinks at its end, and only there, to its largest need.
+        let mut w = ShrinkWindow::default();
+        for call in 1..=SHRINK_WINDOW {
+            let need = if call == 7 { big / 4 } else { big / 64 };
+            let got = w.observe(big, need);
+            assert_eq!(
+                got,
+                (call == SHRINK_WINDOW).then_some(big / 4),
+                "call {call}"
+            );
+        }
+        assert_eq!(w, ShrinkWindow::default());
+        // One call past a quarter anywhere in the window keeps the buffer.
+        let mut w = ShrinkWindow::default();
+        for call in 1..=SHRINK_WINDOW {
+            let need = if call == 100 { big / 4 + 16 } else { big / 64 };
+            assert_eq!(w.observe(big, need), None);
+        }
+        // Sizes alternating within a window (a large leaf and small ones, every frame)
+        // never shrink.
+        let mut w = ShrinkWindow::default();
+        for call in 0..20 * SHRINK_WINDOW {
+            let need = if call % 42 == 0 { big } else { big / 16 };
+            assert_eq!(w.observe(big, need), None);
         }
     }
 
