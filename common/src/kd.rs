@@ -533,13 +533,24 @@ impl Decomposition {
     }
 
     /// The cost boxes re-weighted by what the leaves measured: a box in leaf `l` (by its
-    /// centre) costs its estimate times `(measured_l / leaf_cost_l) / (Σ measured / Σ
-    /// leaf_cost)`, at least [`MEASURED_FLOOR`], raised to `damping` in (0, 1] so that one
-    /// noisy frame moves the split only part of the way. A leaf measured at 0 s (off screen)
-    /// takes the floor: otherwise an idle worker would keep its share for good. Leaves with
-    /// no estimate or no measurement (`NaN`) keep their weights, as do all when no leaf
-    /// measured any time. Balancing these boxes re-splits the tree by the view's real work.
-    pub fn reweighted(&self, boxes: &[CostBox], measured: &[f64], damping: f64) -> Vec<CostBox> {
+    /// centre) costs its weight in `boxes` times `(measured_l / leaf_cost_l) / (Σ measured /
+    /// Σ leaf_cost)`, at least [`MEASURED_FLOOR`] of its `estimate` (the parallel boxes of the
+    /// scene's estimate, in the field's units: a floor taken on each re-split's own field had
+    /// compounded, so that a leaf off screen for a few re-splits fell far under it and its
+    /// worker was handed a huge region), raised to `damping` in (0, 1] so that one noisy
+    /// frame moves the split only part of the way. A leaf measured at 0 s (off screen) takes
+    /// the floor: otherwise an idle worker would keep its share for good. Leaves with no
+    /// estimate or no measurement (`NaN`) keep their weights, as do all when no leaf measured
+    /// any time. Balancing these boxes re-splits the tree by the view's real work. (An
+    /// `estimate` of another length than `boxes` floors each box at its own weight's
+    /// fraction.)
+    pub fn reweighted(
+        &self,
+        estimate: &[CostBox],
+        boxes: &[CostBox],
+        measured: &[f64],
+        damping: f64,
+    ) -> Vec<CostBox> {
         let n = self.tree.leaves.len();
         let ok = |v: f64| v.is_finite() && v > 0.0;
         let reported = |v: f64| v.is_finite() && v >= 0.0;
@@ -559,34 +570,93 @@ impl Decomposition {
         } else {
             1.0
         };
-        let ratio: Vec<f64> = (0..n)
+        // Each leaf's measured ratio (`None`: keeps its weights).
+        let ratio: Vec<Option<f64>> = (0..n)
             .map(|l| {
                 let (m, e) = (
                     measured.get(l).copied().unwrap_or(f64::NAN),
                     self.leaf_cost[l],
                 );
-                if reported(m) && ok(e) && ok(sm) && ok(se) {
-                    ((m / e) / (sm / se)).max(MEASURED_FLOOR).powf(d)
-                } else {
-                    1.0
-                }
+                (reported(m) && ok(e) && ok(sm) && ok(se)).then(|| (m / e) / (sm / se))
             })
             .collect();
+        let weight = |b: &CostBox| if ok(b.cost) { b.cost } else { 0.0 };
+        let parallel = estimate.len() == boxes.len();
+        let (field_total, est_total): (f64, f64) = if parallel {
+            (
+                boxes.iter().map(weight).sum(),
+                estimate.iter().map(weight).sum(),
+            )
+        } else {
+            (1.0, 1.0)
+        };
+        let est_to_field = if ok(field_total) && ok(est_total) {
+            field_total / est_total
+        } else {
+            1.0
+        };
         boxes
             .iter()
-            .map(|b| {
+            .enumerate()
+            .map(|(i, b)| {
                 let c = [0, 1, 2].map(|a| 0.5 * (b.region.lo[a] + b.region.hi[a]));
                 let leaf = self
                     .tree
                     .leaves
                     .iter()
                     .position(|r| (0..3).all(|a| r.lo[a] <= c[a] && c[a] < r.hi[a]));
+                let factor = match leaf.and_then(|l| ratio[l]) {
+                    Some(r) if ok(b.cost) => {
+                        let est = if parallel {
+                            weight(&estimate[i])
+                        } else {
+                            b.cost
+                        };
+                        let floor = MEASURED_FLOOR * est_to_field * est / b.cost;
+                        r.max(floor).powf(d)
+                    }
+                    // A box without weight stays without; one whose leaf has no ratio
+                    // keeps its weight.
+                    _ => 1.0,
+                };
                 CostBox {
                     region: b.region,
-                    cost: b.cost * leaf.map_or(1.0, |l| ratio[l]),
+                    cost: b.cost * factor,
                 }
             })
             .collect()
+    }
+
+    /// [`imbalance`](Self::imbalance) of these leaves and owners under other cost boxes
+    /// (each box's part in each leaf, as [`balanced`](Self::balanced) counts it): how well
+    /// the split in force fits a re-weighted field.
+    pub fn imbalance_under(&self, boxes: &[CostBox]) -> f64 {
+        let mut c = vec![0.0; self.workers.max(1)];
+        let sane = |b: &&CostBox| {
+            b.cost.is_finite()
+                && b.cost > 0.0
+                && (0..3).all(|a| {
+                    b.region.lo[a].is_finite()
+                        && b.region.hi[a].is_finite()
+                        && b.region.lo[a] <= b.region.hi[a]
+                })
+        };
+        for (l, r) in self.tree.leaves.iter().enumerate() {
+            let Some(w) = self.owner.get(l).and_then(|&w| c.get_mut(w)) else {
+                continue;
+            };
+            *w += boxes
+                .iter()
+                .filter(sane)
+                .filter_map(|b| clip_box(b, r))
+                .map(|b| b.cost)
+                .sum::<f64>();
+        }
+        let mean = c.iter().sum::<f64>() / c.len() as f64;
+        if !(mean > 0.0 && mean.is_finite()) {
+            return 1.0;
+        }
+        c.iter().copied().fold(0.0, f64::max) / mean
     }
 
     /// Largest worker cost over the mean worker cost (1 when nothing costs anything).
@@ -702,30 +772,48 @@ mod tests {
         // densities 3:1, so half the work lies left of x = 100/3.
         let measured = [3.0, 1.0];
         assert!((d.measured_imbalance(&measured) - 1.5).abs() < 1e-12);
-        let full =
-            Decomposition::balanced(root, &d.reweighted(&boxes, &measured, 1.0), 2, 1, &none);
+        let full = Decomposition::balanced(
+            root,
+            &d.reweighted(&boxes, &boxes, &measured, 1.0),
+            2,
+            1,
+            &none,
+        );
         assert!(
             (split(&full) - 100.0 / 3.0).abs() < 1e-6,
             "{}",
             split(&full)
         );
         // Damped: part of the way.
-        let half =
-            Decomposition::balanced(root, &d.reweighted(&boxes, &measured, 0.5), 2, 1, &none);
+        let half = Decomposition::balanced(
+            root,
+            &d.reweighted(&boxes, &boxes, &measured, 0.5),
+            2,
+            1,
+            &none,
+        );
         assert!(
             split(&half) > 100.0 / 3.0 + 1.0 && split(&half) < 49.0,
             "{}",
             split(&half)
         );
         // Nothing measured: unchanged weights.
-        assert_eq!(d.reweighted(&boxes, &[0.0, 0.0], 1.0), boxes);
-        assert_eq!(d.reweighted(&boxes, &[f64::NAN, f64::NAN], 1.0), boxes);
+        assert_eq!(d.reweighted(&boxes, &boxes, &[0.0, 0.0], 1.0), boxes);
+        assert_eq!(
+            d.reweighted(&boxes, &boxes, &[f64::NAN, f64::NAN], 1.0),
+            boxes
+        );
         assert_eq!(d.measured_imbalance(&[]), 1.0);
         // The right leaf cast nothing (off screen): 0 s is a measurement. Its boxes take
         // the floor, and the idle worker is given most of the busy one's half (the split
         // had stayed at 50 for good, with the idle leaf's ratio left at 1).
-        let idle =
-            Decomposition::balanced(root, &d.reweighted(&boxes, &[3.0, 0.0], 1.0), 2, 1, &none);
+        let idle = Decomposition::balanced(
+            root,
+            &d.reweighted(&boxes, &boxes, &[3.0, 0.0], 1.0),
+            2,
+            1,
+            &none,
+        );
         // Left boxes cost 2 (ratio (3/50)/(3/100)), right ones the floor 0.05: half the
         // 102.5 lies left of 51.25 / 2.
         assert!(
@@ -734,11 +822,45 @@ mod tests {
             split(&idle)
         );
         // A leaf without a measurement (NaN) keeps its weights.
-        let unknown = d.reweighted(&boxes, &[3.0, f64::NAN], 1.0);
+        let unknown = d.reweighted(&boxes, &boxes, &[3.0, f64::NAN], 1.0);
         assert!(
             unknown[99].cost == 1.0 && unknown[0].cost == 1.0,
             "{unknown:?}"
         );
+    }
+
+    /// A leaf off screen for several re-splits in a row takes the floor of its estimate, not
+    /// the floor of each re-split's field again (0.05^d per re-split had compounded: after
+    /// five, a fifth of a percent of the estimate, and its worker handed most of the scene).
+    #[test]
+    fn the_measured_floor_does_not_compound_across_re_splits() {
+        let root = Region {
+            lo: [0.0; 3],
+            hi: [100.0, 10.0, 10.0],
+        };
+        let estimate: Vec<CostBox> = (0..100)
+            .map(|i| CostBox {
+                region: Region {
+                    lo: [i as f64, 0.0, 0.0],
+                    hi: [i as f64 + 1.0, 10.0, 10.0],
+                },
+                cost: 1.0,
+            })
+            .collect();
+        let none = [vec![], vec![], vec![]];
+        let mut field = estimate.clone();
+        for round in 0..6 {
+            let d = Decomposition::balanced(root, &field, 2, 1, &none);
+            // The right leaf sees nothing, every time.
+            field = d.reweighted(&estimate, &field, &[1.0, 0.0], 0.5);
+            let to_field = field.iter().map(|b| b.cost).sum::<f64>() / 100.0;
+            let lowest = field.iter().map(|b| b.cost).fold(f64::INFINITY, f64::min);
+            assert!(
+                lowest >= MEASURED_FLOOR * to_field * (1.0 - 1e-9),
+                "round {round}: {lowest} under the floor {}",
+                MEASURED_FLOOR * to_field
+            );
+        }
     }
 
     /// One brick holding most of a node's cost does not pull the split to its face: the

@@ -493,6 +493,10 @@ pub fn measured_leaf_times(
     (by(false), "wall")
 }
 
+/// How much lower (max / mean worker cost, under the re-weighted field) a new split's
+/// imbalance must be than the split in force's for a re-split to be made.
+pub const MIN_RESPLIT_GAIN: f64 = 0.02;
+
 /// What a frame measured for a re-split: each leaf's time (`NaN`: no report) and, for the
 /// page model, where it went (`(leaf, page key, share)`; empty for the per-leaf model).
 pub struct Measurement<'a> {
@@ -511,6 +515,11 @@ pub struct Measurement<'a> {
 /// an imbalance above the threshold whose damped correction stayed within a brick's
 /// snapping tolerance (`MAX_SNAP`) was otherwise left for good, the same tree computed
 /// again every frame.
+///
+/// A new split is taken only when it fits the re-weighted field better than the split in
+/// force does, by [`MIN_RESPLIT_GAIN`]: where the balanced plane lies between two brick
+/// faces, timing noise put the re-weighted balance on either side of it, and every frame
+/// moved a brick's work (and its pages) back and forth for the same imbalance.
 pub fn resplit(
     estimate: &SceneCosts,
     field: &SceneCosts,
@@ -522,7 +531,7 @@ pub fn resplit(
 ) -> Option<(Decomposition, Vec<CostBox>)> {
     let attempt = |damping: f64| {
         let boxes = if m.work.is_empty() {
-            d.reweighted(&field.boxes, m.times, damping)
+            d.reweighted(&estimate.boxes, &field.boxes, m.times, damping)
         } else {
             reweighted_by_pages(estimate, &field.boxes, d, m.times, m.work, damping)
         };
@@ -534,7 +543,8 @@ pub fn resplit(
             &field.planes,
         );
         let moved = new.tree.leaves != d.tree.leaves || new.owner != d.owner;
-        moved.then_some((new, boxes))
+        let better = new.imbalance() + MIN_RESPLIT_GAIN <= d.imbalance_under(&boxes);
+        (moved && better).then_some((new, boxes))
     };
     attempt(damping).or_else(|| (damping < 1.0).then(|| attempt(1.0)).flatten())
 }
@@ -582,7 +592,7 @@ mod tests {
             times: &[0.62, 0.38],
             work: &[],
         };
-        let damped = d.reweighted(&field.boxes, m.times, 0.5);
+        let damped = d.reweighted(&field.boxes, &field.boxes, m.times, 0.5);
         let again = Decomposition::balanced(root, &damped, 2, 1, &field.planes);
         assert_eq!(again.tree.leaves, d.tree.leaves);
         let (new, _) = resplit(&field, &field, &d, &m, 0.5, 2, 1).expect("a new split");
@@ -594,6 +604,66 @@ mod tests {
             work: &[],
         };
         assert!(resplit(&field, &field, &d, &even, 0.5, 2, 1).is_none());
+    }
+
+    /// Where the balanced plane falls between two brick faces, a split on one face is not
+    /// replaced by the other face's, which balances no better: timing noise had moved a
+    /// brick's work (and pages) back and forth for the same imbalance.
+    #[test]
+    fn a_re_split_that_balances_no_better_is_not_made() {
+        let root = Region {
+            lo: [0.0; 3],
+            hi: [70.0, 10.0, 10.0],
+        };
+        let brick = |i: usize, cost: f64| CostBox {
+            region: Region {
+                lo: [10.0 * i as f64, 0.0, 0.0],
+                hi: [10.0 * (i + 1) as f64, 10.0, 10.0],
+            },
+            cost,
+        };
+        let planes = [(0..8).map(|i| 10.0 * i as f64).collect(), vec![], vec![]];
+        let uniform = SceneCosts {
+            boxes: (0..7).map(|i| brick(i, 1.0)).collect(),
+            planes: planes.clone(),
+            root,
+            datasets: Vec::new(),
+        };
+        // Seven equal bricks: the balance (3.5) lies between faces 30 and 40.
+        let x = Decomposition::balanced(root, &uniform.boxes, 2, 1, &planes);
+        let face = x.tree.leaves[0].hi[0];
+        assert!(face == 30.0 || face == 40.0, "{face}");
+        // The split in force is on the other face (an earlier field put it there), and the
+        // frame measured exactly the uniform field's costs of its leaves.
+        let other = if face == 30.0 { 40.0 } else { 30.0 };
+        let biased: Vec<CostBox> = (0..7)
+            .map(|i| brick(i, if (i as f64) < other / 10.0 { 1.0 } else { 1.5 }))
+            .collect();
+        let mut d = Decomposition::balanced(root, &biased, 2, 1, &planes);
+        assert_eq!(d.tree.leaves[0].hi[0], other);
+        let left = other / 10.0;
+        d.leaf_cost = vec![left, 7.0 - left];
+        let m = Measurement {
+            times: &[left, 7.0 - left],
+            work: &[],
+        };
+        // The uniform field puts the balance on `face`, which is no better than `other`.
+        let (a, b) = (
+            d.imbalance_under(&uniform.boxes),
+            x.imbalance_under(&uniform.boxes),
+        );
+        assert!(
+            (a - 8.0 / 7.0).abs() < 1e-9 && (b - 8.0 / 7.0).abs() < 1e-9,
+            "{a} {b}"
+        );
+        assert!(resplit(&uniform, &uniform, &d, &m, 1.0, 2, 1).is_none());
+        // A measurement that makes the other face better is taken.
+        let m = Measurement {
+            times: &[left * 2.0, 7.0 - left],
+            work: &[],
+        };
+        let (new, _) = resplit(&uniform, &uniform, &d, &m, 1.0, 2, 1).expect("a better split");
+        assert!(new.tree.leaves[0].hi[0] < other);
     }
 
     fn volume_store(dir: &Path, name: &str, dims: [u64; 3], data: Vec<f32>, t: Affine3) -> PathBuf {
@@ -817,7 +887,7 @@ mod tests {
             w[0].max(w[1]) / (0.5 * (w[0] + w[1]))
         };
         let split = |boxes: &[CostBox]| Decomposition::balanced(c.root, boxes, 2, 1, &c.planes);
-        let by_leaves = split(&d.reweighted(&c.boxes, &measured, 1.0));
+        let by_leaves = split(&d.reweighted(&c.boxes, &c.boxes, &measured, 1.0));
         let by_pages = split(&reweighted_by_pages(
             &c, &c.boxes, &d, &measured, &work, 1.0,
         ));
