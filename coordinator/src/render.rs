@@ -734,7 +734,10 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
                 log_frame(sequence.last().expect("just pushed"));
                 progress.inc(1);
                 if f.index != plan.last().map_or(f.index, |l| l.index) {
-                    if let Some(r) = cluster.rebalance(&fr, i as u64) {
+                    // Balancing a survey of millions of bricks takes a while: off the
+                    // runtime's reactor (the connections' keep-alives and readers go on).
+                    let r = tokio::task::block_in_place(|| cluster.rebalance(&fr, i as u64));
+                    if let Some(r) = r {
                         rebalances.push(r);
                     }
                 }
