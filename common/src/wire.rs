@@ -761,7 +761,9 @@ pub struct WorkerFrameStats {
     pub rank: u32,
     /// Position in this frame's visibility order.
     pub position: u32,
-    /// Seconds rendering (all feedback rounds, all leaves, loads included).
+    /// Seconds rendering (all feedback rounds, all leaves, loads included): the frame's
+    /// render, after occlusion's first pass (`prepass_s`) and before its fix-up
+    /// (`fixup_s`); `cast_s` and `load_s` include both of those too.
     pub render_s: f64,
     /// When rendering ended (µs since the Unix epoch, this worker's clock). A timestamp for
     /// logs only: no duration is computed across two hosts' clocks.
@@ -778,7 +780,9 @@ pub struct WorkerFrameStats {
     /// Seconds loading pages and updating the atlas between rounds.
     pub load_s: f64,
     /// Seconds of the final round's cast (all leaves): the converged frame's cost, what the
-    /// in-process summary calls the last frame.
+    /// in-process summary calls the last frame. Where that round re-cast only some tiles
+    /// (selective rounds), the last full round's time scaled by the converged tiles' thread
+    /// time; an occlusion fix-up's cast is added.
     pub last_round_s: f64,
     /// Pages read from disk since this worker first opened the scene (its root pages
     /// included; the engines of earlier set-ups too, after a lost worker's re-mesh), as the
@@ -813,15 +817,15 @@ pub struct WorkerFrameStats {
     /// for `page_work`; at most [`MAX_PAGE_WORK`] records; empty on the GPU backend, which
     /// times no tiles).
     pub page_work: Vec<PageWork>,
-    /// Seconds encoding pieces, the outgoing ones and the final one (active-pixel runs,
-    /// f16 conversion).
+    /// Seconds encoding outgoing pieces (active-pixel runs, f16 conversion); the final
+    /// piece's encoding is in `gather_s`.
     pub encode_s: f64,
     /// Seconds in the exchange: sending and waiting for pieces.
     pub exchange_s: f64,
     /// Seconds blending received pieces.
     pub blend_s: f64,
-    /// Seconds handing the final piece to the coordinator's transport (written to the
-    /// shared-memory segment, or serialized for QUIC).
+    /// Seconds encoding the final piece and handing it to the coordinator's transport
+    /// (written to the shared-memory segment or canvas, or serialized for QUIC).
     pub gather_s: f64,
     /// Bytes sent to peers (both transports).
     pub bytes_sent: u64,

@@ -414,9 +414,11 @@ pub struct FrameResult {
     /// Coordinator's wall time for the frame.
     pub wall_s: f64,
     /// The whole compositing (exchange + gather), as IceT's frame time measures it: this
-    /// coordinator's time from sending the frame to the last final piece, less the slowest
-    /// worker's render time. Both are durations, each on one clock; no timestamp of one
-    /// host is subtracted from another's. It includes one request's latency.
+    /// coordinator's time from sending the frame requests (after its canvas is ready) to the
+    /// last final piece, less the slowest worker's render (its render, first pass,
+    /// occlusion wait and re-cast). Both are durations, each on one clock; no timestamp of
+    /// one host is subtracted from another's. It includes the requests' sending and one
+    /// request's latency, and a wall's tile writes on its drivers.
     pub composite_s: f64,
     /// Bytes of final pieces received (those written into the canvas counted as the f32
     /// pixels written).
@@ -1822,6 +1824,9 @@ impl Cluster {
                 fd: id.fd,
             }
         });
+        // Compositing is timed from here: the canvas (mapped in full when it is made, tens
+        // of MB on a frame's first use) is not compositing.
+        let t_sent = Instant::now();
         for (slot, &rank) in slots.iter().enumerate() {
             let mine = self.decomposition.worker_leaves(slot);
             let leaf_order = self
@@ -1862,7 +1867,7 @@ impl Cluster {
         let n = self.workers.len();
         let mut stats: Vec<Option<WorkerFrameStats>> = vec![None; n];
         let mut pieces: Vec<Option<Final>> = (0..n).map(|_| None).collect();
-        let mut last_arrival = t0;
+        let mut last_arrival = t_sent;
         let mut gather_bytes = 0u64;
         let mut collect_s = 0.0;
         let deadline = t0 + self.opts.frame_timeout;
@@ -2207,7 +2212,7 @@ impl Cluster {
             .fold(0.0, f64::max);
         Ok(FrameResult {
             image,
-            composite_s: ((last_arrival - t0).as_secs_f64() - slowest_render).max(0.0),
+            composite_s: ((last_arrival - t_sent).as_secs_f64() - slowest_render).max(0.0),
             stats,
             wall_s: t0.elapsed().as_secs_f64(),
             gather_bytes,

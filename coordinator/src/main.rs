@@ -874,9 +874,11 @@ fn run(cli: Cli) -> Result<()> {
                 s.seconds,
                 s.outcome,
                 s.rounds,
-                s.last_frame_seconds,
+                s.last_frame_seconds + s.first_pass_seconds,
                 s.samples,
-                s.samples as f64 / s.last_frame_seconds.max(1e-9) / 1e6
+                // Every cast the samples count over its time (distributed: the occlusion
+                // first pass's too).
+                s.samples as f64 / (s.last_frame_seconds + s.first_pass_seconds).max(1e-9) / 1e6
             );
             println!("backend: {}", s.backend);
             println!("effects: {}; code path: {}", s.effects, s.variant);
