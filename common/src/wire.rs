@@ -28,7 +28,7 @@ use serde::{de::DeserializeOwned, Deserialize, Serialize};
 /// Frame magic.
 pub const MAGIC: [u8; 4] = *b"STRF";
 /// Protocol version; bumped on any incompatible change of the header or the messages.
-pub const PROTOCOL_VERSION: u16 = 12;
+pub const PROTOCOL_VERSION: u16 = 13;
 /// Size of the frame header.
 pub const HEADER_LEN: usize = 24;
 /// Largest meta message any endpoint accepts (control messages are small; the scene text
@@ -779,6 +779,12 @@ pub struct WorkerFrameStats {
     pub cpu_s: f64,
     /// Seconds loading pages and updating the atlas between rounds.
     pub load_s: f64,
+    /// Seconds of each feedback round's cast, summed over the worker's leaves (round `k` of
+    /// every leaf's batch, and of an occlusion fix-up's, in entry `k`; the first pass is
+    /// not in it).
+    pub round_cast_s: Vec<f64>,
+    /// Seconds of each feedback round's loads and atlas update, summed as `round_cast_s`.
+    pub round_load_s: Vec<f64>,
     /// Seconds of the final round's cast (all leaves): the converged frame's cost, what the
     /// in-process summary calls the last frame. Where that round re-cast only some tiles
     /// (selective rounds), the last full round's time scaled by the converged tiles' thread

@@ -334,7 +334,7 @@ fn frame_progress(progress: &ProgressBar, frames: usize) {
 }
 
 /// One frame of a run, as `--stats` reports it (`"kind": "frame"`).
-#[derive(Clone, Debug, serde::Serialize)]
+#[derive(Clone, Debug, Default, serde::Serialize)]
 pub struct FrameSummary {
     /// Frame number.
     pub frame: u32,
@@ -352,6 +352,25 @@ pub struct FrameSummary {
     /// Trilinear samples of the frame's final round (all workers; distributed, with their
     /// occlusion re-casts and first pass, as [`RenderSummary::samples`]).
     pub samples: u64,
+    /// Seconds of the final round's cast ([`RenderSummary::last_frame_seconds`] of this
+    /// frame: distributed, the slowest worker's).
+    pub last_round_seconds: f64,
+    /// Seconds of each feedback round's cast (distributed: the slowest worker's in each
+    /// round, its leaves summed; see `WorkerFrameStats::round_cast_s`).
+    pub round_cast_seconds: Vec<f64>,
+    /// Seconds of each round's loads and atlas update, as `round_cast_seconds`.
+    pub round_load_seconds: Vec<f64>,
+    /// Seconds casting, all rounds (distributed: summed over the workers).
+    pub cast_seconds: f64,
+    /// Seconds loading pages and updating the atlas (distributed: summed over the workers).
+    pub load_seconds: f64,
+    /// Exchange + gather (distributed: `FrameResult::composite_s`; 0 in-process).
+    pub composite_seconds: f64,
+    /// Bytes the workers sent each other (0 in-process).
+    pub exchange_bytes: u64,
+    /// Bytes received with the final pieces, as [`RenderSummary::gather_bytes`] (0
+    /// in-process).
+    pub gather_bytes: u64,
     /// Cross-worker occlusion (`cluster.occlusion`): screen blocks the workers left uncast,
     /// predicted hidden by the workers in front of them (summed over the workers; 0
     /// in-process).
@@ -365,6 +384,20 @@ pub struct FrameSummary {
     pub effects: String,
     /// The code path that drew them, e.g. `specialised [volume+horizons] simd`.
     pub variant: String,
+}
+
+/// The largest value of each round over the workers' per-round lists.
+fn slowest_per_round<'a>(lists: impl Iterator<Item = &'a [f64]>) -> Vec<f64> {
+    let mut out: Vec<f64> = Vec::new();
+    for l in lists {
+        if out.len() < l.len() {
+            out.resize(l.len(), 0.0);
+        }
+        for (o, &v) in out.iter_mut().zip(l) {
+            *o = o.max(v);
+        }
+    }
+    out
 }
 
 /// Joins the distinct non-empty strings, in order of first appearance, by `; `.
@@ -740,6 +773,18 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
                     rounds: fr.stats.iter().map(|s| s.render_rounds).max().unwrap_or(0),
                     outcome: worst_outcome(fr.stats.iter().map(|s| s.outcome.as_str())),
                     samples: saturating_total(fr.stats.iter().map(|s| s.samples)),
+                    last_round_seconds: fr.stats.iter().map(|s| s.last_round_s).fold(0.0, f64::max),
+                    round_cast_seconds: slowest_per_round(
+                        fr.stats.iter().map(|s| &s.round_cast_s[..]),
+                    ),
+                    round_load_seconds: slowest_per_round(
+                        fr.stats.iter().map(|s| &s.round_load_s[..]),
+                    ),
+                    cast_seconds: fr.stats.iter().map(|s| s.cast_s).sum(),
+                    load_seconds: fr.stats.iter().map(|s| s.load_s).sum(),
+                    composite_seconds: fr.composite_s,
+                    exchange_bytes: saturating_total(fr.stats.iter().map(|s| s.bytes_sent)),
+                    gather_bytes: fr.gather_bytes,
                     occluded_blocks: saturating_total(fr.stats.iter().map(|s| s.occluded_blocks)),
                     fixup_blocks: saturating_total(fr.stats.iter().map(|s| s.fixup_blocks)),
                     effects: distinct(fr.stats.iter().map(|s| s.effects.as_str())),
@@ -927,6 +972,14 @@ pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result
                 rounds: result.rounds,
                 outcome: result.outcome.clone().as_str().into(),
                 samples: result.last.samples,
+                last_round_seconds: result.last_seconds,
+                round_cast_seconds: result.round_cast_seconds.clone(),
+                round_load_seconds: result.round_load_seconds.clone(),
+                cast_seconds: result.cast_seconds,
+                load_seconds: result.load_seconds,
+                composite_seconds: 0.0,
+                exchange_bytes: 0,
+                gather_bytes: 0,
                 occluded_blocks: 0,
                 fixup_blocks: 0,
                 effects: result.variant.effects.to_string(),
@@ -1007,11 +1060,7 @@ mod tests {
             seconds: 0.0,
             rounds: 1,
             outcome: "converged".into(),
-            samples: 0,
-            occluded_blocks: 0,
-            fixup_blocks: 0,
-            effects: String::new(),
-            variant: String::new(),
+            ..Default::default()
         };
         let worker = |rank: u32| WorkerFrameStats {
             rank,

@@ -1333,6 +1333,65 @@ fn an_orbit_renders_every_frame_on_one_set_of_workers_like_in_process() {
         assert!(f("last_frame_seconds") < f("cast_seconds"), "{v}");
         assert!(f("composite_seconds") >= 0.0, "{v}");
     }
+    // Each frame line carries its render per round, loads and compositing, under the same
+    // names in both modes.
+    let frames = |s: &str| -> Vec<serde_json::Value> {
+        s.lines()
+            .filter(|l| l.contains("\"kind\":\"frame\""))
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect()
+    };
+    let (fa, fb) = (frames(&in_stats), frames(&dist_stats));
+    assert_eq!(keys(&fa[0]), keys(&fb[0]));
+    let workers: Vec<serde_json::Value> = dist_stats
+        .lines()
+        .filter(|l| l.contains("\"kind\":\"worker\""))
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    for (mode, lines) in [("in-process", &fa), ("distributed", &fb)] {
+        for (i, v) in lines.iter().enumerate() {
+            let f = |k: &str| v[k].as_f64().unwrap_or_else(|| panic!("{k} in {v}"));
+            let rounds: Vec<f64> = v["round_cast_seconds"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|r| r.as_f64().unwrap())
+                .collect();
+            let loads = v["round_load_seconds"].as_array().unwrap();
+            assert_eq!(
+                rounds.len() as u64,
+                v["rounds"].as_u64().unwrap(),
+                "{mode}: {v}"
+            );
+            assert_eq!(loads.len(), rounds.len(), "{mode}: {v}");
+            assert!(rounds.iter().all(|&r| r > 0.0), "{mode}: {v}");
+            assert!(
+                f("last_round_seconds") > 0.0 && f("cast_seconds") > 0.0,
+                "{mode}: {v}"
+            );
+            if mode == "in-process" {
+                // One engine: its rounds add up to its casting.
+                let sum: f64 = rounds.iter().sum();
+                assert!((sum - f("cast_seconds")).abs() < 1e-9, "{mode}: {v}");
+                assert_eq!(f("composite_seconds"), 0.0);
+            } else {
+                // The slowest worker's cast in each round; casting summed over them.
+                let mine: Vec<&serde_json::Value> =
+                    workers.iter().filter(|w| w["frame"] == i as u64).collect();
+                assert_eq!(mine.len(), 2);
+                for (k, &r) in rounds.iter().enumerate() {
+                    let slowest = mine
+                        .iter()
+                        .filter_map(|w| w["round_cast_s"][k].as_f64())
+                        .fold(0.0, f64::max);
+                    assert_eq!(r, slowest, "round {k}: {v}");
+                }
+                let cast: f64 = mine.iter().map(|w| w["cast_s"].as_f64().unwrap()).sum();
+                assert!((cast - f("cast_seconds")).abs() < 1e-9, "{v}");
+                assert!(f("composite_seconds") > 0.0, "{v}");
+            }
+        }
+    }
 
     // A sequence needs numbered outputs: refused before anything is rendered or written.
     let plain = dir.path().join("plain.png");

@@ -107,6 +107,10 @@ pub struct BatchResult {
     pub load_seconds: f64,
     /// Per-round reports.
     pub reports: Vec<UpdateReport>,
+    /// Seconds of each round's cast (a selective round's: of the tiles it cast again).
+    pub round_cast_seconds: Vec<f64>,
+    /// Seconds of each round's loads and atlas update, after its cast.
+    pub round_load_seconds: Vec<f64>,
     /// The backend and adapter that rendered (see [`Engine::backend_name`]).
     pub backend: String,
     /// GPU transfer counters of the final frame (zero on the CPU backend).
@@ -1136,6 +1140,7 @@ impl Engine {
         let mut reports = Vec::new();
         let mut total = CastStats::default();
         let (mut cast_s, mut load_s) = (0.0, 0.0);
+        let (mut round_cast, mut round_load) = (Vec::new(), Vec::new());
         let mut rounds = 0;
         let mut uploaded_bytes = 0;
         // The last round's frame and the tiles to cast again (selective rounds).
@@ -1152,6 +1157,7 @@ impl Engine {
                 full = Some((f.seconds, f.tiles.iter().map(|t| t.seconds).sum()));
             }
             cast_s += f.seconds;
+            round_cast.push(f.seconds);
             uploaded_bytes += f.gpu.uploaded_bytes;
             total += f.stats;
             if let Some((prev, mask)) = last.take() {
@@ -1164,7 +1170,9 @@ impl Engine {
             };
             let t = Instant::now();
             let rep = self.update(&f.feedback, true).context("batch round")?;
-            load_s += t.elapsed().as_secs_f64();
+            let loads = t.elapsed().as_secs_f64();
+            load_s += loads;
+            round_load.push(loads);
             let outcome = if rep.missing == 0 {
                 Some(Outcome::Converged)
             } else if rep.uploaded == 0 && rep.no_slot > 0 {
@@ -1217,6 +1225,8 @@ impl Engine {
                     cast_seconds: cast_s,
                     load_seconds: load_s,
                     reports,
+                    round_cast_seconds: round_cast,
+                    round_load_seconds: round_load,
                     backend: self.backend_name(),
                     last_gpu: f.gpu,
                     uploaded_bytes,

@@ -1866,6 +1866,8 @@ impl Node {
                     stats.render_rounds = stats.render_rounds.max(r.rounds);
                     stats.cast_s += r.cast_seconds;
                     stats.load_s += r.load_seconds;
+                    add_per_round(&mut stats.round_cast_s, &r.round_cast_seconds);
+                    add_per_round(&mut stats.round_load_s, &r.round_load_seconds);
                     stats.last_round_s += r.last_seconds;
                     stats.leaf_cast_s[leaf as usize] += r.last_seconds;
                     // A leaf's CPU time over the render threads; without one (GPU backend,
@@ -1922,6 +1924,16 @@ impl Node {
                 Ok(images)
             }
         }
+    }
+}
+
+/// Adds each round's seconds into the entry of its round.
+fn add_per_round(sums: &mut Vec<f64>, rounds: &[f64]) {
+    if sums.len() < rounds.len() {
+        sums.resize(rounds.len(), 0.0);
+    }
+    for (s, r) in sums.iter_mut().zip(rounds) {
+        *s += r;
     }
 }
 
