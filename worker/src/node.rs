@@ -493,7 +493,8 @@ async fn mesh(
                         })?;
                     transport::trust(&c);
                     let hello = PeerMsg::Hello { token, rank };
-                    send_uni(&c, &wire::encode_meta(&hello), &[])
+                    let hello = wire::encode_meta(&hello);
+                    with_timeout(left, "peer hello", send_uni(&c, &hello, &[]))
                         .await
                         .with_context(|| format!("greeting worker {r} ({})", p.name))?;
                     let welcome = async {
