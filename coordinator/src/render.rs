@@ -448,7 +448,9 @@ pub struct RenderSummary {
     /// without occlusion): with `last_frame_seconds`, the time of the casts `samples`
     /// counts.
     pub first_pass_seconds: f64,
-    /// Seconds casting over all rounds and frames (distributed: summed over the workers).
+    /// Seconds casting over all rounds and frames (distributed: summed over the workers;
+    /// an attempt abandoned when a worker was lost is not in it: its time is in the frame's
+    /// `seconds` and the loss's `recovery_s`).
     pub cast_seconds: f64,
     /// Seconds loading pages and updating the atlas (distributed: summed over the workers).
     pub load_seconds: f64,
