@@ -493,8 +493,8 @@ pub fn measured_leaf_times(
     (by(false), "wall")
 }
 
-/// How much lower (max / mean worker cost, under the re-weighted field) a new split's
-/// imbalance must be than the split in force's for a re-split to be made.
+/// How much lower (max / mean worker cost, under the undamped re-weighted field) a new
+/// split's imbalance must be than the split in force's for a re-split to be made.
 pub const MIN_RESPLIT_GAIN: f64 = 0.02;
 
 /// What a frame measured for a re-split: each leaf's time (`NaN`: no report) and, for the
@@ -516,10 +516,11 @@ pub struct Measurement<'a> {
 /// snapping tolerance (`MAX_SNAP`) was otherwise left for good, the same tree computed
 /// again every frame.
 ///
-/// A new split is taken only when it fits the re-weighted field better than the split in
-/// force does, by [`MIN_RESPLIT_GAIN`]: where the balanced plane lies between two brick
-/// faces, timing noise put the re-weighted balance on either side of it, and every frame
-/// moved a brick's work (and its pages) back and forth for the same imbalance.
+/// A new split is taken only when, under the undamped re-weighted field (the frame's whole
+/// measurement), its imbalance is lower than the split in force's by
+/// [`MIN_RESPLIT_GAIN`]: where the balanced plane lies between two brick faces, timing
+/// noise put the re-weighted balance on either side of it, and every frame moved a brick's
+/// work (and its pages) back and forth for the same imbalance.
 pub fn resplit(
     estimate: &SceneCosts,
     field: &SceneCosts,
@@ -529,24 +530,43 @@ pub fn resplit(
     workers: usize,
     leaves_per_worker: usize,
 ) -> Option<(Decomposition, Vec<CostBox>)> {
-    let attempt = |damping: f64| {
-        let boxes = if m.work.is_empty() {
+    let reweight = |damping: f64| {
+        if m.work.is_empty() {
             d.reweighted(&estimate.boxes, &field.boxes, m.times, damping)
         } else {
             reweighted_by_pages(estimate, &field.boxes, d, m.times, m.work, damping)
-        };
-        let new = Decomposition::balanced(
-            field.root,
-            &boxes,
-            workers,
-            leaves_per_worker,
-            &field.planes,
-        );
-        let moved = new.tree.leaves != d.tree.leaves || new.owner != d.owner;
-        let better = new.imbalance() + MIN_RESPLIT_GAIN <= d.imbalance_under(&boxes);
-        (moved && better).then_some((new, boxes))
+        }
     };
-    attempt(damping).or_else(|| (damping < 1.0).then(|| attempt(1.0)).flatten())
+    // Splits are judged on the undamped field, the frame's full measurement: on a damped
+    // one the split in force shows only part of the measured imbalance.
+    let full = reweight(1.0);
+    let current = d.imbalance_under(&full);
+    let split = |boxes: &[CostBox]| {
+        let new =
+            Decomposition::balanced(field.root, boxes, workers, leaves_per_worker, &field.planes);
+        let moved = new.tree.leaves != d.tree.leaves || new.owner != d.owner;
+        (moved, new)
+    };
+    let better = |new: &Decomposition| new.imbalance_under(&full) + MIN_RESPLIT_GAIN <= current;
+    let damped = if damping < 1.0 {
+        reweight(damping)
+    } else {
+        full.clone()
+    };
+    let (moved, new) = split(&damped);
+    if moved {
+        return better(&new).then_some((new, damped));
+    }
+    // Snapped back to the same faces: tried once undamped (not when the damped split moved
+    // and gained too little: the noisiest imbalances, near the threshold, would get full
+    // corrections).
+    if damping < 1.0 {
+        let (moved, new) = split(&full);
+        if moved && better(&new) {
+            return Some((new, full));
+        }
+    }
+    None
 }
 
 #[cfg(test)]
@@ -664,6 +684,43 @@ mod tests {
         };
         let (new, _) = resplit(&uniform, &uniform, &d, &m, 1.0, 2, 1).expect("a better split");
         assert!(new.tree.leaves[0].hi[0] < other);
+    }
+
+    /// A damped re-split that moves and gains enough on the frame's whole measurement is
+    /// made as it is (damped), not replaced by the undamped one.
+    #[test]
+    fn a_damped_re_split_that_gains_enough_stays_damped() {
+        let root = Region {
+            lo: [0.0; 3],
+            hi: [100.0, 10.0, 10.0],
+        };
+        let field = SceneCosts {
+            boxes: (0..100)
+                .map(|i| CostBox {
+                    region: Region {
+                        lo: [i as f64, 0.0, 0.0],
+                        hi: [i as f64 + 1.0, 10.0, 10.0],
+                    },
+                    cost: 1.0,
+                })
+                .collect(),
+            planes: [vec![], vec![], vec![]],
+            root,
+            datasets: Vec::new(),
+        };
+        let d = Decomposition::balanced(root, &field.boxes, 2, 1, &field.planes);
+        assert_eq!(d.tree.leaves[0].hi[0], 50.0);
+        // Measured 1.12: undamped the balance lies at 50 / 1.12 = 44.6; damped by half at
+        // 50 · 1.0583 ... = 47.2.
+        let m = Measurement {
+            times: &[0.56, 0.44],
+            work: &[],
+        };
+        let (new, _) = resplit(&field, &field, &d, &m, 0.5, 2, 1).expect("a re-split");
+        let x = new.tree.leaves[0].hi[0];
+        let (l, r) = (1.12f64.sqrt(), 0.88f64.sqrt());
+        let damped = 50.0 * (l + r) / 2.0 / l;
+        assert!((x - damped).abs() < 1e-6, "split at {x}, damped {damped}");
     }
 
     fn volume_store(dir: &Path, name: &str, dims: [u64; 3], data: Vec<f32>, t: Affine3) -> PathBuf {

@@ -868,7 +868,7 @@ fn run(cli: Cli) -> Result<()> {
                 return Ok(());
             }
             println!(
-                "rendered {}x{} in {:.2} s: {} after {} round(s); last frame {:.3} s, {} samples ({:.1} M samples/s)",
+                "rendered {}x{} in {:.2} s: {} after {} round(s); last frame's casts {:.3} s, {} samples ({:.1} M samples/s)",
                 s.width,
                 s.height,
                 s.seconds,

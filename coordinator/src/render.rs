@@ -360,7 +360,8 @@ pub struct FrameSummary {
     pub round_cast_seconds: Vec<f64>,
     /// Seconds of each round's loads and atlas update, as `round_cast_seconds`.
     pub round_load_seconds: Vec<f64>,
-    /// Seconds casting, all rounds (distributed: summed over the workers).
+    /// Seconds casting, all rounds (distributed: summed over the workers, their occlusion
+    /// first pass and re-cast included).
     pub cast_seconds: f64,
     /// Seconds loading pages and updating the atlas (distributed: summed over the workers).
     pub load_seconds: f64,
@@ -443,10 +444,11 @@ pub struct RenderSummary {
     /// worker's, all its leaves, its occlusion re-cast included; with selective rounds the
     /// last full round's time scaled to the converged tiles, see `last_round_s`).
     pub last_frame_seconds: f64,
-    /// Seconds of the last frame's occlusion first pass (its map exchange included) and
-    /// wait for the frame's front map (the largest sum of any worker; 0 in-process and
-    /// without occlusion): with `last_frame_seconds`, the time of the casts `samples`
-    /// counts.
+    /// Seconds of the last frame's occlusion first pass, its low-resolution map exchange
+    /// included (the slowest worker's; 0 in-process, without occlusion and on frames that
+    /// predict from the previous one): with `last_frame_seconds`, the time of the casts
+    /// `samples` counts. (The wait for the full frame's front map is not in it: that is
+    /// the front workers' render, which `last_frame_seconds` holds already.)
     pub first_pass_seconds: f64,
     /// Seconds casting over all rounds and frames (distributed: summed over the workers;
     /// an attempt abandoned when a worker was lost is not in it: its time is in the frame's
@@ -795,10 +797,9 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
                 log_frame(sequence.last().expect("just pushed"));
                 progress.inc(1);
                 if f.index != plan.last().map_or(f.index, |l| l.index) {
-                    // Balancing a survey of millions of bricks takes a while: off the
-                    // runtime's reactor (the connections' keep-alives and readers go on).
-                    let r = tokio::task::block_in_place(|| cluster.rebalance(&fr, i as u64));
-                    if let Some(r) = r {
+                    // (On the thread that drives the run, not a runtime worker: the
+                    // connections' readers and keep-alives go on while it balances.)
+                    if let Some(r) = cluster.rebalance(&fr, i as u64) {
                         rebalances.push(r);
                     }
                 }
@@ -856,11 +857,7 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
         // (of the slowest worker), casting and loading summed over the engines and the run's
         // frames, reads and cache lookups over the engines since they opened the scene.
         last_frame_seconds: fr.stats.iter().map(|s| s.last_round_s).fold(0.0, f64::max),
-        first_pass_seconds: fr
-            .stats
-            .iter()
-            .map(|s| s.prepass_s + s.occlusion_s)
-            .fold(0.0, f64::max),
+        first_pass_seconds: fr.stats.iter().map(|s| s.prepass_s).fold(0.0, f64::max),
         cast_seconds: frames.iter().flatten().map(|s| s.cast_s).sum(),
         load_seconds: frames.iter().flatten().map(|s| s.load_s).sum(),
         // Cache counters are per worker since it opened the scene: the last frame's.

@@ -226,8 +226,8 @@ pub(crate) fn measure(
             let s = render_distributed(&ro, &ProgressBar::hidden())?;
             let image = read_exr(&exr)?;
             Ok(Measured {
-                // The time of every cast `samples` counts (first pass and occlusion wait
-                // included: the compositing time leaves them out) and the compositing.
+                // The time of every cast `samples` counts (the occlusion first pass too,
+                // which the compositing time leaves out) and the compositing.
                 seconds: s.last_frame_seconds + s.first_pass_seconds + s.composite_seconds,
                 samples: s.samples,
                 image,
