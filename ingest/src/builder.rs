@@ -173,6 +173,19 @@ pub fn build_store(
     if opts.kind == DataKind::Horizon && opts.sample_type != SampleType::F32 {
         bail!("horizon stores hold f32 heights");
     }
+    // The height filter keeps holes (a coarse node is a hole wherever a child is); the
+    // volume filters skip no-data, which on a horizon invents heights across holes, and
+    // the height filter on a volume would grow its no-data level by level.
+    match (opts.kind, opts.filter) {
+        (DataKind::Horizon, f) if f != CoarsenFilter::HorizonMean => bail!(
+            "the {} filter is for volumes: a horizon coarsens with horizon-mean (it keeps holes)",
+            f.name()
+        ),
+        (DataKind::Volume, CoarsenFilter::HorizonMean) => bail!(
+            "the horizon-mean filter is for horizons: a volume coarsens with mean, signed-rms or max-abs"
+        ),
+        _ => {}
+    }
     if !opts.transform.is_finite() || opts.transform.inverse().is_none() {
         bail!(
             "the index→world transform {:?} is not finite and invertible (a zero or vanishing sample step?)",

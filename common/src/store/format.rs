@@ -283,7 +283,9 @@ impl Preamble {
 }
 
 /// Shuffles bytes so that byte `k` of every element is contiguous (LZ4 then finds the
-/// runs in slowly varying high bytes of i16/f32 samples).
+/// runs in slowly varying high bytes of i16/f32 samples). Bytes past the last whole element
+/// follow as they are: a horizon page of odd side (`5·page²` bytes in 4-byte elements)
+/// ends in one, its corner's mask byte, which had been dropped (stored as 0, a hole).
 pub(crate) fn shuffle(data: &[u8], elem: usize) -> Vec<u8> {
     if elem <= 1 {
         return data.to_vec();
@@ -295,9 +297,11 @@ pub(crate) fn shuffle(data: &[u8], elem: usize) -> Vec<u8> {
             out[k * n + i] = byte;
         }
     }
+    out[n * elem..].copy_from_slice(&data[n * elem..]);
     out
 }
 
+/// Undoes [`shuffle`].
 pub(crate) fn unshuffle(data: &[u8], elem: usize) -> Vec<u8> {
     if elem <= 1 {
         return data.to_vec();
@@ -309,6 +313,7 @@ pub(crate) fn unshuffle(data: &[u8], elem: usize) -> Vec<u8> {
             *byte = data[k * n + i];
         }
     }
+    out[n * elem..].copy_from_slice(&data[n * elem..]);
     out
 }
 
@@ -455,9 +460,12 @@ mod tests {
 
     #[test]
     fn shuffle_round_trip() {
-        let d: Vec<u8> = (0..40).collect();
-        for e in [1, 2, 4] {
-            assert_eq!(unshuffle(&shuffle(&d, e), e), d);
+        // Lengths that are not a multiple of the element too (a horizon page of odd side).
+        for len in [40u8, 41, 42, 43, 125] {
+            let d: Vec<u8> = (1..=len).collect();
+            for e in [1, 2, 4] {
+                assert_eq!(unshuffle(&shuffle(&d, e), e), d, "{len} bytes, {e}-byte elements");
+            }
         }
     }
 
