@@ -56,6 +56,16 @@ impl SampleType {
     pub fn is_signed(self) -> bool {
         matches!(self, SampleType::I8 | SampleType::I16 | SampleType::F32)
     }
+    /// Whether `v` can be this type's no-data sentinel: for integer types a value the type
+    /// holds (a sentinel it cannot hold is written as another value, and holes read back as
+    /// data); for `f32`, anything but NaN (NaN is no-data anyway).
+    pub fn holds_sentinel(self, v: f32) -> bool {
+        if self == SampleType::F32 {
+            return !v.is_nan();
+        }
+        let (lo, hi) = self.range();
+        v.is_finite() && v.fract() == 0.0 && lo <= v && v <= hi
+    }
     /// Representable range as `f32`.
     pub fn range(self) -> (f32, f32) {
         match self {
@@ -157,6 +167,18 @@ impl SampleType {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_sentinel_must_be_a_value_of_the_type() {
+        assert!(SampleType::U8.holds_sentinel(0.0) && SampleType::U8.holds_sentinel(255.0));
+        for v in [-1.0, 256.0, 0.5, f32::NAN, f32::INFINITY] {
+            assert!(!SampleType::U8.holds_sentinel(v), "{v}");
+        }
+        assert!(SampleType::I16.holds_sentinel(-32768.0));
+        assert!(!SampleType::I16.holds_sentinel(-32769.0));
+        assert!(SampleType::F32.holds_sentinel(-999.25));
+        assert!(!SampleType::F32.holds_sentinel(f32::NAN));
+    }
     use proptest::prelude::*;
 
     #[test]

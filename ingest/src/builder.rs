@@ -173,6 +173,15 @@ pub fn build_store(
     if opts.kind == DataKind::Horizon && opts.sample_type != SampleType::F32 {
         bail!("horizon stores hold f32 heights");
     }
+    if let Some(v) = opts
+        .no_data
+        .filter(|&v| !opts.sample_type.holds_sentinel(v))
+    {
+        bail!(
+            "the no-data value {v} is not a {} value: holes would be written as another value and read back as data",
+            opts.sample_type.name()
+        );
+    }
     // The height filter keeps holes (a coarse node is a hole wherever a child is); the
     // volume filters skip no-data, which on a horizon invents heights across holes, and
     // the height filter on a volume would grow its no-data level by level.

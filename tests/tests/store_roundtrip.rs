@@ -406,6 +406,34 @@ fn compressed_horizon_tiles_of_odd_side_keep_their_corners() {
     check_coarse_levels(&store).unwrap();
 }
 
+/// A no-data value the sample type cannot hold (`-1` or `0.5` in u8) is refused: holes
+/// would be written as another value (0) and read back as data, under the pages' bounds.
+#[test]
+fn a_no_data_value_outside_the_sample_type_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let v = MemorySource {
+        dims: [8, 8, 8],
+        data: (0..512)
+            .map(|i| if i % 7 == 0 { f32::NAN } else { 9.0 })
+            .collect(),
+    };
+    for bad in [-1.0f32, 0.5, 256.0] {
+        let out = dir.path().join(format!("v{bad}.strata"));
+        let mut o = BuildOptions::volume("v", SampleType::U8);
+        o.no_data = Some(bad);
+        let e = build_store(&v, &out, &o, &ProgressBar::hidden()).unwrap_err();
+        assert!(format!("{e:#}").contains("no-data value"), "{e:#}");
+        assert!(!out.exists());
+    }
+    let out = dir.path().join("v0.strata");
+    let mut o = BuildOptions::volume("v", SampleType::U8);
+    o.no_data = Some(0.0);
+    build_store(&v, &out, &o, &ProgressBar::hidden()).unwrap();
+    let s = PageStore::open(&out).unwrap();
+    let l0 = level_grid(&s, 0).unwrap();
+    assert_eq!(l0.iter().filter(|x| x.is_nan()).count(), 74);
+}
+
 /// Each kind of data coarsens with its own filters: the volume filters skip holes, which on
 /// a horizon invents heights across them, and the height filter on a volume grows its
 /// no-data level by level. Refused with an error naming the filter; nothing is written.
@@ -417,7 +445,11 @@ fn a_filter_for_the_other_kind_of_data_is_refused() {
         dims: [8, 8, 1],
         data: vec![1.0; 64],
     };
-    for f in [CoarsenFilter::Mean, CoarsenFilter::SignedRms, CoarsenFilter::MaxAbs] {
+    for f in [
+        CoarsenFilter::Mean,
+        CoarsenFilter::SignedRms,
+        CoarsenFilter::MaxAbs,
+    ] {
         let out = dir.path().join(format!("h-{}.strata", f.name()));
         let mut o = BuildOptions::horizon("h");
         o.filter = f;

@@ -464,7 +464,11 @@ mod tests {
         for len in [40u8, 41, 42, 43, 125] {
             let d: Vec<u8> = (1..=len).collect();
             for e in [1, 2, 4] {
-                assert_eq!(unshuffle(&shuffle(&d, e), e), d, "{len} bytes, {e}-byte elements");
+                assert_eq!(
+                    unshuffle(&shuffle(&d, e), e),
+                    d,
+                    "{len} bytes, {e}-byte elements"
+                );
             }
         }
     }

@@ -160,6 +160,16 @@ impl PageStore {
                 format!("{} inlines, {} crosslines", s.n_inline, s.n_xline),
             ));
         }
+        if let Some(v) = header
+            .no_data
+            .filter(|&v| !header.sample_type.holds_sentinel(v))
+        {
+            return Err(fmt(
+                pre.header_offset,
+                format!("a no-data value that {} holds", header.sample_type.name()),
+                format!("{v}"),
+            ));
+        }
         if pyramid.level_count() != header.levels as usize {
             return Err(fmt(
                 pre.header_offset,
