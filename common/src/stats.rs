@@ -62,13 +62,39 @@ pub fn bin_value(k: u32) -> f64 {
     f32::from_bits(b) as f64
 }
 
+/// A sum with Neumaier's compensation: the rounding of each addition is kept and added
+/// back, so that 10¹² values of one constant sum to `n·c` within a few ulps (a plain f64
+/// sum drifts linearly once `n·c` needs more than 53 bits: 5·10⁻⁵ relative at 10¹²).
+#[derive(Clone, Copy, Default)]
+struct CompensatedSum {
+    sum: f64,
+    lost: f64,
+}
+
+impl CompensatedSum {
+    #[inline]
+    fn add(&mut self, x: f64) {
+        let t = self.sum + x;
+        self.lost += if self.sum.abs() >= x.abs() {
+            (self.sum - t) + x
+        } else {
+            (x - t) + self.sum
+        };
+        self.sum = t;
+    }
+
+    fn value(self) -> f64 {
+        self.sum + self.lost
+    }
+}
+
 /// Counts of the finite values of a data set, by [`bin`], with their sums.
 #[derive(Clone)]
 pub struct ValueHistogram {
     counts: Vec<u64>,
     n: u64,
-    sum: f64,
-    sum_sq: f64,
+    sum: CompensatedSum,
+    sum_sq: CompensatedSum,
 }
 
 impl Default for ValueHistogram {
@@ -76,8 +102,8 @@ impl Default for ValueHistogram {
         ValueHistogram {
             counts: vec![0; BINS],
             n: 0,
-            sum: 0.0,
-            sum_sq: 0.0,
+            sum: CompensatedSum::default(),
+            sum_sq: CompensatedSum::default(),
         }
     }
 }
@@ -90,8 +116,8 @@ impl ValueHistogram {
             self.counts[bin(v) as usize] += 1;
             self.n += 1;
             let d = v as f64;
-            self.sum += d;
-            self.sum_sq += d * d;
+            self.sum.add(d);
+            self.sum_sq.add(d * d);
         }
     }
 
@@ -101,7 +127,8 @@ impl ValueHistogram {
     }
 
     /// The nearest-rank `p`th percentile (`0 < p ≤ 100`): the smallest bin holding at least
-    /// `⌈p·n/100⌉` values at or below it, as its middle value; `None` with no values.
+    /// `⌈p·n/100⌉` values at or below it, as its edge nearer zero ([`bin_value`]); `None`
+    /// with no values.
     pub fn percentile(&self, p: f64) -> Option<f64> {
         let rank = self.rank(p)?;
         let mut seen = 0u64;
@@ -134,7 +161,9 @@ impl ValueHistogram {
         if self.n == 0 || !(p > 0.0 && p <= 100.0) {
             return None;
         }
-        Some(((p / 100.0 * self.n as f64).ceil() as u64).clamp(1, self.n))
+        // (p·n)/100 rather than p/100·n: 0.07·100 is 7.000000000000001, whose ceiling is
+        // one rank past the 7th value.
+        Some(((p * self.n as f64 / 100.0).ceil() as u64).clamp(1, self.n))
     }
 
     /// The statistics ingest stores; `None` with no values.
@@ -144,8 +173,8 @@ impl ValueHistogram {
         }
         let n = self.n as f64;
         Some(ValueStats {
-            mean: self.sum / n,
-            rms: (self.sum_sq / n).sqrt(),
+            mean: self.sum.value() / n,
+            rms: (self.sum_sq.value() / n).sqrt(),
             percentiles: PERCENTILES
                 .iter()
                 .map(|&p| [p, self.percentile(p).unwrap_or(f64::NAN)])
@@ -188,6 +217,46 @@ impl ValueStats {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_long_constant_sums_to_its_count_times_its_value() {
+        // 0.1 in f32 is not a short binary fraction: added to a large sum, every addition
+        // rounds, and a plain sum's roundings accumulate.
+        let c = 0.1f32;
+        let n = 3_000_000u64;
+        let mut plain = 0.0f64;
+        let mut s = CompensatedSum::default();
+        let big = 1.0e12;
+        // Start both from a large partial sum, as after 10¹³ values: each addition then
+        // rounds.
+        plain += big;
+        s.add(big);
+        for _ in 0..n {
+            plain += c as f64;
+            s.add(c as f64);
+        }
+        let exact = big + n as f64 * c as f64;
+        assert!(
+            (s.value() - exact).abs() <= exact * 4.0 * f64::EPSILON,
+            "{} {exact}",
+            s.value()
+        );
+        assert!(
+            (plain - exact).abs() > 1e3 * exact * f64::EPSILON,
+            "the plain sum rounded too well"
+        );
+    }
+
+    #[test]
+    fn ranks_are_exact_for_whole_percentages() {
+        let mut h = ValueHistogram::default();
+        for v in 1..=100 {
+            h.add(v as f32);
+        }
+        for p in [1.0, 7.0, 14.0, 28.0, 29.0, 57.0, 99.0, 100.0] {
+            assert_eq!(h.rank(p), Some(p as u64), "{p}");
+        }
+    }
 
     #[test]
     fn median_averages_the_middle_pair_of_an_even_count() {
