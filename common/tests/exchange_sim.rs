@@ -380,11 +380,21 @@ fn a_silent_rank_times_out_the_ranks_waiting_on_it_naming_it() {
         };
         let o = simulate(4, algorithm, 1, faults, 7);
         let mut named = Vec::new();
+        let rounds = build_plan(4, W * H, algorithm, Some(&[2]))
+            .unwrap()
+            .rounds
+            .len();
+        let stagger = strata_common::composite::round_stagger(TIMEOUT, rounds);
         for r in 0..4 {
             match &o.results[0][r] {
-                Some(Err(ExchangeError::Timeout { missing, .. })) => {
-                    // At the deadline, not before, not after.
-                    assert_eq!(o.when[0][r], o.started[0][r] + TIMEOUT, "rank {r}");
+                Some(Err(ExchangeError::Timeout { missing, round, .. })) => {
+                    // At its round's deadline, not before, not after: the frame's, one
+                    // stagger later per round.
+                    assert_eq!(
+                        o.when[0][r],
+                        o.started[0][r] + TIMEOUT + stagger * *round,
+                        "rank {r}"
+                    );
                     named.push((r, missing.clone()));
                 }
                 Some(Ok(_)) => assert_eq!(r, 2, "rank {r} completed without rank 2's piece"),
@@ -398,10 +408,19 @@ fn a_silent_rank_times_out_the_ranks_waiting_on_it_naming_it() {
                 assert!(named.iter().all(|(_, m)| m == &vec![2]), "{named:?}");
             }
             // Later rounds wait on partners stuck behind rank 2: each names the rank it
-            // waits on, and those waiting in the first round name rank 2.
+            // waits on, and those waiting in the first round name rank 2. Those report
+            // first (the coordinator believes the first report): every rank that times out
+            // at the earliest time names rank 2.
             _ => {
+                assert!(stagger > Duration::ZERO);
                 assert!(named.len() >= 3, "{named:?}");
-                assert!(named.iter().any(|(_, m)| m.contains(&2)), "{named:?}");
+                let first = named.iter().map(|&(r, _)| o.when[0][r]).min().unwrap();
+                let earliest: Vec<_> = named
+                    .iter()
+                    .filter(|&&(r, _)| o.when[0][r] < first + stagger / 2)
+                    .collect();
+                assert!(!earliest.is_empty());
+                assert!(earliest.iter().all(|(_, m)| m == &vec![2]), "{named:?}");
             }
         }
     }

@@ -2815,6 +2815,34 @@ mod watchdog_tests {
 mod blame_tests {
     use super::*;
 
+    /// A worker's last compositing round still times out before the coordinator gives up on
+    /// the frame, for any frame timeout and number of rounds: the rounds' staggered
+    /// deadlines fit in the margin between the two timeouts.
+    #[test]
+    fn staggered_round_deadlines_end_before_the_coordinators() {
+        for secs in [0.01, 1.0, 5.0, 30.0, 49.0, 50.0, 51.0, 120.0, 3600.0] {
+            let coordinator = Duration::from_secs_f64(secs);
+            let worker = worker_frame_timeout(coordinator);
+            for rounds in [1usize, 2, 3, 5, 10, 17, 64] {
+                let stagger = strata_common::composite::round_stagger(worker, rounds);
+                let last = worker + stagger * (rounds as u32 - 1);
+                assert!(
+                    last < coordinator,
+                    "{secs} s, {rounds} rounds: the last round ends at {last:?}"
+                );
+                // The stagger is at least half the margin spread over the rounds (it
+                // separates reports by more than the network's delays).
+                if rounds > 1 {
+                    let margin = coordinator - worker;
+                    assert!(
+                        stagger * (2 * rounds as u32) + Duration::from_millis(1) >= margin,
+                        "{secs} s, {rounds} rounds: {stagger:?} of {margin:?}"
+                    );
+                }
+            }
+        }
+    }
+
     /// A worker's suspects while maps are going out: the healthy workers stuck waiting for
     /// their maps behind a hung one are not given up, the hung one is.
     #[test]

@@ -841,6 +841,38 @@ fn a_hung_worker_is_given_up_on_and_the_sequence_goes_on_without_it() {
     assert_eq!(text.matches("\"kind\":\"worker\"").count(), 6, "{text}");
 }
 
+/// The worker in front renders slowly, reaching the exchange past its own deadline while
+/// the workers behind it were held on their occlusion maps until it reported: it waits a
+/// grace window for their pieces instead of timing out at once and blaming them (the
+/// coordinator had given up the healthy workers and kept the slow one). The frame
+/// completes, late but within the coordinator's timeout, and nobody is lost.
+#[test]
+fn a_slow_front_worker_does_not_blame_the_peers_held_behind_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("slow.exr");
+    let stats = dir.path().join("slow.jsonl");
+    // Frame timeout 4 s: the workers' 3.2 s, their grace 0.2 s. The front worker sleeps
+    // 3.3 s before rendering.
+    let o = render(
+        &out,
+        &[
+            "--workers",
+            "3",
+            "--set",
+            "cluster.frame_timeout_s=4",
+            "--stats",
+            stats.to_str().unwrap(),
+        ],
+        &[("STRATA_TEST_FAULT", "@0:slow3300:render")],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let d = max_diff(reference(), &read_exr(&out));
+    assert!(d <= 1e-5, "the frame differs by {d}");
+    let (text, lost) = lost_workers(&stats);
+    assert!(lost.is_empty(), "{text}");
+    assert_eq!(text.matches("\"kind\":\"worker\"").count(), 3, "{text}");
+}
+
 #[test]
 fn a_worker_stuck_mid_frame_is_blamed_by_its_peers_before_the_frame_timeout() {
     let dir = tempfile::tempdir().unwrap();

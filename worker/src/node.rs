@@ -1036,29 +1036,45 @@ struct FrontLast {
 }
 
 /// Test hook (debug builds only, what the tests run; release binaries ignore it):
-/// `STRATA_TEST_FAULT=RANK:kill|stop|hang:PHASE` (several separated by commas) makes worker
-/// RANK SIGKILL or SIGSTOP itself, or block the calling thread for good (`hang`), at
-/// PHASE: `setup` (on its first set-up, before it dials its peers), `ready` (meshed, before
-/// it says so) or, in frame 0, `render` (before rendering), `exchange` (after rendering,
-/// before sending anything), `round` or `round0` (with its first round's pieces sent),
-/// `roundN` (with round N's pieces sent) or `gather` (before its final piece goes to
-/// the coordinator). Tests check that a vanished or hung worker
-/// at any of these moments costs a re-render, or fails the frame naming it.
+/// `STRATA_TEST_FAULT=RANK:kill|stop|hang|slowMS:PHASE` (several separated by commas) makes
+/// worker RANK SIGKILL or SIGSTOP itself, block the calling thread for good (`hang`) or
+/// sleep MS milliseconds and go on (`slow2500`), at PHASE: `setup` (on its first set-up,
+/// before it dials its peers), `ready` (meshed, before it says so) or, in frame 0, `render`
+/// (before rendering), `exchange` (after rendering, before sending anything), `round` or
+/// `round0` (with its first round's pieces sent), `roundN` (with round N's pieces sent) or
+/// `gather` (before its final piece goes to the coordinator). At `render`, RANK may be
+/// `@POS`: the worker at position POS of frame 0's visibility order. Tests check that a
+/// vanished or hung worker at any of these moments costs a re-render, or fails the frame
+/// naming it.
 fn test_fault(rank: u32, frame: u64, phase: &str) {
+    test_fault_at(rank, None, frame, phase)
+}
+
+/// [`test_fault`] for a worker at visibility position `position`.
+fn test_fault_at(rank: u32, position: Option<usize>, frame: u64, phase: &str) {
     if !cfg!(debug_assertions) || frame != 0 {
         return;
     }
     let Ok(specs) = std::env::var("STRATA_TEST_FAULT") else {
         return;
     };
+    let me = |r: &str| r == rank.to_string() || position.is_some_and(|p| r == format!("@{p}"));
     let mine = specs.split(',').find_map(|spec| {
         let parts: Vec<&str> = spec.split(':').collect();
         match parts[..] {
-            [r, signal, p] if r == rank.to_string() && p == phase => Some(signal),
+            [r, signal, p] if me(r) && p == phase => Some(signal),
             _ => None,
         }
     });
     let Some(signal) = mine else { return };
+    if let Some(ms) = signal
+        .strip_prefix("slow")
+        .and_then(|m| m.parse::<u64>().ok())
+    {
+        warn!(rank, phase, ms, "STRATA_TEST_FAULT: slow");
+        std::thread::sleep(std::time::Duration::from_millis(ms));
+        return;
+    }
     let sig = match signal {
         "kill" => libc::SIGKILL,
         "stop" => libc::SIGSTOP,
@@ -1249,7 +1265,7 @@ impl Node {
             cpus: self.cpus.clone(),
             ..Default::default()
         };
-        test_fault(self.rank, req.frame, "render");
+        test_fault_at(self.rank, Some(position), req.frame, "render");
         // 1. The partial image. Under cross-worker occlusion each ray stops where the light
         //    the predicted front transmittance (the last frame's, or a first pass's) lets
         //    through, times its own, falls to 1 − early_termination, and rays behind opaque
@@ -1430,6 +1446,19 @@ impl Node {
         // The exchange itself is the sans-IO state machine; this loop only moves its
         // pieces and the time.
         let t_exchange = Instant::now();
+        // The exchange's deadline runs from the frame's start, except that a worker that
+        // reaches it late (its render, first pass, occlusion wait and re-cast took most of
+        // the frame's time) still gives its peers a grace window (a quarter of the margin
+        // its timeout leaves the coordinator's, within which the rounds' staggered
+        // deadlines also fit): its peers, held on their occlusion maps until it reported,
+        // may be a moment behind it, and timing out at once would blame them.
+        let grace = (self.timeout / 4).min(Duration::from_secs(10)) / 4;
+        let late = t_exchange + grace > frame_start + self.timeout;
+        let exchange_from = if late {
+            t_exchange + grace - self.timeout
+        } else {
+            frame_start
+        };
         // Starting sends the first round: its pieces are encoded (into peers' segments,
         // which may grow) here, off the async threads.
         tokio::task::block_in_place(|| {
@@ -1438,7 +1467,7 @@ impl Node {
                 req.order.clone(),
                 rc,
                 format,
-                frame_start,
+                exchange_from,
                 self.timeout,
             )
         });
@@ -1460,10 +1489,24 @@ impl Node {
             match self.exchange.poll_event() {
                 Some(ExchangeEvent::Done { result, .. }) => break result,
                 Some(ExchangeEvent::Failed { error, .. }) => {
+                    // A worker that came to the exchange late (within its grace window of
+                    // its deadline, or past it) cannot tell a hung peer from one held up
+                    // behind it: blaming its peers would have the coordinator give up
+                    // healthy workers and keep the slow one. It blames no one (the
+                    // coordinator then ends the frame with this error).
                     self.suspects = match &error {
+                        ExchangeError::Timeout { .. } if late => Vec::new(),
                         ExchangeError::Timeout { missing, .. } => missing.clone(),
                         e => e.rank().into_iter().collect(),
                     };
+                    if late && matches!(error, ExchangeError::Timeout { .. }) {
+                        bail!(
+                            "{}; this worker reached the exchange {:.1} s into the frame, at or past its {:.1} s deadline (its render took the frame's time: raise cluster.frame_timeout_s, or give it less work), so it blames no peer",
+                            self.explain(&error),
+                            t_exchange.saturating_duration_since(frame_start).as_secs_f64(),
+                            self.timeout.as_secs_f64()
+                        );
+                    }
                     bail!("{}", self.explain(&error))
                 }
                 None => {}

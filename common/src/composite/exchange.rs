@@ -285,8 +285,36 @@ struct Active {
     format: WireFormat,
     deadline: Instant,
     timeout: Duration,
+    /// How much later each round's deadline lies than the one before ([`round_stagger`]).
+    stagger: Duration,
     /// Whether this round's pieces have been handed to `poll_send`.
     sent: bool,
+}
+
+impl Active {
+    /// The deadline of the round this rank is in: round `r`'s lies `r` staggers after the
+    /// frame's.
+    fn round_deadline(&self) -> Instant {
+        let r = self.rc.round().unwrap_or(0) as u32;
+        self.deadline + self.stagger * r
+    }
+}
+
+/// How much later each round of a frame times out than the round before it. In a plan of
+/// several rounds a rank waiting in round `r` on a hung peer's partner (stuck in an
+/// earlier round) would otherwise time out with the rank waiting on the hung peer itself,
+/// and the coordinator, believing whichever report comes first, could give up a healthy
+/// worker. Staggered, the ranks waiting on the hung peer report first. The stagger spreads
+/// half of the margin by which the coordinator's frame timeout exceeds the workers' over
+/// the rounds (the workers' is `cluster.frame_timeout_s` less a fifth of it, at most 10 s:
+/// a quarter of theirs, at most 10 s), so the last round still fails before the
+/// coordinator gives up on the frame. Zero for one round.
+pub fn round_stagger(timeout: Duration, rounds: usize) -> Duration {
+    if rounds < 2 {
+        return Duration::ZERO;
+    }
+    let margin = (timeout / 4).min(Duration::from_secs(10));
+    margin / (2 * rounds as u32)
 }
 
 /// One rank's exchange state across frames.
@@ -466,6 +494,7 @@ impl Exchange {
                 },
             );
         }
+        let stagger = round_stagger(timeout, rc.plan().rounds.len());
         self.active = Some(Active {
             frame,
             order,
@@ -473,6 +502,7 @@ impl Exchange {
             format,
             deadline: now + timeout,
             timeout,
+            stagger,
             sent: false,
         });
         self.advance();
@@ -561,10 +591,11 @@ impl Exchange {
         );
     }
 
-    /// The time is `now`: fails the frame if its deadline has passed.
+    /// The time is `now`: fails the frame if its deadline has passed (the frame's,
+    /// staggered by its round: [`round_stagger`]).
     pub fn handle_timeout(&mut self, now: Instant) {
         let Some(a) = &self.active else { return };
-        if now < a.deadline {
+        if now < a.round_deadline() {
             return;
         }
         let missing = a.rc.missing().into_iter().map(|q| a.order[q]).collect();
@@ -602,7 +633,7 @@ impl Exchange {
 
     /// When to call [`handle_timeout`](Self::handle_timeout) next.
     pub fn poll_timeout(&self) -> Option<Instant> {
-        self.active.as_ref().map(|a| a.deadline)
+        self.active.as_ref().map(Active::round_deadline)
     }
 
     /// Fails the frame in progress, or (between frames) the next one.
