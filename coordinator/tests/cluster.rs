@@ -140,10 +140,12 @@ fn distributed_equals_in_process_for_every_algorithm_and_worker_count() {
             );
             // The workers close their peer connections on shutdown and exit at once: a
             // worker that left them to its peer readers waited out its endpoint's 2 s
-            // idle wait, which every multi-worker run paid (about 0.01 s now).
+            // idle wait, which every multi-worker run paid (about 0.01 s now; seven
+            // workers on a loaded 2-core machine once took 1.07 s, so the bound sits just
+            // under the 2 s it guards against).
             let shutdown = lines[workers]["shutdown_seconds"].as_f64().unwrap();
             assert!(
-                shutdown < 1.0,
+                shutdown < 1.9,
                 "{algorithm} x{workers}: shutting down took {shutdown:.2} s"
             );
             if workers > 1 {
