@@ -632,6 +632,38 @@ fn a_lost_peer_fails_the_frames_that_include_it_and_only_those() {
     assert_eq!(ex.current_frame(), Some(2));
 }
 
+/// A lost peer's sink state may go: the sink hears of every loss (the worker's drops that
+/// peer's shared-memory segment, which had stayed for the rest of the set-up).
+#[test]
+fn the_sink_forgets_a_lost_peer() {
+    struct Forgetful(Arc<Mutex<Vec<u32>>>);
+    impl PieceSink for Forgetful {
+        fn start_frame(&mut self, _frame: u64) {}
+        fn place(
+            &mut self,
+            _to_rank: u32,
+            _frame: u64,
+            _round: u32,
+            _from: u32,
+            _segments: &[Segment<'_>],
+            _layout: &PieceLayout,
+            _span: Span,
+            _format: WireFormat,
+        ) -> Option<ShmRef> {
+            None
+        }
+        fn forget_peer(&mut self, rank: u32) {
+            self.0.lock().unwrap().push(rank);
+        }
+    }
+    let forgotten = Arc::new(Mutex::new(Vec::new()));
+    let mut ex = Exchange::new(0, 3, ExchangeLimits::for_ranks(3, 1 << 16));
+    ex.set_sink(Box::new(Forgetful(forgotten.clone())));
+    ex.handle_lost(2, "given up".into());
+    ex.handle_lost(1, "connection reset".into());
+    assert_eq!(*forgotten.lock().unwrap(), vec![2, 1]);
+}
+
 /// An order of fewer ranks than the compositing plan is refused as a bad frame (the
 /// exchange had indexed past the order and panicked when it advanced).
 #[test]

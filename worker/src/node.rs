@@ -986,6 +986,13 @@ impl PieceSink for ShmSink {
             .map_err(|e| warn!(peer = to_rank, "piece over QUIC instead: {e}"))
             .ok()
     }
+
+    fn forget_peer(&mut self, rank: u32) {
+        // The segment's memory (allocated up front, up to the largest frame's pieces).
+        if let Some(w) = self.writers.get_mut(rank as usize) {
+            *w = None;
+        }
+    }
 }
 
 /// Control messages a frame keeps for after it ([`Node::defer`]).
@@ -1826,6 +1833,11 @@ impl Node {
         );
         self.exchange
             .handle_lost(rank, "the coordinator gave it up".into());
+        // Its connection too (a peer given up may still be alive, its frame thread stuck):
+        // its reader task ends, and nothing of it is kept for the rest of the set-up.
+        if let Some(c) = self.peers.get(rank as usize).and_then(Option::as_ref) {
+            c.close(4u32.into(), b"given up");
+        }
         Ok(())
     }
 

@@ -67,6 +67,10 @@ pub trait PieceSink: Send {
         span: Span,
         format: WireFormat,
     ) -> Option<ShmRef>;
+
+    /// Rank `rank` is gone for the rest of this set-up (its connection ended, or the
+    /// coordinator gave it up): whatever is kept for it (a segment's memory) may go.
+    fn forget_peer(&mut self, _rank: u32) {}
 }
 
 /// Where this rank's final span lands when the frame's image is shared (the coordinator's
@@ -612,6 +616,9 @@ impl Exchange {
     /// in it, and so does any later frame that includes it. Frames without it go on.
     pub fn handle_lost(&mut self, rank: u32, error: String) {
         self.lost.insert(rank, error.clone());
+        if let Some(sink) = self.sink.as_mut() {
+            sink.forget_peer(rank);
+        }
         if self
             .active
             .as_ref()
