@@ -346,6 +346,139 @@ fn default_rebalance_damping() -> f64 {
     0.5
 }
 
+impl ClusterSettings {
+    /// Checks the ranges of the values that need no worker count or store, for an error at
+    /// the key's position in the file (`--workers` and what depends on it are checked
+    /// where the run starts): the key at fault and why.
+    pub fn check(&self) -> Result<(), (&'static str, String)> {
+        let ensure = |ok: bool, key: &'static str, why: String| {
+            if ok {
+                Ok(())
+            } else {
+                Err((key, why))
+            }
+        };
+        ensure(
+            self.workers <= 256,
+            "workers",
+            format!(
+                "cluster.workers must lie in 0..=256 (0: one per core), got {}",
+                self.workers
+            ),
+        )?;
+        ensure(
+            self.worker_threads <= 1024,
+            "worker_threads",
+            format!(
+                "cluster.worker_threads must lie in 0..=1024 (0: the cores divided among the workers), got {}",
+                self.worker_threads
+            ),
+        )?;
+        ensure(
+            (1..=64).contains(&self.leaves_per_worker),
+            "leaves_per_worker",
+            format!(
+                "cluster.leaves_per_worker must lie in 1..=64, got {}",
+                self.leaves_per_worker
+            ),
+        )?;
+        ensure(
+            self.rebalance_threshold == 0.0
+                || (self.rebalance_threshold >= 1.0 && self.rebalance_threshold.is_finite()),
+            "rebalance_threshold",
+            format!(
+                "cluster.rebalance_threshold must be 0 (off) or at least 1, got {}",
+                self.rebalance_threshold
+            ),
+        )?;
+        ensure(
+            self.rebalance_damping > 0.0 && self.rebalance_damping <= 1.0,
+            "rebalance_damping",
+            format!(
+                "cluster.rebalance_damping must lie in (0, 1], got {}",
+                self.rebalance_damping
+            ),
+        )?;
+        ensure(
+            (1..=crate::occlusion::MAX_BLOCK).contains(&self.occlusion_block),
+            "occlusion_block",
+            format!(
+                "cluster.occlusion_block must lie in 1..={}, got {}",
+                crate::occlusion::MAX_BLOCK,
+                self.occlusion_block
+            ),
+        )?;
+        for (k, v) in [
+            ("connect_timeout_s", self.connect_timeout_s),
+            ("frame_timeout_s", self.frame_timeout_s),
+            ("idle_timeout_s", self.idle_timeout_s),
+        ] {
+            ensure(
+                v > 0.0 && v <= 1e6,
+                k,
+                format!("cluster.{k} must be a positive number of seconds, got {v}"),
+            )?;
+        }
+        ensure(
+            (0.0..=1e6).contains(&self.replacement_wait_s),
+            "replacement_wait_s",
+            format!(
+                "cluster.replacement_wait_s must be 0 or a positive number of seconds, got {}",
+                self.replacement_wait_s
+            ),
+        )?;
+        ensure(
+            (1200..=65527).contains(&self.quic_mtu),
+            "quic_mtu",
+            format!(
+                "cluster.quic_mtu must lie in 1200..=65527 bytes, got {}",
+                self.quic_mtu
+            ),
+        )?;
+        ensure(
+            self.listen.parse::<std::net::SocketAddr>().is_ok(),
+            "listen",
+            format!(
+                "cluster.listen = {:?}: expected IP:PORT, e.g. 0.0.0.0:7000",
+                self.listen
+            ),
+        )
+    }
+}
+
+impl SyntheticSpec {
+    /// Samples per axis of a synthetic survey: at least 8 (its earth model's layers).
+    pub const MIN_AXIS: u64 = 8;
+    /// Fewer than this many per axis (2^20).
+    pub const MAX_AXIS: u64 = 1 << 20;
+    /// At most this many traces (its horizons' grids, three f32 per trace: 3 GiB).
+    pub const MAX_TRACES: u64 = 1 << 28;
+    /// At most this many samples (64 GiB of f32 written to the cache folder).
+    pub const MAX_SAMPLES: u64 = 1 << 34;
+
+    /// Checks `size` against the bounds above: the offending key and why.
+    pub fn check(&self) -> Result<(), (&'static str, String)> {
+        let d = self.size;
+        let traces = d[0].saturating_mul(d[1]);
+        let samples = traces.saturating_mul(d[2]);
+        if d.iter()
+            .any(|&n| !(Self::MIN_AXIS..Self::MAX_AXIS).contains(&n))
+            || traces > Self::MAX_TRACES
+            || samples > Self::MAX_SAMPLES
+        {
+            return Err((
+                "size",
+                format!(
+                    "synthetic.size {d:?}: each axis must lie in {}..{} samples (the upper bound excluded), with at most 2^28 traces and 2^34 samples (64 GiB)",
+                    Self::MIN_AXIS,
+                    Self::MAX_AXIS
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
 impl Default for ClusterSettings {
     fn default() -> Self {
         ClusterSettings {
@@ -1183,6 +1316,25 @@ impl Scene {
             .render
             .check()
             .map_err(|(key, message)| at("render", key, message))?;
+        scene
+            .cluster
+            .check()
+            .map_err(|(key, message)| at("cluster", key, message))?;
+        if let KSetting::Factors(f) = &scene.composite.k {
+            if f.len() < 2 || f.iter().any(|&k| k < 2) {
+                return Err(at(
+                    "composite",
+                    "k",
+                    format!(
+                        "composite.k = {f:?}: exact factors are a list of at least two, each at least 2 (a target k is a number, e.g. k = 8)"
+                    ),
+                ));
+            }
+        }
+        if let Some(sy) = &scene.synthetic {
+            sy.check()
+                .map_err(|(key, message)| at("synthetic", key, message))?;
+        }
         check_layers(path, text, &scene)?;
         if let Some(c) = &scene.camera {
             use crate::camera::{View, ViewError};
@@ -1361,6 +1513,49 @@ mod tests {
         let e = Scene::parse(Path::new("w.toml"), &format!("{camera}{wall}")).unwrap_err();
         assert_eq!((e.line, e.column), (4, 1), "{e}");
         assert!(e.to_string().contains("2220 pixels"), "{e}");
+    }
+
+    /// `[cluster]`, `composite.k` and `[synthetic]` are checked as the file is read, at
+    /// the key's line (they had been checked only as a run started, with no position, and
+    /// after a synthetic survey was generated).
+    #[test]
+    fn cluster_composite_and_synthetic_values_are_checked_at_their_keys() {
+        let p = Path::new("c.toml");
+        for (text, line, needle) in [
+            (
+                "[render]\nwidth = 8\n[cluster]\nspawn = true\nocclusion_block = 0\n",
+                5,
+                "occlusion_block",
+            ),
+            (
+                "[cluster]\nleaves_per_worker = 65\n",
+                2,
+                "leaves_per_worker",
+            ),
+            ("[cluster]\nframe_timeout_s = -1\n", 2, "frame_timeout_s"),
+            ("[cluster]\nlisten = \"localhost:7000\"\n", 2, "IP:PORT"),
+            ("[cluster]\nworkers = 300\n", 2, "cluster.workers"),
+            ("[cluster]\nrebalance_damping = 0\n", 2, "rebalance_damping"),
+            ("[composite]\nk = [2]\n", 2, "exact factors"),
+            ("[composite]\nk = [4, 1]\n", 2, "exact factors"),
+            (
+                "[synthetic]\ndir = \"s\"\nsize = [1000000, 1000000, 1000]\n",
+                3,
+                "2^34 samples",
+            ),
+            (
+                "[synthetic]\ndir = \"s\"\nsize = [4, 64, 64]\n",
+                3,
+                "synthetic.size",
+            ),
+        ] {
+            let e = Scene::parse(p, text).unwrap_err();
+            assert_eq!(e.line, line, "{text}: {e}");
+            assert!(e.to_string().contains(needle), "{text}: {e}");
+        }
+        // The defaults and the limits themselves are accepted.
+        Scene::parse(p, "[cluster]\nworkers = 256\nocclusion_block = 64\n[composite]\nk = [4, 2]\n[synthetic]\ndir = \"s\"\nsize = [8, 8, 8]\n").unwrap();
+        Scene::parse(p, "[composite]\nk = 8\n").unwrap();
     }
 
     #[test]

@@ -893,8 +893,7 @@ fn outputs_and_values_are_checked_before_any_work() {
             ]
             .map(String::from)
             .to_vec(),
-            "composite.algorithm = \"radix-k\" with composite.k = [0] cannot composite 2 workers"
-                .into(),
+            "composite.k = [0]: exact factors are a list of at least two".into(),
         ),
         (
             render(&["-o", &p("o.png"), "--stats", d.to_str().unwrap()]),

@@ -70,6 +70,15 @@ impl SynthModel {
             "at most 2^20 samples per trace, got {}",
             dims[2]
         );
+        // And what is written: the horizons' grids and the volume (a scene's `[synthetic]`
+        // is held to the same bounds where it is read, at its key).
+        use strata_common::scene::SyntheticSpec;
+        let traces = dims[0].saturating_mul(dims[1]);
+        anyhow::ensure!(
+            traces <= SyntheticSpec::MAX_TRACES
+                && traces.saturating_mul(dims[2]) <= SyntheticSpec::MAX_SAMPLES,
+            "synthetic surveys have at most 2^28 traces and 2^34 samples (64 GiB), got {dims:?}"
+        );
         let nz = dims[2] as f64;
         let spacing = (nz / 24.0).clamp(6.0, 40.0);
         let mut base = Vec::new();
