@@ -1333,8 +1333,20 @@ impl Node {
             // 1b. This frame's front transmittance: blocks where the prediction promised
             //     less light than there is are cast again with this frame's thresholds.
             let t = Instant::now();
+            // A frame that did not converge (round limit, full atlas) may be drawn again
+            // from other pages, less opaque than now, where its blocks are re-cast: its
+            // coverage would let the workers behind stop too early, by more than 1 − t. It
+            // reports none (clear) instead.
+            let converged = stats.outcome == Outcome::Converged.as_str();
+            let clear;
+            let cover = if converged {
+                &image
+            } else {
+                clear = PartialImage::empty(req.width, req.height);
+                &clear
+            };
             let front = self
-                .occlusion_front(req, grid, &image, false, control, csend, frame_start)
+                .occlusion_front(req, grid, cover, false, control, csend, frame_start)
                 .await?;
             stats.occlusion_s = t.elapsed().as_secs_f64();
             if let Some(p) = &predicted {
