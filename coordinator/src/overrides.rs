@@ -26,6 +26,31 @@ pub const MAX_SIDE: u32 = strata_common::scene::MAX_IMAGE_SIDE;
 /// makes the scene invalid is named: `scene.toml: after --set render.cache_mb=abc: invalid
 /// type: string "abc", expected u64 (key render.cache_mb)`.
 pub fn load_scene(path: &Path, sets: &[String], size: Option<(u32, u32)>) -> Result<Scene> {
+    let mut scene = load_scene_as_written(path, sets, size)?;
+    absolute_paths(&mut scene)?;
+    Ok(scene)
+}
+
+/// Makes the scene's file paths (relative to the scene file, as parsed: relative to the
+/// current folder when the scene's path is) absolute: the scene travels to workers, which
+/// a launcher (`ssh host worker --connect ...`) may start in another folder.
+fn absolute_paths(scene: &mut Scene) -> Result<()> {
+    let mut paths: Vec<&mut std::path::PathBuf> = Vec::new();
+    paths.extend(scene.volumes.iter_mut().map(|v| &mut v.store));
+    paths.extend(scene.horizons.iter_mut().map(|h| &mut h.store));
+    paths.extend(scene.synthetic.iter_mut().map(|s| &mut s.dir));
+    paths.extend(scene.cluster.secret_file.iter_mut());
+    paths.extend(scene.cluster.fingerprint_file.iter_mut());
+    for p in paths {
+        if p.is_relative() {
+            *p = std::path::absolute(&*p)
+                .with_context(|| format!("{}: cannot make the path absolute", p.display()))?;
+        }
+    }
+    Ok(())
+}
+
+fn load_scene_as_written(path: &Path, sets: &[String], size: Option<(u32, u32)>) -> Result<Scene> {
     let text = std::fs::read_to_string(path)
         .with_context(|| format!("{}: cannot read the scene", path.display()))?;
     if sets.is_empty() && size.is_none() {
@@ -361,6 +386,21 @@ fn explain_failure(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Scene paths leave the coordinator absolute (workers may run in other folders).
+    #[test]
+    fn scene_paths_are_made_absolute() {
+        let mut scene = Scene::parse(
+            Path::new("configs/x.toml"),
+            "[[volume]]\nstore = \"v.strata\"\n[synthetic]\ndir = \"s\"\nsize = [8, 8, 8]\n",
+        )
+        .unwrap();
+        assert!(scene.volumes[0].store.is_relative());
+        absolute_paths(&mut scene).unwrap();
+        let here = std::env::current_dir().unwrap();
+        assert_eq!(scene.volumes[0].store, here.join("configs/v.strata"));
+        assert_eq!(scene.synthetic.unwrap().dir, here.join("configs/s"));
+    }
     use std::path::PathBuf;
 
     const SCENE: &str = "# test scene\n[[volume]]\nstore = \"cube.strata\"\n\n[[volume]]\nstore = \"ct.strata\"\ncolormap = \"grey\"\n\n[render]\nwidth = 64\nheight = 48\n";
