@@ -992,6 +992,15 @@ impl RenderSettings {
                 ),
             ));
         }
+        // (0 had been accepted and quietly taken as 1.)
+        for (key, v) in [
+            ("max_rounds", self.max_rounds),
+            ("upload_pages_per_frame", self.upload_pages_per_frame),
+        ] {
+            if v == 0 {
+                return Err((key, format!("render.{key} must be at least 1, got 0")));
+            }
+        }
         if self.step < 1e-3 || self.step > 1e3 {
             return Err((
                 "step",
@@ -1552,6 +1561,11 @@ mod tests {
             let e = Scene::parse(p, text).unwrap_err();
             assert_eq!(e.line, line, "{text}: {e}");
             assert!(e.to_string().contains(needle), "{text}: {e}");
+        }
+        for key in ["max_rounds", "upload_pages_per_frame"] {
+            let e = Scene::parse(p, &format!("[render]\nwidth = 8\n{key} = 0\n")).unwrap_err();
+            assert_eq!(e.line, 3, "{e}");
+            assert!(e.to_string().contains(key), "{e}");
         }
         // The defaults and the limits themselves are accepted.
         Scene::parse(p, "[cluster]\nworkers = 256\nocclusion_block = 64\n[composite]\nk = [4, 2]\n[synthetic]\ndir = \"s\"\nsize = [8, 8, 8]\n").unwrap();
