@@ -662,6 +662,18 @@ impl VolumeLayer {
         }
         if let Some(p) = &self.opacity_points {
             crate::tf::check_opacity_points(p).map_err(|e| ("opacity_points", e.to_string()))?;
+            // Positions are fractions of the window: one written in data units (an
+            // amplitude of -8000) left the whole window on a sliver of the curve, and the
+            // volume silently invisible.
+            if let Some(q) = p.iter().find(|q| !(0.0..=1.0).contains(&q[0])) {
+                return Err((
+                    "opacity_points",
+                    format!(
+                        "opacity_points positions are fractions of the window, 0 to 1, got {} (a value in data units belongs in `window`)",
+                        q[0]
+                    ),
+                ));
+            }
         }
         if self.slices.len() > crate::gpu::MAX_SLICES {
             return Err((
@@ -1763,6 +1775,11 @@ mod tests {
             e.message.contains("must not decrease (0.2 after 0.5)"),
             "{e}"
         );
+        let e = error(&two_volumes(
+            "opacity_points = [[-8000.0, 1.0], [0.0, 0.0], [8000.0, 1.0]]\n",
+        ));
+        assert!(e.message.contains("fractions of the window"), "{e}");
+        assert_eq!(e.line, 6, "{e}");
         let e = error(&two_volumes("opacity_points = [[inf, 0.0]]\n"));
         assert!(
             e.message.contains("positions must be finite, got inf"),
