@@ -1452,12 +1452,34 @@ fn find_table(text: &str, header: &str, nth: usize) -> Option<usize> {
 
 /// Scans `text` line by line for the `nth` table headed `header` and, inside it, a line
 /// that sets `key`: the offsets of that line (`None` if not found) and of the header.
+/// The table a header line opens (`[render]`, `[[ volume ]]`, `[a . b]  # note`), as
+/// `(array of tables, dotted name without spaces)`; `None` for any other line, such as a
+/// row of a multi-line array (`[0.0, 1.0],`), which does not end the table it is in.
+fn header_of(line: &str) -> Option<(bool, String)> {
+    let t = line.split('#').next().unwrap_or("").trim();
+    let (array, inner) = if let Some(r) = t.strip_prefix("[[").and_then(|r| r.strip_suffix("]]")) {
+        (true, r)
+    } else {
+        (false, t.strip_prefix('[')?.strip_suffix(']')?)
+    };
+    let inner = inner.trim();
+    let first = inner.chars().next()?;
+    if !(first.is_ascii_alphabetic() || first == '_' || first == '"' || first == '\'')
+        || inner.contains([',', '[', ']', '='])
+    {
+        return None;
+    }
+    let name: Vec<&str> = inner.split('.').map(str::trim).collect();
+    Some((array, name.join(".")))
+}
+
 fn scan_table(
     text: &str,
     header: &str,
     nth: usize,
     key: Option<&str>,
 ) -> (Option<usize>, Option<usize>) {
+    let want = header_of(header);
     let mut offset = 0;
     let mut seen = 0;
     let mut inside: Option<usize> = None;
@@ -1465,15 +1487,11 @@ fn scan_table(
         let t = line.trim_start();
         let at = offset + (line.len() - t.len());
         offset += line.len();
-        if t.starts_with('[') {
+        if let Some(this) = header_of(t) {
             if inside.is_some() {
                 break;
             }
-            let is_header = t.trim_end().strip_prefix(header).is_some_and(|r| {
-                let r = r.trim_start();
-                r.is_empty() || r.starts_with('#')
-            });
-            if is_header {
+            if Some(&this) == want.as_ref() {
                 if seen == nth {
                     inside = Some(at);
                     if key.is_none() {
@@ -1709,6 +1727,28 @@ mod tests {
     /// Two volumes, the second one's keys after `second` (indented lines keep their column).
     fn two_volumes(second: &str) -> String {
         format!("[[volume]]\nstore = \"a\"\n\n[[volume]]\nstore = \"b\"\n{second}")
+    }
+
+    /// Spaced headers (`[[ volume ]]`, valid TOML) count as the tables they open, and a
+    /// multi-line array's rows (lines starting with `[`) do not end the table: errors after
+    /// them point at their own key (they had pointed at another table's key, or at the
+    /// header).
+    #[test]
+    fn positions_survive_spaced_headers_and_multi_line_arrays() {
+        let e = error(
+            "[[ volume ]]\nstore = \"a\"\ncolormap = \"jet\"\n[[volume]]\nstore = \"b\"\ncolormap = \"grey\"\n",
+        );
+        assert_eq!((e.line, e.column), (3, 1), "{e}");
+        assert!(e.to_string().contains("volume 0"), "{e}");
+        let e = error(
+            "[[volume]]\nstore = \"a\"\nopacity_points = [\n  [0.0, 0.0],\n  [1.0, 1.0],\n]\nopacity = -1\n",
+        );
+        assert_eq!((e.line, e.column), (7, 1), "{e}");
+        let e = error("[ render ]  # the frame\nwidth = 8\nstep = 0\n");
+        assert_eq!((e.line, e.column), (3, 1), "{e}");
+        assert_eq!(header_of("[[ a . b ]] # x"), Some((true, "a.b".into())));
+        assert_eq!(header_of("[0.0, 1.0],"), None);
+        assert_eq!(header_of("[1.0]"), None);
     }
 
     #[test]
