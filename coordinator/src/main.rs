@@ -812,6 +812,9 @@ fn run(cli: Cli) -> Result<()> {
                     )
                 })?;
             }
+            if a.in_process && a.workers.is_some() {
+                warn!("--workers is ignored with --in-process (one process renders)");
+            }
             let pb = progress(cli.quiet, "synth");
             let s = if a.in_process {
                 render::render_in_process(&opts, &pb)
