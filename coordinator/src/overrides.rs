@@ -345,9 +345,18 @@ fn explain_failure(
         .iter()
         .map(|t| Scene::parse(path, &t.to_string()))
         .collect();
-    let culprit = (1..results.len())
-        .rev()
-        .find(|&k| results[k - 1].is_ok() && results[k].is_err());
+    // The error the final scene has, and the override from which on it has had it (an
+    // earlier override may have broken the scene another way, which a later one fixed or
+    // replaced: the error to report is the final one's).
+    let message = |r: &Result<Scene, SceneError>| r.as_ref().err().map(|e| e.message.clone());
+    let last = results.last().and_then(message);
+    let culprit = last.as_ref().and_then(|last| {
+        let from = (0..results.len())
+            .rev()
+            .take_while(|&k| message(&results[k]).as_ref() == Some(last))
+            .last()?;
+        (from > 0).then_some(from)
+    });
     match culprit {
         Some(k) => {
             let o = &overrides[k - 1];
@@ -517,6 +526,21 @@ mod tests {
                 p.display()
             )
         );
+
+        // The final scene's error is reported, blamed on the override from which on the
+        // scene has had it: an earlier override's different error, which a later one
+        // replaced, is not (it had been reported, though the final scene did not have it).
+        // (The scene reports its render settings' errors before its layers'.)
+        let e = load_scene(&p, &sets(&["volume.1.colormap=jet", "render.step=0"]), None)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("after --set render.step=0"), "{e}");
+        assert!(!e.contains("jet"), "{e}");
+        // The same error from an earlier override on is blamed on that one.
+        let e = load_scene(&p, &sets(&["render.step=0", "render.width=10"]), None)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("after --set render.step=0"), "{e}");
 
         // Unknown keys are rejected (deny_unknown_fields), naming the key.
         let e = load_scene(&p, &sets(&["render.cache_mb=5", "render.cach_mb=5"]), None)
