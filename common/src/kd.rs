@@ -748,14 +748,13 @@ impl Decomposition {
 mod tests {
     use super::*;
 
-    #[test]
-    fn reweighting_by_measured_time_moves_the_split_toward_the_slow_side() {
+    /// A slab 100 × 10 × 10 of 100 unit boxes along x, each costing 1.
+    fn unit_slab() -> (Region, Vec<CostBox>) {
         let root = Region {
             lo: [0.0; 3],
             hi: [100.0, 10.0, 10.0],
         };
-        // A uniform slab of 100 unit boxes along x: the estimate splits it at x = 50.
-        let boxes: Vec<CostBox> = (0..100)
+        let boxes = (0..100)
             .map(|i| CostBox {
                 region: Region {
                     lo: [i as f64, 0.0, 0.0],
@@ -764,6 +763,13 @@ mod tests {
                 cost: 1.0,
             })
             .collect();
+        (root, boxes)
+    }
+
+    #[test]
+    fn reweighting_by_measured_time_moves_the_split_toward_the_slow_side() {
+        // A uniform slab of 100 unit boxes along x: the estimate splits it at x = 50.
+        let (root, boxes) = unit_slab();
         let none = [vec![], vec![], vec![]];
         let d = Decomposition::balanced(root, &boxes, 2, 1, &none);
         let split = |d: &Decomposition| d.tree.leaves[0].hi[0];
@@ -834,19 +840,7 @@ mod tests {
     /// five, a fifth of a percent of the estimate, and its worker handed most of the scene).
     #[test]
     fn the_measured_floor_does_not_compound_across_re_splits() {
-        let root = Region {
-            lo: [0.0; 3],
-            hi: [100.0, 10.0, 10.0],
-        };
-        let estimate: Vec<CostBox> = (0..100)
-            .map(|i| CostBox {
-                region: Region {
-                    lo: [i as f64, 0.0, 0.0],
-                    hi: [i as f64 + 1.0, 10.0, 10.0],
-                },
-                cost: 1.0,
-            })
-            .collect();
+        let (root, estimate) = unit_slab();
         let none = [vec![], vec![], vec![]];
         let mut field = estimate.clone();
         for round in 0..6 {

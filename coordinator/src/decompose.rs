@@ -584,26 +584,9 @@ mod tests {
     /// every frame, the imbalance left for good).
     #[test]
     fn a_damped_re_split_that_snaps_back_is_tried_undamped() {
-        let root = Region {
-            lo: [0.0; 3],
-            hi: [100.0, 10.0, 10.0],
-        };
         // Four bricks of 25 along x: the estimate splits at the face x = 50.
-        let boxes = (0..4)
-            .map(|i| CostBox {
-                region: Region {
-                    lo: [25.0 * i as f64, 0.0, 0.0],
-                    hi: [25.0 * (i + 1) as f64, 10.0, 10.0],
-                },
-                cost: 1.0,
-            })
-            .collect();
-        let field = SceneCosts {
-            boxes,
-            planes: [vec![0.0, 25.0, 50.0, 75.0, 100.0], vec![], vec![]],
-            root,
-            datasets: Vec::new(),
-        };
+        let field = slab_costs(4, 25.0, true);
+        let root = field.root;
         let d = Decomposition::balanced(root, &field.boxes, 2, 1, &field.planes);
         assert_eq!(d.tree.leaves[0].hi[0], 50.0);
         // 0.62 against 0.38: damped by half, 56 % of the cost lies left of x = 50, within a
@@ -626,6 +609,36 @@ mod tests {
         assert!(resplit(&field, &field, &d, &even, 0.5, 2, 1).is_none());
     }
 
+    /// `n` bricks of side `side` along x (10 × 10 across), each costing 1, with their faces
+    /// as split planes when `faces`.
+    fn slab_costs(n: usize, side: f64, faces: bool) -> SceneCosts {
+        SceneCosts {
+            boxes: (0..n)
+                .map(|i| CostBox {
+                    region: Region {
+                        lo: [side * i as f64, 0.0, 0.0],
+                        hi: [side * (i + 1) as f64, 10.0, 10.0],
+                    },
+                    cost: 1.0,
+                })
+                .collect(),
+            planes: [
+                if faces {
+                    (0..=n).map(|i| side * i as f64).collect()
+                } else {
+                    vec![]
+                },
+                vec![],
+                vec![],
+            ],
+            root: Region {
+                lo: [0.0; 3],
+                hi: [side * n as f64, 10.0, 10.0],
+            },
+            datasets: Vec::new(),
+        }
+    }
+
     /// Where the balanced plane falls between two brick faces, a split on one face is not
     /// replaced by the other face's, which balances no better: timing noise had moved a
     /// brick's work (and pages) back and forth for the same imbalance.
@@ -642,13 +655,8 @@ mod tests {
             },
             cost,
         };
-        let planes = [(0..8).map(|i| 10.0 * i as f64).collect(), vec![], vec![]];
-        let uniform = SceneCosts {
-            boxes: (0..7).map(|i| brick(i, 1.0)).collect(),
-            planes: planes.clone(),
-            root,
-            datasets: Vec::new(),
-        };
+        let uniform = slab_costs(7, 10.0, true);
+        let planes = uniform.planes.clone();
         // Seven equal bricks: the balance (3.5) lies between faces 30 and 40.
         let x = Decomposition::balanced(root, &uniform.boxes, 2, 1, &planes);
         let face = x.tree.leaves[0].hi[0];
@@ -690,24 +698,8 @@ mod tests {
     /// made as it is (damped), not replaced by the undamped one.
     #[test]
     fn a_damped_re_split_that_gains_enough_stays_damped() {
-        let root = Region {
-            lo: [0.0; 3],
-            hi: [100.0, 10.0, 10.0],
-        };
-        let field = SceneCosts {
-            boxes: (0..100)
-                .map(|i| CostBox {
-                    region: Region {
-                        lo: [i as f64, 0.0, 0.0],
-                        hi: [i as f64 + 1.0, 10.0, 10.0],
-                    },
-                    cost: 1.0,
-                })
-                .collect(),
-            planes: [vec![], vec![], vec![]],
-            root,
-            datasets: Vec::new(),
-        };
+        let field = slab_costs(100, 1.0, false);
+        let root = field.root;
         let d = Decomposition::balanced(root, &field.boxes, 2, 1, &field.planes);
         assert_eq!(d.tree.leaves[0].hi[0], 50.0);
         // Measured 1.12: undamped the balance lies at 50 / 1.12 = 44.6; damped by half at

@@ -438,16 +438,13 @@ pub struct ShmReader {
     map: Option<Arc<Mmap>>,
 }
 
-/// Whether `file` has fewer bytes of memory than `end`: then it has holes below `end`
+/// Whether a file (its `meta`) has fewer bytes of memory than `end`: then it has holes below `end`
 /// (tmpfs counts the pages `fallocate` gave it; its SEEK_HOLE reports those as holes until
 /// written, so it cannot tell a sender's segment from a sparse one). A file with memory
 /// elsewhere and holes below `end` passes: populating it then allocates at most as much
 /// again as its owner did.
-fn hole_below(file: &File, end: u64) -> bool {
-    let allocated = file
-        .metadata()
-        .map_or(0, |m| m.blocks().saturating_mul(512));
-    allocated < end
+fn hole_below(meta: &std::fs::Metadata, end: u64) -> bool {
+    meta.blocks().saturating_mul(512) < end
 }
 
 /// Payload bytes of a mapping, owned by a piece.
@@ -483,7 +480,8 @@ impl ShmReader {
                 return Ok(m.clone());
             }
         }
-        let size = self.file.metadata().map_err(io_error(&self.path))?.len();
+        let meta = self.file.metadata().map_err(io_error(&self.path))?;
+        let size = meta.len();
         if end > size {
             return Err(ShmError::PastEnd { offset, len, size });
         }
@@ -500,7 +498,7 @@ impl ShmReader {
         // memory than `want` (holes: grown by `ftruncate`, not by a sender) is mapped
         // lazily, or mapping it would allocate every hole up to the record: only the pages
         // read then cost memory.
-        let populate = !hole_below(&self.file, want);
+        let populate = !hole_below(&meta, want);
         let want = usize::try_from(want).map_err(|_| ShmError::PastEnd { offset, len, size })?;
         let mut options = MmapOptions::new();
         options.len(want);
@@ -792,7 +790,7 @@ mod tests {
         w.file
             .write_all_at(&[7u8; 4096], offset + SHM_RECORD_HEADER as u64)
             .unwrap();
-        assert!(hole_below(&w.file, offset + 64));
+        assert!(hole_below(&w.file.metadata().unwrap(), offset + 64));
         let allocated = |f: &File| f.metadata().unwrap().blocks() * 512;
         let before = allocated(&w.file);
         assert!(before < 8 << 20, "{before}");
@@ -814,7 +812,7 @@ mod tests {
         let a = w.write(1, 0, 0, &[5u8; 100_000]).unwrap();
         let size = w.file.metadata().unwrap().len();
         assert!(size >= a.offset + a.len, "{size}");
-        assert!(!hole_below(&w.file, size));
+        assert!(!hole_below(&w.file.metadata().unwrap(), size));
     }
 
     #[test]
