@@ -1471,7 +1471,7 @@ impl Node {
         // its timeout leaves the coordinator's, within which the rounds' staggered
         // deadlines also fit): its peers, held on their occlusion maps until it reported,
         // may be a moment behind it, and timing out at once would blame them.
-        let grace = (self.timeout / 4).min(Duration::from_secs(10)) / 4;
+        let grace = strata_common::composite::timeout_margin(self.timeout) / 4;
         let late = t_exchange + grace > frame_start + self.timeout;
         let exchange_from = if late {
             t_exchange + grace - self.timeout

@@ -317,8 +317,15 @@ pub fn round_stagger(timeout: Duration, rounds: usize) -> Duration {
     if rounds < 2 {
         return Duration::ZERO;
     }
-    let margin = (timeout / 4).min(Duration::from_secs(10));
-    margin / (2 * rounds as u32)
+    timeout_margin(timeout) / (2 * rounds as u32)
+}
+
+/// By how much the coordinator's frame timeout exceeds a worker's `timeout` (the workers'
+/// is `cluster.frame_timeout_s` less a fifth of it, at most 10 s: a quarter of theirs, at
+/// most 10 s). What a worker may add to its own deadlines (the rounds' stagger, a late
+/// worker's grace) must stay within it.
+pub fn timeout_margin(timeout: Duration) -> Duration {
+    (timeout / 4).min(Duration::from_secs(10))
 }
 
 /// One rank's exchange state across frames.

@@ -53,8 +53,8 @@ mod rank;
 mod sparse;
 
 pub use exchange::{
-    round_stagger, Exchange, ExchangeError, ExchangeEvent, ExchangeLimits, ExchangeStats,
-    FinalPiece, FinalTarget, Outgoing, OutgoingPiece, PieceSink,
+    round_stagger, timeout_margin, Exchange, ExchangeError, ExchangeEvent, ExchangeLimits,
+    ExchangeStats, FinalPiece, FinalTarget, Outgoing, OutgoingPiece, PieceSink,
 };
 pub use interlace::Interlace;
 pub use memory::{composite_in_memory, run_in_memory, MemoryRun};
