@@ -38,6 +38,7 @@ pub struct Bands {
 impl Bands {
     /// The band that distance `t` lies in: the last whose start is at or before `t` (band 0
     /// before the first start, and for NaN).
+    #[inline]
     pub fn at(&self, t: f32) -> usize {
         let mut band = 0;
         while band + 1 < self.start.len() && t >= self.start[band + 1] {
