@@ -4,7 +4,8 @@
 # (all of them together need more than one call and more than a 15-minute lease):
 #   1. issue 14: the CPU caster on 1, 2, 4, 8 and 16 threads, the default path and the scalar
 #      path before issue 14 (bench/device-caster-scaling.sh runs all six paths instead);
-#   2. the engine's GPU tests (tests/tests/render_gpu.rs: GPU == CPU) on the hardware GPU;
+#   2. the engine's GPU tests (tests/tests/render_gpu.rs: GPU == CPU) and the hard-case suite
+#      on the GPU backend (tests/tests/hard_cases, full rays) on the hardware GPU;
 #   3. the engine's CPU and GPU backends on the same frames (`bench-render --only-backends`);
 #   4. issue 10: strong scaling over p = 1, 2, 4, 8 CPU workers of 2 threads
 #      (bench/strong-scaling.sh; `render.backend = cpu`, since the default takes the GPU there),
@@ -13,7 +14,7 @@
 #   frames of the orbit (5), and probes of the machine: one 2-thread caster alone against
 #   eight at once, on the bonsai and on the demo survey.
 # Each step has its own time limit, so one that hangs does not cost the others; SKIP="NAME ..."
-# leaves steps out (caster-scaling, contention, survey-contention, gpu-tests, backends,
+# leaves steps out (caster-scaling, contention, survey-contention, gpu-tests, gpu-hard-cases, backends,
 # strong-scaling, strong-variants, strong-leaves). The limits add up to more than one device
 # call may run (600 s) and than a 15-minute lease: pick the steps of each call with SKIP,
 # e.g. SKIP="caster-scaling contention survey-contention gpu-tests backends" for the three
@@ -22,7 +23,7 @@
 # Prepare on the project machine: bench/device-prepare.sh (release binaries, the GPU test
 # binary, GNU time, the bonsai and the Vulkan loader's packages, 18 MB in all).
 # Run with the device tool: carry [".gl", "device-carry"], command `bash bench/device-all.sh`.
-# Results land in $OUT (or the first argument): caster-scaling.md, gpu-tests.log,
+# Results land in $OUT (or the first argument): caster-scaling.md, gpu-tests.log, gpu-hard-cases.log,
 # backends.md, strong-scaling.md, strong-scaling-raw.tgz (the stats, without the images),
 # strong-variants.md, strong-leaves.md, contention.md, survey-contention.md, machine.txt.
 set -uo pipefail
@@ -42,7 +43,7 @@ nv=/usr/local/nvidia/share
 [ -f $nv/glvnd/egl_vendor.d/10_nvidia.json ] &&
   export __EGL_VENDOR_LIBRARY_FILENAMES=$nv/glvnd/egl_vendor.d/10_nvidia.json
 for f in "$CARRY"/*.gz; do [ -e "$f" ] && gunzip -f "$f"; done
-chmod +x "$CARRY"/bench-render "$CARRY"/coordinator "$CARRY"/render_gpu "$CARRY"/time 2>/dev/null
+chmod +x "$CARRY"/bench-render "$CARRY"/coordinator "$CARRY"/render_gpu "$CARRY"/hard_cases "$CARRY"/time 2>/dev/null
 {
   date -u
   nproc
@@ -105,6 +106,13 @@ step gpu-tests "${LIMIT_GPU_TESTS:-90}" bash -c '
   set -o pipefail
   STRATA_REQUIRE_GPU_ADAPTER=1 RUST_LOG=${RUST_LOG:-info} "$0/render_gpu" --test-threads 2 2>&1 |
     tee "$1/gpu-tests.log"' "$CARRY" "$RESULTS"
+
+# The hard-case suite on the hardware GPU: cases 15 and 16 run their full rays here (lavapipe
+# in CI shortens them). The binary reads docs/HARD_CASES.md at the path it was built in.
+step gpu-hard-cases "${LIMIT_GPU_HARD_CASES:-120}" bash -c '
+  set -o pipefail
+  [ -e /work/main ] || { mkdir -p /work && ln -s "$PWD" /work/main; }
+  "$0/hard_cases" --backend gpu 2>&1 | tee "$1/gpu-hard-cases.log"' "$CARRY" "$RESULTS"
 
 step backends "${LIMIT_BACKENDS:-120}" bash -c '
   set -o pipefail

@@ -380,6 +380,10 @@ pub struct FrameSummary {
     /// prediction (left out, or stopped at a threshold the frame does not allow; summed
     /// over the workers).
     pub fixup_blocks: u64,
+    /// Seconds the coordinator spent on the frame's occlusion maps: decoding the workers'
+    /// coverage, folding it in visibility order, encoding and sending each position's map
+    /// (`FrameResult::occlusion_s`; 0 in-process and without `cluster.occlusion`).
+    pub occlusion_map_seconds: f64,
     /// The effects the frame drew (`volume+horizons+lighting`; workers whose leaves differ
     /// are joined by `; `).
     pub effects: String,
@@ -791,6 +795,7 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
                     gather_bytes: fr.gather_bytes,
                     occluded_blocks: saturating_total(fr.stats.iter().map(|s| s.occluded_blocks)),
                     fixup_blocks: saturating_total(fr.stats.iter().map(|s| s.fixup_blocks)),
+                    occlusion_map_seconds: fr.occlusion_s,
                     effects: distinct(fr.stats.iter().map(|s| s.effects.as_str())),
                     variant: distinct(fr.stats.iter().map(|s| s.variant.as_str())),
                 });
@@ -981,6 +986,7 @@ pub fn render_in_process(opts: &RenderOptions, progress: &ProgressBar) -> Result
                 gather_bytes: 0,
                 occluded_blocks: 0,
                 fixup_blocks: 0,
+                occlusion_map_seconds: 0.0,
                 effects: result.variant.effects.to_string(),
                 variant: result.variant_name.clone(),
             });

@@ -2219,6 +2219,24 @@ fn cross_worker_occlusion_casts_less_and_stays_within_the_termination_bound() {
         );
     }
     assert!(off_n.iter().all(|f| f.1 == 0 && f.2 == 0), "{off_n:?}");
+    // The coordinator's time on the maps, per frame: some with occlusion, none without.
+    let map_s = |name: &str| -> Vec<f64> {
+        std::fs::read_to_string(dir.path().join(format!("{name}.jsonl")))
+            .unwrap()
+            .lines()
+            .filter(|l| l.contains("\"kind\":\"frame\""))
+            .map(|l| {
+                let v: serde_json::Value = serde_json::from_str(l).unwrap();
+                v["occlusion_map_seconds"].as_f64().unwrap()
+            })
+            .collect()
+    };
+    let (on_s, off_s) = (map_s("on"), map_s("off"));
+    assert!(on_s.len() == 4 && on_s.iter().all(|&s| s > 0.0), "{on_s:?}");
+    assert!(
+        off_s.len() == 4 && off_s.iter().all(|&s| s == 0.0),
+        "{off_s:?}"
+    );
     // The first frame predicts from a first pass at 1/4 of the resolution; without it
     // there is nothing to predict from.
     // (Whether it pays depends on the frame: at this 96×64 size its 1/16 of the rays and
