@@ -2,8 +2,8 @@
 # Two coordinator builds side by side on the `device` machine: the demo orbit
 # (bench/strong-scaling.sh, volume opacity 0.06, CPU backend, 2 threads per worker) at each p
 # of PS with both builds, interleaved over ROUNDS rounds, so that the machine's drift and
-# noise fall on both alike; then p = 1 with the second build (the efficiency's baseline)
-# once per round. Prints one table row per run (the script's two tables) and writes them to
+# noise fall on both alike, each round starting with p = 1 of the second build (the
+# efficiency's baseline). Prints one table row per run (the script's two tables) and writes them to
 # $RESULTS/ab.md.
 #
 #   bench/device-ab.sh RESULTS OLD_COORDINATOR NEW_COORDINATOR

@@ -194,14 +194,14 @@ pub fn quantize(alpha: f32) -> Level {
     level_up(t * SCALE)
 }
 
-/// `ceil(x)` clamped to `1..=CLEAR`, for `x` below 2^32 (NaN: 1). Without a target
+/// `ceil(x)` clamped to `1..=CLEAR` (NaN: 1; the callers never pass one). Without a target
 /// feature for it (SSE4.1), `f64::ceil` is a call into libm, and the levels of every
 /// block of a frame are rounded on the occlusion maps' critical path: a truncation and one
 /// compare instead.
 #[inline]
 fn level_up(x: f64) -> Level {
-    let t = x as u32; // truncates; saturates below 0 and NaN to 0
-    let up = t + ((t as f64) < x) as u32;
+    let t = x as u32; // truncates; saturates below 0 and NaN to 0, at and past 2^32 to MAX
+    let up = t.saturating_add(((t as f64) < x) as u32);
     up.clamp(1, CLEAR as u32) as Level
 }
 
@@ -827,7 +827,16 @@ mod tests {
             65534.5,
             65535.0,
         ];
-        xs.extend([65535.000001, 1e6, 4e9, f64::NAN]);
+        xs.extend([
+            65535.000001,
+            1e6,
+            4e9,
+            4.3e9,
+            1e300,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+        ]);
+        xs.push(f64::NAN);
         // Every level and its neighbours, as the products of `fold` land on them.
         for l in 0..=CLEAR as u32 {
             let x = l as f64;
@@ -846,6 +855,8 @@ mod tests {
         assert_eq!(quantize(1.0 - 1e-7), 1);
         assert_eq!(quantize(0.5), 32768);
         assert_eq!(quantize(f32::NAN), CLEAR);
+        assert_eq!(quantize(-1e30), CLEAR);
+        assert_eq!(quantize(f32::NEG_INFINITY), CLEAR);
         for a in [0.0f32, 0.1, 0.33, 0.5, 0.9, 0.99, 0.999_99] {
             assert!(quantize(a) as f64 / SCALE >= 1.0 - a as f64, "{a}");
         }

@@ -2064,11 +2064,18 @@ impl Cluster {
                                 let map = tokio::task::block_in_place(|| acc.fold(layer));
                                 due.push((order[acc.folded()], map));
                             }
-                            let encoded: Vec<(u32, Vec<u8>)> = tokio::task::block_in_place(|| {
-                                due.into_par_iter()
-                                    .map(|(to, map)| (to, occlusion::encode_levels(&map.q)))
-                                    .collect()
-                            });
+                            let encode = |(to, map): (u32, occlusion::FrontTransmittance)| {
+                                (to, occlusion::encode_levels(&map.q))
+                            };
+                            let encoded: Vec<(u32, Vec<u8>)> = match due.len() {
+                                0 => Vec::new(),
+                                1 => tokio::task::block_in_place(|| {
+                                    due.into_iter().map(encode).collect()
+                                }),
+                                _ => tokio::task::block_in_place(|| {
+                                    due.into_par_iter().map(encode).collect()
+                                }),
+                            };
                             for (to, bytes) in encoded {
                                 self.send_occlusion(frame, to, bytes, deadline, prepass)
                                     .await
