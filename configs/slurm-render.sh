@@ -24,7 +24,9 @@ MTU=${STRATA_QUIC_MTU:-1200}
 
 # A run folder on the shared file system, readable only by us: the secret and the
 # coordinator's certificate fingerprint travel through it.
-RUN=$(mktemp -d "${STRATA_RUN_DIR:-$HOME/.strata-runs}/run.XXXXXX")
+RUNS=${STRATA_RUN_DIR:-$HOME/.strata-runs}
+mkdir -p -m 700 "$RUNS"
+RUN=$(mktemp -d "$RUNS/run.XXXXXX")
 chmod 700 "$RUN"
 trap 'rm -rf "$RUN"' EXIT
 head -c 32 /dev/urandom | od -An -tx1 | tr -d ' \n' > "$RUN/secret"; echo >> "$RUN/secret"

@@ -657,6 +657,10 @@ pub struct Cluster {
     /// write their final spans into; one whose image a caller still holds is not reused.
     canvases: Vec<Arc<Canvas>>,
     child_pids: Vec<u32>,
+    /// Per spawned child (as `child_pids`): kills it through its own process handle, which
+    /// does nothing once the child has been reaped. A bare `kill(pid)` after the child
+    /// exited and was reaped could hit an unrelated process that reused the pid.
+    child_kill: Vec<ChildKill>,
     /// The cost boxes the decomposition balances (re-weighted by each re-split).
     costs: decompose::SceneCosts,
     /// The scene's estimated costs, as set-up computed them (what a re-split by measured
@@ -815,13 +819,16 @@ impl Cluster {
         let secret = opts.secret.clone().unwrap_or_else(secret::new_secret);
         let (tx, events) = mpsc::unbounded_channel();
         let mut child_pids = Vec::new();
+        let mut child_kill = Vec::new();
         let spawner = match opts.spawn {
             true => Some(Spawner::new(&opts, n, local, &fp, &secret)?),
             false => None,
         };
         if let Some(sp) = &spawner {
             for i in 0..n {
-                child_pids.push(sp.spawn(i, i, &tx)?);
+                let (pid, kill) = sp.spawn(i, i, &tx)?;
+                child_pids.push(pid);
+                child_kill.push(kill);
             }
             info!(
                 workers = n,
@@ -849,6 +856,7 @@ impl Cluster {
             canvases: Vec::new(),
             wall: None,
             child_pids,
+            child_kill,
             estimate: costs.clone(),
             costs,
             new_leaves: vec![None; n],
@@ -1326,10 +1334,10 @@ impl Cluster {
                 Event::Msg { rank, .. } | Event::Lost { rank, .. } if !slots.contains(&rank) => {
                     debug!(rank, "ignoring a worker given up on");
                 }
-                Event::Exited { child, .. }
+                Event::Exited { child, status }
                     if !self.child_rank(child).is_some_and(|r| slots.contains(&r)) =>
                 {
-                    debug!(child, "a worker given up on has exited");
+                    debug!(child, %status, "a worker given up on has exited");
                 }
                 Event::Lost { rank, error } => lost.push((rank, format!("disconnected: {error}"))),
                 Event::Exited { child, status } => {
@@ -1563,9 +1571,10 @@ impl Cluster {
         for &gpu in gpu_slots.iter().take(self.respawns_left as usize) {
             let child = self.child_pids.len();
             match sp.spawn(child, gpu, &self.events_tx) {
-                Ok(pid) => {
+                Ok((pid, kill)) => {
                     info!(child, pid, "spawned a replacement worker (cluster.respawn)");
                     self.child_pids.push(pid);
+                    self.child_kill.push(kill);
                     self.child_gpu.push(gpu);
                     self.respawns_left -= 1;
                     self.respawned.push(pid);
@@ -1583,11 +1592,8 @@ impl Cluster {
     async fn drop_workers(&mut self, lost: &[u32]) -> Vec<Assignment> {
         for &r in lost {
             let w = &mut self.workers[r as usize];
-            if self.child_pids.contains(&w.pid) {
-                // SAFETY: a plain syscall on our own child process (it may be stopped).
-                unsafe {
-                    libc::kill(w.pid as i32, libc::SIGKILL);
-                }
+            if let Some(c) = self.child_pids.iter().position(|&p| p == w.pid) {
+                self.child_kill[c].kill();
             }
             w.conn.close(7u32.into(), b"lost");
             // Its gather segment goes with it (the mapping would keep the memory alive).
@@ -1896,10 +1902,10 @@ impl Cluster {
                 Event::Msg { rank, .. } | Event::Lost { rank, .. } if !slots.contains(&rank) => {
                     debug!(rank, "ignoring a worker given up on");
                 }
-                Event::Exited { child, .. }
+                Event::Exited { child, status }
                     if !self.child_rank(child).is_some_and(|r| slots.contains(&r)) =>
                 {
-                    debug!(child, "a worker given up on has exited");
+                    debug!(child, %status, "a worker given up on has exited");
                 }
                 Event::Msg {
                     rank, frame: mut f, ..
@@ -2375,9 +2381,8 @@ impl Cluster {
     pub async fn shutdown(mut self) {
         // Replacements spawned and never admitted have no part in the run to finish.
         for &pid in &self.respawned {
-            // SAFETY: a plain syscall on our own child process.
-            unsafe {
-                libc::kill(pid as i32, libc::SIGKILL);
+            if let Some(c) = self.child_pids.iter().position(|&p| p == pid) {
+                self.child_kill[c].kill();
             }
         }
         let slots = self.slots.clone();
@@ -2691,7 +2696,12 @@ impl Spawner {
     ///
     /// With `cluster.pin_workers` it is bound to the CPUs of slot `gpu` (the slot of the
     /// worker a replacement replaces).
-    fn spawn(&self, child: usize, gpu: usize, tx: &mpsc::UnboundedSender<Event>) -> Result<u32> {
+    fn spawn(
+        &self,
+        child: usize,
+        gpu: usize,
+        tx: &mpsc::UnboundedSender<Event>,
+    ) -> Result<(u32, ChildKill)> {
         let cpus = self
             .pin
             .as_ref()
@@ -2749,14 +2759,37 @@ impl Spawner {
             debug!(child, pid, cpus = %affinity::format_list(&c), "bound a worker to its CPUs");
         }
         let tx = tx.clone();
+        let kill = ChildKill(Arc::new(tokio::sync::Notify::new()));
+        let asked = kill.0.clone();
         tokio::spawn(async move {
-            let status = match proc.wait().await {
+            let status = tokio::select! {
+                s = proc.wait() => s,
+                // (Until `wait` has returned, the child is not reaped: its pid is its own,
+                // if only as a zombie.)
+                () = asked.notified() => {
+                    let _ = proc.start_kill();
+                    proc.wait().await
+                }
+            };
+            let status = match status {
                 Ok(s) => describe_status(s),
                 Err(e) => e.to_string(),
             };
             let _ = tx.send(Event::Exited { child, status });
         });
-        Ok(pid)
+        Ok((pid, kill))
+    }
+}
+
+/// Kills one spawned worker process through the task that owns its handle
+/// ([`Spawner::spawn`]): a request made after the child was reaped does nothing.
+#[derive(Clone)]
+struct ChildKill(Arc<tokio::sync::Notify>);
+
+impl ChildKill {
+    fn kill(&self) {
+        // A stored permit: the request holds even before the task first waits.
+        self.0.notify_one();
     }
 }
 

@@ -138,6 +138,8 @@ pub fn encode_mp4(pattern: &Path, first: u32, count: u32, fps: f64, out: &Path) 
         .map_or_else(PathBuf::new, Path::to_path_buf)
         .join(format!(".{name}.partial.mp4"));
     let run = Command::new("ffmpeg")
+        // (The cluster's secret may be in this process's environment: not for ffmpeg.)
+        .env_remove(strata_net::secret::SECRET_ENV)
         .args(["-y", "-loglevel", "error", "-framerate"])
         .arg(format!("{fps}"))
         .args(["-start_number", &first.to_string(), "-i"])

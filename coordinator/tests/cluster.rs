@@ -827,9 +827,21 @@ fn a_hung_worker_is_given_up_on_and_the_sequence_goes_on_without_it() {
             "--stats",
             stats.to_str().unwrap(),
         ],
-        &[("STRATA_TEST_FAULT", "2:stop:exchange")],
+        &[
+            ("STRATA_TEST_FAULT", "2:stop:exchange"),
+            ("RUST_LOG", "warn,strata_coordinator::cluster=debug"),
+        ],
     );
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    // The stopped worker was killed when it was given up on, while the run went on (a
+    // stopped process does not exit by itself; at the coordinator's exit it would die
+    // unseen).
+    assert!(
+        err.lines()
+            .any(|l| l.contains("a worker given up on has exited") && l.contains("signal 9")),
+        "{err}"
+    );
     for i in 0..3 {
         let a = read_exr(&dir.path().join(format!("in_{i:03}.exr")));
         let b = read_exr(&dir.path().join(format!("hung_{i:03}.exr")));

@@ -90,8 +90,8 @@ fn slurm_render_sh_under_sbatch_with_3_workers_equals_in_process() {
         std::os::unix::fs::PermissionsExt::from_mode(0o755),
     )
     .unwrap();
+    // The folder of run folders does not exist yet: the script makes it (private).
     let runs = d.join("runs");
-    std::fs::create_dir_all(&runs).unwrap();
 
     let scene = survey_in("slurm-survey").join("scene.toml");
     let out = d.join("slurm.png");
@@ -140,6 +140,11 @@ fn slurm_render_sh_under_sbatch_with_3_workers_equals_in_process() {
     assert!(diff <= 1e-5, "the Slurm render differs by {diff}:\n{job}");
     // The run folder (secret, fingerprint) is removed when the job ends.
     assert!(std::fs::read_dir(&runs).unwrap().next().is_none());
+    {
+        use std::os::unix::fs::PermissionsExt;
+        let mode = std::fs::metadata(&runs).unwrap().permissions().mode();
+        assert_eq!(mode & 0o777, 0o700, "{mode:o}");
+    }
 
     // configs/slurm-sequence.sh: an orbit of 4 frames as a job array of 2 tasks, 2 frames
     // each; every frame equals the same orbit rendered in process.

@@ -425,10 +425,29 @@ pub fn synth(
 }
 
 /// Writes `bytes` under a temporary name and renames it into place.
+///
+/// The temporary file is created new (`O_EXCL`), never opened through whatever already has
+/// its name: a symbolic link planted there (the name is predictable) would otherwise have
+/// the bytes written wherever it points. A leftover of that name (a link, or a crashed
+/// run's file) is removed first; removing a link does not touch its target.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
+    use std::io::Write;
     let tmp = crate::builder::temp_path_for(path);
     let _signals = crate::cleanup::register(&tmp);
-    let result = std::fs::write(&tmp, bytes)
+    let create = || {
+        std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .open(&tmp)
+    };
+    let file = match create() {
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+            std::fs::remove_file(&tmp).and_then(|()| create())
+        }
+        other => other,
+    };
+    let result = file
+        .and_then(|mut f| f.write_all(bytes))
         .with_context(|| {
             format!(
                 "{}: cannot write (through {})",
@@ -532,6 +551,28 @@ fn write_horizon_text(model: &SynthModel, grid: &[f32], path: &Path) -> Result<(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A link planted under the predictable temporary name is not written through: the
+    /// file it points to keeps its bytes, and the file asked for gets them.
+    #[test]
+    fn write_atomically_does_not_write_through_a_planted_link() {
+        let dir = tempfile::tempdir().unwrap();
+        let victim = dir.path().join("victim");
+        std::fs::write(&victim, b"keep").unwrap();
+        let out = dir.path().join("fingerprint");
+        let tmp = crate::builder::temp_path_for(&out);
+        std::os::unix::fs::symlink(&victim, &tmp).unwrap();
+        write_atomically(&out, b"abc\n").unwrap();
+        assert_eq!(std::fs::read(&victim).unwrap(), b"keep");
+        assert_eq!(std::fs::read(&out).unwrap(), b"abc\n");
+        assert!(
+            std::fs::symlink_metadata(&tmp).is_err(),
+            "the temporary name is gone"
+        );
+        // And over an existing file, as before.
+        write_atomically(&out, b"xyz\n").unwrap();
+        assert_eq!(std::fs::read(&out).unwrap(), b"xyz\n");
+    }
 
     /// Sizes the outputs cannot take are refused before anything is written: a trace
     /// longer than SEG-Y counts (the stores had been built first, then left without their
