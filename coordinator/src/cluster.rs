@@ -2463,12 +2463,24 @@ type Authenticated = (
 
 /// Completes the handshake of one connection: the first frame must be a `Hello` with the
 /// run's secret; anything else is refused, logged and closed.
+///
+/// The whole of it has one 10 s deadline (not 10 s per step): a connection holds one of
+/// the listener's handshake permits until it is done, and a stranger that dawdles through
+/// each step could otherwise hold one for 30 s. (A worker turned away for want of a permit
+/// tries again, `transport::connect_until`.)
 async fn authenticate(incoming: quinn::Incoming, secret: &[u8]) -> Result<Authenticated> {
-    let t = Duration::from_secs(10);
-    let conn = with_timeout(t, "QUIC handshake", incoming.into_future()).await?;
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let left = || deadline.saturating_duration_since(Instant::now());
+    let conn = with_timeout(left(), "QUIC handshake", incoming.into_future()).await?;
     let (mut send, mut recv) =
-        with_timeout(t, "opening the control stream", conn.accept_bi()).await?;
-    let f = match with_timeout(t, "the hello", read_frame(&mut recv, &Limits::HANDSHAKE)).await {
+        with_timeout(left(), "opening the control stream", conn.accept_bi()).await?;
+    let f = match with_timeout(
+        left(),
+        "the hello",
+        read_frame(&mut recv, &Limits::HANDSHAKE),
+    )
+    .await
+    {
         Ok(f) => f,
         Err(e) => {
             conn.close(4u32.into(), b"bad hello");
@@ -2487,7 +2499,7 @@ async fn authenticate(incoming: quinn::Incoming, secret: &[u8]) -> Result<Authen
                 let msg = wire::encode_meta(&CoordMsg::Refused {
                     reason: "wrong shared secret".into(),
                 });
-                let _ = tokio::time::timeout(t, write_frame(&mut send, &msg, &[])).await;
+                let _ = tokio::time::timeout(left(), write_frame(&mut send, &msg, &[])).await;
                 let _ = send.finish();
                 tokio::time::sleep(Duration::from_millis(50)).await;
                 conn.close(5u32.into(), b"wrong secret");
@@ -2506,7 +2518,7 @@ async fn authenticate(incoming: quinn::Incoming, secret: &[u8]) -> Result<Authen
                 let msg = wire::encode_meta(&CoordMsg::Refused {
                     reason: reason.clone(),
                 });
-                let _ = tokio::time::timeout(t, write_frame(&mut send, &msg, &[])).await;
+                let _ = tokio::time::timeout(left(), write_frame(&mut send, &msg, &[])).await;
                 let _ = send.finish();
                 tokio::time::sleep(Duration::from_millis(50)).await;
                 conn.close(5u32.into(), b"wrong certificate");

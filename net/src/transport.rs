@@ -177,9 +177,138 @@ pub async fn connect_as(
     }
 }
 
+/// [`connect_as`], tried again until `timeout` while the peer is not there yet or turns the
+/// attempt away: a worker started before its coordinator listens, or while the
+/// coordinator's queue of unauthenticated connections is full, keeps trying for its whole
+/// `--connect-timeout-s`. One attempt gives up after `cfg.idle_timeout` without an answer
+/// (QUIC's handshake idles out), which alone would cut the time short. An attempt that
+/// fails otherwise (a certificate that is not the pinned one, a closed connection) ends
+/// the wait at once. Pauses between attempts grow from 100 ms to 2 s.
+pub async fn connect_until(
+    ep: &quinn::Endpoint,
+    addr: SocketAddr,
+    pinned: Fingerprint,
+    id: Option<&Identity>,
+    cfg: &NetConfig,
+    timeout: Duration,
+) -> Result<quinn::Connection> {
+    let deadline = tokio::time::Instant::now() + timeout;
+    let mut pause = Duration::from_millis(100);
+    let mut attempts = 0u32;
+    loop {
+        attempts += 1;
+        let client = tls::client_config(pinned, cfg.transport()?, id)?;
+        let connecting = ep
+            .connect_with(client, addr, tls::SERVER_NAME)
+            .with_context(|| format!("cannot connect to {addr}"))?;
+        let left = deadline.saturating_duration_since(tokio::time::Instant::now());
+        let e = match tokio::time::timeout(left, connecting).await {
+            Ok(Ok(c)) => return Ok(c),
+            Ok(Err(e)) => e,
+            Err(_) => break,
+        };
+        let again = match &e {
+            quinn::ConnectionError::TimedOut | quinn::ConnectionError::Reset => true,
+            quinn::ConnectionError::ConnectionClosed(c) => {
+                c.error_code == quinn::TransportErrorCode::CONNECTION_REFUSED
+            }
+            _ => false,
+        };
+        if !again {
+            anyhow::bail!("connecting to {addr}: {e}");
+        }
+        if tokio::time::Instant::now() + pause >= deadline {
+            break;
+        }
+        tracing::debug!(%addr, attempts, error = %e, "no connection yet; trying again");
+        tokio::time::sleep(pause).await;
+        pause = (pause * 2).min(Duration::from_secs(2));
+    }
+    anyhow::bail!(
+        "connecting to {addr}: no answer within {:.1} s ({attempts} attempts)",
+        timeout.as_secs_f64()
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A worker that starts before its coordinator listens keeps trying: the server comes
+    /// up after several of the client's attempts have idled out, and the connection is
+    /// made. A server with another certificate ends the wait at once.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn connect_until_waits_for_a_late_server_and_not_for_a_wrong_one() {
+        let cfg = NetConfig {
+            idle_timeout: Duration::from_millis(300),
+            ..NetConfig::default()
+        };
+        let server_id = tls::Identity::generate().unwrap();
+        // A free port: bound, then closed, and taken again later by the server.
+        let port = std::net::UdpSocket::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let addr: SocketAddr = format!("127.0.0.1:{port}").parse().unwrap();
+        let (id, sc) = (server_id.fingerprint, cfg.clone());
+        let server = tokio::spawn(async move {
+            tokio::time::sleep(Duration::from_millis(1500)).await;
+            let server = endpoint(addr, &server_id, &sc).unwrap();
+            let incoming = server.accept().await.expect("a connection");
+            let conn = incoming.await.expect("a handshake");
+            (server, conn)
+        });
+        let client_id = tls::Identity::generate().unwrap();
+        let client = endpoint("127.0.0.1:0".parse().unwrap(), &client_id, &cfg).unwrap();
+        let t = std::time::Instant::now();
+        let conn = connect_until(&client, addr, id, None, &cfg, Duration::from_secs(20))
+            .await
+            .expect("connected once the server listened");
+        assert!(
+            t.elapsed() >= Duration::from_millis(1400),
+            "{:?}",
+            t.elapsed()
+        );
+        let (server, _sconn) = server.await.unwrap();
+        drop(conn);
+        // The wrong certificate: refused at the first attempt, long before the timeout.
+        let other = tls::Identity::generate().unwrap().fingerprint;
+        let accept = tokio::spawn(async move {
+            if let Some(i) = server.accept().await {
+                let _ = i.await;
+            }
+            server
+        });
+        let t = std::time::Instant::now();
+        let e = connect_until(&client, addr, other, None, &cfg, Duration::from_secs(20))
+            .await
+            .unwrap_err();
+        assert!(
+            t.elapsed() < Duration::from_secs(5),
+            "{:?}: {e:#}",
+            t.elapsed()
+        );
+        // And nobody there at all: the whole timeout, then an error that says so.
+        let t = std::time::Instant::now();
+        let e = connect_until(
+            &client,
+            "127.0.0.1:9".parse().unwrap(),
+            id,
+            None,
+            &cfg,
+            Duration::from_millis(1200),
+        )
+        .await
+        .unwrap_err();
+        assert!(
+            t.elapsed() >= Duration::from_millis(1000),
+            "{:?}",
+            t.elapsed()
+        );
+        assert!(e.to_string().contains("no answer within 1.2 s"), "{e:#}");
+        drop(accept);
+    }
 
     /// Connections offer no DATAGRAM support, either way: a stranger cannot queue datagrams
     /// before it has proven who it is.

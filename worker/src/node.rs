@@ -125,7 +125,7 @@ async fn node(opts: NodeOptions) -> Result<()> {
     };
     let ep = transport::endpoint(opts.bind, &id, &net)?;
     // Presenting this worker's certificate, which its hello names.
-    let conn = transport::connect_as(
+    let conn = transport::connect_until(
         &ep,
         opts.connect,
         opts.fingerprint,
