@@ -163,17 +163,45 @@ pub async fn connect_as(
     cfg: &NetConfig,
     timeout: Duration,
 ) -> Result<quinn::Connection> {
-    let client = tls::client_config(pinned, cfg.transport()?, id)?;
-    let connecting = ep
-        .connect_with(client, addr, tls::SERVER_NAME)
-        .with_context(|| format!("cannot connect to {addr}"))?;
-    match tokio::time::timeout(timeout, connecting).await {
-        Ok(Ok(c)) => Ok(c),
-        Ok(Err(e)) => Err(anyhow::anyhow!("connecting to {addr}: {e}")),
-        Err(_) => Err(anyhow::anyhow!(
+    match attempt(ep, addr, pinned, id, cfg, timeout).await {
+        Ok(c) => Ok(c),
+        Err(Attempt::Quic(e)) => Err(anyhow::anyhow!("connecting to {addr}: {e}")),
+        Err(Attempt::NoAnswer) => Err(anyhow::anyhow!(
             "connecting to {addr}: no answer within {:.1} s",
             timeout.as_secs_f64()
         )),
+        Err(Attempt::Setup(e)) => Err(e),
+    }
+}
+
+/// How one connection attempt failed.
+enum Attempt {
+    /// The QUIC handshake failed.
+    Quic(quinn::ConnectionError),
+    /// Nothing within the time given.
+    NoAnswer,
+    /// The attempt could not be made (client configuration, address).
+    Setup(anyhow::Error),
+}
+
+async fn attempt(
+    ep: &quinn::Endpoint,
+    addr: SocketAddr,
+    pinned: Fingerprint,
+    id: Option<&Identity>,
+    cfg: &NetConfig,
+    timeout: Duration,
+) -> Result<quinn::Connection, Attempt> {
+    let setup = || -> Result<quinn::Connecting> {
+        let client = tls::client_config(pinned, cfg.transport()?, id)?;
+        ep.connect_with(client, addr, tls::SERVER_NAME)
+            .with_context(|| format!("cannot connect to {addr}"))
+    };
+    let connecting = setup().map_err(Attempt::Setup)?;
+    match tokio::time::timeout(timeout, connecting).await {
+        Ok(Ok(c)) => Ok(c),
+        Ok(Err(e)) => Err(Attempt::Quic(e)),
+        Err(_) => Err(Attempt::NoAnswer),
     }
 }
 
@@ -197,15 +225,12 @@ pub async fn connect_until(
     let mut attempts = 0u32;
     loop {
         attempts += 1;
-        let client = tls::client_config(pinned, cfg.transport()?, id)?;
-        let connecting = ep
-            .connect_with(client, addr, tls::SERVER_NAME)
-            .with_context(|| format!("cannot connect to {addr}"))?;
         let left = deadline.saturating_duration_since(tokio::time::Instant::now());
-        let e = match tokio::time::timeout(left, connecting).await {
-            Ok(Ok(c)) => return Ok(c),
-            Ok(Err(e)) => e,
-            Err(_) => break,
+        let e = match attempt(ep, addr, pinned, id, cfg, left).await {
+            Ok(c) => return Ok(c),
+            Err(Attempt::NoAnswer) => break,
+            Err(Attempt::Setup(e)) => return Err(e),
+            Err(Attempt::Quic(e)) => e,
         };
         let again = match &e {
             quinn::ConnectionError::TimedOut | quinn::ConnectionError::Reset => true,
