@@ -208,6 +208,19 @@ pub struct CompositeChoice {
     pub lz4: bool,
 }
 
+/// A shared secret's bytes. They travel as the bytes themselves (`serde(transparent)`: the
+/// wire format is a plain byte string), and `Debug` shows only their length, so a message,
+/// an options struct or an error that prints one with `{:?}` does not print the secret.
+#[derive(Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(transparent)]
+pub struct Secret(pub Vec<u8>);
+
+impl std::fmt::Debug for Secret {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Secret(<{} bytes>)", self.0.len())
+    }
+}
+
 /// Worker → coordinator.
 // Messages are built once per frame or set-up and sent at once: a box per large variant
 // would only add an allocation.
@@ -217,7 +230,7 @@ pub enum WorkerMsg {
     /// First message on a connection: who the worker is and the shared secret.
     Hello {
         /// Shared secret of the run.
-        secret: Vec<u8>,
+        secret: Secret,
         /// Human-readable name (host:pid by default).
         name: String,
         /// Process id.
@@ -889,6 +902,29 @@ pub struct WorkerFrameStats {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A hello's secret travels as a plain byte string (the same bytes as a `Vec<u8>`
+    /// field) and never shows in `Debug`.
+    #[test]
+    fn a_secret_travels_as_bytes_and_is_not_debug_printed() {
+        let secret = b"correct-horse-battery-staple-42".to_vec();
+        let hello = WorkerMsg::Hello {
+            secret: Secret(secret.clone()),
+            name: "w".into(),
+            pid: 7,
+            fingerprint: [3; 32],
+            host: None,
+        };
+        assert!(!format!("{hello:?}").contains("correct-horse"), "{hello:?}");
+        assert!(format!("{hello:?}").contains("<31 bytes>"), "{hello:?}");
+        let plain = bincode::serde::encode_to_vec(&secret, config()).unwrap();
+        let wrapped = bincode::serde::encode_to_vec(Secret(secret.clone()), config()).unwrap();
+        assert_eq!(plain, wrapped);
+        assert_eq!(
+            decode_meta::<WorkerMsg>(&encode_meta(&hello)).unwrap(),
+            hello
+        );
+    }
     use proptest::prelude::*;
 
     fn region(x0: f64) -> Region {

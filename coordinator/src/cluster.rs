@@ -69,7 +69,7 @@ pub struct ClusterOptions {
     /// `cluster.pin_workers`: bind each spawned worker to its own block of CPUs.
     pub pin_workers: bool,
     /// Shared secret (None: generate one; only allowed when spawning).
-    pub secret: Option<Vec<u8>>,
+    pub secret: Option<wire::Secret>,
     /// Where to write the fingerprint for launchers.
     pub fingerprint_file: Option<PathBuf>,
     /// Largest frame of the run (pixels): bounds piece sizes.
@@ -318,7 +318,8 @@ impl ClusterOptions {
                 c.listen
             )
         })?;
-        let secret = secret::read_secret(c.secret_file.as_deref(), secret::SECRET_ENV)?;
+        let secret =
+            secret::read_secret(c.secret_file.as_deref(), secret::SECRET_ENV)?.map(wire::Secret);
         if !c.spawn && secret.is_none() {
             bail!(
                 "cluster.spawn = false needs a shared secret: set cluster.secret_file or ${}",
@@ -816,7 +817,10 @@ impl Cluster {
             crate::synth::write_atomically(f, format!("{fp}\n").as_bytes())
                 .with_context(|| format!("writing the fingerprint to {}", f.display()))?;
         }
-        let secret = opts.secret.clone().unwrap_or_else(secret::new_secret);
+        let secret = opts
+            .secret
+            .as_ref()
+            .map_or_else(secret::new_secret, |s| s.0.clone());
         let (tx, events) = mpsc::unbounded_channel();
         let mut child_pids = Vec::new();
         let mut child_kill = Vec::new();
@@ -2495,7 +2499,7 @@ async fn authenticate(incoming: quinn::Incoming, secret: &[u8]) -> Result<Authen
             fingerprint,
             host,
         }) => {
-            if !secret::ct_eq(&s, secret) {
+            if !secret::ct_eq(&s.0, secret) {
                 let msg = wire::encode_meta(&CoordMsg::Refused {
                     reason: "wrong shared secret".into(),
                 });

@@ -548,7 +548,7 @@ fn bad_peers_are_refused_and_the_run_goes_on() {
         let (_id, ep, conn) = dial(addr, pinned).await;
         let (mut send, mut recv) = conn.open_bi().await.unwrap();
         let hello = strata_common::wire::encode_meta(&strata_common::wire::WorkerMsg::Hello {
-            secret: b"correct-horse-battery-staple-42".to_vec(),
+            secret: strata_common::wire::Secret(b"correct-horse-battery-staple-42".to_vec()),
             name: "impostor".into(),
             pid: 1,
             fingerprint: other.fingerprint,
@@ -1602,7 +1602,7 @@ async fn fake_worker(
     strata_net::transport::trust(&conn);
     let (mut send, mut recv) = conn.open_bi().await.unwrap();
     let hello = WorkerMsg::Hello {
-        secret: b"correct-horse-battery-staple-42".to_vec(),
+        secret: strata_common::wire::Secret(b"correct-horse-battery-staple-42".to_vec()),
         name: "fake".into(),
         pid: std::process::id(),
         fingerprint: id.fingerprint,

@@ -94,7 +94,7 @@ pub fn join(a: JoinArgs) -> Result<()> {
     crate::node::run(crate::node::NodeOptions {
         connect: addr,
         fingerprint,
-        secret,
+        secret: strata_common::wire::Secret(secret),
         name: a
             .name
             .unwrap_or_else(|| format!("{host}:{}", std::process::id())),

@@ -58,7 +58,7 @@ pub struct NodeOptions {
     /// Pinned fingerprint of the coordinator's certificate.
     pub fingerprint: Fingerprint,
     /// Shared secret.
-    pub secret: Vec<u8>,
+    pub secret: wire::Secret,
     /// Name in logs and errors.
     pub name: String,
     /// Local address of the endpoint (port 0: any).
