@@ -934,6 +934,35 @@ fn outputs_and_values_are_checked_before_any_work() {
         assert_eq!(o.status.code(), Some(1), "{flag}: {err}");
         assert!(err.contains(flag) && !err.contains("panicked"), "{err}");
     }
+    // A fingerprint file every user may write is refused; the same file without that
+    // permission is read (and the worker then finds no coordinator in its short timeout).
+    let fp = d.join("fingerprint");
+    std::fs::write(&fp, format!("{}\n", "ab".repeat(32))).unwrap();
+    for (mode, refused) in [(0o666, true), (0o644, false)] {
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(&fp, std::fs::Permissions::from_mode(mode)).unwrap();
+        let o = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+            .args([
+                "-q",
+                "worker",
+                "--connect",
+                "127.0.0.1:9",
+                "--fingerprint-file",
+            ])
+            .arg(&fp)
+            .args(["--connect-timeout-s", "0.3"])
+            .env("STRATA_SECRET", "0123456789abcdef0123")
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{mode:o}: {err}");
+        assert_eq!(
+            err.contains("writable by every user"),
+            refused,
+            "{mode:o}: {err}"
+        );
+        assert!(!err.contains("panicked"), "{err}");
+    }
 }
 
 /// A build ended by a signal leaves no temporary behind, and still dies of that signal.

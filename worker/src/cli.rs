@@ -57,6 +57,20 @@ pub fn join(a: JoinArgs) -> Result<()> {
     let fingerprint = match (&a.fingerprint, &a.fingerprint_file) {
         (Some(f), _) => parse_fingerprint(f).context("--fingerprint")?,
         (None, Some(file)) => {
+            // The file decides which server gets the secret: one anybody may rewrite
+            // could send it to a stranger.
+            use std::os::unix::fs::PermissionsExt;
+            let mode = std::fs::metadata(file)
+                .with_context(|| format!("cannot read {}", file.display()))?
+                .permissions()
+                .mode();
+            if mode & 0o002 != 0 {
+                anyhow::bail!(
+                    "{}: writable by every user (mode {:o}), so anyone could name the server this worker sends its secret to; chmod o-w it",
+                    file.display(),
+                    mode & 0o7777
+                );
+            }
             let text = std::fs::read_to_string(file)
                 .with_context(|| format!("cannot read {}", file.display()))?;
             parse_fingerprint(&text).with_context(|| format!("{}", file.display()))?
