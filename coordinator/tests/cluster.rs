@@ -514,6 +514,11 @@ fn bad_peers_are_refused_and_the_run_goes_on() {
     assert!(!o.status.success());
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(e.contains("not the pinned"), "{e}");
+    // Only the start of the pinned value is shown (it could be a secret pinned by mistake).
+    assert!(
+        e.contains("\"abababab\"… (64 characters)") && !e.contains(&wrong_fp),
+        "{e}"
+    );
 
     // 2. The wrong secret is refused by the coordinator, and the worker says so.
     let o = worker(&w, &fp, "not-the-secret-of-this-run");

@@ -65,6 +65,20 @@ pub fn to_hex(fp: &Fingerprint) -> String {
     fp.iter().map(|b| format!("{b:02x}")).collect()
 }
 
+/// The first 8 characters of `s` and how many there are, for messages about a value that
+/// may be a secret given in the wrong place (a run's secret is 64 hex digits too, as a
+/// fingerprint is): enough to tell which value it was, not enough to use it.
+pub fn abbreviated(s: &str) -> String {
+    let n = s.chars().count();
+    match n {
+        0..=8 => format!("{s:?}"),
+        _ => format!(
+            "{:?}… ({n} characters)",
+            s.chars().take(8).collect::<String>()
+        ),
+    }
+}
+
 /// Parses 64 hex digits (colons and whitespace allowed, as `openssl x509 -fingerprint` prints).
 pub fn parse_fingerprint(s: &str) -> Result<Fingerprint> {
     let digits: String = s
@@ -73,8 +87,8 @@ pub fn parse_fingerprint(s: &str) -> Result<Fingerprint> {
         .collect();
     anyhow::ensure!(
         digits.len() == 64 && digits.chars().all(|c| c.is_ascii_hexdigit()),
-        "expected a SHA-256 fingerprint of 64 hex digits, got {:?}",
-        s.trim()
+        "expected a SHA-256 fingerprint of 64 hex digits, got {}",
+        abbreviated(s.trim())
     );
     let mut fp = [0u8; 32];
     for (i, b) in fp.iter_mut().enumerate() {
@@ -196,10 +210,11 @@ impl ServerCertVerifier for PinnedVerifier {
         if crate::secret::ct_eq(&got, &self.pinned) {
             Ok(ServerCertVerified::assertion())
         } else {
+            // (The pinned value abbreviated: a secret pinned by mistake is not logged.)
             Err(rustls::Error::General(format!(
                 "server certificate {} is not the pinned {}",
                 to_hex(&got),
-                to_hex(&self.pinned)
+                abbreviated(&to_hex(&self.pinned))
             )))
         }
     }
@@ -260,5 +275,12 @@ mod tests {
         );
         assert!(parse_fingerprint("abc").is_err());
         assert_ne!(Identity::generate().unwrap().fingerprint, id.fingerprint);
+        // A secret given where a fingerprint belongs is not echoed whole.
+        let secret = "0123456789abcdef0123456789abcdef0123456789abcdef0123456789abcdeg";
+        let e = parse_fingerprint(secret).unwrap_err().to_string();
+        assert!(
+            !e.contains("89abcdef0123") && e.contains("\"01234567\"… (64 characters)"),
+            "{e}"
+        );
     }
 }
