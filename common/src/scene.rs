@@ -458,7 +458,12 @@ impl SyntheticSpec {
 
     /// Checks `size` against the bounds above: the offending key and why.
     pub fn check(&self) -> Result<(), (&'static str, String)> {
-        let d = self.size;
+        Self::check_size(self.size).map_err(|why| ("size", format!("synthetic.size {why}")))
+    }
+
+    /// Whether a survey of `d` samples per axis may be generated (the bounds above; the
+    /// generator holds its argument to them too): why not.
+    pub fn check_size(d: [u64; 3]) -> Result<(), String> {
         let traces = d[0].saturating_mul(d[1]);
         let samples = traces.saturating_mul(d[2]);
         if d.iter()
@@ -466,13 +471,9 @@ impl SyntheticSpec {
             || traces > Self::MAX_TRACES
             || samples > Self::MAX_SAMPLES
         {
-            return Err((
-                "size",
-                format!(
-                    "synthetic.size {d:?}: each axis must lie in {}..{} samples (the upper bound excluded), with at most 2^28 traces and 2^34 samples (64 GiB)",
-                    Self::MIN_AXIS,
-                    Self::MAX_AXIS
-                ),
+            return Err(format!(
+                "{d:?}: each axis needs at least {} samples, and fewer than 2^20 samples per trace, per inline and per crossline; at most 2^28 traces and 2^34 samples (64 GiB)",
+                Self::MIN_AXIS
             ));
         }
         Ok(())

@@ -265,53 +265,9 @@ impl ClusterOptions {
             (1..=256).contains(&workers),
             "cluster.workers must lie in 1..=256, got {workers}"
         );
-        anyhow::ensure!(
-            c.worker_threads <= 1024,
-            "cluster.worker_threads must lie in 0..=1024 (0: the cores divided among the workers), got {}",
-            c.worker_threads
-        );
-        anyhow::ensure!(
-            c.leaves_per_worker >= 1 && c.leaves_per_worker <= 64,
-            "cluster.leaves_per_worker must lie in 1..=64, got {}",
-            c.leaves_per_worker
-        );
-        anyhow::ensure!(
-            c.rebalance_threshold == 0.0
-                || (c.rebalance_threshold >= 1.0 && c.rebalance_threshold.is_finite()),
-            "cluster.rebalance_threshold must be 0 (off) or at least 1, got {}",
-            c.rebalance_threshold
-        );
-        anyhow::ensure!(
-            (1..=occlusion::MAX_BLOCK).contains(&c.occlusion_block),
-            "cluster.occlusion_block must lie in 1..={}, got {}",
-            occlusion::MAX_BLOCK,
-            c.occlusion_block
-        );
-        anyhow::ensure!(
-            c.rebalance_damping > 0.0 && c.rebalance_damping <= 1.0,
-            "cluster.rebalance_damping must lie in (0, 1], got {}",
-            c.rebalance_damping
-        );
-        for (k, v) in [
-            ("connect_timeout_s", c.connect_timeout_s),
-            ("frame_timeout_s", c.frame_timeout_s),
-            ("idle_timeout_s", c.idle_timeout_s),
-        ] {
-            anyhow::ensure!(
-                v > 0.0 && v <= 1e6,
-                "cluster.{k} must be a positive number of seconds, got {v}"
-            );
-        }
-        anyhow::ensure!(
-            (0.0..=1e6).contains(&c.replacement_wait_s),
-            "cluster.replacement_wait_s must be 0 or a positive number of seconds, got {}",
-            c.replacement_wait_s
-        );
-        anyhow::ensure!(
-            (1200..=65527).contains(&c.quic_mtu),
-            "cluster.quic_mtu must lie in 1200..=65527 bytes, got {}",
-            c.quic_mtu
-        );
+        // The ranges of the section's values, as the scene file's parse checks them (a scene
+        // built in code has not been parsed).
+        c.check().map_err(|(_key, why)| anyhow!(why))?;
         let listen: SocketAddr = c.listen.parse().with_context(|| {
             format!(
                 "cluster.listen = {:?}: expected IP:PORT, e.g. 0.0.0.0:7000",
@@ -1595,10 +1551,8 @@ impl Cluster {
     /// over the ranks left; returns the new assignment.
     async fn drop_workers(&mut self, lost: &[u32]) -> Vec<Assignment> {
         for &r in lost {
+            self.kill_child(self.workers[r as usize].pid);
             let w = &mut self.workers[r as usize];
-            if let Some(c) = self.child_pids.iter().position(|&p| p == w.pid) {
-                self.child_kill[c].kill();
-            }
             w.conn.close(7u32.into(), b"lost");
             // Its gather segment goes with it (the mapping would keep the memory alive).
             w.shm = None;
@@ -2066,26 +2020,25 @@ impl Cluster {
                             // slowest worker in front reports, the maps of all the positions
                             // behind it are due at once, and one after the other they took
                             // about 1.4 ms each on 16 cores (docs/BENCHMARKS.md).
-                            let mut due = Vec::new();
-                            while acc.folded() + 1 < order.len() {
-                                let Some(layer) = cov[order[acc.folded()] as usize].as_ref() else {
-                                    break;
-                                };
-                                let map = tokio::task::block_in_place(|| acc.fold(layer));
-                                due.push((order[acc.folded()], map));
-                            }
                             let encode = |(to, map): (u32, occlusion::FrontTransmittance)| {
                                 (to, occlusion::encode_levels(&map.q))
                             };
-                            let encoded: Vec<(u32, Vec<u8>)> = match due.len() {
-                                0 => Vec::new(),
-                                1 => tokio::task::block_in_place(|| {
-                                    due.into_iter().map(encode).collect()
-                                }),
-                                _ => tokio::task::block_in_place(|| {
+                            let encoded: Vec<(u32, Vec<u8>)> = tokio::task::block_in_place(|| {
+                                let mut due = Vec::new();
+                                while acc.folded() + 1 < order.len() {
+                                    let Some(layer) = cov[order[acc.folded()] as usize].as_ref()
+                                    else {
+                                        break;
+                                    };
+                                    let map = acc.fold(layer);
+                                    due.push((order[acc.folded()], map));
+                                }
+                                if due.len() > 1 {
                                     due.into_par_iter().map(encode).collect()
-                                }),
-                            };
+                                } else {
+                                    due.into_iter().map(encode).collect()
+                                }
+                            });
                             for (to, bytes) in encoded {
                                 self.send_occlusion(frame, to, bytes, deadline, prepass)
                                     .await
@@ -2281,6 +2234,13 @@ impl Cluster {
         .map_err(|e| (anyhow!(e), rank))
     }
 
+    /// Kills the spawned worker process `pid` (none if this process did not spawn it).
+    fn kill_child(&self, pid: u32) {
+        if let Some(c) = self.child_pids.iter().position(|&p| p == pid) {
+            self.child_kill[c].kill();
+        }
+    }
+
     /// The rank of local worker process `child`, if it joined.
     fn child_rank(&self, child: usize) -> Option<u32> {
         let pid = *self.child_pids.get(child)?;
@@ -2385,9 +2345,7 @@ impl Cluster {
     pub async fn shutdown(mut self) {
         // Replacements spawned and never admitted have no part in the run to finish.
         for &pid in &self.respawned {
-            if let Some(c) = self.child_pids.iter().position(|&p| p == pid) {
-                self.child_kill[c].kill();
-            }
+            self.kill_child(pid);
         }
         let slots = self.slots.clone();
         for w in self.workers.iter_mut().filter(|w| slots.contains(&w.rank)) {

@@ -56,29 +56,11 @@ fn unit(seed: u64, a: u64, b: u64) -> f64 {
 impl SynthModel {
     /// Builds the model. `dims` must be at least 8 samples per axis.
     pub fn new(dims: [u64; 3], seed: u64) -> Result<Self> {
-        anyhow::ensure!(
-            dims.iter().all(|&d| d >= 8),
-            "synthetic surveys need at least 8 samples per axis, got {dims:?}"
-        );
-        anyhow::ensure!(
-            dims[0] < (1 << 20) && dims[1] < (1 << 20),
-            "at most 2^20 traces per axis"
-        );
-        // Bounds the interfaces below (about one per 6 samples) before they are made.
-        anyhow::ensure!(
-            dims[2] < (1 << 20),
-            "at most 2^20 samples per trace, got {}",
-            dims[2]
-        );
-        // And what is written: the horizons' grids and the volume (a scene's `[synthetic]`
-        // is held to the same bounds where it is read, at its key).
-        use strata_common::scene::SyntheticSpec;
-        let traces = dims[0].saturating_mul(dims[1]);
-        anyhow::ensure!(
-            traces <= SyntheticSpec::MAX_TRACES
-                && traces.saturating_mul(dims[2]) <= SyntheticSpec::MAX_SAMPLES,
-            "synthetic surveys have at most 2^28 traces and 2^34 samples (64 GiB), got {dims:?}"
-        );
+        // The bounds a scene's `[synthetic]` is held to where it is read: they also bound
+        // the interfaces below (about one per 6 samples) and what is written (the horizons'
+        // grids and the volume) before anything is made.
+        strata_common::scene::SyntheticSpec::check_size(dims)
+            .map_err(|why| anyhow::anyhow!("synthetic survey {why}"))?;
         let nz = dims[2] as f64;
         let spacing = (nz / 24.0).clamp(6.0, 40.0);
         let mut base = Vec::new();
