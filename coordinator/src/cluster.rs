@@ -613,11 +613,9 @@ pub struct Cluster {
     /// Frame canvases in shared memory (`strata_net::canvas`) that workers on this host
     /// write their final spans into; one whose image a caller still holds is not reused.
     canvases: Vec<Arc<Canvas>>,
-    child_pids: Vec<u32>,
-    /// Per spawned child (as `child_pids`): kills it through its own process handle, which
-    /// does nothing once the child has been reaped. A bare `kill(pid)` after the child
-    /// exited and was reaped could hit an unrelated process that reused the pid.
-    child_kill: Vec<ChildKill>,
+    /// The worker processes this process spawned, in spawn order (a child's number is its
+    /// index here).
+    children: Vec<SpawnedChild>,
     /// The cost boxes the decomposition balances (re-weighted by each re-split).
     costs: decompose::SceneCosts,
     /// The scene's estimated costs, as set-up computed them (what a re-split by measured
@@ -655,8 +653,6 @@ pub struct Cluster {
     spawner: Option<Spawner>,
     /// Lost local workers that may still be replaced (`cluster.respawn`).
     respawns_left: u32,
-    /// The GPU slot (`GPU_SLOT_ENV`) of each local worker process, by child index.
-    child_gpu: Vec<usize>,
     /// Pids of replacements spawned and not yet admitted: the next frame waits for them
     /// (while one of them is alive) up to `cluster.connect_timeout_s`.
     respawned: Vec<u32>,
@@ -778,8 +774,7 @@ impl Cluster {
             .as_ref()
             .map_or_else(secret::new_secret, |s| s.0.clone());
         let (tx, events) = mpsc::unbounded_channel();
-        let mut child_pids = Vec::new();
-        let mut child_kill = Vec::new();
+        let mut children = Vec::new();
         let spawner = match opts.spawn {
             true => Some(Spawner::new(&opts, n, local, &fp, &secret)?),
             false => None,
@@ -787,8 +782,7 @@ impl Cluster {
         if let Some(sp) = &spawner {
             for i in 0..n {
                 let (pid, kill) = sp.spawn(i, i, &tx)?;
-                child_pids.push(pid);
-                child_kill.push(kill);
+                children.push(SpawnedChild { pid, kill, gpu: i });
             }
             info!(
                 workers = n,
@@ -803,7 +797,6 @@ impl Cluster {
             );
         }
         let respawns_left = if spawner.is_some() { opts.respawn } else { 0 };
-        let child_pids_len = child_pids.len();
         let mut cluster = Cluster {
             ep,
             workers: Vec::new(),
@@ -815,8 +808,7 @@ impl Cluster {
             render: scene.render.clone(),
             canvases: Vec::new(),
             wall: None,
-            child_pids,
-            child_kill,
+            children,
             estimate: costs.clone(),
             costs,
             new_leaves: vec![None; n],
@@ -833,7 +825,6 @@ impl Cluster {
             respawns_left,
             spawner,
             respawned: Vec::new(),
-            child_gpu: (0..child_pids_len).collect(),
         };
         cluster.gather_workers(&secret, &tx).await?;
         cluster.setup(&[]).await?;
@@ -841,7 +832,7 @@ impl Cluster {
     }
 
     fn child_name(&self, child: usize) -> String {
-        let pid = self.child_pids.get(child).copied().unwrap_or(0);
+        let pid = self.children.get(child).map_or(0, |c| c.pid);
         match self.workers.iter().find(|w| w.pid == pid) {
             Some(w) => w.describe(),
             None => format!("local worker process {child} (pid {pid})"),
@@ -1008,7 +999,7 @@ impl Cluster {
                 continue;
             }
             // A process of ours that died after it connected (SIGKILL sends no close).
-            if self.child_pids.contains(&j.1) && !process_alive(j.1) {
+            if self.children.iter().any(|c| c.pid == j.1) && !process_alive(j.1) {
                 info!(name = %j.0, pid = j.1, "a spawned worker exited before it was admitted");
                 self.respawned.retain(|&p| p != j.1);
                 continue;
@@ -1529,13 +1520,11 @@ impl Cluster {
     fn respawn(&mut self, gpu_slots: &[usize]) {
         let Some(sp) = &self.spawner else { return };
         for &gpu in gpu_slots.iter().take(self.respawns_left as usize) {
-            let child = self.child_pids.len();
+            let child = self.children.len();
             match sp.spawn(child, gpu, &self.events_tx) {
                 Ok((pid, kill)) => {
                     info!(child, pid, "spawned a replacement worker (cluster.respawn)");
-                    self.child_pids.push(pid);
-                    self.child_kill.push(kill);
-                    self.child_gpu.push(gpu);
+                    self.children.push(SpawnedChild { pid, kill, gpu });
                     self.respawns_left -= 1;
                     self.respawned.push(pid);
                 }
@@ -1564,10 +1553,10 @@ impl Cluster {
             .iter()
             .map(|&r| {
                 let pid = self.workers[r as usize].pid;
-                let child = self.child_pids.iter().position(|&p| p == pid);
-                child
-                    .and_then(|c| self.child_gpu.get(c).copied())
-                    .unwrap_or(r as usize)
+                self.children
+                    .iter()
+                    .find(|c| c.pid == pid)
+                    .map_or(r as usize, |c| c.gpu)
             })
             .collect();
         self.respawn(&gpu_slots);
@@ -2236,14 +2225,14 @@ impl Cluster {
 
     /// Kills the spawned worker process `pid` (none if this process did not spawn it).
     fn kill_child(&self, pid: u32) {
-        if let Some(c) = self.child_pids.iter().position(|&p| p == pid) {
-            self.child_kill[c].kill();
+        if let Some(c) = self.children.iter().find(|c| c.pid == pid) {
+            c.kill.kill();
         }
     }
 
     /// The rank of local worker process `child`, if it joined.
     fn child_rank(&self, child: usize) -> Option<u32> {
-        let pid = *self.child_pids.get(child)?;
+        let pid = self.children.get(child)?.pid;
         self.workers.iter().find(|w| w.pid == pid).map(|w| w.rank)
     }
 
@@ -2356,12 +2345,12 @@ impl Cluster {
             .await;
             let _ = w.send.finish();
         }
-        if !self.child_pids.is_empty() {
+        if !self.children.is_empty() {
             let deadline = Instant::now() + Duration::from_secs(5);
             // Only the workers still in the run (lost ones were killed already).
             let alive =
                 |this: &Self, c: usize| this.child_rank(c).is_some_and(|r| slots.contains(&r));
-            let expected = (0..self.child_pids.len())
+            let expected = (0..self.children.len())
                 .filter(|&c| alive(&self, c))
                 .count();
             let mut exited = 0;
@@ -2759,6 +2748,18 @@ impl Spawner {
 /// ([`Spawner::spawn`]): a request made after the child was reaped does nothing.
 #[derive(Clone)]
 struct ChildKill(Arc<tokio::sync::Notify>);
+
+/// A worker process this process spawned.
+struct SpawnedChild {
+    /// Its process id (what its hello reports).
+    pid: u32,
+    /// Kills it through its own process handle, which does nothing once the child has been
+    /// reaped. A bare `kill(pid)` after the child exited and was reaped could hit an
+    /// unrelated process that reused the pid.
+    kill: ChildKill,
+    /// Its GPU slot (`GPU_SLOT_ENV`; a replacement takes the slot of the worker it replaces).
+    gpu: usize,
+}
 
 impl ChildKill {
     fn kill(&self) {
