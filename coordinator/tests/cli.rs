@@ -963,6 +963,41 @@ fn outputs_and_values_are_checked_before_any_work() {
         );
         assert!(!err.contains("panicked"), "{err}");
     }
+    // So is one in a folder every user may write (not sticky), where another user could
+    // replace it, and (where this test may give it away) one another user owns.
+    let worker_with = |fp: &std::path::Path| {
+        let o = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+            .args(["-q", "worker", "--connect", "127.0.0.1:9"])
+            .arg("--fingerprint-file")
+            .arg(fp)
+            .args(["--connect-timeout-s", "0.3"])
+            .env("STRATA_SECRET", "0123456789abcdef0123")
+            .output()
+            .unwrap();
+        assert_eq!(o.status.code(), Some(1));
+        String::from_utf8_lossy(&o.stderr).into_owned()
+    };
+    {
+        use std::os::unix::fs::PermissionsExt;
+        let open = d.join("open");
+        std::fs::create_dir(&open).unwrap();
+        let fp2 = open.join("fingerprint");
+        std::fs::copy(&fp, &fp2).unwrap();
+        std::fs::set_permissions(&open, std::fs::Permissions::from_mode(0o777)).unwrap();
+        let err = worker_with(&fp2);
+        assert!(err.contains("not sticky (mode 777)"), "{err}");
+        std::fs::set_permissions(&open, std::fs::Permissions::from_mode(0o1777)).unwrap();
+        let err = worker_with(&fp2);
+        assert!(
+            !err.contains("sticky") && !err.contains("panicked"),
+            "{err}"
+        );
+        std::fs::set_permissions(&open, std::fs::Permissions::from_mode(0o700)).unwrap();
+        if std::os::unix::fs::chown(&fp2, Some(4242), None).is_ok() {
+            let err = worker_with(&fp2);
+            assert!(err.contains("owned by user 4242"), "{err}");
+        }
+    }
 }
 
 /// A build ended by a signal leaves no temporary behind, and still dies of that signal.

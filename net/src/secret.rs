@@ -43,6 +43,7 @@ pub fn read_secret(file: Option<&Path>, env: &str) -> Result<Option<Vec<u8>>> {
                 s.len()
             );
         }
+        warn_if_exposed(f);
         return Ok(Some(s.to_vec()));
     }
     match std::env::var_os(env) {
@@ -60,6 +61,35 @@ pub fn read_secret(file: Option<&Path>, env: &str) -> Result<Option<Vec<u8>>> {
     }
 }
 
+/// Logs a warning when every user of this machine can read the secret file `f`: it is
+/// readable by all, and so is the way to it (its folder lets every user in). Not an error:
+/// the default umask makes files readable by all, and a folder of one's own (as
+/// `configs/slurm-render.sh` makes, mode 700) keeps them private.
+fn warn_if_exposed(f: &Path) {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = match f.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let mode = |p: &Path| std::fs::metadata(p).map(|m| m.permissions().mode());
+    if let (Ok(file), Ok(folder)) = (mode(f), mode(dir)) {
+        if readable_by_all(file, folder) {
+            tracing::warn!(
+                "the secret file {} can be read by every user of this machine (mode {:o}, its folder {:o}): chmod o-r it, or keep it in a folder of your own",
+                f.display(),
+                file & 0o7777,
+                folder & 0o7777
+            );
+        }
+    }
+}
+
+/// Whether every user may read a file with permission bits `file` in a folder with
+/// permission bits `folder` (which must let them search it, `o+x`).
+fn readable_by_all(file: u32, folder: u32) -> bool {
+    file & 0o004 != 0 && folder & 0o001 != 0
+}
+
 /// Constant-time equality (length is not secret).
 pub fn ct_eq(a: &[u8], b: &[u8]) -> bool {
     a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
@@ -68,6 +98,16 @@ pub fn ct_eq(a: &[u8], b: &[u8]) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_secret_file_is_exposed_only_where_every_user_reaches_and_reads_it() {
+        assert!(readable_by_all(0o644, 0o755));
+        assert!(readable_by_all(0o604, 0o711));
+        assert!(!readable_by_all(0o640, 0o755)); // group only
+        assert!(!readable_by_all(0o600, 0o777));
+        assert!(!readable_by_all(0o644, 0o700)); // a private folder (the Slurm script's)
+        assert!(!readable_by_all(0o644, 0o754)); // listable, not searchable
+    }
 
     #[test]
     fn secrets() {

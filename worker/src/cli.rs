@@ -58,18 +58,31 @@ pub fn join(a: JoinArgs) -> Result<()> {
         (Some(f), _) => parse_fingerprint(f).context("--fingerprint")?,
         (None, Some(file)) => {
             // The file decides which server gets the secret: one anybody may rewrite
-            // could send it to a stranger.
-            use std::os::unix::fs::PermissionsExt;
-            let mode = std::fs::metadata(file)
-                .with_context(|| format!("cannot read {}", file.display()))?
-                .permissions()
-                .mode();
-            if mode & 0o002 != 0 {
+            // (or replace) could send it to a stranger.
+            use std::os::unix::fs::MetadataExt;
+            let meta = std::fs::metadata(file)
+                .with_context(|| format!("cannot read {}", file.display()))?;
+            // SAFETY: geteuid has no preconditions and cannot fail.
+            let me = unsafe { libc::geteuid() };
+            if let Some(why) = untrusted_file(meta.mode(), meta.uid(), me) {
                 anyhow::bail!(
-                    "{}: writable by every user (mode {:o}), so anyone could name the server this worker sends its secret to; chmod o-w it",
-                    file.display(),
-                    mode & 0o7777
+                    "{}: {why}, so another user could name the server this worker sends its secret to",
+                    file.display()
                 );
+            }
+            // (A file named without a folder lies in the working directory.)
+            let dir = match file.parent() {
+                Some(d) if !d.as_os_str().is_empty() => d,
+                _ => std::path::Path::new("."),
+            };
+            if let Ok(d) = std::fs::metadata(dir) {
+                if let Some(why) = untrusted_dir(d.mode()) {
+                    anyhow::bail!(
+                        "{}: its folder {} {why}, so another user could replace it and name the server this worker sends its secret to",
+                        file.display(),
+                        dir.display()
+                    );
+                }
             }
             let text = std::fs::read_to_string(file)
                 .with_context(|| format!("cannot read {}", file.display()))?;
@@ -117,4 +130,62 @@ pub fn join(a: JoinArgs) -> Result<()> {
         idle_timeout: Duration::from_secs_f64(a.idle_timeout_s),
         quic_mtu: a.quic_mtu,
     })
+}
+
+/// Why a fingerprint file with permission bits `mode`, owned by user `owner`, must not be
+/// trusted by a worker running as user `me`: writable by every user, or owned by another
+/// user than `me` or root (who could rewrite it). `None` when it may be trusted.
+fn untrusted_file(mode: u32, owner: u32, me: u32) -> Option<String> {
+    if mode & 0o002 != 0 {
+        return Some(format!(
+            "writable by every user (mode {:o}; chmod o-w it)",
+            mode & 0o7777
+        ));
+    }
+    if owner != me && owner != 0 {
+        return Some(format!(
+            "owned by user {owner}, not by this worker's user ({me}) or root"
+        ));
+    }
+    None
+}
+
+/// Why a folder with permission bits `mode` lets another user replace a file in it: every
+/// user may write it and it is not sticky (as /tmp is, where only a file's owner may
+/// remove or rename it). `None` when it does not.
+fn untrusted_dir(mode: u32) -> Option<String> {
+    (mode & 0o002 != 0 && mode & 0o1000 == 0).then(|| {
+        format!(
+            "is writable by every user and not sticky (mode {:o})",
+            mode & 0o7777
+        )
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fingerprint_files_others_could_rewrite_are_untrusted() {
+        // Mode: every user may write it.
+        assert!(untrusted_file(0o100666, 1000, 1000)
+            .unwrap()
+            .contains("writable by every user (mode 666"));
+        assert!(untrusted_file(0o100602, 0, 1000).is_some());
+        // Owner: this user, or root, but no one else.
+        assert_eq!(untrusted_file(0o100644, 1000, 1000), None);
+        assert_eq!(untrusted_file(0o100664, 1000, 1000), None);
+        assert_eq!(untrusted_file(0o100644, 0, 1000), None);
+        assert!(untrusted_file(0o100644, 1001, 1000)
+            .unwrap()
+            .contains("owned by user 1001"));
+        assert!(untrusted_file(0o100644, 1001, 0).is_some());
+        // Folders: world-writable without the sticky bit.
+        assert!(untrusted_dir(0o40777).is_some());
+        assert!(untrusted_dir(0o40773).is_some());
+        assert_eq!(untrusted_dir(0o41777), None); // /tmp
+        assert_eq!(untrusted_dir(0o40755), None);
+        assert_eq!(untrusted_dir(0o40775), None);
+    }
 }
