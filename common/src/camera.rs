@@ -281,13 +281,10 @@ impl View {
     }
 }
 
-/// How far, in plane pixels, content inside `bounds` moves on screen from view `a` to
-/// view `b`: the `quantile` (0: least, 0.5: median, 1: largest) of the displacements of a
-/// 9 × 9 × 9 lattice of the box (corners and faces included), over the points in front of
-/// both eyes (0 when there are none). A measure for predictions that are checked
-/// afterwards (cross-worker occlusion dilates the last frame's map by it), not a bound: a
-/// point between lattice points may move somewhat further.
-pub fn screen_motion(a: &View, b: &View, bounds: &Region, quantile: f64) -> f64 {
+/// The on-screen displacements `(dx, dy)`, in plane pixels, from view `a` to view `b` of
+/// the points of a 9 × 9 × 9 lattice of `bounds` (corners and faces included) that lie in
+/// front of both eyes.
+fn lattice_moves(a: &View, b: &View, bounds: &Region) -> Vec<(f64, f64)> {
     const N: usize = 9;
     let mut moves = Vec::with_capacity(N * N * N);
     for i in 0..N {
@@ -296,20 +293,54 @@ pub fn screen_motion(a: &View, b: &View, bounds: &Region, quantile: f64) -> f64 
                 let t = [i, j, k].map(|v| v as f64 / (N - 1) as f64);
                 let p = [0, 1, 2].map(|c| bounds.lo[c] + t[c] * (bounds.hi[c] - bounds.lo[c]));
                 if let (Some((ax, ay)), Some((bx, by))) = (a.project(p), b.project(p)) {
-                    let m = (bx - ax).hypot(by - ay);
-                    if m.is_finite() {
-                        moves.push(m);
+                    let (dx, dy) = (bx - ax, by - ay);
+                    if dx.hypot(dy).is_finite() {
+                        moves.push((dx, dy));
                     }
                 }
             }
         }
     }
+    moves
+}
+
+/// How far, in plane pixels, content inside `bounds` moves on screen from view `a` to
+/// view `b`: the `quantile` (0: least, 0.5: median, 1: largest) of the displacements of a
+/// 9 × 9 × 9 lattice of the box (corners and faces included), over the points in front of
+/// both eyes (0 when there are none). A measure for predictions that are checked
+/// afterwards (cross-worker occlusion dilates the last frame's map by it), not a bound: a
+/// point between lattice points may move somewhat further.
+pub fn screen_motion(a: &View, b: &View, bounds: &Region, quantile: f64) -> f64 {
+    let mut moves: Vec<f64> = lattice_moves(a, b, bounds)
+        .into_iter()
+        .map(|(dx, dy)| dx.hypot(dy))
+        .collect();
     if moves.is_empty() {
         return 0.0;
     }
     moves.sort_by(f64::total_cmp);
     let i = (quantile.clamp(0.0, 1.0) * (moves.len() - 1) as f64).round() as usize;
     moves[i]
+}
+
+/// The median displacement, in plane pixels `(dx, dy)`, of the points of a 9 × 9 × 9 lattice
+/// of `bounds` from view `a` to view `b` (each coordinate's median, over the points in front
+/// of both eyes; `(0, 0)` when there are none): where most of the box's content moved on
+/// screen. A prediction for what is checked afterwards (cross-worker occlusion shifts the
+/// last frame's map by it), not a bound.
+pub fn screen_shift(a: &View, b: &View, bounds: &Region) -> (f64, f64) {
+    let moves = lattice_moves(a, b, bounds);
+    let median = |mut v: Vec<f64>| {
+        if v.is_empty() {
+            return 0.0;
+        }
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    (
+        median(moves.iter().map(|m| m.0).collect()),
+        median(moves.iter().map(|m| m.1).collect()),
+    )
 }
 
 /// World up as the display shows it: −z where z grows downward (`render.z_down`), else +z.
@@ -400,6 +431,21 @@ mod tests {
         assert_eq!(orbit(&vertical, 7, 3).up, [0.0, 0.0, 1.0]);
     }
 
+    /// A camera above a survey's corner looking at its middle, and the survey's box.
+    fn survey_camera() -> (Camera, Region) {
+        let cam = Camera {
+            eye: [590_000.0, 6_060_000.0, -3000.0],
+            target: [605_000.0, 6_075_000.0, 600.0],
+            up: [0.0, 0.0, -1.0],
+            fov_deg: 35.0,
+        };
+        let bounds = Region {
+            lo: [600_000.0, 6_070_000.0, 0.0],
+            hi: [610_000.0, 6_080_000.0, 1200.0],
+        };
+        (cam, bounds)
+    }
+
     fn demo_view(cam: &Camera) -> View {
         let render = RenderSettings {
             z_scale: 4.0,
@@ -439,16 +485,7 @@ mod tests {
 
     #[test]
     fn screen_motion_grows_with_the_turn_and_is_zero_without_one() {
-        let cam = Camera {
-            eye: [590_000.0, 6_060_000.0, -3000.0],
-            target: [605_000.0, 6_075_000.0, 600.0],
-            up: [0.0, 0.0, -1.0],
-            fov_deg: 35.0,
-        };
-        let bounds = Region {
-            lo: [600_000.0, 6_070_000.0, 0.0],
-            hi: [610_000.0, 6_080_000.0, 1200.0],
-        };
+        let (cam, bounds) = survey_camera();
         let a = demo_view(&cam);
         assert_eq!(screen_motion(&a, &a, &bounds, 1.0), 0.0);
         let one = screen_motion(&a, &demo_view(&orbit(&cam, 120, 1)), &bounds, 1.0);
@@ -474,6 +511,54 @@ mod tests {
             let (bx, by) = b.project(p).unwrap();
             assert!((bx - ax).hypot(by - ay) <= one + 1e-9);
         }
+    }
+
+    #[test]
+    fn screen_shift_is_the_median_displacement_and_zero_without_motion() {
+        let (cam, bounds) = survey_camera();
+        let a = demo_view(&cam);
+        assert_eq!(screen_shift(&a, &a, &bounds), (0.0, 0.0));
+        // A box's centre moves as the box does: the shift of a small box round a point is
+        // that point's displacement, wherever the point lies.
+        let b = demo_view(&orbit(&cam, 120, 1));
+        for p in [
+            [605_000.0, 6_075_000.0, 600.0],
+            [601_000.0, 6_071_000.0, 100.0],
+            [609_000.0, 6_072_000.0, 1100.0],
+        ] {
+            let small = Region {
+                lo: p.map(|v| v - 1.0),
+                hi: p.map(|v| v + 1.0),
+            };
+            let (dx, dy) = screen_shift(&a, &b, &small);
+            let (ax, ay) = a.project(p).unwrap();
+            let (bx, by) = b.project(p).unwrap();
+            assert!(
+                (dx - (bx - ax)).abs() < 0.05 && (dy - (by - ay)).abs() < 0.05,
+                "{p:?}: {dx} {dy} against {} {}",
+                bx - ax,
+                by - ay
+            );
+        }
+        // The box's corner eighth nearest the eye (a worker's region at p = 8): it moves
+        // by no more than its fastest point, and back the other way when the camera turns
+        // back. (The whole box, turning about its middle, barely moves at the median.)
+        let near = Region {
+            lo: bounds.lo,
+            hi: [0, 1, 2].map(|c| (bounds.lo[c] + bounds.hi[c]) / 2.0),
+        };
+        let (dx, dy) = screen_shift(&a, &b, &near);
+        let most = screen_motion(&a, &b, &near, 1.0);
+        assert!(
+            dx.hypot(dy) > 1.0 && dx.hypot(dy) <= most,
+            "{dx} {dy} {most}"
+        );
+        let back = demo_view(&orbit(&cam, 120, 119));
+        let (ex, ey) = screen_shift(&a, &back, &near);
+        assert!(
+            (ex + dx).abs() < 0.2 * dx.abs() + 0.5 && (ey + dy).abs() < 0.2 * dy.abs() + 0.5,
+            "{dx} {dy} / {ex} {ey}"
+        );
     }
 
     #[test]

@@ -599,6 +599,31 @@ impl FrontTransmittance {
         FrontTransmittance { grid: self.grid, q }
     }
 
+    /// This map moved by `(dx, dy)` blocks (content at block `(x, y)` goes to `(x + dx,
+    /// y + dy)`): a prediction for a camera under which content moved that far on screen.
+    /// Blocks no block moves into are clear (nothing predicted in front: their rays are
+    /// cast in full).
+    pub fn shifted(&self, dx: i64, dy: i64) -> FrontTransmittance {
+        let (cols, rows) = (self.grid.cols() as i64, self.grid.rows() as i64);
+        if (dx, dy) == (0, 0) || self.q.is_empty() {
+            return self.clone();
+        }
+        let mut q = vec![CLEAR; self.q.len()];
+        for y in 0..rows {
+            let sy = y - dy;
+            if !(0..rows).contains(&sy) {
+                continue;
+            }
+            for x in 0..cols {
+                let sx = x - dx;
+                if (0..cols).contains(&sx) {
+                    q[(y * cols + x) as usize] = self.q[(sy * cols + sx) as usize];
+                }
+            }
+        }
+        FrontTransmittance { grid: self.grid, q }
+    }
+
     /// Whether some block has anything in front.
     pub fn any(&self) -> bool {
         self.q.iter().any(|&q| q < CLEAR)
@@ -765,6 +790,30 @@ mod tests {
     use super::*;
     use crate::image::{composite_front_to_back, Rect, Rgba};
     use proptest::prelude::*;
+
+    /// A shifted map moves every level by whole blocks; blocks nothing moves into are clear.
+    #[test]
+    fn a_shifted_map_moves_its_levels_and_clears_what_it_uncovers() {
+        let grid = BlockGrid::new(8, 6, 2); // 4 × 3 blocks
+        let q: Vec<Level> = (0..12).map(|i| i as Level * 1000).collect();
+        let map = FrontTransmittance::checked(grid, q.clone()).unwrap();
+        assert_eq!(map.shifted(0, 0), map);
+        let s = map.shifted(1, -1);
+        for y in 0..3i64 {
+            for x in 0..4i64 {
+                let (sx, sy) = (x - 1, y + 1);
+                let want = if (0..4).contains(&sx) && (0..3).contains(&sy) {
+                    q[(sy * 4 + sx) as usize]
+                } else {
+                    CLEAR
+                };
+                assert_eq!(s.q[(y * 4 + x) as usize], want, "block ({x}, {y})");
+            }
+        }
+        // Past the edge: nothing is left in front.
+        assert!(!map.shifted(4, 0).any() && !map.shifted(0, -3).any());
+        assert!(map.shifted(-3, 2).any());
+    }
 
     /// Every per-ray threshold keeps what a ray stopped there leaves unseen within 1 − t,
     /// `front · (1 − e) ≤ 1 − t` on the f32 `e`, to f64 rounding (a threshold rounded down

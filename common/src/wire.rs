@@ -878,6 +878,10 @@ pub struct WorkerFrameStats {
     /// Blocks this frame's front transmittance did not confirm (the prediction promised
     /// less light than there is), cast again with this frame's thresholds.
     pub fixup_blocks: u64,
+    /// How far, in blocks `(x, y)`, the prediction from the last frame was moved with
+    /// this worker's region on screen (the camera moved; `(0, 0)` otherwise, and when it
+    /// was widened by `cluster.occlusion_motion` instead).
+    pub occlusion_shift: [i32; 2],
     /// Seconds from sending the coverage to receiving the front transmittance.
     pub occlusion_s: f64,
     /// Seconds of the fix-up render.

@@ -2149,6 +2149,23 @@ fn slices_render_the_same_distributed_as_in_process() {
     );
 }
 
+/// Per worker and frame, `(frame, occlusion_shift)` of a `--stats` file.
+fn worker_shifts(stats: &str) -> Vec<(u64, [i64; 2])> {
+    stats
+        .lines()
+        .filter(|l| l.contains("\"kind\":\"worker\""))
+        .map(|l| {
+            let v: serde_json::Value = serde_json::from_str(l).unwrap();
+            let s = &v["occlusion_shift"];
+            let c = |i: usize| {
+                s[i].as_i64()
+                    .unwrap_or_else(|| panic!("occlusion_shift in {v}"))
+            };
+            (v["frame"].as_u64().unwrap(), [c(0), c(1)])
+        })
+        .collect()
+}
+
 /// Per-frame `(samples, occluded_blocks, fixup_blocks)` of a `--stats` file.
 fn frame_counts(stats: &str) -> Vec<(u64, u64, u64)> {
     stats
@@ -2300,6 +2317,22 @@ fn cross_worker_occlusion_casts_less_and_stays_within_the_termination_bound() {
         assert!(d <= 0.01 + 1e-5, "frame {i}, widened by the motion: {d}");
     }
     assert!(moving_n[1..].iter().all(|f| f.1 > 0), "{moving_n:?}");
+    // The map as it is moves with each worker's region on screen (the camera turns 9° a
+    // frame); widened, it does not move.
+    let shifts = |name: &str| {
+        worker_shifts(&std::fs::read_to_string(dir.path().join(format!("{name}.jsonl"))).unwrap())
+    };
+    let on_shifts = shifts("on");
+    assert!(
+        on_shifts.iter().all(|&(f, s)| f > 0 || s == [0, 0])
+            && on_shifts.iter().any(|&(f, s)| f > 0 && s != [0, 0]),
+        "{on_shifts:?}"
+    );
+    let moving_shifts = shifts("moving");
+    assert!(
+        moving_shifts.iter().all(|&(_, s)| s == [0, 0]),
+        "{moving_shifts:?}"
+    );
     let recast = |n: &[(u64, u64, u64)]| n[1..].iter().map(|f| f.2).sum::<u64>();
     assert!(
         recast(&moving_n) < recast(&on_n),
