@@ -18,8 +18,9 @@
 # leaves steps out (caster-scaling, contention, survey-contention, gpu-tests, gpu-hard-cases, backends,
 # strong-scaling, strong-variants, strong-leaves, strong-orbit). The limits add up to more than one device
 # call may run (600 s) and than a 15-minute lease: pick the steps of each call with SKIP,
-# e.g. SKIP="caster-scaling contention survey-contention gpu-tests backends" for the three
-# strong-scaling steps alone (430 s of limits).
+# e.g. SKIP="caster-scaling contention survey-contention gpu-tests gpu-hard-cases backends
+# strong-orbit" for the three strong-scaling steps alone (460 s of limits), and
+# SKIP="... strong-scaling strong-variants strong-leaves" for strong-orbit alone (150 s).
 #
 # Prepare on the project machine: bench/device-prepare.sh (release binaries, the GPU test
 # binary, GNU time, the bonsai and the Vulkan loader's packages, 18 MB in all).

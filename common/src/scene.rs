@@ -284,7 +284,8 @@ pub struct ClusterSettings {
     /// orbit at 8 workers it cast 7 % more samples and the frame took 6 % longer once
     /// re-casts had become cheap (docs/BENCHMARKS.md). Not applied to a `[wall]`'s frames.
     /// Without it, each worker moves the last frame's map by how far its own region moved
-    /// on screen (the median point; not for a wall either).
+    /// on screen (the median point; not for a wall either); the figures above were measured
+    /// against the map unmoved, before that.
     #[serde(default)]
     pub occlusion_motion: bool,
 }

@@ -28,7 +28,7 @@ use serde::{de::DeserializeOwned, Deserialize, Serialize};
 /// Frame magic.
 pub const MAGIC: [u8; 4] = *b"STRF";
 /// Protocol version; bumped on any incompatible change of the header or the messages.
-pub const PROTOCOL_VERSION: u16 = 13;
+pub const PROTOCOL_VERSION: u16 = 14;
 /// Size of the frame header.
 pub const HEADER_LEN: usize = 24;
 /// Largest meta message any endpoint accepts (control messages are small; the scene text
@@ -879,8 +879,9 @@ pub struct WorkerFrameStats {
     /// less light than there is), cast again with this frame's thresholds.
     pub fixup_blocks: u64,
     /// How far, in blocks `(x, y)`, the prediction from the last frame was moved with
-    /// this worker's region on screen (the camera moved; `(0, 0)` otherwise, and when it
-    /// was widened by `cluster.occlusion_motion` instead).
+    /// this worker's region on screen (new position − old, y down; `(0, 0)` when the camera
+    /// did not move, when the map was widened by `cluster.occlusion_motion` instead, and
+    /// when a first pass replaced the prediction).
     pub occlusion_shift: [i32; 2],
     /// Seconds from sending the coverage to receiving the front transmittance.
     pub occlusion_s: f64,

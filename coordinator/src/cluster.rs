@@ -1555,7 +1555,7 @@ impl Cluster {
                 let pid = self.workers[r as usize].pid;
                 self.children
                     .iter()
-                    .find(|c| c.pid == pid)
+                    .rfind(|c| c.pid == pid)
                     .map_or(r as usize, |c| c.gpu)
             })
             .collect();
@@ -2225,7 +2225,8 @@ impl Cluster {
 
     /// Kills the spawned worker process `pid` (none if this process did not spawn it).
     fn kill_child(&self, pid: u32) {
-        if let Some(c) = self.children.iter().find(|c| c.pid == pid) {
+        // The latest child with the pid: an earlier one that exited may share it.
+        if let Some(c) = self.children.iter().rfind(|c| c.pid == pid) {
             c.kill.kill();
         }
     }

@@ -986,6 +986,11 @@ fn outputs_and_values_are_checked_before_any_work() {
         std::fs::set_permissions(&open, std::fs::Permissions::from_mode(0o777)).unwrap();
         let err = worker_with(&fp2);
         assert!(err.contains("not sticky (mode 777)"), "{err}");
+        // A link from a private folder to it is no better: the real path's folders count.
+        let link = d.join("link");
+        std::os::unix::fs::symlink(&fp2, &link).unwrap();
+        let err = worker_with(&link);
+        assert!(err.contains("not sticky (mode 777)"), "{err}");
         std::fs::set_permissions(&open, std::fs::Permissions::from_mode(0o1777)).unwrap();
         let err = worker_with(&fp2);
         assert!(

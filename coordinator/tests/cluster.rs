@@ -2221,8 +2221,8 @@ fn cross_worker_occlusion_casts_less_and_stays_within_the_termination_bound() {
         "cluster.rebalance_threshold=0",
     ];
     let (inp, _) = go("in", &[&ert[..], &["--in-process"]].concat());
-    // The map of the last frame as it is (the default; the re-casts are exercised), and
-    // widened by the camera's motion below.
+    // The last frame's map moved with each worker's region (the default; the re-casts are
+    // exercised), and widened by the camera's motion below.
     let (on, on_n) = go(
         "on",
         &[
@@ -2336,7 +2336,7 @@ fn cross_worker_occlusion_casts_less_and_stays_within_the_termination_bound() {
     let recast = |n: &[(u64, u64, u64)]| n[1..].iter().map(|f| f.2).sum::<u64>();
     assert!(
         recast(&moving_n) < recast(&on_n),
-        "widening by the motion re-cast {} blocks, the map as it is {}: {moving_n:?} {on_n:?}",
+        "widening by the motion re-cast {} blocks, the map moved with the region {}: {moving_n:?} {on_n:?}",
         recast(&moving_n),
         recast(&on_n)
     );

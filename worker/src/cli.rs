@@ -56,38 +56,7 @@ pub fn join(a: JoinArgs) -> Result<()> {
         .with_context(|| format!("--connect {connect}: no address"))?;
     let fingerprint = match (&a.fingerprint, &a.fingerprint_file) {
         (Some(f), _) => parse_fingerprint(f).context("--fingerprint")?,
-        (None, Some(file)) => {
-            // The file decides which server gets the secret: one anybody may rewrite
-            // (or replace) could send it to a stranger.
-            use std::os::unix::fs::MetadataExt;
-            let meta = std::fs::metadata(file)
-                .with_context(|| format!("cannot read {}", file.display()))?;
-            // SAFETY: geteuid has no preconditions and cannot fail.
-            let me = unsafe { libc::geteuid() };
-            if let Some(why) = untrusted_file(meta.mode(), meta.uid(), me) {
-                anyhow::bail!(
-                    "{}: {why}, so another user could name the server this worker sends its secret to",
-                    file.display()
-                );
-            }
-            // (A file named without a folder lies in the working directory.)
-            let dir = match file.parent() {
-                Some(d) if !d.as_os_str().is_empty() => d,
-                _ => std::path::Path::new("."),
-            };
-            if let Ok(d) = std::fs::metadata(dir) {
-                if let Some(why) = untrusted_dir(d.mode()) {
-                    anyhow::bail!(
-                        "{}: its folder {} {why}, so another user could replace it and name the server this worker sends its secret to",
-                        file.display(),
-                        dir.display()
-                    );
-                }
-            }
-            let text = std::fs::read_to_string(file)
-                .with_context(|| format!("cannot read {}", file.display()))?;
-            parse_fingerprint(&text).with_context(|| format!("{}", file.display()))?
-        }
+        (None, Some(file)) => read_fingerprint_file(file)?,
         (None, None) => anyhow::bail!(
             "--fingerprint or --fingerprint-file is required: a worker only talks to the coordinator it was told to pin"
         ),
@@ -130,6 +99,55 @@ pub fn join(a: JoinArgs) -> Result<()> {
         idle_timeout: Duration::from_secs_f64(a.idle_timeout_s),
         quic_mtu: a.quic_mtu,
     })
+}
+
+/// Reads the coordinator's fingerprint from `file`. The file decides which server gets the
+/// secret, so it is refused where another user could rewrite or replace it: the file
+/// itself every user may write, or owned by another user than this worker's or root
+/// ([`untrusted_file`]), or any folder on its real path (links resolved) every user may
+/// write and not sticky ([`untrusted_dir`]). The file is checked and read through one open
+/// handle, so a link re-pointed in between changes nothing.
+fn read_fingerprint_file(file: &std::path::Path) -> Result<strata_common::wire::Fingerprint> {
+    use std::io::Read;
+    use std::os::unix::fs::MetadataExt;
+    let cannot = || format!("cannot read {}", file.display());
+    let real = std::fs::canonicalize(file).with_context(cannot)?;
+    let f = std::fs::File::open(&real).with_context(cannot)?;
+    let meta = f.metadata().with_context(cannot)?;
+    if !meta.is_file() {
+        anyhow::bail!("{}: not a file", file.display());
+    }
+    // SAFETY: geteuid has no preconditions and cannot fail.
+    let me = unsafe { libc::geteuid() };
+    if let Some(why) = untrusted_file(meta.mode(), meta.uid(), me) {
+        anyhow::bail!(
+            "{}: {why}, so another user could name the server this worker sends its secret to",
+            file.display()
+        );
+    }
+    for dir in real.ancestors().skip(1) {
+        let mode = std::fs::metadata(dir).with_context(cannot)?.mode();
+        if let Some(why) = untrusted_dir(mode) {
+            anyhow::bail!(
+                "{}: the folder {} {why}, so another user could replace the file and name the server this worker sends its secret to",
+                file.display(),
+                dir.display()
+            );
+        }
+    }
+    // A fingerprint is 64 hex digits: more than a few KiB is not one.
+    const MAX: u64 = 4096;
+    let mut text = String::new();
+    f.take(MAX + 1)
+        .read_to_string(&mut text)
+        .with_context(cannot)?;
+    if text.len() as u64 > MAX {
+        anyhow::bail!(
+            "{}: longer than {MAX} bytes, so not a fingerprint file",
+            file.display()
+        );
+    }
+    strata_net::tls::parse_fingerprint(&text).with_context(|| format!("{}", file.display()))
 }
 
 /// Why a fingerprint file with permission bits `mode`, owned by user `owner`, must not be

@@ -1311,6 +1311,7 @@ impl Node {
                 .occlusion_front(req, pre_grid, &low, true, control, csend, frame_start)
                 .await?;
             predicted = (req.order.first() != Some(&self.rank)).then(|| pre.upsampled(grid, scale));
+            stats.occlusion_shift = [0, 0];
             stats.prepass_s = tp.elapsed().as_secs_f64();
         }
         let t = Instant::now();

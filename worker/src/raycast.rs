@@ -169,7 +169,8 @@ pub struct CastOutput {
     /// The premultiplied image.
     pub image: PartialImage,
     /// Each tile's feedback (reduced) and counters, tiles in row-major order over the
-    /// rectangle; a tile left out by [`FrameSetup::only_tiles`] has none.
+    /// rectangle; a tile left out by [`FrameSetup::only_tiles`], or with no ray to cast
+    /// under [`FrameSetup::limits`], has none (and took no time).
     pub tiles: Vec<TileOut>,
     /// Counters, summed over the tiles cast.
     pub stats: CastStats,
