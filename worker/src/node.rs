@@ -1564,7 +1564,11 @@ impl Node {
             }
         };
         for (what, to_rank, s) in sends {
-            let left = (frame_start + self.timeout).saturating_duration_since(Instant::now());
+            // The exchange's own deadline: a worker that came to it late (held behind a
+            // slow front worker for its map) keeps its grace window for its sends too. From
+            // the frame's start, a send to that slow worker had no time left at all and
+            // blamed it whenever the piece waited on its reader.
+            let left = (exchange_from + self.timeout).saturating_duration_since(Instant::now());
             // A send that fails or stalls is the receiver's doing (a lost or hung peer):
             // blamed on it, so the coordinator re-renders without it instead of ending
             // the run for want of a suspect.
