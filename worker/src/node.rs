@@ -1286,10 +1286,14 @@ impl Node {
         // Emptied by `image` when a cast has no CPU time (GPU backend, no thread clock).
         stats.leaf_cpu_s = vec![0.0; self.setup.leaves.len()];
         let mut predicted = if occlusion {
-            self.predicted_front(req, grid, &mut stats.occlusion_shift)
+            self.predicted_front(req, grid)
         } else {
             None
-        };
+        }
+        .map(|(front, shift)| {
+            stats.occlusion_shift = shift;
+            front
+        });
         if occlusion && req.occlusion_prepass > 0 && req.wall.is_none() {
             // 0. No prediction for some worker: all take one from a first pass at
             //    1/scale of the resolution (its own map exchange).
@@ -1721,13 +1725,12 @@ impl Node {
 
     /// The last frame's front transmittance, when it applies to this frame (same image
     /// size and workers in front, and something in front), moved or widened by the
-    /// camera's motion since.
+    /// camera's motion since, with the shift applied in blocks (`[0, 0]` when widened).
     fn predicted_front(
         &self,
         req: &FrameRequest,
         grid: BlockGrid,
-        shift: &mut [i32; 2],
-    ) -> Option<FrontTransmittance> {
+    ) -> Option<(FrontTransmittance, [i32; 2])> {
         let last = self.front_last.as_ref()?;
         // The same workers in front of this one (their order among themselves does not
         // matter: opacity composes either way).
@@ -1752,7 +1755,7 @@ impl Node {
             return None;
         }
         if radius > 0 {
-            return Some(last.front.dilated(radius));
+            return Some((last.front.dilated(radius), [0, 0]));
         }
         // Otherwise the map moves with this worker's region: by the median displacement of
         // the region's points on screen, rounded to blocks (none for a wall, whose image is
@@ -1765,8 +1768,8 @@ impl Node {
         let b = grid.block.max(1) as f64;
         // (The map is at most 65 535 blocks a side: a larger shift clears it either way.)
         let blocks = |d: f64| (d / b).round().clamp(-65_536.0, 65_536.0) as i32;
-        *shift = [blocks(dx), blocks(dy)];
-        Some(last.front.shifted(shift[0] as i64, shift[1] as i64))
+        let shift = [blocks(dx), blocks(dy)];
+        Some((last.front.shifted(shift[0] as i64, shift[1] as i64), shift))
     }
 
     /// How far this worker's region (the box around its leaves) moved on screen from
