@@ -57,6 +57,23 @@ impl Rect {
             h: y1 - y0,
         }
     }
+
+    /// The pixels in both ([`Rect::EMPTY`] when they do not meet).
+    pub fn intersect(&self, o: &Rect) -> Rect {
+        let x0 = self.x.max(o.x);
+        let y0 = self.y.max(o.y);
+        let x1 = (self.x + self.w).min(o.x + o.w);
+        let y1 = (self.y + self.h).min(o.y + o.h);
+        if x0 >= x1 || y0 >= y1 {
+            return Rect::EMPTY;
+        }
+        Rect {
+            x: x0,
+            y: y0,
+            w: x1 - x0,
+            h: y1 - y0,
+        }
+    }
 }
 
 /// Premultiplied RGBA.
@@ -187,6 +204,43 @@ pub fn composite_front_to_back(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The intersection holds the pixels in both, and nothing for rectangles that only
+    /// touch or miss.
+    #[test]
+    fn rectangles_intersect_in_the_pixels_of_both() {
+        let a = Rect {
+            x: 2,
+            y: 3,
+            w: 10,
+            h: 5,
+        };
+        let b = Rect {
+            x: 8,
+            y: 0,
+            w: 10,
+            h: 5,
+        };
+        assert_eq!(
+            a.intersect(&b),
+            Rect {
+                x: 8,
+                y: 3,
+                w: 4,
+                h: 2
+            }
+        );
+        assert_eq!(b.intersect(&a), a.intersect(&b));
+        assert_eq!(a.intersect(&a), a);
+        let touching = Rect {
+            x: 12,
+            y: 3,
+            w: 4,
+            h: 4,
+        };
+        assert!(a.intersect(&touching).is_empty());
+        assert!(a.intersect(&Rect::EMPTY).is_empty());
+    }
 
     #[test]
     fn over_is_associative() {

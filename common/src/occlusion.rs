@@ -415,6 +415,33 @@ impl BlockMask {
     pub fn any(&self) -> bool {
         self.bits.iter().any(|&w| w != 0)
     }
+
+    /// The smallest pixel rectangle holding every block set (clipped to the grid's
+    /// pixels), or `None` when none is.
+    pub fn pixel_bounds(&self) -> Option<crate::image::Rect> {
+        let cols = self.grid.cols() as usize;
+        let (mut x0, mut y0, mut x1, mut y1) = (usize::MAX, usize::MAX, 0, 0);
+        for (wi, &w) in self.bits.iter().enumerate() {
+            let mut w = w;
+            while w != 0 {
+                let b = wi * 64 + w.trailing_zeros() as usize;
+                w &= w - 1;
+                let (x, y) = (b % cols, b / cols);
+                (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x), y1.max(y));
+            }
+        }
+        if x0 == usize::MAX {
+            return None;
+        }
+        let (px0, py0, _, _) = self.grid.pixels_of(y0 * cols + x0);
+        let (_, _, px1, py1) = self.grid.pixels_of(y1 * cols + x1);
+        Some(crate::image::Rect {
+            x: px0,
+            y: py0,
+            w: px1 - px0,
+            h: py1 - py0,
+        })
+    }
 }
 
 /// The transmittance of everything in front of one position of the visibility order, per
@@ -790,6 +817,46 @@ mod tests {
     use super::*;
     use crate::image::{composite_front_to_back, Rect, Rgba};
     use proptest::prelude::*;
+
+    /// A mask's pixel bounds hold exactly its blocks' pixels: the least and greatest block
+    /// column and row, clipped at the image's edge (blocks of 4 on a 10 × 7 image).
+    #[test]
+    fn pixel_bounds_hold_the_blocks_set() {
+        let grid = BlockGrid::new(10, 7, 4); // 3 × 2 blocks, the last column and row short
+        let mut m = BlockMask::empty(grid);
+        assert_eq!(m.pixel_bounds(), None);
+        m.set(1);
+        assert_eq!(
+            m.pixel_bounds(),
+            Some(Rect {
+                x: 4,
+                y: 0,
+                w: 4,
+                h: 4
+            })
+        );
+        m.set(5); // column 2, row 1: pixels 8..10 × 4..7
+        assert_eq!(
+            m.pixel_bounds(),
+            Some(Rect {
+                x: 4,
+                y: 0,
+                w: 6,
+                h: 7
+            })
+        );
+        let mut one = BlockMask::empty(grid);
+        one.set(3);
+        assert_eq!(
+            one.pixel_bounds(),
+            Some(Rect {
+                x: 0,
+                y: 4,
+                w: 4,
+                h: 3
+            })
+        );
+    }
 
     /// A shifted map moves every level by whole blocks; blocks nothing moves into are clear.
     #[test]

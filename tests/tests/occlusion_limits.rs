@@ -150,6 +150,43 @@ fn rays_stop_at_their_block_limits_on_both_casters() {
             assert_eq!(again.px[i], want, "({x}, {y}) of the re-cast");
         }
     }
+    // A re-cast of a few neighbouring blocks casts only the part of the region's rectangle
+    // that holds them (`BlockMask::pixel_bounds`): still exactly their pixels.
+    // Four blocks with something in them, in a corner of a 4 × 4 patch of blocks.
+    let cols = grid.cols() as usize;
+    let lit = |bx: usize, by: usize| {
+        let (x0, y0, x1, y1) = grid.pixels_of(by * cols + bx);
+        (y0..y1).all(|y| (x0..x1).all(|x| lim.px[(y * w + x) as usize][3] > 0.0))
+    };
+    let (bx, by) = (0..grid.rows() as usize - 3)
+        .flat_map(|by| (0..cols - 3).map(move |bx| (bx, by)))
+        .find(|&(bx, by)| lit(bx, by) && lit(bx + 3, by) && lit(bx, by + 3) && lit(bx + 3, by + 3))
+        .expect("a patch of blocks with content at its corners");
+    let mut corner = BlockMask::empty(grid);
+    for (x, y) in [(bx, by), (bx + 3, by), (bx, by + 3), (bx + 3, by + 3)] {
+        corner.set(y * cols + x);
+    }
+    let bounds = corner.pixel_bounds().expect("blocks set");
+    assert!(
+        bounds.area() * 4 < (w * h) as usize,
+        "{bounds:?} is no part of the frame"
+    );
+    let corner_limits = RayLimits {
+        only: Some(&corner),
+        ..limits
+    };
+    let part = render(&s, Backend::Cpu, true, Some(corner_limits));
+    for y in 0..h {
+        for x in 0..w {
+            let i = (y * w + x) as usize;
+            let want = if corner.pixel(x, y) {
+                lim.px[i]
+            } else {
+                [0.0; 4]
+            };
+            assert_eq!(part.px[i], want, "({x}, {y}) of the re-cast of four blocks");
+        }
+    }
 
     if gpu_available() {
         let gpu = render(&s, Backend::Gpu, true, Some(limits));
@@ -174,6 +211,12 @@ fn rays_stop_at_their_block_limits_on_both_casters() {
         );
         let d = max_diff(&gpu_again.px, &again.px);
         assert!(d <= 1e-4, "GPU re-cast differs from CPU by {d}");
+        let gpu_part = render(&s, Backend::Gpu, true, Some(corner_limits));
+        let d = max_diff(&gpu_part.px, &part.px);
+        assert!(
+            d <= 1e-4,
+            "GPU re-cast of four blocks differs from CPU by {d}"
+        );
     }
 }
 
