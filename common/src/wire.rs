@@ -671,6 +671,14 @@ impl FrameRequest {
                 crate::occlusion::MAX_BLOCK
             ));
         }
+        // A block's pixel edges are u32 sums: a side within a block of 2³² would overflow.
+        let edge = u32::MAX - crate::occlusion::MAX_BLOCK;
+        if self.occlusion_block > 0 && (self.width > edge || self.height > edge) {
+            return Err(format!(
+                "frame {f}: occlusion over a side of more than {edge} pixels ({}x{})",
+                self.width, self.height
+            ));
+        }
         if let Some(w) = &self.wall {
             w.check(self.width, self.height, &self.order)
                 .map_err(|e| format!("frame {f}: bad wall: {e}"))?;
@@ -904,6 +912,51 @@ pub struct WorkerFrameStats {
     pub variant: String,
 }
 
+impl WorkerFrameStats {
+    /// Checks the durations a worker reports: each finite and not negative (a NaN or an
+    /// infinity from a faulty worker would reach the run's summary and `--stats` as
+    /// `NaN`, `inf` or `null`). Names the first field that is not.
+    pub fn check_times(&self) -> Result<(), String> {
+        let one = [
+            ("render_s", self.render_s),
+            ("cast_s", self.cast_s),
+            ("render_cpu_s", self.render_cpu_s),
+            ("cpu_s", self.cpu_s),
+            ("load_s", self.load_s),
+            ("last_round_s", self.last_round_s),
+            ("composite_s", self.composite_s),
+            ("encode_s", self.encode_s),
+            ("exchange_s", self.exchange_s),
+            ("blend_s", self.blend_s),
+            ("gather_s", self.gather_s),
+            ("occlusion_s", self.occlusion_s),
+            ("fixup_s", self.fixup_s),
+            ("prepass_s", self.prepass_s),
+            ("tile_write_s", self.tile_write_s),
+        ];
+        let many = [
+            ("round_cast_s", &self.round_cast_s),
+            ("round_load_s", &self.round_load_s),
+            ("leaf_cast_s", &self.leaf_cast_s),
+            ("leaf_cpu_s", &self.leaf_cpu_s),
+        ];
+        let bad = |v: f64| !(v.is_finite() && v >= 0.0);
+        if let Some((name, v)) = one.into_iter().find(|&(_, v)| bad(v)) {
+            return Err(format!(
+                "{name} = {v} (expected a finite time of 0 s or more)"
+            ));
+        }
+        for (name, list) in many {
+            if let Some((i, v)) = list.iter().enumerate().find(|&(_, &v)| bad(v)) {
+                return Err(format!(
+                    "{name}[{i}] = {v} (expected a finite time of 0 s or more)"
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1050,6 +1103,36 @@ mod tests {
         bad(&|r| r.width = 65, "limit");
         bad(&|r| r.width = 0, "limit");
         bad(&|r| r.occlusion_block = 65, "occlusion blocks");
+        // Times a worker reports are finite and not negative.
+        let mut st = WorkerFrameStats {
+            render_s: 0.5,
+            round_cast_s: vec![0.25, 0.25],
+            ..Default::default()
+        };
+        assert_eq!(st.check_times(), Ok(()));
+        st.exchange_s = f64::NAN;
+        assert!(st
+            .check_times()
+            .unwrap_err()
+            .starts_with("exchange_s = NaN"));
+        st.exchange_s = 0.0;
+        st.round_cast_s[1] = f64::INFINITY;
+        assert!(st
+            .check_times()
+            .unwrap_err()
+            .starts_with("round_cast_s[1] = inf"));
+        st.round_cast_s[1] = -1e-3;
+        assert!(st
+            .check_times()
+            .unwrap_err()
+            .starts_with("round_cast_s[1] = -0.001"));
+        // A frame within a huge limit, with a side whose last block edge would overflow.
+        let mut wide = request();
+        (wide.width, wide.height) = (u32::MAX, 1);
+        let e = wide.check(3, 2, u32::MAX as u64).unwrap_err();
+        assert!(e.contains("occlusion over a side"), "{e}");
+        wide.occlusion_block = 0;
+        assert_eq!(wide.check(3, 2, u32::MAX as u64), Ok(()));
         // A wall frame takes no canvas (its last round would land there, not in its
         // tiles' files).
         let wall = WallFrame {

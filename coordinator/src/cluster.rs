@@ -459,6 +459,35 @@ fn finish_canvas(
     composite_canvas::finish(frame, interlace, &spans)
 }
 
+/// `composite` for a frame of `ranks` ranks: as it is where it can be planned; exact radix
+/// factors (`composite.k` of two or more) that do not multiply to `ranks`, as happens after
+/// a worker is lost or joins, become their largest as a target radix (automatic factors up
+/// to it), with a warning. Checked at start-up for the run's first count.
+fn composite_for(ranks: usize, composite: &CompositeChoice) -> CompositeChoice {
+    let k: Vec<usize> = composite.k.iter().map(|&k| k as usize).collect();
+    let plannable = build_plan(
+        ranks,
+        1,
+        composite.algorithm,
+        (!k.is_empty()).then_some(&k[..]),
+    )
+    .is_ok();
+    if plannable || composite.k.len() < 2 {
+        return composite.clone();
+    }
+    let target = composite.k.iter().copied().max().unwrap_or(2).max(2);
+    warn!(
+        ranks,
+        factors = ?composite.k,
+        target,
+        "composite.k does not multiply to the ranks in this frame: automatic factors up to the largest"
+    );
+    CompositeChoice {
+        k: vec![target],
+        ..composite.clone()
+    }
+}
+
 /// Checks that each worker's final piece (`spans`, in the order of `slots`) covers the
 /// part of the image the frame's compositing plan gives its position in `order`, as the
 /// workers build it: the gather checks only that pieces lie in the frame and do not
@@ -1093,6 +1122,9 @@ impl Cluster {
     /// given up on whatever `cluster.on_worker_loss` says, never the run.
     async fn setup(&mut self, fresh: &[u32]) -> Result<()> {
         let t0 = Instant::now();
+        // Losses of an earlier set-up not yet reported (a joiner's set-up before the first
+        // frame) keep their recovery time: it was measured from their own set-up's start.
+        let earlier = self.setup_lost.len();
         let scene_toml = self.scene_toml.clone();
         let (shm, gather) = self.plan_transport()?;
         // The ranks in the run only (workers given up on stay in `workers`): counted again
@@ -1146,7 +1178,7 @@ impl Cluster {
             }
         }
         let ready_s = t0.elapsed().as_secs_f64();
-        for l in &mut self.setup_lost {
+        for l in &mut self.setup_lost[earlier..] {
             l.recovery_s = ready_s - l.detected_after_s;
         }
         self.transport = report(&self.slots);
@@ -1681,6 +1713,9 @@ impl Cluster {
             .map(|slot| slots[slot])
             .collect();
         debug!(frame, ?order, "visibility order");
+        // After a loss or a join the exact radix factors of `composite.k` may no longer
+        // multiply to the ranks in the frame: it then takes the largest of them as a target.
+        let composite = &composite_for(order.len(), composite);
         // Cross-worker occlusion in blocks of `occlusion_block` pixels, coarser where the
         // maps (two bytes a block before LZ4, sent as control messages) might not fit one.
         let mut block = self.opts.occlusion_block.max(1);
@@ -1874,13 +1909,16 @@ impl Cluster {
                             canvas: Some(span),
                             shm,
                             lz4,
-                        }) if fno == frame => {
+                        }) if fno == frame && stats[rank as usize].is_none() => {
                             if s.rank != rank {
                                 return Err(blame(anyhow!(
                                     "{who} sent the frame stats of rank {} as its own",
                                     s.rank
                                 )));
                             }
+                            s.check_times().map_err(|e| {
+                                blame(anyhow!("{who} sent frame {frame}'s stats with {e}"))
+                            })?;
                             if canvas.is_none() || self.workers[rank as usize].shm.is_none() {
                                 return Err(blame(anyhow!(
                                     "{who} wrote its final piece into a canvas it was not given"
@@ -1907,13 +1945,16 @@ impl Cluster {
                             shm,
                             lz4,
                             canvas: None,
-                        }) if fno == frame => {
+                        }) if fno == frame && stats[rank as usize].is_none() => {
                             if s.rank != rank {
                                 return Err(blame(anyhow!(
                                     "{who} sent the frame stats of rank {} as its own",
                                     s.rank
                                 )));
                             }
+                            s.check_times().map_err(|e| {
+                                blame(anyhow!("{who} sent frame {frame}'s stats with {e}"))
+                            })?;
                             if lz4 && !composite.lz4 {
                                 return Err(blame(anyhow!(
                                     "{who} sent a compressed final piece, in a run without composite.lz4"

@@ -780,6 +780,22 @@ fn a_worker_killed_or_stopped_at_any_phase_of_a_frame_costs_a_re_render() {
             &["--set", "composite.algorithm=binary-swap"],
         );
     }
+    // Exact radix factors for four workers cannot plan the three left: the re-render takes
+    // automatic factors up to the largest of them (it used to fail on every worker, and the
+    // run with it, naming a healthy one).
+    check_recovery(
+        "render",
+        "kill",
+        "frame",
+        "re-rendered without it",
+        4,
+        &[
+            "--set",
+            "composite.algorithm=radix-k",
+            "--set",
+            "composite.k=[2, 2]",
+        ],
+    );
 }
 
 #[test]
@@ -1101,6 +1117,28 @@ fn a_lost_local_worker_is_replaced_by_a_spawned_one_with_cluster_respawn() {
     );
     assert_eq!(ranks_in_frame(&stats, 0), [0], "{stats}");
     assert_eq!(ranks_in_frame(&stats, 1), [0, 3], "{stats}");
+    // A worker stopped in set-up (found lost by the idle timeout, 2 s in) is replaced
+    // before frame 0: the replacement's set-up does not rewrite the loss's recovery time,
+    // measured from the first set-up's start (it once came out as 0.03 − 2.09 s).
+    let (stats, _) = run_with(
+        "setup",
+        "1",
+        &["--workers", "2", "--set", "cluster.respawn=1"],
+        "1:stop:setup",
+    );
+    let summary: serde_json::Value = serde_json::from_str(stats.lines().last().unwrap()).unwrap();
+    let lost = summary["lost_workers"].as_array().unwrap();
+    assert_eq!(lost.len(), 1, "{stats}");
+    assert_eq!(lost[0]["phase"], "set-up", "{stats}");
+    let detected = lost[0]["detected_after_s"].as_f64().unwrap();
+    let recovery = lost[0]["recovery_s"].as_f64().unwrap();
+    assert!(detected > 1.0 && recovery > 0.0, "{stats}");
+    assert_eq!(
+        summary["joined_workers"].as_array().unwrap().len(),
+        1,
+        "{stats}"
+    );
+    assert_eq!(ranks_in_frame(&stats, 0), [0, 2], "{stats}");
 }
 
 /// Frames `0..frames` (`out(i)`) equal the in-process ones in `refs` (`in_%03d.exr`).
@@ -1852,6 +1890,29 @@ fn a_bad_shared_memory_segment_of_a_worker_is_refused_naming_it() {
     let (last, log) = failed(w);
     assert!(
         last.contains("worker 0 (fake") && last.contains("without composite.lz4"),
+        "{log}"
+    );
+
+    // 6. Frame stats with a time that is not a number (it reached the summary as NaN).
+    let w = start_waiting_coordinator(1, &[]);
+    rt.block_on(async {
+        let (_ep, _conn, mut send, mut recv, _setup) = fake_worker(&w).await;
+        let (_seg, req) = segment_ready_and_frame(&mut send, &mut recv).await;
+        let msg = WorkerMsg::FrameDone {
+            frame: req.frame,
+            stats: strata_common::wire::WorkerFrameStats {
+                cast_s: f64::NAN,
+                ..Default::default()
+            },
+            shm: None,
+            lz4: false,
+            canvas: Some(strata_common::composite::Span { start: 0, end: 0 }),
+        };
+        say_then_linger(&mut send, &msg).await;
+    });
+    let (last, log) = failed(w);
+    assert!(
+        last.contains("worker 0 (fake") && last.contains("cast_s = NaN"),
         "{log}"
     );
 }
