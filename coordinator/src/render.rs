@@ -485,7 +485,7 @@ pub struct RenderSummary {
     /// Of it, the seconds from asking the workers to shut down to their exit and closed
     /// connections (distributed runs; 0 in process).
     pub shutdown_seconds: f64,
-    /// Worker processes (0: rendered in-process).
+    /// Worker processes that rendered the last frame (0: rendered in-process).
     pub workers: usize,
     /// Compositing algorithm (distributed runs).
     pub algorithm: Option<String>,
@@ -890,7 +890,9 @@ pub fn render_distributed(opts: &RenderOptions, progress: &ProgressBar) -> Resul
         generated_synthetic: generated,
         seconds: t0.elapsed().as_secs_f64(),
         shutdown_seconds: shutdown_s,
-        workers: n,
+        // The last frame's, which the compositing figures beside it are of (fewer than the
+        // run started with after a loss; `lost_workers` and `joined_workers` tell).
+        workers: fr.stats.len(),
         algorithm: Some(format!("{:?}", choice.algorithm)),
         composite_seconds: fr.composite_s,
         exchange_bytes: saturating_total(fr.stats.iter().map(|s| s.bytes_sent)),

@@ -734,6 +734,9 @@ fn check_recovery(
         left.len(),
         "{name}: {text}"
     );
+    // The summary's workers are the last frame's, as its compositing figures are.
+    let summary: serde_json::Value = serde_json::from_str(text.lines().last().unwrap()).unwrap();
+    assert_eq!(summary["workers"], left.len(), "{name}: {text}");
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(stdout.contains(said), "{name}: {stdout}");
     if lost_phase == "set-up" {
