@@ -38,6 +38,19 @@ impl Rect {
         self.w as usize * self.h as usize
     }
 
+    /// The pixels `[x0, x1) × [y0, y1)` ([`Rect::EMPTY`] when that holds none).
+    pub fn spanning(x0: u32, y0: u32, x1: u32, y1: u32) -> Rect {
+        if x0 >= x1 || y0 >= y1 {
+            return Rect::EMPTY;
+        }
+        Rect {
+            x: x0,
+            y: y0,
+            w: x1 - x0,
+            h: y1 - y0,
+        }
+    }
+
     /// The smallest rectangle holding both.
     pub fn union(&self, o: &Rect) -> Rect {
         if self.is_empty() {
@@ -50,12 +63,7 @@ impl Rect {
         let y0 = self.y.min(o.y);
         let x1 = (self.x + self.w).max(o.x + o.w);
         let y1 = (self.y + self.h).max(o.y + o.h);
-        Rect {
-            x: x0,
-            y: y0,
-            w: x1 - x0,
-            h: y1 - y0,
-        }
+        Rect::spanning(x0, y0, x1, y1)
     }
 
     /// The pixels in both ([`Rect::EMPTY`] when they do not meet).
@@ -64,15 +72,7 @@ impl Rect {
         let y0 = self.y.max(o.y);
         let x1 = (self.x + self.w).min(o.x + o.w);
         let y1 = (self.y + self.h).min(o.y + o.h);
-        if x0 >= x1 || y0 >= y1 {
-            return Rect::EMPTY;
-        }
-        Rect {
-            x: x0,
-            y: y0,
-            w: x1 - x0,
-            h: y1 - y0,
-        }
+        Rect::spanning(x0, y0, x1, y1)
     }
 }
 

@@ -435,12 +435,7 @@ impl BlockMask {
         }
         let (px0, py0, _, _) = self.grid.pixels_of(y0 * cols + x0);
         let (_, _, px1, py1) = self.grid.pixels_of(y1 * cols + x1);
-        Some(crate::image::Rect {
-            x: px0,
-            y: py0,
-            w: px1 - px0,
-            h: py1 - py0,
-        })
+        Some(crate::image::Rect::spanning(px0, py0, px1, py1))
     }
 }
 

@@ -208,6 +208,24 @@ pub struct CompositeChoice {
     pub lz4: bool,
 }
 
+impl CompositeChoice {
+    /// The compositing plan of a frame of `ranks` ranks and `pixels` pixels under these
+    /// choices (`k` empty: the algorithm's default factors).
+    pub fn plan(
+        &self,
+        ranks: usize,
+        pixels: u32,
+    ) -> Result<crate::composite::Plan, crate::composite::PlanError> {
+        let k: Vec<usize> = self.k.iter().map(|&k| k as usize).collect();
+        crate::composite::build_plan(
+            ranks,
+            pixels,
+            self.algorithm,
+            (!k.is_empty()).then_some(&k[..]),
+        )
+    }
+}
+
 /// A shared secret's bytes. They travel as the bytes themselves (`serde(transparent)`: the
 /// wire format is a plain byte string), and `Debug` shows only their length, so a message,
 /// an options struct or an error that prints one with `{:?}` does not print the secret.

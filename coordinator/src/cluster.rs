@@ -25,7 +25,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use strata_common::camera::{screen_motion, View};
 use strata_common::composite::canvas as composite_canvas;
-use strata_common::composite::{assemble, build_plan, Interlace, Span, SparsePiece};
+use strata_common::composite::{assemble, Interlace, Span, SparsePiece};
 use strata_common::image::Rgba;
 use strata_common::kd::Decomposition;
 use strata_common::occlusion::{self, BlockGrid, FrontAccumulator, Transmittance};
@@ -464,15 +464,7 @@ fn finish_canvas(
 /// a worker is lost or joins, become their largest as a target radix (automatic factors up
 /// to it), with a warning. Checked at start-up for the run's first count.
 fn composite_for(ranks: usize, composite: &CompositeChoice) -> CompositeChoice {
-    let k: Vec<usize> = composite.k.iter().map(|&k| k as usize).collect();
-    let plannable = build_plan(
-        ranks,
-        1,
-        composite.algorithm,
-        (!k.is_empty()).then_some(&k[..]),
-    )
-    .is_ok();
-    if plannable || composite.k.len() < 2 {
+    if composite.plan(ranks, 1).is_ok() || composite.k.len() < 2 {
         return composite.clone();
     }
     let target = composite.k.iter().copied().max().unwrap_or(2).max(2);
@@ -500,13 +492,7 @@ fn final_spans_match_the_plan(
     slots: &[u32],
     spans: &[Span],
 ) -> Result<(), (u32, anyhow::Error)> {
-    let k: Vec<usize> = composite.k.iter().map(|&k| k as usize).collect();
-    let plan = build_plan(
-        order.len(),
-        pixels,
-        composite.algorithm,
-        (!k.is_empty()).then_some(&k[..]),
-    );
+    let plan = composite.plan(order.len(), pixels);
     for (&rank, &span) in slots.iter().zip(spans) {
         let fail = |e: anyhow::Error| Err((rank, e));
         let Ok(plan) = &plan else {
@@ -2969,7 +2955,7 @@ mod blame_tests {
                 format: WireFormat::F32,
                 lz4: false,
             };
-            let plan = build_plan(3, 1200, algorithm, None).unwrap();
+            let plan = strata_common::composite::build_plan(3, 1200, algorithm, None).unwrap();
             let honest: Vec<Span> = slots
                 .iter()
                 .map(|&r| plan.result[order.iter().position(|&o| o == r).unwrap()])

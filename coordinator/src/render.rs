@@ -666,14 +666,7 @@ pub fn composite_choice(scene: &Scene, workers: usize) -> Result<CompositeChoice
         format: c.wire,
         lz4: c.lz4,
     };
-    let k: Vec<usize> = choice.k.iter().map(|&k| k as usize).collect();
-    strata_common::composite::build_plan(
-        workers,
-        1,
-        choice.algorithm,
-        (!k.is_empty()).then_some(&k[..]),
-    )
-    .with_context(|| {
+    choice.plan(workers, 1).with_context(|| {
         format!(
             "composite.algorithm = {} with composite.k = {:?} cannot composite {workers} workers",
             serde_json::to_string(&c.algorithm).unwrap_or_default(),

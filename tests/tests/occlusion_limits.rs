@@ -52,6 +52,18 @@ struct Render {
     rays: u64,
 }
 
+/// A re-cast of the blocks of `only` gives exactly `full`'s pixels in them and leaves the
+/// rest transparent (both images of `only`'s whole grid, row-major).
+fn assert_only_blocks(got: &[[f32; 4]], full: &[[f32; 4]], only: &BlockMask, what: &str) {
+    let w = only.grid.width;
+    for (i, (g, f)) in got.iter().zip(full).enumerate() {
+        let (x, y) = (i as u32 % w, i as u32 / w);
+        let want = if only.pixel(x, y) { *f } else { [0.0; 4] };
+        assert_eq!(*g, want, "({x}, {y}) of {what}");
+    }
+    assert_eq!(got.len(), full.len(), "{what}");
+}
+
 fn render(s: &Scene, backend: Backend, simd: bool, limits: Option<RayLimits<'_>>) -> Render {
     let mut s = on_backend(s, backend);
     s.render.simd = simd;
@@ -139,17 +151,7 @@ fn rays_stop_at_their_block_limits_on_both_casters() {
             ..limits
         }),
     );
-    for y in 0..h {
-        for x in 0..w {
-            let i = (y * w + x) as usize;
-            let want = if only.pixel(x, y) {
-                lim.px[i]
-            } else {
-                [0.0; 4]
-            };
-            assert_eq!(again.px[i], want, "({x}, {y}) of the re-cast");
-        }
-    }
+    assert_only_blocks(&again.px, &lim.px, &only, "the re-cast");
     // A re-cast of a few neighbouring blocks casts only the part of the region's rectangle
     // that holds them (`BlockMask::pixel_bounds`): still exactly their pixels.
     // Four blocks with something in them, in a corner of a 4 × 4 patch of blocks.
@@ -176,17 +178,7 @@ fn rays_stop_at_their_block_limits_on_both_casters() {
         ..limits
     };
     let part = render(&s, Backend::Cpu, true, Some(corner_limits));
-    for y in 0..h {
-        for x in 0..w {
-            let i = (y * w + x) as usize;
-            let want = if corner.pixel(x, y) {
-                lim.px[i]
-            } else {
-                [0.0; 4]
-            };
-            assert_eq!(part.px[i], want, "({x}, {y}) of the re-cast of four blocks");
-        }
-    }
+    assert_only_blocks(&part.px, &lim.px, &corner, "the re-cast of four blocks");
 
     if gpu_available() {
         let gpu = render(&s, Backend::Gpu, true, Some(limits));

@@ -1371,15 +1371,7 @@ fn plane_rect_to_image(view: &View, xa: u32, ya: u32, xb: u32, yb: u32) -> Rect 
             iy1 = iy1.max(t * th + cy1 - oy);
         }
     }
-    if ix0 >= ix1 || iy0 >= iy1 {
-        return Rect::EMPTY;
-    }
-    Rect {
-        x: ix0,
-        y: iy0,
-        w: ix1 - ix0,
-        h: iy1 - iy0,
-    }
+    Rect::spanning(ix0, iy0, ix1, iy1)
 }
 
 /// Puts back into `f` the tiles of `prev` (the round before, same view and region) that

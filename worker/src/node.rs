@@ -27,9 +27,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use strata_common::camera::View;
 use strata_common::composite::{
-    build_plan, build_plan_to, Exchange, ExchangeError, ExchangeEvent, ExchangeLimits, FinalPiece,
-    FinalTarget, Interlace, Outgoing, OutgoingPiece, PieceLayout, PieceSink, Plan, RankCompositor,
-    Segment, Span, SparsePiece, WireFormat,
+    build_plan_to, Exchange, ExchangeError, ExchangeEvent, ExchangeLimits, FinalPiece, FinalTarget,
+    Interlace, Outgoing, OutgoingPiece, PieceLayout, PieceSink, Plan, RankCompositor, Segment,
+    Span, SparsePiece, WireFormat,
 };
 use strata_common::image::{composite_front_to_back, PartialImage, Rect, Rgba};
 use strata_common::occlusion::{
@@ -1442,13 +1442,7 @@ impl Node {
             }
             (None, Some(p)) => p.clone(),
             (None, None) => {
-                let k: Vec<usize> = req.composite.k.iter().map(|&k| k as usize).collect();
-                let p = Arc::new(build_plan(
-                    n,
-                    px,
-                    req.composite.algorithm,
-                    (!k.is_empty()).then_some(&k[..]),
-                )?);
+                let p = Arc::new(req.composite.plan(n, px)?);
                 if self.plans.len() >= MAX_PLANS {
                     self.plans.clear();
                 }
