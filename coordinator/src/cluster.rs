@@ -1880,6 +1880,18 @@ impl Cluster {
                 } => {
                     let who = self.workers[rank as usize].describe();
                     let blame = |e: anyhow::Error| Failure::blaming(e, rank);
+                    // What a FrameDone's stats must be, whichever way its final piece came.
+                    let own_stats = |s: &WorkerFrameStats| -> Result<(), Failure> {
+                        if s.rank != rank {
+                            return Err(blame(anyhow!(
+                                "{who} sent the frame stats of rank {} as its own",
+                                s.rank
+                            )));
+                        }
+                        s.check_times().map_err(|e| {
+                            blame(anyhow!("{who} sent frame {frame}'s stats with {e}"))
+                        })
+                    };
                     match wire::decode_meta::<WorkerMsg>(&f.meta) {
                         // Leftovers of an earlier (failed) frame are not this frame's.
                         Ok(WorkerMsg::FrameDone { frame: fno, .. })
@@ -1896,15 +1908,7 @@ impl Cluster {
                             shm,
                             lz4,
                         }) if fno == frame && stats[rank as usize].is_none() => {
-                            if s.rank != rank {
-                                return Err(blame(anyhow!(
-                                    "{who} sent the frame stats of rank {} as its own",
-                                    s.rank
-                                )));
-                            }
-                            s.check_times().map_err(|e| {
-                                blame(anyhow!("{who} sent frame {frame}'s stats with {e}"))
-                            })?;
+                            own_stats(&s)?;
                             if canvas.is_none() || self.workers[rank as usize].shm.is_none() {
                                 return Err(blame(anyhow!(
                                     "{who} wrote its final piece into a canvas it was not given"
@@ -1932,15 +1936,7 @@ impl Cluster {
                             lz4,
                             canvas: None,
                         }) if fno == frame && stats[rank as usize].is_none() => {
-                            if s.rank != rank {
-                                return Err(blame(anyhow!(
-                                    "{who} sent the frame stats of rank {} as its own",
-                                    s.rank
-                                )));
-                            }
-                            s.check_times().map_err(|e| {
-                                blame(anyhow!("{who} sent frame {frame}'s stats with {e}"))
-                            })?;
+                            own_stats(&s)?;
                             if lz4 && !composite.lz4 {
                                 return Err(blame(anyhow!(
                                     "{who} sent a compressed final piece, in a run without composite.lz4"
