@@ -564,24 +564,35 @@ impl FrontTransmittance {
         m
     }
 
-    /// This map, made at `1/scale` of the resolution in one-pixel blocks (a cheap first
-    /// pass), as a prediction on `grid`: each block takes the largest level of the
-    /// low-resolution pixels it overlaps. Only a prediction: the full-resolution frame's
-    /// own map checks it ([`stale`](Self::stale)).
-    pub fn upsampled(&self, grid: BlockGrid, scale: u32) -> FrontTransmittance {
-        let scale = scale.max(1);
+    /// This map, made in one-pixel blocks by a cheap first pass of the same camera at a
+    /// lower resolution (this map's grid), as a prediction on `grid`: each block takes the
+    /// largest level of the low-resolution pixels it overlaps on the image plane. Only a
+    /// prediction: the full-resolution frame's own map checks it ([`stale`](Self::stale)).
+    ///
+    /// Both images share the vertical field of view and the centre, with square pixels, so
+    /// a low-resolution pixel spans `height / low height` pixels both ways; with sides that
+    /// are not multiples of the scale that is not the scale itself (a 721-row frame at 1/4
+    /// renders 181 rows of 3.98 pixels, and `y / 4` put the bottom rows 3 pixels off).
+    pub fn upsampled(&self, grid: BlockGrid) -> FrontTransmittance {
         let (lw, lh) = (self.grid.width, self.grid.height);
-        if self.q.is_empty() || lw == 0 || lh == 0 {
+        if self.q.is_empty() || lw == 0 || lh == 0 || grid.height == 0 {
             return FrontTransmittance::clear(grid);
         }
+        // Full-resolution plane position → low-resolution pixel coordinate, per axis.
+        let s = lh as f64 / grid.height as f64;
+        let to_low =
+            |p: u32, side: u32, low: u32| (p as f64 - side as f64 / 2.0) * s + low as f64 / 2.0;
+        // The low pixels `[p0, p1)` overlaps (at least one, clamped to the image).
+        let span = |p0: u32, p1: u32, side: u32, low: u32| {
+            let a = to_low(p0, side, low).floor().max(0.0) as u32;
+            let b = (to_low(p1, side, low).ceil() as u32).max(a + 1);
+            (a.min(low - 1), (b - 1).min(low - 1))
+        };
         let q = (0..grid.len())
             .map(|b| {
                 let (x0, y0, x1, y1) = grid.pixels_of(b);
-                let (lx0, ly0) = ((x0 / scale).min(lw - 1), (y0 / scale).min(lh - 1));
-                let (lx1, ly1) = (
-                    ((x1 - 1) / scale).min(lw - 1),
-                    ((y1 - 1) / scale).min(lh - 1),
-                );
+                let (lx0, lx1) = span(x0, x1, grid.width, lw);
+                let (ly0, ly1) = span(y0, y1, grid.height, lh);
                 (ly0..=ly1)
                     .flat_map(|y| (lx0..=lx1).map(move |x| (x, y)))
                     .map(|(x, y)| self.q[self.grid.block_of(x, y)])
@@ -1154,27 +1165,53 @@ mod tests {
 
     #[test]
     fn a_first_pass_map_upsamples_to_the_largest_level_it_overlaps() {
-        // 3 × 2 low-resolution pixels at 1/4: a 10 × 7 image in 2-pixel blocks.
+        // Sides that are multiples of the scale: a 1/4 pass of an 8 × 8 frame is 2 × 2,
+        // and a low pixel covers exactly 4 × 4 pixels.
+        let low = FrontTransmittance {
+            grid: BlockGrid::new(2, 2, 1),
+            q: vec![0, 100, 7, 9],
+        };
+        let up = low.upsampled(BlockGrid::new(8, 8, 2));
+        assert_eq!(up.grid, BlockGrid::new(8, 8, 2));
+        assert_eq!(
+            up.q[..4],
+            [0, 0, 100, 100],
+            "pixels 0..4 are low pixel 0, 4..8 pixel 1"
+        );
+        assert_eq!(up.q[4..8], [0, 0, 100, 100]);
+        assert_eq!(up.q[8..], [7, 7, 9, 9, 7, 7, 9, 9]);
+        // A 10 × 7 frame: the 1/4 pass is 3 × 2 low pixels of 3.5 pixels (the vertical
+        // field of view is shared), centred, so the low image reaches past the frame's
+        // sides: pixel x lies at low x' = (x − 5) · 2/7 + 1.5.
         let low = FrontTransmittance {
             grid: BlockGrid::new(3, 2, 1),
             q: vec![0, 100, CLEAR, 7, 8, 9],
         };
-        let grid = BlockGrid::new(10, 7, 2);
-        let up = low.upsampled(grid, 4);
-        assert_eq!(up.grid, grid);
-        // Block (0, 0) covers pixels 0..2 × 0..2: low pixel (0, 0).
-        assert_eq!(up.q[0], 0);
-        // Block (1, 0) covers 2..4: still low pixel (0, 0).
-        assert_eq!(up.q[1], 0);
-        // Block (2, 0) covers 4..6: low pixel (1, 0).
-        assert_eq!(up.q[2], 100);
-        // Block (4, 0) covers 8..10: low pixel (2, 0).
-        assert_eq!(up.q[4], CLEAR);
-        // Row 3 of blocks covers pixels 6..7: low row 1.
-        assert_eq!(up.q[3 * 5], 7);
-        // A block straddling two low pixels takes the larger level.
-        let odd = low.upsampled(BlockGrid::new(10, 7, 3), 4);
-        assert_eq!(odd.q[1], 100, "pixels 3..6 overlap low pixels 0 and 1");
+        let up = low.upsampled(BlockGrid::new(10, 7, 2));
+        // Block row 0 (pixels 0..2) lies in low row 0. Columns: pixels 0..2 → low
+        // 0.07..0.64; 2..4 → 0.64..1.21 (low 0 and 1: the larger level, the clearer, wins);
+        // 4..6 → low 1; 6..8 → 1.79..2.36 (low 1 and 2); 8..10 → low 2.
+        assert_eq!(up.q[..5], [0, 100, 100, CLEAR, CLEAR]);
+        // Block row 1, pixels 2..4 → low 0.57..1.14: rows 0 and 1.
+        assert_eq!(up.q[5], 7);
+        assert_eq!(up.q[9], CLEAR);
+        // Block rows 2 and 3 (pixels 4..6, 6..7): low row 1.
+        assert_eq!(up.q[10..15], [7, 8, 8, 9, 9]);
+        assert_eq!(up.q[15], 7);
+        // A 721-row frame at 1/4 renders 181 rows of 3.98 pixels: the last low row covers
+        // pixels 717.01..721, so rows 718–720 lie in it (`y / 4` had only row 720) and row
+        // 717, which straddles it, takes the clearer level of the two.
+        let mut q = vec![CLEAR; 181];
+        q[180] = 0;
+        let low = FrontTransmittance {
+            grid: BlockGrid::new(1, 181, 1),
+            q,
+        };
+        let up = low.upsampled(BlockGrid::new(4, 721, 1));
+        let row = |y: usize| up.q[y * 4];
+        assert_eq!([row(716), row(717)], [CLEAR; 2]);
+        assert_eq!([row(718), row(719), row(720)], [0; 3]);
+        assert!(up.q.chunks(4).all(|r| r.iter().all(|&v| v == r[0])));
     }
 
     #[test]

@@ -637,8 +637,9 @@ impl FrameRequest {
     /// frame limit of `max_pixels`. The visibility order names distinct ranks of the run;
     /// `leaf_order` is a permutation of the leaves (a leaf cast twice would double its
     /// opacity, one left out would vanish from the image); the frame fits the limit; the
-    /// occlusion blocks are at most [`crate::occlusion::MAX_BLOCK`] pixels; a wall frame
-    /// fits its frame and takes no canvas (its tiles go to files).
+    /// occlusion blocks, and the first pass's scale, are at most
+    /// [`crate::occlusion::MAX_BLOCK`]; a wall frame fits its frame and takes no canvas (its
+    /// tiles go to files).
     pub fn check(&self, ranks: usize, leaves: usize, max_pixels: u64) -> Result<(), String> {
         let f = self.frame;
         let leaves = match &self.leaves {
@@ -686,6 +687,15 @@ impl FrameRequest {
             return Err(format!(
                 "frame {f}: occlusion blocks of {} pixels (at most {})",
                 self.occlusion_block,
+                crate::occlusion::MAX_BLOCK
+            ));
+        }
+        // The first pass renders at 1/scale of the frame, the coordinator's map of it too:
+        // a scale the worker would change would give the two different grids.
+        if self.occlusion_prepass > crate::occlusion::MAX_BLOCK {
+            return Err(format!(
+                "frame {f}: an occlusion first pass at 1/{} of the resolution (at most 1/{})",
+                self.occlusion_prepass,
                 crate::occlusion::MAX_BLOCK
             ));
         }
@@ -1121,6 +1131,7 @@ mod tests {
         bad(&|r| r.width = 65, "limit");
         bad(&|r| r.width = 0, "limit");
         bad(&|r| r.occlusion_block = 65, "occlusion blocks");
+        bad(&|r| r.occlusion_prepass = 65, "first pass at 1/65");
         // Times a worker reports are finite and not negative.
         let mut st = WorkerFrameStats {
             render_s: 0.5,

@@ -1314,7 +1314,7 @@ impl Node {
             let pre = self
                 .occlusion_front(req, pre_grid, &low, true, control, csend, frame_start)
                 .await?;
-            predicted = (req.order.first() != Some(&self.rank)).then(|| pre.upsampled(grid, scale));
+            predicted = (req.order.first() != Some(&self.rank)).then(|| pre.upsampled(grid));
             stats.occlusion_shift = [0, 0];
             stats.prepass_s = tp.elapsed().as_secs_f64();
         }
@@ -1760,9 +1760,13 @@ impl Node {
             Some(_) => (0.0, 0.0),
         };
         let b = grid.block.max(1) as f64;
-        // (The map is at most 65 535 blocks a side: a larger shift clears it either way.)
-        let blocks = |d: f64| (d / b).round().clamp(-65_536.0, 65_536.0) as i32;
-        let shift = [blocks(dx), blocks(dy)];
+        // A shift of a whole side or more clears the map, so it is clamped there (and so
+        // fits an i32 whatever the motion).
+        let blocks = |d: f64, side: u32| {
+            let side = side as f64;
+            (d / b).round().clamp(-side, side) as i32
+        };
+        let shift = [blocks(dx, grid.cols()), blocks(dy, grid.rows())];
         Some((last.front.shifted(shift[0] as i64, shift[1] as i64), shift))
     }
 
