@@ -532,9 +532,11 @@ impl Decomposition {
         w.iter().copied().fold(0.0, f64::max) / mean
     }
 
-    /// The cost boxes re-weighted by what the leaves measured: a box in leaf `l` (by its
-    /// centre) costs its weight in `boxes` times `(measured_l / leaf_cost_l) / (Σ measured /
-    /// Σ leaf_cost)`, at least [`MEASURED_FLOOR`] of its `estimate` (the parallel boxes of the
+    /// The cost boxes re-weighted by what the leaves measured: a box's part in leaf `l`
+    /// costs its weight in `boxes` times `(measured_l / leaf_cost_l) / (Σ measured /
+    /// Σ leaf_cost)` (the leaf's costs count box parts the same way, so a box across several
+    /// leaves takes each leaf's factor for its part there, and a leaf that holds no box's
+    /// centre is re-weighted too), at least [`MEASURED_FLOOR`] of its `estimate` (the parallel boxes of the
     /// scene's estimate, in the field's units: a floor taken on each re-split's own field had
     /// compounded, so that a leaf off screen for a few re-splits fell far under it and its
     /// worker was handed a huge region), raised to `damping` in (0, 1] so that one noisy
@@ -577,7 +579,11 @@ impl Decomposition {
                     measured.get(l).copied().unwrap_or(f64::NAN),
                     self.leaf_cost[l],
                 );
-                (reported(m) && ok(e) && ok(sm) && ok(se)).then(|| (m / e) / (sm / se))
+                // (Divided so that extreme but finite times cannot overflow to infinity or
+                // vanish: a non-finite ratio is no measurement.)
+                (reported(m) && ok(e) && ok(sm) && ok(se))
+                    .then(|| (m / sm) * (se / e))
+                    .filter(|r| r.is_finite())
             })
             .collect();
         let weight = |b: &CostBox| if ok(b.cost) { b.cost } else { 0.0 };
@@ -599,29 +605,34 @@ impl Decomposition {
             .iter()
             .enumerate()
             .map(|(i, b)| {
-                let c = [0, 1, 2].map(|a| 0.5 * (b.region.lo[a] + b.region.hi[a]));
-                let leaf = self
-                    .tree
-                    .leaves
-                    .iter()
-                    .position(|r| (0..3).all(|a| r.lo[a] <= c[a] && c[a] < r.hi[a]));
-                let factor = match leaf.and_then(|l| ratio[l]) {
-                    Some(r) if ok(b.cost) => {
-                        let est = if parallel {
-                            weight(&estimate[i])
-                        } else {
-                            b.cost
-                        };
-                        let floor = MEASURED_FLOOR * est_to_field * est / b.cost;
-                        r.max(floor).powf(d)
-                    }
-                    // A box without weight stays without; one whose leaf has no ratio
-                    // keeps its weight.
-                    _ => 1.0,
+                // A box without weight stays without.
+                if !ok(b.cost) {
+                    return *b;
+                }
+                let est = if parallel {
+                    weight(&estimate[i])
+                } else {
+                    b.cost
                 };
+                let floor = MEASURED_FLOOR * est_to_field * est / b.cost;
+                // Each leaf's factor over the box's part in it; a part in a leaf without a
+                // ratio, or in none, keeps its weight.
+                let mut inside = 0.0;
+                let mut factor = 0.0;
+                for (l, r) in self.tree.leaves.iter().enumerate() {
+                    let (Some(ratio), f) = (ratio[l], b.fraction_in(r)) else {
+                        continue;
+                    };
+                    if f > 0.0 {
+                        inside += f;
+                        factor += f * ratio.max(floor).powf(d);
+                    }
+                }
+                factor += (1.0 - inside).max(0.0);
+                let cost = b.cost * factor;
                 CostBox {
                     region: b.region,
-                    cost: b.cost * factor,
+                    cost: if cost.is_finite() { cost } else { b.cost },
                 }
             })
             .collect()
@@ -764,6 +775,50 @@ mod tests {
             })
             .collect();
         (root, boxes)
+    }
+
+    /// A box across several leaves takes each leaf's factor for its part there, as the
+    /// leaves' own costs count it: by the box's centre alone, a leaf that held no centre
+    /// was never re-weighted and the measured imbalance could stay for good.
+    #[test]
+    fn reweighting_weighs_each_part_of_a_box_by_its_own_leaf() {
+        // Two bricks, [0, 2) and [2, 4) along x, over 2 workers × 2 leaves of width 1:
+        // each brick's centre lies in the second leaf of its worker.
+        let root = Region {
+            lo: [0.0, 0.0, 0.0],
+            hi: [4.0, 1.0, 1.0],
+        };
+        let brick = |x: f64| CostBox {
+            region: Region {
+                lo: [x, 0.0, 0.0],
+                hi: [x + 2.0, 1.0, 1.0],
+            },
+            cost: 1.0,
+        };
+        let boxes = [brick(0.0), brick(2.0)];
+        let none = [vec![], vec![], vec![]];
+        let d = Decomposition::balanced(root, &boxes, 2, 2, &none);
+        let edges: Vec<f64> = d.tree.leaves.iter().map(|l| l.hi[0]).collect();
+        assert_eq!(edges, [1.0, 2.0, 3.0, 4.0]);
+        // The first leaf took 3 s, the others 1 s each: worker 0 did 4 s against 2.
+        let measured = [3.0, 1.0, 1.0, 1.0];
+        assert!((d.measured_imbalance(&measured) - 4.0 / 3.0).abs() < 1e-12);
+        let w = d.reweighted(&boxes, &boxes, &measured, 1.0);
+        // Ratios 2, 2/3, 2/3, 2/3: the first brick costs (2 + 2/3) / 2, the second 2/3.
+        assert!((w[0].cost - 4.0 / 3.0).abs() < 1e-12, "{w:?}");
+        assert!((w[1].cost - 2.0 / 3.0).abs() < 1e-12, "{w:?}");
+        // So the split in force shows the measured imbalance under the new field.
+        assert!((d.imbalance_under(&w) - 4.0 / 3.0).abs() < 1e-9);
+        // Times at the ends of f64's range (finite, so accepted from a worker): `m / e`
+        // subnormal while `Σm / Σe` underflows to 0 had made the ratio infinite, and the
+        // box's cost with it. Ratios are finite or no measurement.
+        let mut skewed = d.clone();
+        skewed.leaf_cost = vec![100.0, 1e6, 1e6, 1e6];
+        let w = skewed.reweighted(&boxes, &boxes, &[1e-320, 0.0, 0.0, 0.0], 1.0);
+        assert!(
+            w.iter().all(|b| b.cost.is_finite() && b.cost > 0.0),
+            "{w:?}"
+        );
     }
 
     #[test]

@@ -235,7 +235,8 @@ pub struct Rebalance {
     pub after_frame: u64,
     /// Slowest worker's render time over the mean, measured on that frame.
     pub measured_imbalance: f64,
-    /// The same measurement re-weighted onto the new split (what the cost model expects).
+    /// The new split's imbalance under the same measurement, undamped (what the cost model
+    /// expects of it; above 1 where damping corrects only part of the measured one).
     pub expected_imbalance: f64,
     /// What the measured time was divided by: `"pages"` (the pages the rays entered) or
     /// `"leaves"` (each leaf's estimated boxes, one factor per leaf).
@@ -2306,7 +2307,11 @@ impl Cluster {
         // measurement with the costs of the leaves in force, which were computed from the
         // field in force (a field re-weighted again and again under unchanged leaves
         // compounds the correction past the damping).
-        let Some((new, boxes)) = decompose::resplit(
+        let Some(decompose::Resplit {
+            decomposition: new,
+            field: boxes,
+            expected_imbalance,
+        }) = decompose::resplit(
             &self.estimate,
             &self.costs,
             d,
@@ -2317,9 +2322,11 @@ impl Cluster {
             self.opts.rebalance_damping,
             self.slots.len(),
             self.opts.leaves_per_worker,
-        ) else {
-            // The split planes snapped back to the same brick boundaries, damped and not:
-            // nothing to send, and the field in force stays.
+        )
+        else {
+            // The split planes snapped back to the same brick boundaries, damped and not,
+            // or the new split would gain too little: nothing to send, and the field in
+            // force stays.
             debug!(frame, "re-split leaves the regions as they are");
             return None;
         };
@@ -2327,7 +2334,7 @@ impl Cluster {
         let r = Rebalance {
             after_frame: frame,
             measured_imbalance: imbalance,
-            expected_imbalance: new.imbalance(),
+            expected_imbalance,
             model: if by_pages { "pages" } else { "leaves" },
             page_records: if by_pages { work.len() } else { 0 },
             clock,

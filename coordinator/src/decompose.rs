@@ -506,10 +506,21 @@ pub struct Measurement<'a> {
     pub work: &'a [(usize, u64, f32)],
 }
 
+/// A re-split [`resplit`] made.
+pub struct Resplit {
+    /// The new split.
+    pub decomposition: Decomposition,
+    /// The cost field it was balanced on (damped), to keep in force with it.
+    pub field: Vec<CostBox>,
+    /// Its imbalance under the frame's whole (undamped) measurement: what the cost model
+    /// expects of it. Above 1 under damping, which corrects only part of the measured one.
+    pub expected_imbalance: f64,
+}
+
 /// A re-split from a frame's measurement: the cost field in force (`field`, whose
 /// `root` and `planes` are the scene's) re-weighted, damped, and the scene balanced over
-/// `workers × leaves_per_worker` leaves again. Returns the new decomposition and the field
-/// it came from, or `None` when the planes come out where they are.
+/// `workers × leaves_per_worker` leaves again. `None` when the planes come out where they
+/// are, or the new split would gain too little (below).
 ///
 /// A damped field whose planes snap back to the same brick faces is tried once undamped:
 /// an imbalance above the threshold whose damped correction stayed within a brick's
@@ -529,7 +540,7 @@ pub fn resplit(
     damping: f64,
     workers: usize,
     leaves_per_worker: usize,
-) -> Option<(Decomposition, Vec<CostBox>)> {
+) -> Option<Resplit> {
     let reweight = |damping: f64| {
         if m.work.is_empty() {
             d.reweighted(&estimate.boxes, &field.boxes, m.times, damping)
@@ -547,7 +558,14 @@ pub fn resplit(
         let moved = new.tree.leaves != d.tree.leaves || new.owner != d.owner;
         (moved, new)
     };
-    let better = |new: &Decomposition| new.imbalance_under(&full) + MIN_RESPLIT_GAIN <= current;
+    let made = |decomposition: Decomposition, field: Vec<CostBox>| {
+        let expected_imbalance = decomposition.imbalance_under(&full);
+        (expected_imbalance + MIN_RESPLIT_GAIN <= current).then_some(Resplit {
+            decomposition,
+            field,
+            expected_imbalance,
+        })
+    };
     let damped = if damping < 1.0 {
         reweight(damping)
     } else {
@@ -555,15 +573,15 @@ pub fn resplit(
     };
     let (moved, new) = split(&damped);
     if moved {
-        return better(&new).then_some((new, damped));
+        return made(new, damped);
     }
     // Snapped back to the same faces: tried once undamped (not when the damped split moved
     // and gained too little: the noisiest imbalances, near the threshold, would get full
     // corrections).
     if damping < 1.0 {
         let (moved, new) = split(&full);
-        if moved && better(&new) {
-            return Some((new, full));
+        if moved {
+            return made(new, full.clone());
         }
     }
     None
@@ -598,7 +616,9 @@ mod tests {
         let damped = d.reweighted(&field.boxes, &field.boxes, m.times, 0.5);
         let again = Decomposition::balanced(root, &damped, 2, 1, &field.planes);
         assert_eq!(again.tree.leaves, d.tree.leaves);
-        let (new, _) = resplit(&field, &field, &d, &m, 0.5, 2, 1).expect("a new split");
+        let new = resplit(&field, &field, &d, &m, 0.5, 2, 1)
+            .expect("a new split")
+            .decomposition;
         let x = new.tree.leaves[0].hi[0];
         assert!((x - 50.0 / 1.24).abs() < 0.5, "split at {x}");
         // Balanced measurements leave the tree as it is.
@@ -690,7 +710,9 @@ mod tests {
             times: &[left * 2.0, 7.0 - left],
             work: &[],
         };
-        let (new, _) = resplit(&uniform, &uniform, &d, &m, 1.0, 2, 1).expect("a better split");
+        let new = resplit(&uniform, &uniform, &d, &m, 1.0, 2, 1)
+            .expect("a better split")
+            .decomposition;
         assert!(new.tree.leaves[0].hi[0] < other);
     }
 
@@ -708,11 +730,20 @@ mod tests {
             times: &[0.56, 0.44],
             work: &[],
         };
-        let (new, _) = resplit(&field, &field, &d, &m, 0.5, 2, 1).expect("a re-split");
-        let x = new.tree.leaves[0].hi[0];
-        let (l, r) = (1.12f64.sqrt(), 0.88f64.sqrt());
-        let damped = 50.0 * (l + r) / 2.0 / l;
+        let r = resplit(&field, &field, &d, &m, 0.5, 2, 1).expect("a re-split");
+        let x = r.decomposition.tree.leaves[0].hi[0];
+        let (l, rt) = (1.12f64.sqrt(), 0.88f64.sqrt());
+        let damped = 50.0 * (l + rt) / 2.0 / l;
         assert!((x - damped).abs() < 1e-6, "split at {x}, damped {damped}");
+        // What it expects: the whole measurement (left boxes 1.12, right 0.88) over the
+        // damped split leaves the left worker x · 1.12 of a mean 50, not 1 (the damped
+        // field's own balance).
+        let expected = x * 1.12 / 50.0;
+        assert!(
+            (r.expected_imbalance - expected).abs() < 1e-9 && expected > 1.05,
+            "expected {}, not {expected}",
+            r.expected_imbalance
+        );
     }
 
     fn volume_store(dir: &Path, name: &str, dims: [u64; 3], data: Vec<f32>, t: Affine3) -> PathBuf {

@@ -2004,7 +2004,14 @@ impl Node {
                         .filter(|_| !stats.leaf_cpu_s.is_empty());
                     match cpu {
                         Some(c) => stats.leaf_cpu_s[leaf as usize] += c,
-                        None => stats.leaf_cpu_s.clear(),
+                        None => {
+                            // From here on every leaf is in wall time: the page records of
+                            // earlier leaves, in CPU time, would be divided by wall times.
+                            if !stats.leaf_cpu_s.is_empty() {
+                                stats.page_work.clear();
+                            }
+                            stats.leaf_cpu_s.clear()
+                        }
                     }
                     if req.page_work {
                         // Seconds of this cast per page, for now (a re-cast adds its own);
