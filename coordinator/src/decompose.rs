@@ -223,17 +223,24 @@ pub fn reweighted_by_pages(
         }
         attributed[leaf] += share;
     }
-    // Each box's fraction in the measured leaves, and the leaves' unattributed time.
+    // Each box's fraction in the measured leaves (its parts, found down the tree: only
+    // the leaves it may overlap), and the leaves' unattributed time spread by estimate.
     let mut in_timed = vec![0.0; nb];
-    for (l, r) in leaves.iter().enumerate().filter(|&(l, _)| timed(l)) {
-        let fr: Vec<f64> = costs.boxes.iter().map(|b| b.fraction_in(r)).collect();
-        let rest = (1.0 - attributed[l]).max(0.0) * measured[l];
-        let total: f64 = (0..nb).map(|b| estimate(b) * fr[b]).sum();
-        for b in 0..nb {
-            in_timed[b] += fr[b];
-            if rest > 0.0 && ok(total) {
-                secs[b] += rest * estimate(b) * fr[b] / total;
+    let mut parts: Vec<(usize, usize, f64)> = Vec::new();
+    let mut total = vec![0.0f64; leaves.len()];
+    for (b, cb) in costs.boxes.iter().enumerate() {
+        d.tree.parts(cb, |l, f| {
+            if timed(l) {
+                in_timed[b] += f;
+                total[l] += estimate(b) * f;
+                parts.push((b, l, f));
             }
+        });
+    }
+    for (b, l, f) in parts {
+        let rest = (1.0 - attributed[l]).max(0.0) * measured[l];
+        if rest > 0.0 && ok(total[l]) {
+            secs[b] += rest * estimate(b) * f / total[l];
         }
     }
     let current = |b: usize| {
