@@ -271,6 +271,41 @@ fn clip_box(b: &CostBox, r: &Region) -> Option<CostBox> {
     (out.cost > 0.0).then_some(out)
 }
 
+/// Whether `clip_box(b, r)` is `b` itself: every axis inside `r` (a zero-extent one by the
+/// half-open rule). False for a NaN corner.
+fn inside(b: &CostBox, r: &Region) -> bool {
+    (0..3).all(|a| {
+        let (lo, hi) = (b.region.lo[a], b.region.hi[a]);
+        if hi > lo {
+            r.lo[a] <= lo && hi <= r.hi[a]
+        } else {
+            r.lo[a] <= lo && lo < r.hi[a]
+        }
+    })
+}
+
+/// A node's boxes clipped to its two sides, `lo` and `hi`: exactly `clip_box` on each, but
+/// a box wholly on one side is moved there as it is (most are: only those across the plane
+/// are clipped, twice), rather than every box clipped against both sides.
+fn split_boxes(boxes: Vec<CostBox>, lo: &Region, hi: &Region) -> (Vec<CostBox>, Vec<CostBox>) {
+    let (mut blo, mut bhi) = (Vec::new(), Vec::new());
+    for b in boxes {
+        if inside(&b, lo) {
+            if b.cost > 0.0 {
+                blo.push(b);
+            }
+        } else if inside(&b, hi) {
+            if b.cost > 0.0 {
+                bhi.push(b);
+            }
+        } else {
+            blo.extend(clip_box(&b, lo));
+            bhi.extend(clip_box(&b, hi));
+        }
+    }
+    (blo, bhi)
+}
+
 /// Cost of the boxes' parts below `x` on `axis` (all boxes lie inside the node).
 fn cost_below(boxes: &[CostBox], axis: usize, x: f64) -> f64 {
     boxes
@@ -401,9 +436,7 @@ impl Builder {
         };
         let (axis, pos) = self.split_of(&region, &boxes, n_lo as f64 / n as f64);
         let (rlo, rhi) = region.split(axis, pos);
-        let blo: Vec<CostBox> = boxes.iter().filter_map(|b| clip_box(b, &rlo)).collect();
-        let bhi: Vec<CostBox> = boxes.iter().filter_map(|b| clip_box(b, &rhi)).collect();
-        drop(boxes);
+        let (blo, bhi) = split_boxes(boxes, &rlo, &rhi);
         let (lo, hi) = if workers >= 2 {
             (
                 self.node(rlo, blo, first, n_lo, per_worker),
@@ -1436,6 +1469,23 @@ mod tests {
                         prop_assert!(seen[l] <= 1);
                     }
                 }
+            }
+
+            /// A node's boxes split to its sides are `clip_box` on each side, box for box.
+            #[test]
+            fn split_boxes_is_clip_box_on_each_side(
+                r in region(),
+                b in boxes(),
+                axis in 0usize..3,
+                t in 0.0f64..1.0,
+            ) {
+                let boxes = place(&r, &b);
+                let (lo, hi) = r.split(axis, r.lo[axis] + t * (r.hi[axis] - r.lo[axis]));
+                let want = (
+                    boxes.iter().filter_map(|b| clip_box(b, &lo)).collect::<Vec<_>>(),
+                    boxes.iter().filter_map(|b| clip_box(b, &hi)).collect::<Vec<_>>(),
+                );
+                prop_assert_eq!(split_boxes(boxes, &lo, &hi), want);
             }
 
             /// The split's bisection over the boxes that still matter lands where one over
