@@ -687,3 +687,27 @@ fn an_order_that_does_not_fit_the_plan_fails_the_frame() {
         other => panic!("{other:?}"),
     }
 }
+
+/// A frame's result left unread (its driver gave up on the frame between the last round's
+/// sends and reading its events) is not the next frame's: `start_frame` drops the events
+/// of the frame before, which had come out as the next frame's result, and shifted every
+/// later frame's by one.
+#[test]
+fn a_result_left_unread_is_not_the_next_frames() {
+    let t = Instant::now();
+    let frame = |ex: &mut Exchange, n: u64| {
+        let plan = Arc::new(build_plan(1, 4, Algorithm::DirectSend, None).unwrap());
+        let img = PartialImage::empty(2, 2);
+        let rc = RankCompositor::new(plan, 0, &img, &Interlace::new(2, 2, 1, false)).unwrap();
+        ex.start_frame(n, vec![0], rc, WireFormat::F32, t, TIMEOUT);
+    };
+    let mut ex = Exchange::new(0, 1, ExchangeLimits::for_ranks(1, 1 << 20));
+    // One rank: a frame is done as soon as it starts.
+    frame(&mut ex, 0);
+    frame(&mut ex, 1);
+    match ex.poll_event() {
+        Some(ExchangeEvent::Done { frame: 1, .. }) => {}
+        other => panic!("{other:?}"),
+    }
+    assert!(ex.poll_event().is_none());
+}

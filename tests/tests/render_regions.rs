@@ -136,6 +136,12 @@ fn out_of_core_converges_to_the_unlimited_image() {
     );
     let st = e.cache_stats();
     assert!(st.evictions > 0, "the budget forced evictions: {st:?}");
+    // Within the budget at every moment: a round locks no more pages than it holds (64
+    // pages of 128 KiB had been locked at once, eight times `cache_mb`).
+    assert!(
+        st.peak_bytes > 0 && st.peak_bytes <= 1 << 20,
+        "the cache held more than its budget: {st:?}"
+    );
     assert!(
         st.bytes_read > 1 << 20,
         "more than the budget was streamed: {st:?}"

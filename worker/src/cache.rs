@@ -1,7 +1,9 @@
 //! The host page cache: decoded pages of every data set of a worker under one byte budget.
 //!
-//! * Replacement is least-recently-used; pages the current cut still needs are *locked* and
-//!   never evicted.
+//! * Replacement is least-recently-used; the pages of the loading round in progress are
+//!   *locked* (never evicted) until they are copied into the atlas, which keeps its own copy.
+//!   The engine locks no more of them than the budget holds (at least one page), so the
+//!   budget holds at every moment (`CacheStats::peak_bytes`) unless it is below one page.
 //! * Loader threads read and decode pages from a priority queue. Real requests (pages rays
 //!   asked for) always outrank prefetch; within a class, higher priority first.
 //! * Prefetched pages only fill free budget: they never evict anything.
@@ -46,6 +48,8 @@ pub struct CacheStats {
     /// `pages_read` just after the last real request's page was read: what it waited
     /// behind, whatever the loaders read after it.
     pub pages_read_at_last_real: u64,
+    /// The most decoded bytes held at once.
+    pub peak_bytes: u64,
 }
 
 #[derive(PartialEq)]
@@ -412,12 +416,14 @@ fn insert(shared: &Shared, st: &mut State, key: u64, data: PageData, class: Clas
             st.stats.evictions += 1;
         }
         // If locked pages fill the budget the page is still inserted: the cut must be
-        // resident to make progress; the overshoot is bounded by the locked set.
+        // resident to make progress. The engine locks no more than the budget holds (at
+        // least one page), so this overshoots only for a budget below one page.
     }
     st.tick += 1;
     let tick = st.tick;
     st.lru.insert(tick, key);
     st.bytes += size;
+    st.stats.peak_bytes = st.stats.peak_bytes.max(st.bytes);
     st.map.insert(key, Entry { data, tick });
 }
 

@@ -1025,9 +1025,13 @@ impl Engine {
         // This round loads and uploads at most the per-frame budget, most important first
         // (the rest is asked for again by the next frame's feedback). The round's pages are
         // locked in the cache for the length of this update (loaded, then copied into the
-        // atlas), so the locked set, and any overshoot of the cache budget, is bounded by
-        // the upload budget.
+        // atlas), so they must fit the cache's byte budget together: the atlas's room does
+        // not bound them, as the atlas may hold pages in their stored width (u8: a quarter
+        // of the cache's f32), and a cold round of a u8 survey at the defaults had locked
+        // twice `cache_mb`. At least one page a round, whatever the budget.
         let budget = self.settings.upload_pages_per_frame.max(1) as usize;
+        let cache_budget = self.cache.budget();
+        let mut locked = 0u64;
         // Only pages their pool has room for (free slots, or slots of pages this frame does
         // not need): a pool full of needed pages must not take the round's places from the
         // other pool's pages (the round would upload nothing and end the batch as
@@ -1041,11 +1045,17 @@ impl Engine {
             if round.len() >= budget {
                 break;
             }
-            let r = &mut room[!self.is_volume(strata_common::ids::PageId(k).dataset()) as usize];
+            let ds = strata_common::ids::PageId(k).dataset();
+            let r = &mut room[!self.is_volume(ds) as usize];
             if *r == 0 {
                 report.no_slot += 1;
                 continue;
             }
+            let bytes = self.data.pyramid(ds).page_samples() as u64 * 4;
+            if !round.is_empty() && locked + bytes > cache_budget {
+                break;
+            }
+            locked += bytes;
             *r -= 1;
             round.push((k, c));
         }
@@ -1056,9 +1066,12 @@ impl Engine {
             self.cache.request(k, Class::Real, c as f32 / maxc);
         }
         if wait {
-            self.cache
-                .wait_real(LOAD_TIMEOUT)
-                .map_err(|e| anyhow::anyhow!("loading pages: {e}"))?;
+            if let Err(e) = self.cache.wait_real(LOAD_TIMEOUT) {
+                // Unlocked on the way out too: the round's pages would otherwise stay
+                // unevictable until the next update.
+                self.cache.set_locked(std::iter::empty());
+                anyhow::bail!("loading pages: {e}");
+            }
         }
         for &(k, _) in &round {
             if report.uploaded >= budget {

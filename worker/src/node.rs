@@ -1120,6 +1120,7 @@ impl Node {
             bytes_read: a.bytes_read.saturating_add(b.bytes_read),
             prefetch_dropped: a.prefetch_dropped.saturating_add(b.prefetch_dropped),
             pages_read_at_last_real: a.pages_read_at_last_real.saturating_add(b.pages_read),
+            peak_bytes: a.peak_bytes.max(b.peak_bytes),
         }
     }
 

@@ -417,6 +417,9 @@ impl Exchange {
     ) {
         self.stats = ExchangeStats::default();
         self.sends.clear();
+        // The events of a frame the driver gave up on: its result must not come out as
+        // this frame's.
+        self.events.clear();
         if let Some(sink) = self.sink.as_mut() {
             sink.start_frame(frame);
         }
