@@ -14,7 +14,7 @@
 //! receiver, over it, its process id, the segment's descriptor and the segment's random
 //! 128-bit name. The receiver opens `/proc/<pid>/fd/<fd>` (the kernel lets only the same
 //! user do so), and keeps it only if the descriptor it got names exactly that memory
-//! file, belongs to this user, and carries the seals below.
+//! file, belongs to this user, and is sealed against shrinking (below).
 //!
 //! **Why a mapping is safe to read.** A mapped file that shrinks under its reader turns
 //! reads past the new end into `SIGBUS`. The sender seals the segment against shrinking
@@ -304,10 +304,12 @@ impl ShmWriter {
         let map = self.map.as_mut().expect("reserved");
         map[at.offset as usize..start as usize]
             .copy_from_slice(&encode_shm_record(frame, round, from, len));
-        // The header before the payload, for every reader: one still reading an older
-        // record here (a failed frame's, announced before this one) that finds its payload
-        // changed then also finds the header changed, and knows the record stale
-        // ([`ShmReader::read_piece`]).
+        // The header before the payload. A reader checks a record's header when it reads
+        // the piece, and again when the piece does not parse ([`ShmReader::read_piece`]),
+        // but blends its pixels later, from the mapping: a record rewritten after that
+        // (only a failed frame's, announced before this one, whose output is thrown away)
+        // is not detected. No finished frame's record is rewritten while a reader may
+        // still use it: a frame completes only once every rank has blended its pieces.
         std::sync::atomic::fence(std::sync::atomic::Ordering::Release);
         fill(&mut map[start as usize..end as usize]);
         self.cursor = end.next_multiple_of(ALIGN);

@@ -47,8 +47,10 @@ use crate::wire::ShmRef;
 
 /// Where a driver puts outgoing pieces without an intermediate buffer.
 pub trait PieceSink: Send {
-    /// A frame starts: the pieces of the last one have all been used by their receivers
-    /// (a frame completes only once every rank has blended all its pieces).
+    /// A frame starts. After a frame that completed, its pieces have all been used by
+    /// their receivers (a frame completes only once every rank has blended all its
+    /// pieces); after one that failed, a receiver may still be reading one, and the frame's
+    /// output is thrown away.
     fn start_frame(&mut self, frame: u64);
 
     /// Encodes the piece of the pixels `segments` stand for (covering `span`, run lengths

@@ -239,7 +239,7 @@ impl PageStore {
                             at + 8,
                             format!(
                                 "payload inside the data section {PREAMBLE_LEN}..{}",
-                                pre.header_offset
+                                pre.header_offset.min(pre.index_offset)
                             ),
                             format!("bytes {}..{end}", e.offset),
                         ));
