@@ -310,18 +310,21 @@ fn split_boxes(boxes: Vec<CostBox>, lo: &Region, hi: &Region) -> (Vec<CostBox>, 
 fn cost_below(boxes: &[CostBox], axis: usize, x: f64) -> f64 {
     boxes
         .iter()
-        .map(|b| {
-            let (lo, hi) = (b.region.lo[axis], b.region.hi[axis]);
-            let ext = hi - lo;
-            if ext > 0.0 {
-                b.cost * ((x - lo) / ext).clamp(0.0, 1.0)
-            } else if lo < x {
-                b.cost
-            } else {
-                0.0
-            }
-        })
+        .map(|b| part_below(b.region.lo[axis], b.region.hi[axis], b.cost, x))
         .sum()
+}
+
+/// The part below `x` of a box's `cost` that spans `[lo, hi]` on the axis: in proportion
+/// to its extent, or all of it when it is flat and lies below `x`.
+fn part_below(lo: f64, hi: f64, cost: f64, x: f64) -> f64 {
+    let ext = hi - lo;
+    if ext > 0.0 {
+        cost * ((x - lo) / ext).clamp(0.0, 1.0)
+    } else if lo < x {
+        cost
+    } else {
+        0.0
+    }
 }
 
 /// Smallest `x` in `[lo, hi]` (to float resolution) with `cost_below(x) >= want`, or the
@@ -344,16 +347,7 @@ fn balanced_position(boxes: &[CostBox], axis: usize, lo: f64, hi: f64, want: f64
         below
             + live
                 .iter()
-                .map(|&(l, h, c)| {
-                    let ext = h - l;
-                    if ext > 0.0 {
-                        c * ((x - l) / ext).clamp(0.0, 1.0)
-                    } else if l < x {
-                        c
-                    } else {
-                        0.0
-                    }
-                })
+                .map(|&(l, h, c)| part_below(l, h, c, x))
                 .sum::<f64>()
     };
     let (mut a, mut b) = (lo, hi);

@@ -163,6 +163,12 @@ impl PageCache {
         self.shared.budget
     }
 
+    /// The bytes page `key` takes here once decoded (what it counts against the budget;
+    /// 0 for an unknown data set).
+    pub fn page_bytes(&self, key: u64) -> u64 {
+        page_bytes_of(&self.shared.stores, key)
+    }
+
     /// Loader threads still running (all of them until the cache drops, unless one panicked
     /// outside a page's read: a bug this lets tests see).
     #[doc(hidden)]

@@ -1051,7 +1051,7 @@ impl Engine {
                 report.no_slot += 1;
                 continue;
             }
-            let bytes = self.data.pyramid(ds).page_samples() as u64 * 4;
+            let bytes = self.cache.page_bytes(k);
             if !round.is_empty() && locked + bytes > cache_budget {
                 break;
             }
